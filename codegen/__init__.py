@@ -1,0 +1,1 @@
+"""Code generation (CasADi) from the one vehicle model in train.model."""
