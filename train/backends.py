@@ -58,6 +58,14 @@ def casadi_symbols() -> tuple[Any, Any, Any]:
     return ca.SX.sym("x", N_STATE), ca.SX.sym("u", N_INPUT), ca.SX.sym("c", N_COEFF)
 
 
+def casadi_derivatives_expr(x, u, c, p: KnownParams):
+    """Symbolic continuous-time derivative (CasADi SX column)."""
+    import casadi as ca
+
+    split = lambda v, n: tuple(v[i] for i in range(n))  # noqa: E731
+    return ca.vertcat(*derivatives(mathns.get("casadi"), split(x, N_STATE), split(u, N_INPUT), split(c, N_COEFF), p))
+
+
 def casadi_step_expr(x, u, c, p: KnownParams, dt: float, method: str, substeps: int):
     """Symbolic next state (CasADi SX column) from symbols x (8), u (2), c (17)."""
     import casadi as ca

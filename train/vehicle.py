@@ -25,6 +25,7 @@ class Vehicle:
     name: str
     sample_time: float
     rk4_substeps: int
+    max_speed: float
     known: KnownParams
     ranges: dict[str, tuple[float, float]]
     true_coefficients: dict[str, float] | None
@@ -83,6 +84,7 @@ def load(name_or_path: str | Path) -> Vehicle:
             name=str(raw["name"]),
             sample_time=float(raw["sample_time"]),
             rk4_substeps=int(raw.get("rk4_substeps", 1)),
+            max_speed=float(raw["max_speed"]),
             known=known,
             ranges=ranges,
             true_coefficients=true,

@@ -1,0 +1,84 @@
+/*
+ * ddyn/model.h - the vehicle model on the car: one discrete step and its Jacobians.
+ *
+ * The equations are not written here: they are generated from the one Python
+ * definition (train/model.py) by `ddyn codegen` into c_src/generated/. This
+ * module wraps the generated functions behind a small API with input checks and
+ * caller-owned, fixed-size work memory (no allocation, C99).
+ *
+ * Layout: state x[8] = x, y, yaw, vx, vy, omega, throttle, steering;
+ * input u[2] = dthrottle, dsteering; coefficients c[17] = Bf Cf Df Ef Gf Kf
+ * Br Cr Dr Er Gr Kr Cm1 Cm2 Cr0 Cd Iz. Jacobians are dense column-major:
+ * A[8*8] = dx+/dx, B[8*2] = dx+/du, P[8*17] = dx+/dc (element (i, j) at [j*8 + i]).
+ */
+#ifndef DDYN_MODEL_H
+#define DDYN_MODEL_H
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define DDYN_NX 8
+#define DDYN_NU 2
+#define DDYN_NC 17
+
+typedef enum {
+    DDYN_OK = 0,
+    DDYN_ERR_ARGUMENT = 1,          /* null pointer or unknown discretisation */
+    DDYN_ERR_NONFINITE_INPUT = 2,   /* NaN or inf in x, u or c: nothing computed */
+    DDYN_ERR_NONFINITE_OUTPUT = 3,  /* the model produced NaN or inf (e.g. Iz = 0) */
+    DDYN_ERR_EVALUATION = 4         /* the generated function reported failure */
+} ddyn_status;
+
+typedef enum { DDYN_DISC_EULER = 0, DDYN_DISC_RK4 = 1, DDYN_DISC_COUNT = 2 } ddyn_discretisation;
+
+/* The CasADi calling convention: f(arg, res, iw, w, mem). */
+typedef int (*ddyn_casadi_fn)(const double **arg, double **res, int *iw, double *w, int mem);
+
+/* A generated vehicle model (instances are in the generated ddyn_models.c). */
+typedef struct {
+    const char *name;
+    double sample_time;             /* s */
+    int rk4_substeps;
+    double known[4];                /* mass (kg), lf (m), lr (m), v_min (m/s) */
+    const char *vehicle_sha256;     /* hash of the vehicle file it was generated from */
+    ddyn_casadi_fn step[DDYN_DISC_COUNT];
+    ddyn_casadi_fn step_jac[DDYN_DISC_COUNT];
+    ddyn_casadi_fn deriv;
+} ddyn_vehicle_model;
+
+#include "ddyn_models.h" /* generated: DDYN_MODEL_MAX_SZ_W, DDYN_MODEL_MAX_SZ_IW, the model table */
+
+/* Work memory for any generated model function; owned by the caller, reusable. */
+typedef struct {
+    double w[DDYN_MODEL_MAX_SZ_W];
+    int iw[DDYN_MODEL_MAX_SZ_IW];
+} ddyn_model_work;
+
+/* The generated model of the named vehicle, or NULL. */
+const ddyn_vehicle_model *ddyn_model_find(const char *name);
+
+/* x_next = step(x, u, c) over one sample time. On error x_next is left unchanged. */
+ddyn_status ddyn_model_step(const ddyn_vehicle_model *model, ddyn_discretisation disc,
+                            const double x[DDYN_NX], const double u[DDYN_NU], const double c[DDYN_NC],
+                            double x_next[DDYN_NX], ddyn_model_work *work);
+
+/* Jacobians of the step (any of A, B, P may be NULL when not wanted). */
+ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_discretisation disc,
+                                      const double x[DDYN_NX], const double u[DDYN_NU],
+                                      const double c[DDYN_NC], double A[DDYN_NX * DDYN_NX],
+                                      double B[DDYN_NX * DDYN_NU], double P[DDYN_NX * DDYN_NC],
+                                      ddyn_model_work *work);
+
+/* Continuous-time derivative xdot = f(x, u, c). */
+ddyn_status ddyn_model_derivatives(const ddyn_vehicle_model *model, const double x[DDYN_NX],
+                                   const double u[DDYN_NU], const double c[DDYN_NC], double xdot[DDYN_NX],
+                                   ddyn_model_work *work);
+
+const char *ddyn_status_name(ddyn_status status);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* DDYN_MODEL_H */

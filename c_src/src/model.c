@@ -1,0 +1,150 @@
+/* ddyn model wrapper: input checks and fixed-size work memory around the generated model. */
+#include "ddyn/model.h"
+
+#include <math.h>
+#include <stddef.h>
+#include <string.h>
+
+static int all_finite(const double *v, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        if (!isfinite(v[i])) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static ddyn_status check_args(const ddyn_vehicle_model *model, const double *x, const double *u, const double *c,
+                              const ddyn_model_work *work)
+{
+    if (model == NULL || x == NULL || u == NULL || c == NULL || work == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    if (!all_finite(x, DDYN_NX) || !all_finite(u, DDYN_NU) || !all_finite(c, DDYN_NC)) {
+        return DDYN_ERR_NONFINITE_INPUT;
+    }
+    return DDYN_OK;
+}
+
+/* Evaluate a generated function with up to three outputs into scratch space, then
+ * copy the outputs only if all are finite, so a failed call leaves results untouched. */
+static ddyn_status evaluate(ddyn_casadi_fn fn, const double *x, const double *u, const double *c, double *const out[3],
+                            const int out_len[3], ddyn_model_work *work)
+{
+    double scratch[DDYN_NX * (DDYN_NX + DDYN_NU + DDYN_NC)];
+    double *res[3];
+    const double *arg[3];
+    int offset = 0;
+    int k;
+    arg[0] = x;
+    arg[1] = u;
+    arg[2] = c;
+    for (k = 0; k < 3; ++k) {
+        res[k] = out_len[k] > 0 ? scratch + offset : NULL;
+        offset += out_len[k];
+    }
+    if (fn(arg, res, work->iw, work->w, 0) != 0) {
+        return DDYN_ERR_EVALUATION;
+    }
+    if (!all_finite(scratch, offset)) {
+        return DDYN_ERR_NONFINITE_OUTPUT;
+    }
+    offset = 0;
+    for (k = 0; k < 3; ++k) {
+        if (out[k] != NULL && out_len[k] > 0) {
+            memcpy(out[k], scratch + offset, (size_t)out_len[k] * sizeof(double));
+        }
+        offset += out_len[k];
+    }
+    return DDYN_OK;
+}
+
+const ddyn_vehicle_model *ddyn_model_find(const char *name)
+{
+    int i;
+    if (name == NULL) {
+        return NULL;
+    }
+    for (i = 0; i < DDYN_MODEL_COUNT; ++i) {
+        if (strcmp(ddyn_models[i]->name, name) == 0) {
+            return ddyn_models[i];
+        }
+    }
+    return NULL;
+}
+
+ddyn_status ddyn_model_step(const ddyn_vehicle_model *model, ddyn_discretisation disc, const double x[DDYN_NX],
+                            const double u[DDYN_NU], const double c[DDYN_NC], double x_next[DDYN_NX],
+                            ddyn_model_work *work)
+{
+    double *out[3];
+    const int len[3] = {DDYN_NX, 0, 0};
+    ddyn_status s = check_args(model, x, u, c, work);
+    if (s != DDYN_OK) {
+        return s;
+    }
+    if (x_next == NULL || (int)disc < 0 || disc >= DDYN_DISC_COUNT) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    out[0] = x_next;
+    out[1] = NULL;
+    out[2] = NULL;
+    return evaluate(model->step[disc], x, u, c, out, len, work);
+}
+
+ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_discretisation disc,
+                                      const double x[DDYN_NX], const double u[DDYN_NU], const double c[DDYN_NC],
+                                      double A[DDYN_NX * DDYN_NX], double B[DDYN_NX * DDYN_NU],
+                                      double P[DDYN_NX * DDYN_NC], ddyn_model_work *work)
+{
+    double *out[3];
+    const int len[3] = {DDYN_NX * DDYN_NX, DDYN_NX * DDYN_NU, DDYN_NX * DDYN_NC};
+    ddyn_status s = check_args(model, x, u, c, work);
+    if (s != DDYN_OK) {
+        return s;
+    }
+    if ((int)disc < 0 || disc >= DDYN_DISC_COUNT) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    out[0] = A;
+    out[1] = B;
+    out[2] = P;
+    return evaluate(model->step_jac[disc], x, u, c, out, len, work);
+}
+
+ddyn_status ddyn_model_derivatives(const ddyn_vehicle_model *model, const double x[DDYN_NX], const double u[DDYN_NU],
+                                   const double c[DDYN_NC], double xdot[DDYN_NX], ddyn_model_work *work)
+{
+    double *out[3];
+    const int len[3] = {DDYN_NX, 0, 0};
+    ddyn_status s = check_args(model, x, u, c, work);
+    if (s != DDYN_OK) {
+        return s;
+    }
+    if (xdot == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    out[0] = xdot;
+    out[1] = NULL;
+    out[2] = NULL;
+    return evaluate(model->deriv, x, u, c, out, len, work);
+}
+
+const char *ddyn_status_name(ddyn_status status)
+{
+    switch (status) {
+    case DDYN_OK:
+        return "DDYN_OK";
+    case DDYN_ERR_ARGUMENT:
+        return "DDYN_ERR_ARGUMENT";
+    case DDYN_ERR_NONFINITE_INPUT:
+        return "DDYN_ERR_NONFINITE_INPUT";
+    case DDYN_ERR_NONFINITE_OUTPUT:
+        return "DDYN_ERR_NONFINITE_OUTPUT";
+    case DDYN_ERR_EVALUATION:
+        return "DDYN_ERR_EVALUATION";
+    }
+    return "DDYN_ERR_UNKNOWN";
+}
