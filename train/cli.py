@@ -18,6 +18,7 @@ SUBCOMMAND_MODULES = (
     "train.importers",
     "codegen.generate",
     "train.crosscheck",
+    "train.fidelity",
 )
 
 

@@ -1,16 +1,11 @@
 """Shared fixtures: where the shared reference data lives."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
-
-
-def shared_data_dir() -> Path:
-    return Path(os.environ.get("DDYN_SHARED_DATA", REPO.parent / "shared" / "data"))
+from train.paths import shared_data_dir
 
 
 @pytest.fixture

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from train import backends, vehicle
+from train import backends, fidelity, vehicle
 from train.model import N_STATE
 from train.sampling import random_cases
 
@@ -13,31 +13,11 @@ N_CASES = 4000
 RTOL = 1e-12
 
 
-def _assert_agree(a: np.ndarray, b: np.ndarray, what: str):
-    # relative to each channel's magnitude across the batch, so near-zero elements of a
-    # channel are judged on the channel's scale, not their own
-    scale = np.maximum(np.abs(b).max(axis=0), 1e-300)
-    err = np.abs(a - b) / scale
-    worst = np.unravel_index(np.argmax(err), err.shape)
-    assert err.max() <= RTOL, f"{what}: relative difference {err.max():.2e} at case {worst[0]}, channel {worst[1]}"
-
-
 @pytest.mark.parametrize("name", ["orca_1_43", "av21"])
 @pytest.mark.parametrize("method", ["euler", "rk4"])
 def test_numpy_torch_casadi_agree(name, method):
-    v = vehicle.load(name)
-    x, u, c = random_cases(v, N_CASES, np.random.default_rng(7))
-    substeps = v.rk4_substeps if method == "rk4" else 1
-    ref = backends.step_numpy(x, u, c, v.known, v.sample_time, method, substeps)
-    assert np.all(np.isfinite(ref))
-
-    t = backends.step_torch(*(torch.tensor(a, dtype=torch.float64) for a in (x, u, c)),
-                            v.known, v.sample_time, method, substeps).numpy()
-    _assert_agree(t, ref, f"torch vs numpy ({name}, {method})")
-
-    f = backends.casadi_step_function(v.known, v.sample_time, method, substeps).map(N_CASES)
-    cas = np.asarray(f(x.T, u.T, c.T)).T
-    _assert_agree(cas, ref, f"casadi vs numpy ({name}, {method})")
+    diff = fidelity.backend_agreement(name, method, N_CASES)
+    assert diff["torch"] <= RTOL and diff["casadi"] <= RTOL, diff
 
 
 def test_low_speed_is_defined_and_continuous():

@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# Idempotent set-up: system packages with apt (only those missing), then the pinned
+# Python environment in .venv (reinstalled only when requirements.lock or pyproject.toml change).
+# Sourced by scripts/main.sh and scripts/test.sh; safe to run on its own.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+
+missing=()
+command -v cmake >/dev/null || missing+=(cmake)
+command -v cc >/dev/null || missing+=(gcc)
+command -v c++ >/dev/null || missing+=(g++)
+command -v make >/dev/null || missing+=(make)
+command -v pkg-config >/dev/null || missing+=(pkg-config)
+dpkg -s libcmocka-dev >/dev/null 2>&1 || missing+=(libcmocka-dev)
+dpkg -s libeigen3-dev >/dev/null 2>&1 || missing+=(libeigen3-dev)
+python3 -c 'import venv, ensurepip' >/dev/null 2>&1 || missing+=(python3-venv)
+if ((${#missing[@]})); then
+  echo "setup: installing system packages: ${missing[*]}"
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+fi
+
+PY="${DDYN_PYTHON:-python3}"
+if ! "$PY" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+  echo "setup: warning: $("$PY" --version) found; the pinned torch 2.13.0 CPU build on these machines is for Python 3.11" >&2
+fi
+if [ ! -x "$ROOT/.venv/bin/python" ]; then
+  echo "setup: creating $ROOT/.venv"
+  "$PY" -m venv "$ROOT/.venv"
+fi
+stamp="$(cat "$ROOT/requirements.lock" "$ROOT/pyproject.toml" | sha256sum | cut -d' ' -f1)"
+if [ "$(cat "$ROOT/.venv/.ddyn-installed" 2>/dev/null)" != "$stamp" ]; then
+  echo "setup: installing pinned Python packages (requirements.lock)"
+  "$ROOT/.venv/bin/pip" install -q --disable-pip-version-check -r "$ROOT/requirements.lock" 2> >(grep -v "is ignored: it is neither" >&2)
+  "$ROOT/.venv/bin/pip" install -q --disable-pip-version-check --no-deps -e "$ROOT" 2> >(grep -v "is ignored: it is neither" >&2)
+  echo "$stamp" > "$ROOT/.venv/.ddyn-installed"
+fi
+export PATH="$ROOT/.venv/bin:$PATH"
