@@ -91,22 +91,26 @@ def forces(ns: MathNamespace, state: Sequence, coeffs: Sequence, p: KnownParams)
     return Forces(alpha_f, alpha_r, Ffy, Fry, Frx)
 
 
-def derivatives(ns: MathNamespace, state: Sequence, inputs: Sequence, coeffs: Sequence,
-                p: KnownParams) -> tuple:
-    """Continuous-time state derivative (8 components) of the single-track model."""
+def rigid_body(ns: MathNamespace, state: Sequence, inputs: Sequence, Ffy, Fry, Frx, Iz, p: KnownParams) -> tuple:
+    """State derivative given the axle forces: the single-track rigid body and the input integrators."""
     _, _, yaw, vx, vy, omega, _, delta = state
     dT, ddelta = inputs
-    Iz = coeffs[16]
-    f = forces(ns, state, coeffs, p)
     cos_yaw, sin_yaw = ns.cos(yaw), ns.sin(yaw)
     cos_d, sin_d = ns.cos(delta), ns.sin(delta)
     return (
         vx * cos_yaw - vy * sin_yaw,
         vx * sin_yaw + vy * cos_yaw,
         omega,
-        (f.Frx - f.Ffy * sin_d) / p.mass + vy * omega,
-        (f.Fry + f.Ffy * cos_d) / p.mass - vx * omega,
-        (f.Ffy * p.lf * cos_d - f.Fry * p.lr) / Iz,
+        (Frx - Ffy * sin_d) / p.mass + vy * omega,
+        (Fry + Ffy * cos_d) / p.mass - vx * omega,
+        (Ffy * p.lf * cos_d - Fry * p.lr) / Iz,
         dT,
         ddelta,
     )
+
+
+def derivatives(ns: MathNamespace, state: Sequence, inputs: Sequence, coeffs: Sequence,
+                p: KnownParams) -> tuple:
+    """Continuous-time state derivative (8 components) of the single-track model."""
+    f = forces(ns, state, coeffs, p)
+    return rigid_body(ns, state, inputs, f.Ffy, f.Fry, f.Frx, coeffs[16], p)
