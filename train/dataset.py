@@ -72,8 +72,9 @@ class Dataset:
         """Indices k whose successor k+1 is in the same segment (one-step training pairs)."""
         return np.flatnonzero(self.segment[1:] == self.segment[:-1])
 
-    def subset(self, index: np.ndarray) -> "Dataset":
-        index = np.asarray(index)
+    def subset(self, index: "np.ndarray | slice") -> "Dataset":
+        if not isinstance(index, slice):
+            index = np.asarray(index)
         return Dataset(self.time[index], self.segment[index], self.states[index], self.inputs[index],
                        self.sample_time, self.vehicle, self.source,
                        {k: v[index] for k, v in self.extras.items()}, dict(self.metadata))

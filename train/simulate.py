@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import sys
 from dataclasses import dataclass
@@ -358,6 +359,8 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
         "grip": repr(settings.grip), "track": track.name, "track_length": repr(L),
         "laps": str(int(math.floor(completed + 1e-9))), "progress_laps": f"{completed:.6f}",
         "duration": repr(float((k - 1) * Ts)), "vehicle_digest": vehicle.digest,
+        # the plant's coefficients (COEFF_NAMES order): the ground truth evaluation compares estimates with
+        "plant_coefficients": json.dumps([float(c) for c in coeffs]),
     }
     return Dataset(time=time, segment=np.zeros(k, dtype=np.int64), states=states, inputs=inputs,
                    sample_time=Ts, vehicle=vehicle.name, source=src, extras=extras, metadata=metadata)

@@ -26,6 +26,7 @@ class Vehicle:
     sample_time: float
     rk4_substeps: int
     max_speed: float
+    evaluation_horizon: float      # s: horizon of the ADE/FDE multi-step metrics
     known: KnownParams
     ranges: dict[str, tuple[float, float]]
     true_coefficients: dict[str, float] | None
@@ -36,6 +37,7 @@ class Vehicle:
     description: str = ""
     sources: dict[str, str] = field(default_factory=dict)
     source_path: str = ""
+    raw_json: str = ""
     digest: str = ""
 
     def true_vector(self) -> np.ndarray:
@@ -68,10 +70,15 @@ def load(name_or_path: str | Path) -> Vehicle:
         path = VEHICLE_DIR / f"{name_or_path}.json"
     if not path.is_file():
         raise DdynError(f"vehicle {str(name_or_path)!r} not found (known: {', '.join(available())})")
-    raw_bytes = path.read_bytes()
+    return parse(path.read_bytes(), str(path))
+
+
+def parse(raw_bytes: bytes, origin: str) -> Vehicle:
+    """A vehicle from the bytes of a vehicle file (origin names it in errors), e.g. one embedded in a checkpoint."""
+    path = origin
     try:
         raw = json.loads(raw_bytes)
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DdynError(f"{path}: not valid JSON: {e}") from None
     try:
         known = KnownParams(**{k: float(raw["known"][k]) for k in KnownParams._fields})
@@ -85,6 +92,8 @@ def load(name_or_path: str | Path) -> Vehicle:
             sample_time=float(raw["sample_time"]),
             rk4_substeps=int(raw.get("rk4_substeps", 1)),
             max_speed=float(raw["max_speed"]),
+            evaluation_horizon=float(raw["evaluation_horizon"]),
+            raw_json=raw_bytes.decode(),
             known=known,
             ranges=ranges,
             true_coefficients=true,
@@ -93,7 +102,7 @@ def load(name_or_path: str | Path) -> Vehicle:
             sensor_noise_std={k: float(v) for k, v in raw.get("sensor_noise_std", {}).items()},
             description=str(raw.get("description", "")),
             sources=dict(raw.get("sources", {})),
-            source_path=str(path),
+            source_path=path,
             digest=hashlib.sha256(raw_bytes).hexdigest(),
         )
     except KeyError as e:
