@@ -19,6 +19,8 @@ SUBCOMMAND_MODULES = (
     "codegen.generate",
     "train.crosscheck",
     "train.fidelity",
+    "train.train_cmd",
+    "train.evaluate",
 )
 
 
