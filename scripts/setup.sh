@@ -14,6 +14,8 @@ command -v pkg-config >/dev/null || missing+=(pkg-config)
 dpkg -s libcmocka-dev >/dev/null 2>&1 || missing+=(libcmocka-dev)
 dpkg -s libeigen3-dev >/dev/null 2>&1 || missing+=(libeigen3-dev)
 python3 -c 'import venv, ensurepip' >/dev/null 2>&1 || missing+=(python3-venv)
+# PostgreSQL server binaries (/usr/lib/postgresql/<ver>/bin): the shared-study test of ddyn tune starts a throwaway one
+dpkg -s postgresql >/dev/null 2>&1 || missing+=(postgresql)
 if ((${#missing[@]})); then
   echo "setup: installing system packages: ${missing[*]}"
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
