@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The main job, end to end, on embedded defaults (the README's first command):
-# set up, simulate and import datasets, generate the model's C code, build it,
-# and check the C model against the Python model on every simulated and real row.
+# set up, simulate and import datasets, train a Deep Dynamics model and evaluate it
+# on another track, generate the model's C code, build it, and check the C model
+# against the Python model on every simulated and real row.
 # Outputs go to out/ (override with DDYN_OUT). Idempotent.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -13,9 +14,14 @@ mkdir -p "$OUT"
 
 step() { printf '\n== %s\n' "$*"; }
 
-step "simulate: 1:43 ORCA car, 2 laps of ETHZ (Euler) and of ETHZMobil (RK4, with sensor noise)"
-ddyn simulate --vehicle orca_1_43 --track ethz --laps 2 --seed 1 -o "$OUT/orca_ethz_euler.csv"
+step "simulate: 1:43 ORCA car, 3 laps of ETHZ and 2 of ETHZMobil (Euler), 2 of ETHZMobil (RK4, sensor noise)"
+ddyn simulate --vehicle orca_1_43 --track ethz --laps 3 --seed 1 -o "$OUT/orca_ethz_euler.csv"
+ddyn simulate --vehicle orca_1_43 --track ethzMobil --laps 2 --seed 2 -o "$OUT/orca_ethzMobil_euler.csv"
 ddyn simulate --vehicle orca_1_43 --track ethzMobil --laps 2 --method rk4 --noise 1 --seed 2 -o "$OUT/orca_ethzMobil_rk4_noisy.csv"
+
+step "train: Deep Dynamics model on ETHZ; evaluate on ETHZMobil (plots in $OUT/evaluate)"
+ddyn train --data "$OUT/orca_ethz_euler.csv" -o "$OUT/ddm_orca.ckpt" --quiet
+ddyn evaluate --model "$OUT/ddm_orca.ckpt" --data "$OUT/orca_ethzMobil_euler.csv" --out "$OUT/evaluate"
 
 step "import: the papers' simulated set and the real Indy car log"
 ddyn import "$SHARED/reference/DYN-PP-ETHZ.npz" -o "$OUT/dyn_pp_ethz.csv"

@@ -21,6 +21,7 @@ SUBCOMMAND_MODULES = (
     "train.fidelity",
     "train.train_cmd",
     "train.evaluate",
+    "train.study",
     "train.tune",
 )
 

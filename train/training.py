@@ -26,17 +26,19 @@ from .windows import Windows, split_train_validation
 @dataclass
 class TrainConfig:
     kind: str = "ddm"              # "ddm" or "dpm"
-    tau: int = 5                   # history length (rows)
-    hidden: int = 64               # width of GRU and dense layers
+    tau: int = 1                   # history length (rows)
+    hidden: int = 32               # width of GRU and dense layers
     layers: int = 2                # dense layers (Mish) before the head
     gru_layers: int = 0            # GRU layers before the dense ones (0: flattened history)
     lr: float = 3e-3
     batch_size: int = 256
-    epochs: int = 400
+    epochs: int = 100
     val_fraction: float = 0.2
     seed: int = 0
     method: str = "euler"          # discretisation of the physics step
-    lbfgs_iterations: int = 0      # full-batch L-BFGS iterations after Adam (polishes a near-exact fit)
+    weight_decay: float = 1e-7     # L2 penalty on weights (not biases): favours coefficients that vary
+                                   # only as much as the data demand
+    lbfgs_iterations: int = 4000     # full-batch L-BFGS iterations after Adam (polishes a near-exact fit)
     dpm_iz_scale: float = 1.0      # DPM only: Iz given as truth times this (1.2, 0.8 for the +-20 % variants)
     dtype: str = "float64"
 
@@ -84,6 +86,12 @@ def loss_fn(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> to
     return (((pred[:, 3:6] - target) / scale) ** 2).mean()
 
 
+def weight_penalty(model: torch.nn.Module, weight_decay: float) -> torch.Tensor | float:
+    if weight_decay <= 0:
+        return 0.0
+    return weight_decay * sum((p ** 2).sum() for name, p in model.named_parameters() if "weight" in name)
+
+
 def _batch_tensors(w: Windows, dtype):
     return tuple(_tensor(a, dtype) for a in (w.history, w.state, w.inputs, w.target))
 
@@ -128,7 +136,7 @@ def train(ds: Dataset, vehicle: Vehicle, cfg: TrainConfig, progress: bool = True
         for i in range(0, len(tr), cfg.batch_size):
             b = order[i:i + cfg.batch_size]
             pred, _ = model(h_all[b], s_all[b], u_all[b])
-            loss = loss_fn(pred, t_all[b], scale)
+            loss = loss_fn(pred, t_all[b], scale) + weight_penalty(model, cfg.weight_decay)
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -155,7 +163,7 @@ def _polish_lbfgs(model, cfg: TrainConfig, batch, va: Windows, scale, best, log,
 
     def closure():
         opt.zero_grad()
-        loss = loss_fn(model(h, s, u)[0], t, scale)
+        loss = loss_fn(model(h, s, u)[0], t, scale) + weight_penalty(model, cfg.weight_decay)
         loss.backward()
         return loss
 

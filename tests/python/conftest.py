@@ -8,7 +8,7 @@ import pytest
 from train.paths import shared_data_dir
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def shared_data() -> Path:
     """The shared data folder; a test that needs it is skipped loudly when it is absent."""
     d = shared_data_dir()

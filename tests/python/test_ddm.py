@@ -1,0 +1,170 @@
+"""DDM / DPM: windows and splits, the guard, training, checkpoints, evaluation (tiny models, short logs)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from train import checkpoint, simulate, tracks, vehicle
+from train.cli import main as cli_main
+from train.dataset import Dataset, write_canonical
+from train.errors import DdynError
+from train.evaluate import evaluate
+from train.training import TrainConfig, build_model, train
+from train.windows import make_windows, split_train_validation
+
+TINY = dict(epochs=3, lbfgs_iterations=20, hidden=16, batch_size=128)
+
+
+@pytest.fixture(scope="module")
+def orca():
+    return vehicle.load("orca_1_43")
+
+
+@pytest.fixture(scope="module")
+def lap(orca, shared_data):
+    return simulate.simulate(orca, tracks.load_track("ethz"), laps=1, seed=3, progress=False)
+
+
+def _result(ds, v, **over):
+    return train(ds, v, TrainConfig(**{**TINY, **over}), progress=False)
+
+
+def test_windows_never_cross_segments():
+    n = 20
+    seg = np.array([0] * 8 + [1] * 12)
+    ds = Dataset(np.arange(n) * 0.02 + seg * 10, seg, np.random.rand(n, 8), np.random.rand(n, 2), 0.02)
+    w = make_windows(ds, tau=3)
+    for k in w.end_row:
+        assert ds.segment[k - 2] == ds.segment[k] == ds.segment[k + 1]
+    assert np.array_equal(w.target, ds.states[w.end_row + 1, 3:6])
+    assert np.array_equal(w.history[:, -1, :3], ds.states[w.end_row, 3:6])
+
+
+def test_split_is_disjoint_by_rows(lap):
+    tau = 4
+    tr, va = split_train_validation(lap, tau, 0.2)
+    rows_tr = set((tr.end_row[:, None] + np.arange(-tau + 1, 2)).ravel())
+    rows_va = set((va.end_row[:, None] + np.arange(-tau + 1, 2)).ravel())
+    assert not rows_tr & rows_va, "a row is read by both training and validation windows"
+    assert tr.end_row.max() < va.end_row.min()
+
+
+def test_guard_keeps_every_coefficient_in_range(orca, lap):
+    w = make_windows(lap, 3)
+    model = build_model(TrainConfig(hidden=16), orca, np.zeros(7), np.ones(7))
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0, 50.0)  # absurd weights: logits far beyond the sigmoid's range
+        c = model.coefficients(torch.as_tensor(w.history)).numpy()
+    lo, hi = orca.range_arrays()
+    assert np.all((c >= lo) & (c <= hi))
+
+
+def _truth_model(v, tau=3):
+    """A DDM whose head outputs exactly the vehicle's true coefficients (zero weights, inverse-sigmoid bias)."""
+    model = build_model(TrainConfig(tau=tau, hidden=16), v, np.zeros(7), np.ones(7))
+    lo, hi = v.range_arrays()
+    frac = (v.true_vector() - lo) / (hi - lo)
+    with torch.no_grad():
+        model.head.weight.zero_()
+        model.head.bias.copy_(torch.as_tensor(np.log(frac / (1 - frac))))
+    return model.eval()
+
+
+def _minimal_ckpt(v, tau=3):
+    lo, hi = v.range_arrays()
+    return {"config": {"tau": tau}, "architecture": {"outputs": list(checkpoint.COEFF_NAMES)},
+            "ranges": {"lo": list(lo), "hi": list(hi)}, "vehicle": {"name": v.name, "json": v.raw_json}}
+
+
+def test_true_coefficients_give_zero_error_on_euler_data(orca, lap):
+    """The whole evaluation path (windows, physics step, rollout) against exact data."""
+    m = evaluate(_truth_model(orca), _minimal_ckpt(orca), lap)
+    assert max(m["rmse"].values()) < 1e-12
+    assert m["ade"] < 1e-10 and m["fde"] < 1e-10
+    assert m["truth_source"].startswith("plant coefficients")
+    lo, hi = orca.range_arrays()
+    for i, (name, c) in enumerate(m["coefficients"].items()):
+        assert abs(c["rel_error"] or 0) < 1e-9, name
+        # flagged exactly when the truth itself lies within 1 % of the range of a bound (Er = -0.019 of [-2, 0])
+        near = min(c["true"] - lo[i], hi[i] - c["true"]) <= 0.01 * (hi[i] - lo[i])
+        assert (c["at_lower_bound"] + c["at_upper_bound"] == 1.0) == near, name
+
+
+def test_saturated_guard_is_reported(orca, lap):
+    model = _truth_model(orca)
+    with torch.no_grad():
+        model.head.bias[16] = 40.0  # Iz pinned at its upper bound
+    m = evaluate(model, _minimal_ckpt(orca), lap)
+    assert m["coefficients"]["Iz"]["at_upper_bound"] == 1.0
+    assert m["coefficients"]["Bf"]["at_upper_bound"] == 0.0
+
+
+def test_training_learns_and_is_deterministic(orca, lap):
+    a = _result(lap, orca, seed=5)
+    b = _result(lap, orca, seed=5)
+    c = _result(lap, orca, seed=6)
+    curve = [h["val_loss"] for h in a.history]
+    assert a.best_val_loss < 0.5 * curve[0], "validation loss did not fall"
+    assert a.best_val_loss == b.best_val_loss
+    for k, v in a.model.state_dict().items():
+        assert torch.equal(v, b.model.state_dict()[k]), k
+    assert c.best_val_loss != a.best_val_loss
+
+
+def test_dpm_uses_given_inertia_and_trains(orca, lap):
+    r = _result(lap, orca, kind="dpm", dpm_iz_scale=1.2)
+    assert r.model.iz == pytest.approx(1.2 * orca.true_coefficients["Iz"])
+    assert np.isfinite(r.best_val_loss)
+
+
+def test_checkpoint_round_trip_and_refusals(orca, lap, tmp_path):
+    r = _result(lap, orca)
+    path = checkpoint.save(checkpoint.make(r, orca, lap.content_hash(), "lap", len(lap)), tmp_path / "m.ckpt")
+    model, ckpt = checkpoint.load(path)
+    assert ckpt["data"]["train_sha256"] == lap.content_hash()
+    assert ckpt["vehicle"]["sha256"] == orca.digest
+    w = make_windows(lap, r.config.tau)
+    args = [torch.as_tensor(a) for a in (w.history, w.state, w.inputs)]
+    with torch.no_grad():
+        assert torch.equal(model(*args)[0], r.model(*args)[0])
+    (tmp_path / "bad.ckpt").write_bytes(path.read_bytes()[:100])
+    with pytest.raises(DdynError, match="not a readable checkpoint"):
+        checkpoint.read(tmp_path / "bad.ckpt")
+    ckpt["version"] = 99
+    torch.save(ckpt, tmp_path / "v99.ckpt")
+    with pytest.raises(DdynError, match="version 99"):
+        checkpoint.read(tmp_path / "v99.ckpt")
+
+
+def test_cli_train_and_evaluate(lap, tmp_path, capsys):
+    data = write_canonical(lap, tmp_path / "lap.csv")
+    ck = tmp_path / "m.ckpt"
+    assert cli_main(["train", "--data", str(data), "-o", str(ck), "--quiet", "--epochs", "2",
+                     "--lbfgs-iterations", "0", "--hidden", "8"]) == 0
+    assert cli_main(["evaluate", "--model", str(ck), "--data", str(data), "--out", str(tmp_path / "ev")]) == 0
+    out = capsys.readouterr().out
+    assert "one-step RMSE" in out and "ADE" in out
+    for f in ("metrics.json", "tyre_curves.png", "predictions.png"):
+        assert (tmp_path / "ev" / f).stat().st_size > 0
+
+
+def test_evaluate_refuses_other_vehicle(lap, tmp_path, shared_data):
+    data = write_canonical(lap, tmp_path / "lap.csv")
+    ck = tmp_path / "m.ckpt"
+    cli_main(["train", "--data", str(data), "-o", str(ck), "--quiet", "--epochs", "1", "--lbfgs-iterations", "0"])
+    putnam = shared_data / "real" / "Putnam_park2023_run4_2.csv"
+    assert cli_main(["evaluate", "--model", str(ck), "--data", str(putnam)]) == 2
+
+
+def test_evaluate_reads_the_racecar_format_directly(tmp_path, shared_data):
+    """A tiny full-scale DDM trained on a piece of the real log evaluates on the raw RACECAR CSV."""
+    from train.importers import load_any
+
+    putnam = shared_data / "real" / "Putnam_park2023_run4_2.csv"
+    piece = write_canonical(load_any(putnam).subset(slice(0, 600)), tmp_path / "piece.csv")
+    ck = tmp_path / "av.ckpt"
+    assert cli_main(["train", "--data", str(piece), "-o", str(ck), "--quiet", "--epochs", "1",
+                     "--lbfgs-iterations", "0", "--hidden", "8"]) == 0
+    assert cli_main(["evaluate", "--model", str(ck), "--data", str(putnam)]) == 0
