@@ -52,7 +52,7 @@ def test_split_is_disjoint_by_rows(lap):
 
 def test_guard_keeps_every_coefficient_in_range(orca, lap):
     w = make_windows(lap, 3)
-    model = build_model(TrainConfig(hidden=16), orca, np.zeros(7), np.ones(7))
+    model = build_model(TrainConfig(tau=3, hidden=16), orca, np.zeros(7), np.ones(7))
     with torch.no_grad():
         for p in model.parameters():
             p.normal_(0, 50.0)  # absurd weights: logits far beyond the sigmoid's range
