@@ -32,8 +32,11 @@ ddyn codegen
 git -C "$ROOT" diff --quiet -- c_src/generated tests/c/generated 2>/dev/null \
   || echo "note: generated code differs from the committed copy (model or vehicle files changed): commit it"
 
-step "build: C runtime with CMake"
-bash "$ROOT/scripts/build.sh" "$ROOT/build"
+step "export: the trained guard network as fixed-size C weight tables (+ torch.export program)"
+ddyn export "$OUT/ddm_orca.ckpt" --out "$OUT/export"
+
+step "build: C runtime with CMake, guard network built for the exported tables"
+bash "$ROOT/scripts/build.sh" "$ROOT/build" -DDDYN_NET_EXPORT_DIR="$OUT/export"
 
 step "crosscheck: generated C model against the Python model"
 ddyn crosscheck --data "$OUT/orca_ethz_euler.csv" --method euler

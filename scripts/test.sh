@@ -12,7 +12,7 @@ echo "== Python tests (pytest)"
 python -m pytest -q || status=1
 
 echo "== C tests (ctest, release build)"
-{ bash scripts/build.sh "$ROOT/build" && ctest --test-dir "$ROOT/build" --output-on-failure; } || status=1
+{ bash scripts/build.sh "$ROOT/build" -DDDYN_NET_EXPORT_DIR="$ROOT/tests/c/generated/net_fixture" && ctest --test-dir "$ROOT/build" --output-on-failure; } || status=1
 
 echo "== C tests (ctest, AddressSanitizer + UndefinedBehaviorSanitizer build)"
 { bash scripts/build.sh "$ROOT/build-asan" -DDDYN_SANITIZE=ON -DCMAKE_BUILD_TYPE=Debug \

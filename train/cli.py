@@ -22,6 +22,7 @@ SUBCOMMAND_MODULES = (
     "train.train_cmd",
     "train.evaluate",
     "train.study",
+    "train.export",
     "train.tune",
 )
 

@@ -1,0 +1,83 @@
+/*
+ * Guard-network inference (c_src/src/guard_net.c) on the fixture network of
+ * tests/c/generated/net_fixture: PyTorch parity, guard ranges, refusals by name.
+ * (The 10,000-history parity on real and simulated logs is tests/python/test_export.py.)
+ */
+#include <math.h>
+#include <setjmp.h>
+#include <stdarg.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <string.h>
+
+#include <cmocka.h>
+
+#include "ddyn/guard_net.h"
+#include "ddyn_net_fixture_vectors.h"
+
+extern const ddyn_net_tables ddyn_net_weights;
+
+static ddyn_guard_net net;
+
+#define HISTORY(k) ((const double(*)[DDYN_NET_NFEAT])(net_fixture_history + (k)*DDYN_NET_TAU * DDYN_NET_NFEAT))
+#define COEFF(k, i) (net_fixture_coeffs[(k)*DDYN_NET_NOUT + (i)])
+
+static void test_matches_pytorch_and_stays_in_range(void **state)
+{
+    int k, i;
+    (void)state;
+    assert_int_equal(ddyn_guard_net_init(&net, &ddyn_net_weights), DDYN_NET_OK);
+    for (k = 0; k < NET_FIXTURE_CASES; ++k) {
+        double c[DDYN_NET_NOUT];
+        assert_int_equal(ddyn_guard_net_infer(&net, HISTORY(k), c), DDYN_NET_OK);
+        for (i = 0; i < DDYN_NET_NOUT; ++i) {
+            double lo = ddyn_net_weights.lo[i], hi = ddyn_net_weights.hi[i];
+            double tol = 1e-5 * fmax(fabs(COEFF(k, i)), hi - lo);
+            if (!(fabs(c[i] - COEFF(k, i)) <= tol)) {
+                fail_msg("case %d output %d: C %.9g, PyTorch %.9g", k, i, c[i], COEFF(k, i));
+            }
+            assert_true(c[i] >= lo && c[i] <= hi);
+        }
+    }
+}
+
+static void test_refuses_tables_of_another_shape_or_checkpoint(void **state)
+{
+    ddyn_net_tables t = ddyn_net_weights;
+    (void)state;
+    t.hidden += 1;
+    assert_int_equal(ddyn_guard_net_init(&net, &t), DDYN_NET_ERR_SHAPE);
+    t = ddyn_net_weights;
+    t.checkpoint_sha256 = "not the checkpoint this runtime was built for";
+    assert_int_equal(ddyn_guard_net_init(&net, &t), DDYN_NET_ERR_HASH);
+    t = ddyn_net_weights;
+    t.magic = 0;
+    assert_int_equal(ddyn_guard_net_init(&net, &t), DDYN_NET_ERR_MAGIC);
+    assert_string_equal(ddyn_net_status_name(DDYN_NET_ERR_HASH), "DDYN_NET_ERR_HASH");
+}
+
+static void test_refuses_uninitialised_and_nonfinite(void **state)
+{
+    double h[DDYN_NET_TAU][DDYN_NET_NFEAT];
+    double c[DDYN_NET_NOUT];
+    (void)state;
+    memset(&net, 0, sizeof net);
+    memcpy(h, net_fixture_history, sizeof h);
+    assert_int_equal(ddyn_guard_net_infer(&net, (const double(*)[DDYN_NET_NFEAT])h, c),
+                     DDYN_NET_ERR_NOT_INITIALISED);
+    assert_int_equal(ddyn_guard_net_init(&net, &ddyn_net_weights), DDYN_NET_OK);
+    h[1][2] = NAN;
+    assert_int_equal(ddyn_guard_net_infer(&net, (const double(*)[DDYN_NET_NFEAT])h, c),
+                     DDYN_NET_ERR_NONFINITE_INPUT);
+    assert_int_equal(ddyn_guard_net_infer(NULL, (const double(*)[DDYN_NET_NFEAT])h, c), DDYN_NET_ERR_ARGUMENT);
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_matches_pytorch_and_stays_in_range),
+        cmocka_unit_test(test_refuses_tables_of_another_shape_or_checkpoint),
+        cmocka_unit_test(test_refuses_uninitialised_and_nonfinite),
+    };
+    return cmocka_run_group_tests_name("guard_net", tests, NULL, NULL);
+}
