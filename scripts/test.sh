@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Every test (the README's second command): Python tests with pytest, then the C tests
-# with ctest in a normal build and in an AddressSanitizer + UBSan build.
-# Runs all three even when one fails; exits non-zero if any failed. Idempotent.
+# Every test (the README's second command): Python tests with pytest, the C tests with
+# ctest in a normal build and in an AddressSanitizer + UBSan build, and the cross-build
+# of the runtime for a Cortex-M7. Runs all even when one fails; exits non-zero if any failed.
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$ROOT/scripts/setup.sh" || exit 1
@@ -17,6 +17,14 @@ echo "== C tests (ctest, release build)"
 echo "== C tests (ctest, AddressSanitizer + UndefinedBehaviorSanitizer build)"
 { bash scripts/build.sh "$ROOT/build-asan" -DDDYN_SANITIZE=ON -DCMAKE_BUILD_TYPE=Debug \
     && ctest --test-dir "$ROOT/build-asan" --output-on-failure; } || status=1
+
+echo "== C runtime cross-build for a Cortex-M7 (arm-none-eabi-gcc, -Werror)"
+{ rm -rf "$ROOT/build-m7" \
+    && cmake -S "$ROOT" -B "$ROOT/build-m7" -DCMAKE_TOOLCHAIN_FILE="$ROOT/cmake/arm-none-eabi-cortex-m7.cmake" \
+         -DCMAKE_BUILD_TYPE=Release >/dev/null \
+    && cmake --build "$ROOT/build-m7" -j "$(nproc)" >/dev/null \
+    && arm-none-eabi-size -t "$ROOT/build-m7/c_src/libddyn_runtime.a" | tail -1 \
+    && echo "Cortex-M7 build: ok"; } || { echo "Cortex-M7 build: FAILED"; status=1; }
 
 if [ "$status" -eq 0 ]; then echo "== all tests passed"; else echo "== SOME TESTS FAILED"; fi
 exit "$status"

@@ -85,7 +85,7 @@ ddyn_status ddyn_model_step(const ddyn_vehicle_model *model, ddyn_discretisation
     if (s != DDYN_OK) {
         return s;
     }
-    if (x_next == NULL || (int)disc < 0 || disc >= DDYN_DISC_COUNT) {
+    if (x_next == NULL || (unsigned)disc >= (unsigned)DDYN_DISC_COUNT) {
         return DDYN_ERR_ARGUMENT;
     }
     out[0] = x_next;
@@ -105,7 +105,7 @@ ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_disc
     if (s != DDYN_OK) {
         return s;
     }
-    if ((int)disc < 0 || disc >= DDYN_DISC_COUNT) {
+    if ((unsigned)disc >= (unsigned)DDYN_DISC_COUNT) {
         return DDYN_ERR_ARGUMENT;
     }
     out[0] = A;
