@@ -29,16 +29,17 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from train import backends, vehicle as vehicle_mod
+from train import backends, mathns, vehicle as vehicle_mod
 from train.errors import DdynError
-from train.model import COEFF_NAMES, INPUT_NAMES, N_COEFF, N_INPUT, N_STATE, STATE_NAMES
+from train.model import N_COEFF, N_STATE
+from train.sensors import MEASUREMENTS, measure
 from train.vehicle import Vehicle
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "c_src" / "generated"
 DEFAULT_VECTORS_OUT = REPO / "tests" / "c" / "generated"
 # the files whose text defines the model: their hash identifies generated code
-MODEL_SOURCES = ("train/model.py", "train/integrators.py", "train/mathns.py", "train/backends.py")
+MODEL_SOURCES = ("train/model.py", "train/integrators.py", "train/mathns.py", "train/backends.py", "train/sensors.py")
 CG_OPTIONS = {"with_header": True, "casadi_int": "int", "casadi_real": "double"}
 VECTOR_CASES = 24
 VECTOR_SEED = 20240521
@@ -79,6 +80,11 @@ def model_functions(v: Vehicle) -> list[ca.Function]:
                                  [ca.densify(ca.jacobian(nxt, x)), ca.densify(ca.jacobian(nxt, u)),
                                   ca.densify(ca.jacobian(nxt, c))],
                                  ["x", "u", "c"], ["A", "B", "P"]))
+    for name, dim in MEASUREMENTS.items():
+        h = ca.vertcat(*measure(mathns.get("casadi"), name, [x[i] for i in range(N_STATE)],
+                                [c[i] for i in range(N_COEFF)], known))
+        funcs.append(ca.Function(f"{p}_meas_{name}", [x, c], [h, ca.densify(ca.jacobian(h, x))],
+                                 ["x", "c"], ["h", "H"]))
     return funcs
 
 
@@ -105,14 +111,22 @@ def _c_double(x: float) -> str:
 def _registry(vehicles: list[Vehicle], funcs: dict[str, list[ca.Function]], out: Path) -> list[Path]:
     max_w = max(f.sz_w() for fl in funcs.values() for f in fl)
     max_iw = max(f.sz_iw() for fl in funcs.values() for f in fl)
+    dims = [_banner("Sizes and sensor list of the generated vehicle models.", vehicles),
+            "#ifndef DDYN_MODEL_DIMS_H", "#define DDYN_MODEL_DIMS_H", "",
+            f"#define DDYN_MODEL_COUNT {len(vehicles)}",
+            "/* largest work sizes of any generated model function: fixed-size, caller-owned work memory */",
+            f"#define DDYN_MODEL_MAX_SZ_W {max(max_w, 1)}",
+            f"#define DDYN_MODEL_MAX_SZ_IW {max(max_iw, 1)}",
+            f'#define DDYN_MODEL_HASH "{model_hash()}"', "",
+            "/* sensors (train/sensors.py), in this order; each has DDYN_MEAS_DIMS[kind] components */",
+            "typedef enum {"]
+    dims += [f"    DDYN_MEAS_{name.upper()} = {i}," for i, name in enumerate(MEASUREMENTS)]
+    dims += ["    DDYN_MEAS_COUNT = " + str(len(MEASUREMENTS)), "} ddyn_meas_kind;",
+             f"#define DDYN_MEAS_MAX_DIM {max(MEASUREMENTS.values())}",
+             "#define DDYN_MEAS_DIMS {" + ", ".join(str(d) for d in MEASUREMENTS.values()) + "}",
+             '#define DDYN_MEAS_NAMES {' + ", ".join(f'"{n}"' for n in MEASUREMENTS) + "}", "", "#endif", ""]
     h = [_banner("Table of the generated vehicle models.", vehicles),
-         "#ifndef DDYN_MODELS_H", "#define DDYN_MODELS_H", "",
-         f"#define DDYN_MODEL_COUNT {len(vehicles)}",
-         "/* largest work sizes of any generated model function: fixed-size, caller-owned work memory */",
-         f"#define DDYN_MODEL_MAX_SZ_W {max(max_w, 1)}",
-         f"#define DDYN_MODEL_MAX_SZ_IW {max(max_iw, 1)}",
-         f'#define DDYN_MODEL_HASH "{model_hash()}"', "",
-         '#include "ddyn/model.h"', ""]
+         "#ifndef DDYN_MODELS_H", "#define DDYN_MODELS_H", "", '#include "ddyn/model.h"', ""]
     for v in vehicles:
         h.append(f"extern const ddyn_vehicle_model ddyn_model_{v.name};")
     h += ["", "/* all generated models, in name order */",
@@ -132,13 +146,15 @@ def _registry(vehicles: list[Vehicle], funcs: dict[str, list[ca.Function]], out:
               f"    {{{p}_step_euler, {p}_step_rk4}},",
               f"    {{{p}_step_euler_jac, {p}_step_rk4_jac}},",
               f"    {p}_deriv,",
+              "    {" + ", ".join(f"{p}_meas_{m}" for m in MEASUREMENTS) + "},",
               "};", ""]
     c.append("const ddyn_vehicle_model *const ddyn_models[DDYN_MODEL_COUNT] = {")
     c += [f"    &ddyn_model_{v.name}," for v in vehicles]
     c += ["};", ""]
+    (out / "ddyn_model_dims.h").write_text("\n".join(dims))
     (out / "ddyn_models.h").write_text("\n".join(h))
     (out / "ddyn_models.c").write_text("\n".join(c))
-    return [out / "ddyn_models.h", out / "ddyn_models.c"]
+    return [out / "ddyn_model_dims.h", out / "ddyn_models.h", out / "ddyn_models.c"]
 
 
 def _c_array(name: str, a: np.ndarray) -> str:
@@ -167,6 +183,11 @@ def reference_vectors(v: Vehicle, n: int = VECTOR_CASES) -> dict[str, np.ndarray
                 jac[key].append(Ji.numpy().T.ravel())  # column-major, as CasADi writes dense outputs
         for key in "ABP":
             out[f"{method}_{key}"] = np.array(jac[key])
+    for name in MEASUREMENTS:
+        out[f"meas_{name}_h"] = np.array([measure(mathns.NUMPY, name, x[i], c[i], v.known) for i in range(n)])
+        out[f"meas_{name}_H"] = np.array([torch.autograd.functional.jacobian(
+            lambda xx: torch.stack(measure(mathns.get("torch"), name, xx.unbind(), torch.tensor(c[i]), v.known)),
+            torch.tensor(x[i], dtype=torch.float64)).numpy().T.ravel() for i in range(n)])
     return out
 
 

@@ -1,5 +1,6 @@
 /* ddyn model wrapper: input checks and fixed-size work memory around the generated model. */
 #include "ddyn/model.h"
+#include "ddyn_models.h"
 
 #include <math.h>
 #include <stddef.h>
@@ -132,6 +133,37 @@ ddyn_status ddyn_model_derivatives(const ddyn_vehicle_model *model, const double
     return evaluate(model->deriv, x, u, c, out, len, work);
 }
 
+int ddyn_meas_dim(ddyn_meas_kind kind)
+{
+    static const int dims[DDYN_MEAS_COUNT] = DDYN_MEAS_DIMS;
+    return (unsigned)kind < (unsigned)DDYN_MEAS_COUNT ? dims[kind] : 0;
+}
+
+ddyn_status ddyn_model_measure(const ddyn_vehicle_model *model, ddyn_meas_kind kind, const double x[DDYN_NX],
+                               const double c[DDYN_NC], double h[DDYN_MEAS_MAX_DIM],
+                               double H[DDYN_MEAS_MAX_DIM * DDYN_NX], ddyn_model_work *work)
+{
+    static const double no_input[DDYN_NU] = {0.0, 0.0};
+    double *out[3];
+    int len[3];
+    int dim = ddyn_meas_dim(kind);
+    ddyn_status s = check_args(model, x, no_input, c, work);
+    if (s != DDYN_OK) {
+        return s;
+    }
+    if (dim == 0 || h == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    /* the generated measurement functions take (x, c): pass c in the second argument slot */
+    out[0] = h;
+    out[1] = H;
+    out[2] = NULL;
+    len[0] = dim;
+    len[1] = dim * DDYN_NX;
+    len[2] = 0;
+    return evaluate(model->meas[kind], x, c, NULL, out, len, work);
+}
+
 const char *ddyn_status_name(ddyn_status status)
 {
     switch (status) {
@@ -145,6 +177,8 @@ const char *ddyn_status_name(ddyn_status status)
         return "DDYN_ERR_NONFINITE_OUTPUT";
     case DDYN_ERR_EVALUATION:
         return "DDYN_ERR_EVALUATION";
+    case DDYN_ERR_NOT_POSITIVE_DEFINITE:
+        return "DDYN_ERR_NOT_POSITIVE_DEFINITE";
     }
     return "DDYN_ERR_UNKNOWN";
 }

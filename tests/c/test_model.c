@@ -85,6 +85,39 @@ static void test_av21_matches_python(void **state)
     check_set(&sets[1]);
 }
 
+/* every sensor model of both vehicles against numpy values and torch-autograd Jacobians */
+#define MEAS_CHECK(V, KIND, NAME)                                                                              \
+    do {                                                                                                       \
+        const ddyn_vehicle_model *m = ddyn_model_find(#V);                                                     \
+        int k, dim = ddyn_meas_dim(KIND);                                                                      \
+        for (k = 0; k < DDYN_VECTOR_CASES; ++k) {                                                              \
+            double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * DDYN_NX];                                      \
+            assert_int_equal(ddyn_model_measure(m, KIND, vec_##V##_x + k * DDYN_NX, vec_##V##_c + k * DDYN_NC, \
+                                                h, H, &work),                                                  \
+                             DDYN_OK);                                                                         \
+            assert_close(h, vec_##V##_meas_##NAME##_h + k * dim, dim, STEP_RTOL, #NAME " h", k);              \
+            assert_close(H, vec_##V##_meas_##NAME##_H + k * dim * DDYN_NX, dim * DDYN_NX, JAC_RTOL, #NAME " H", k); \
+        }                                                                                                      \
+    } while (0)
+
+#define MEAS_CHECK_ALL(V)                                                                                      \
+    do {                                                                                                       \
+        MEAS_CHECK(V, DDYN_MEAS_GNSS_POSITION, gnss_position);                                                 \
+        MEAS_CHECK(V, DDYN_MEAS_HEADING, heading);                                                             \
+        MEAS_CHECK(V, DDYN_MEAS_YAW_RATE, yaw_rate);                                                           \
+        MEAS_CHECK(V, DDYN_MEAS_ACCELERATION, acceleration);                                                   \
+        MEAS_CHECK(V, DDYN_MEAS_WHEEL_SPEED, wheel_speed);                                                     \
+        MEAS_CHECK(V, DDYN_MEAS_STEERING, steering);                                                           \
+    } while (0)
+
+static void test_sensor_models_match_python(void **state)
+{
+    (void)state;
+    MEAS_CHECK_ALL(orca_1_43);
+    MEAS_CHECK_ALL(av21);
+    assert_int_equal(ddyn_meas_dim(DDYN_MEAS_COUNT), 0);
+}
+
 static void test_unknown_vehicle_is_null(void **state)
 {
     (void)state;
@@ -140,6 +173,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_orca_matches_python),
         cmocka_unit_test(test_av21_matches_python),
+        cmocka_unit_test(test_sensor_models_match_python),
         cmocka_unit_test(test_unknown_vehicle_is_null),
         cmocka_unit_test(test_nonfinite_input_refused_and_output_untouched),
         cmocka_unit_test(test_zero_inertia_gives_nonfinite_output),

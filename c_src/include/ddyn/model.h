@@ -22,12 +22,15 @@ extern "C" {
 #define DDYN_NU 2
 #define DDYN_NC 17
 
+#include "ddyn_model_dims.h" /* generated: work sizes, sensor kinds (ddyn_meas_kind) and their dimensions */
+
 typedef enum {
     DDYN_OK = 0,
     DDYN_ERR_ARGUMENT = 1,          /* null pointer or unknown discretisation */
     DDYN_ERR_NONFINITE_INPUT = 2,   /* NaN or inf in x, u or c: nothing computed */
     DDYN_ERR_NONFINITE_OUTPUT = 3,  /* the model produced NaN or inf (e.g. Iz = 0) */
-    DDYN_ERR_EVALUATION = 4         /* the generated function reported failure */
+    DDYN_ERR_EVALUATION = 4,        /* the generated function reported failure */
+    DDYN_ERR_NOT_POSITIVE_DEFINITE = 5 /* a covariance that must be positive definite is not */
 } ddyn_status;
 
 typedef enum { DDYN_DISC_EULER = 0, DDYN_DISC_RK4 = 1, DDYN_DISC_COUNT = 2 } ddyn_discretisation;
@@ -45,9 +48,8 @@ typedef struct {
     ddyn_casadi_fn step[DDYN_DISC_COUNT];
     ddyn_casadi_fn step_jac[DDYN_DISC_COUNT];
     ddyn_casadi_fn deriv;
+    ddyn_casadi_fn meas[DDYN_MEAS_COUNT]; /* (x, c) -> (h, H), H dense column-major */
 } ddyn_vehicle_model;
-
-#include "ddyn_models.h" /* generated: DDYN_MODEL_MAX_SZ_W, DDYN_MODEL_MAX_SZ_IW, the model table */
 
 /* Work memory for any generated model function; owned by the caller, reusable. */
 typedef struct {
@@ -74,6 +76,14 @@ ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_disc
 ddyn_status ddyn_model_derivatives(const ddyn_vehicle_model *model, const double x[DDYN_NX],
                                    const double u[DDYN_NU], const double c[DDYN_NC], double xdot[DDYN_NX],
                                    ddyn_model_work *work);
+
+/* Sensor model: h[dim] = what sensor `kind` reads in state x, H[dim * 8] = dh/dx (column-major). */
+ddyn_status ddyn_model_measure(const ddyn_vehicle_model *model, ddyn_meas_kind kind, const double x[DDYN_NX],
+                               const double c[DDYN_NC], double h[DDYN_MEAS_MAX_DIM],
+                               double H[DDYN_MEAS_MAX_DIM * DDYN_NX], ddyn_model_work *work);
+
+/* Number of components of a sensor kind (0 for an unknown kind). */
+int ddyn_meas_dim(ddyn_meas_kind kind);
 
 const char *ddyn_status_name(ddyn_status status);
 
