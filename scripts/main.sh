@@ -38,6 +38,9 @@ ddyn export "$OUT/ddm_orca.ckpt" --out "$OUT/export"
 step "build: C runtime with CMake, guard network built for the exported tables"
 bash "$ROOT/scripts/build.sh" "$ROOT/build" -DDDYN_NET_EXPORT_DIR="$OUT/export"
 
+step "bench: C guard-net inference and EKF step against PyTorch / numpy+CasADi (median, p99, max)"
+ddyn bench --model "$OUT/ddm_orca.ckpt" --data "$OUT/orca_ethzMobil_euler.csv" --out "$OUT/bench/bench.json"
+
 step "crosscheck: generated C model against the Python model"
 ddyn crosscheck --data "$OUT/orca_ethz_euler.csv" --method euler
 ddyn crosscheck --data "$OUT/orca_ethzMobil_rk4_noisy.csv" --method rk4

@@ -23,6 +23,7 @@ SUBCOMMAND_MODULES = (
     "train.evaluate",
     "train.study",
     "train.export",
+    "train.bench",
     "train.tune",
 )
 
