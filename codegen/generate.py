@@ -80,7 +80,7 @@ def model_functions(v: Vehicle) -> list[ca.Function]:
                                  [ca.densify(ca.jacobian(nxt, x)), ca.densify(ca.jacobian(nxt, u)),
                                   ca.densify(ca.jacobian(nxt, c))],
                                  ["x", "u", "c"], ["A", "B", "P"]))
-    for name, dim in MEASUREMENTS.items():
+    for name in MEASUREMENTS:
         h = ca.vertcat(*measure(mathns.get("casadi"), name, [x[i] for i in range(N_STATE)],
                                 [c[i] for i in range(N_COEFF)], known))
         funcs.append(ca.Function(f"{p}_meas_{name}", [x, c], [h, ca.densify(ca.jacobian(h, x))],
