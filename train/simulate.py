@@ -32,6 +32,7 @@ import numpy as np
 
 from . import backends
 from .dataset import Dataset, write_canonical
+from .effects import EffectSet, Plant, effects_json, parse_effects
 from .errors import DdynError
 from .model import COEFF_NAMES, N_STATE, STATE_NAMES, drivetrain_force
 from .tracks import TRACK_NAMES, Track, load_track
@@ -164,7 +165,7 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
              target_speed: float | None = None, excitation: float = 1.0, coeffs: np.ndarray | None = None,
              start_speed: float | None = None, progress: bool = True, grip: float | None = None,
              start_s: float = 0.0, offtrack_margin: float | None = None, offtrack_time: float = 0.5,
-             driver: dict | None = None) -> Dataset:
+             driver: dict | None = None, effects=None) -> Dataset:
     """Drive `vehicle` around `track` in closed loop and record a canonical Dataset.
 
     Stops after `laps` completed laps (progress along the centre line from the start,
@@ -175,7 +176,10 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
     to the profile's speed at the start. Raises DdynError when the car stays beyond a
     bound by more than offtrack_margin (default a quarter of the track width) for
     offtrack_time seconds, or the state becomes non-finite. driver overrides fields of
-    DriverSettings (see driver_settings for the defaults).
+    DriverSettings (see driver_settings for the defaults). effects: unmodelled effects of the
+    plant (train.effects: a list of {"effect", "params"}, JSON or key=value text); None or
+    all-zero effects leave the nominal plant exactly as it is. Active effects are recorded in
+    the metadata key `effects` (JSON).
     """
     vehicle, track = _resolve(vehicle, track)
     if method not in ("euler", "rk4"):
@@ -212,6 +216,10 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
 
     p = vehicle.known
     Ts = vehicle.sample_time
+    effect_list = parse_effects(effects)
+    plant = None
+    if EffectSet.of(effect_list).active():
+        plant = Plant(EffectSet.of(effect_list), p, Ts, method, substeps, track.length)
     wheelbase = p.lf + p.lr
     t_lo, t_hi = vehicle.input_limits["throttle"]
     d_lo, d_hi = vehicle.input_limits["steering"]
@@ -335,7 +343,10 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
             if k * Ts > max_time or k >= n_max:
                 raise DdynError(f"too slow: {travelled:.2f} m of {(laps or 0) * L:.2f} m after {k * Ts:.1f} s "
                                 f"(the car stalled or drives backwards near s = {s:.2f} m)")
-            state = backends.step_numpy(state, np.array([dT, dD]), coeffs, p, Ts, method, substeps)
+            if plant is None:
+                state = backends.step_numpy(state, np.array([dT, dD]), coeffs, p, Ts, method, substeps)
+            else:
+                state = plant.step(k - 1, state, np.array([dT, dD]), coeffs, s)
     finally:
         if bar is not None:
             bar.close()
@@ -343,10 +354,13 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
     states = states[:k].copy()
     inputs = inputs[:k].copy()
     extras: dict[str, np.ndarray] = {}
+    if plant is not None and plant.fx.yaw_bias:
+        extras["true_omega"] = states[:, 5].copy()
+        states = plant.measure(states)
     if noise_scale > 0:
         std = np.array([noise_scale * vehicle.sensor_noise_std[c] for c in NOISY_CHANNELS])
         idx = [STATE_NAMES.index(c) for c in NOISY_CHANNELS]
-        extras = {f"true_{c}": states[:, i].copy() for c, i in zip(NOISY_CHANNELS, idx)}
+        extras = {f"true_{c}": states[:, i].copy() for c, i in zip(NOISY_CHANNELS, idx)} | extras
         states[:, idx] += noise_rng.standard_normal((k, len(idx))) * std
     time = np.arange(k) * Ts
     completed = travelled / L
@@ -362,6 +376,8 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
         # the plant's coefficients (COEFF_NAMES order): the ground truth evaluation compares estimates with
         "plant_coefficients": json.dumps([float(c) for c in coeffs]),
     }
+    if plant is not None:
+        metadata["effects"] = effects_json(effect_list)
     return Dataset(time=time, segment=np.zeros(k, dtype=np.int64), states=states, inputs=inputs,
                    sample_time=Ts, vehicle=vehicle.name, source=src, extras=extras, metadata=metadata)
 
@@ -403,7 +419,7 @@ def _run(args: argparse.Namespace) -> int:
         laps = 2
     ds = simulate(vehicle, track, duration=args.duration, laps=laps, method=args.method, substeps=args.substeps,
                   seed=args.seed, noise_scale=args.noise, target_speed=args.target_speed,
-                  excitation=args.excitation, progress=not args.quiet)
+                  excitation=args.excitation, progress=not args.quiet, effects=args.effects)
     path = write_canonical(ds, args.output)
     s = summary(ds, track)
     print(f"wrote {path}: {len(ds)} rows, {s['duration']:.2f} s, {ds.metadata['progress_laps']} laps "
@@ -430,6 +446,9 @@ def register(subparsers) -> None:
     p.add_argument("--target-speed", type=float, default=None, metavar="V", help="cap of the speed profile, m/s")
     p.add_argument("--excitation", type=float, default=1.0, metavar="A",
                    help="amplitude of the random steering/throttle/speed perturbations (0: none; default 1)")
+    p.add_argument("--effects", default=None, metavar="SPEC",
+                   help="unmodelled effects of the plant (train/effects.py), JSON or key=value, e.g. "
+                        "'steer_delay=0.04' or '[{\"effect\":\"bank_angle\",\"params\":{\"angle\":0.05}}]'")
     p.add_argument("-o", "--output", required=True, help="output CSV (canonical dataset format)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_run)
