@@ -24,6 +24,10 @@ SUBCOMMAND_MODULES = (
     "train.study",
     "train.export",
     "train.bench",
+    "train.finetune",
+    "train.fthd_study",
+    "train.denoise",
+    "train.denoise_study",
     "train.tune",
 )
 
