@@ -64,7 +64,11 @@ if(DDYN_BUILD_TOOLS)
   target_compile_options(ddyn_telemetry_replay PRIVATE ${DDYN_WARNINGS})
   target_link_libraries(ddyn_telemetry_replay PRIVATE ddyn_telemetry)
   # beside the other host tools (build/c_src/), where the Python side looks for them
-  set_target_properties(ddyn_telemetry_replay PROPERTIES RUNTIME_OUTPUT_DIRECTORY "${CMAKE_BINARY_DIR}/c_src")
+  add_executable(ddyn_telemetry_bench "${PROJECT_SOURCE_DIR}/c_src/tools/telemetry_bench.c")
+  target_compile_options(ddyn_telemetry_bench PRIVATE ${DDYN_WARNINGS})
+  target_link_libraries(ddyn_telemetry_bench PRIVATE ddyn_telemetry m)
+  set_target_properties(ddyn_telemetry_replay ddyn_telemetry_bench PROPERTIES
+                        RUNTIME_OUTPUT_DIRECTORY "${CMAKE_BINARY_DIR}/c_src")
 endif()
 
 if(DDYN_BUILD_TESTS)
