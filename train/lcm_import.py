@@ -136,14 +136,19 @@ def read_lcm_log(path: str | Path, vehicle: str | None = None, min_vx: float | N
 
 def _dataset(path, states, state_events, by_channel, prefix, other, vehicle, min_vx) -> Dataset:
     step = np.array([m.step for m in states], dtype=np.int64)
-    utime = np.array([m.utime for m in states], dtype=np.int64)
-    bad = np.flatnonzero(np.diff(step) <= 0)
+    # the clock in float: differences of int64 extremes (a corrupt log) would wrap without a word
+    utime = np.array([m.utime for m in states], dtype=float)
+    bad = np.flatnonzero(step[1:] <= step[:-1])
     if len(bad):
         i = bad[0] + 1
         raise DataError(path, f"event {state_events[i]}: state estimate of step {step[i]} after step {step[i - 1]}; "
                         "steps must increase (a controller restart? split the log there)")
-    d = int(np.median(np.diff(step)))
-    clock_period = float(np.median(np.diff(utime) / np.diff(step))) * 1e-6
+    if np.any(np.abs(step) >= 2 ** 53):   # beyond that a double (time) no longer holds every step
+        i = int(np.flatnonzero(np.abs(step) >= 2 ** 53)[0])
+        raise DataError(path, f"event {state_events[i]}: step number {step[i]} is beyond 2**53")
+    step_f = step.astype(float)
+    d = int(np.median(np.diff(step_f)))
+    clock_period = float(np.median(np.diff(utime) / np.diff(step_f))) * 1e-6
     v = _vehicle(path, d * clock_period, vehicle)
     x = np.array([[getattr(m, n) for n in STATE_NAMES] for m in states], dtype=float)
     nonfinite = np.argwhere(~np.isfinite(x))
@@ -151,9 +156,9 @@ def _dataset(path, states, state_events, by_channel, prefix, other, vehicle, min
         i, j = nonfinite[0]
         raise DataError(path, f"event {state_events[i]}: state estimate {STATE_NAMES[j]} is {x[i, j]}; "
                         "expected a finite number", column=STATE_NAMES[j])
-    keep, segment = _segments(path, step, d, x[:, STATE_NAMES.index("vx")], min_vx)
+    keep, segment = _segments(path, step_f, d, x[:, STATE_NAMES.index("vx")], min_vx)
     ts = v.sample_time
-    time = (step - step[0]) * (ts / d)
+    time = (step_f - step_f[0]) * (ts / d)
     extras = {"clock_s": (utime - utime[0]) * 1e-6}
     extras |= {f"var_{n}": np.array([m.cov_diag[i] for m in states]) for i, n in enumerate(STATE_NAMES)}
     notes = []
@@ -175,7 +180,7 @@ def _dataset(path, states, state_events, by_channel, prefix, other, vehicle, min
                 + (f" (vx >= {min_vx!r} m/s)" if min_vx is not None else ""),
         "steps_per_row": str(d),
         "clock_period_s": repr(clock_period),
-        "utime_start": str(int(utime[0])),
+        "utime_start": str(states[0].utime),
         "input_mapping": "dthrottle, dsteering = forward differences of throttle, steering within a segment",
         "messages": " ".join(f"{c}={len(msgs)}" for c, msgs in by_channel.items()),
     }
