@@ -68,14 +68,19 @@ def stream(ds: Dataset, horizon: int = DEFAULT_HORIZON, sat_margin: float = 0.02
 
 
 def replay(ds: Dataset, url: str, tool: Path = DEFAULT_TOOL, rates: dict[str, float] | None = None,
-           prefix: str | None = None, horizon: int = DEFAULT_HORIZON) -> str:
-    """Run the tool over the dataset, publishing on `url`; returns its summary (one line per kind)."""
+           prefix: str | None = None, horizon: int = DEFAULT_HORIZON, speed: float = 0.0) -> str:
+    """Run the tool over the dataset, publishing on `url`; returns its summary (one line per kind).
+
+    speed > 0 paces the messages at that multiple of real time (0: as fast as possible).
+    """
     tool = Path(tool)
     if not tool.is_file():
         raise DdynError(f"{tool} not found: build the C side (scripts/build.sh) with DDYN_WITH_LCM=ON")
     cmd = [str(tool), "-u", url, "-c", repr(1.0 / ds.sample_time)]
     if prefix:
         cmd += ["-p", prefix]
+    if speed > 0:
+        cmd += ["-s", repr(float(speed))]
     for kind, hz in (rates or {}).items():
         cmd += ["-r", f"{kind}={hz!r}"]
     text = "\n".join(stream(ds, horizon)) + "\n"
@@ -96,6 +101,9 @@ def register(subparsers) -> None:
                    help=f"publish rate of one message kind ({', '.join(KINDS)}); default: the tool's")
     p.add_argument("--prefix", help="channel prefix (default DDYN_)")
     p.add_argument("--horizon", type=int, default=DEFAULT_HORIZON, help="rows of the replayed plan")
+    p.add_argument("--speed", type=float, default=0.0,
+                   help="pace the messages at this multiple of real time (default 0: as fast as possible, "
+                   "which can overrun a UDP receiver)")
     p.add_argument("--tool", default=str(DEFAULT_TOOL), help="the ddyn_telemetry_replay executable")
     p.set_defaults(func=_run)
 
@@ -117,7 +125,7 @@ def _run(args) -> int:
         url = f"file://{Path(args.out).resolve()}?mode=w"   # LCM's file provider truncates the file
     else:
         url = args.url
-    summary = replay(ds, url, Path(args.tool), rates, args.prefix, args.horizon)
+    summary = replay(ds, url, Path(args.tool), rates, args.prefix, args.horizon, args.speed)
     print(f"{args.dataset} -> {args.out or url}: {len(ds)} steps")
     print(summary, end="")
     return 0

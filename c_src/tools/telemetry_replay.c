@@ -3,9 +3,11 @@
  * the telemetry module (ddyn/telemetry.h), so the whole path C -> LCM -> log -> `ddyn import`
  * runs without the controller. `ddyn lcm-replay` feeds it a dataset.
  *
- * usage: ddyn_telemetry_replay [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... < stream
+ * usage: ddyn_telemetry_replay [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... [-s SPEED] < stream
  *   URL: LCM provider (default: LCM's default), e.g. "file:///tmp/run.lcm?mode=w"
  *   KIND: state, coeffs, plan, timing, faults (default rates: ddyn_telemetry_default_config)
+ *   SPEED: pace the messages by their utime at SPEED times real time (default 0: as fast as
+ *          possible, which can overrun a UDP receiver's buffer)
  * Input lines (numbers separated by spaces; utime in microseconds, step an integer):
  *   B lo[17] hi[17] margin                        guard bounds (only as the first line)
  *   S utime step x[8] cov_diag[8]                 state estimate
@@ -16,9 +18,11 @@
  * At the end it prints one line per kind: "KIND published P skipped S errors E". A
  * malformed line or a publish error stops with a message and status 1.
  */
+#define _POSIX_C_SOURCE 199309L /* clock_gettime, nanosleep */
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <time.h>
 
 #include "ddyn/telemetry.h"
 
@@ -70,6 +74,35 @@ static int read_word(char **p, char *out)
     return n > 0;
 }
 
+static double now_s(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+/* sleep until the wall clock is (utime - first utime) / speed past the start */
+static void pace(int64_t utime, double speed)
+{
+    static int started = 0;
+    static int64_t utime0;
+    static double wall0;
+    double wait;
+    if (!started) {
+        started = 1;
+        utime0 = utime;
+        wall0 = now_s();
+        return;
+    }
+    wait = wall0 + 1e-6 * (double)(utime - utime0) / speed - now_s();
+    if (wait > 0.0 && wait < 3600.0) {
+        struct timespec ts;
+        ts.tv_sec = (time_t)wait;
+        ts.tv_nsec = (long)((wait - (double)ts.tv_sec) * 1e9);
+        nanosleep(&ts, NULL);
+    }
+}
+
 static int parse_rate(const char *arg, ddyn_telemetry_config *cfg)
 {
     int k;
@@ -93,7 +126,7 @@ static int parse_rate(const char *arg, ddyn_telemetry_config *cfg)
 }
 
 /* publish the line's record; *ok = 0 when the line is malformed */
-static ddyn_tm_status publish_line(ddyn_telemetry *tm, char *line, int *ok)
+static ddyn_tm_status publish_line(ddyn_telemetry *tm, char *line, double speed, int *ok)
 {
     static double v[(DDYN_TM_PLAN_MAX_HORIZON + 1) * DDYN_NX + DDYN_TM_PLAN_MAX_HORIZON * DDYN_NU];
     static char names[DDYN_TM_MAX_STAGES][NAME_MAX_CHARS];
@@ -104,6 +137,9 @@ static ddyn_tm_status publish_line(ddyn_telemetry *tm, char *line, int *ok)
     *ok = 0;
     if (!read_int64(&p, &utime) || !read_int64(&p, &step)) {
         return DDYN_TM_ERR_ARGUMENT;
+    }
+    if (speed > 0.0) {
+        pace(utime, speed);
     }
     if (kind == 'S' && read_numbers(&p, v, 2 * DDYN_NX)) {
         ddyn_tm_state m;
@@ -188,7 +224,7 @@ int main(int argc, char **argv)
     static char line[LINE_MAX_CHARS];
     static double bounds[2 * DDYN_NC + 1];
     ddyn_telemetry_config cfg;
-    double control_hz = 50.0;
+    double control_hz = 50.0, speed = 0.0;
     int i, k, opened = 0, status = 0;
     long line_no = 0;
     ddyn_telemetry_default_config(&cfg, control_hz);
@@ -205,10 +241,12 @@ int main(int argc, char **argv)
             cfg.channel_prefix = argv[++i];
         } else if (strcmp(argv[i], "-c") == 0 && i + 1 < argc) {
             ++i;
+        } else if (strcmp(argv[i], "-s") == 0 && i + 1 < argc) {
+            speed = strtod(argv[++i], NULL);
         } else if (strcmp(argv[i], "-r") == 0 && i + 1 < argc && parse_rate(argv[i + 1], &cfg)) {
             ++i;
         } else {
-            fprintf(stderr, "usage: %s [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... < stream\n", argv[0]);
+            fprintf(stderr, "usage: %s [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... [-s SPEED] < stream\n", argv[0]);
             return 2;
         }
     }
@@ -236,7 +274,7 @@ int main(int argc, char **argv)
             }
             opened = 1;
         }
-        s = publish_line(&tm, line, &ok);
+        s = publish_line(&tm, line, speed, &ok);
         if (!ok) {
             fprintf(stderr, "ddyn_telemetry_replay: line %ld: expected S, C, P, T or F with its fields\n", line_no);
             status = 1;
