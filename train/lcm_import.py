@@ -15,9 +15,10 @@ estimate message:
 Ts is the vehicle's sample time; the controller clock (utime) only has to agree with
 it within CLOCK_RTOL, and is kept as the extra `clock_s` so its jitter stays visible.
 Extras: var_<state> (the covariance diagonal) always; the coefficients c_<name> and
-their saturation flags, and the plan's cost, QP iterations, status and first input,
-when those channels carry a message for every row kept (a canonical column needs a
-value on every row; a decimated channel is listed in the metadata instead).
+their saturation flags, the plan's status, QP iterations and cost, the loop's period,
+duration and deadline miss, and the active fault bits, each when its channel carries a
+message for every row kept (a canonical column needs a value on every row; a
+decimated channel is listed in the metadata instead).
 
 Every event is checked: its framing (sync word, lengths, nothing truncated, nothing
 between events), and each message on a known channel must decode as its type and
@@ -239,14 +240,15 @@ def _segment_rate(values: np.ndarray, segment: np.ndarray, ts: float) -> np.ndar
 
 
 def _per_step_extras(by_channel, prefix, step, notes) -> dict[str, np.ndarray]:
-    """Columns from the coefficient and plan channels, when they have a message at every state step."""
+    """Columns from the other channels, for those with a message at every state step."""
     out: dict[str, np.ndarray] = {}
     columns = {
         "COEFFS": lambda m: {**{f"c_{n}": m.coeffs[i] for i, n in enumerate(COEFF_NAMES)},
                              "sat_lo_mask": m.saturated_lo & 0xFFFFFFFF, "sat_hi_mask": m.saturated_hi & 0xFFFFFFFF},
-        "PLAN": lambda m: {"mpc_status": m.status, "mpc_qp_iterations": m.qp_iterations, "mpc_cost": m.cost,
-                           "mpc_dthrottle": m.inputs[0][0] if m.horizon else np.nan,
-                           "mpc_dsteering": m.inputs[0][1] if m.horizon else np.nan},
+        "PLAN": lambda m: {"mpc_status": m.status, "mpc_qp_iterations": m.qp_iterations, "mpc_cost": m.cost},
+        "TIMING": lambda m: {"loop_period_s": m.period_s, "loop_total_s": m.total_s,
+                             "deadline_missed": float(bool(m.deadline_missed))},
+        "FAULTS": lambda m: {"faults_active": m.active & 0xFFFFFFFF},
     }
     for suffix, fields in columns.items():
         msgs = {m.step: m for m in by_channel[prefix + suffix]}

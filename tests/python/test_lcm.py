@@ -87,6 +87,7 @@ def test_published_values_come_back_from_the_log(tmp_path, sim, tool):
     assert np.all(back.extras["sat_hi_mask"].astype(int) & (1 << COEFF_NAMES.index("Cd")))
     assert np.all(back.extras["mpc_status"] == 0) and np.all(back.extras["mpc_cost"] == 0)
     np.testing.assert_allclose(back.extras["clock_s"], back.time, atol=1e-6)
+    assert np.all(back.extras["faults_active"] == 0) and "loop_total_s" not in back.extras   # the replay sends no timing
 
 
 def test_decimated_channels_are_noted_not_columns(tmp_path, sim, tool):
@@ -139,6 +140,24 @@ def test_lost_messages_start_new_segments(tmp_path):
     np.testing.assert_allclose(ds.time, 0.02 * np.array(steps), atol=1e-12)
     np.testing.assert_allclose(ds.inputs[:, 0], 0.5)   # throttle grows 0.01 per step of 0.02 s
     assert ds.metadata["ignored_channels"] == "OTHER=1"
+
+
+def test_timing_and_faults_become_columns(tmp_path):
+    t = lcm_types.types()
+    events = []
+    for s in range(4):
+        events.append(("DDYN_STATE", _state(s, 20_000 * s)))
+        timing = t.loop_timing_t()
+        timing.step, timing.period_s, timing.total_s, timing.deadline_s = s, 0.02, 0.004 * (s + 1), 0.015
+        timing.deadline_missed = timing.total_s > timing.deadline_s
+        events.append(("DDYN_TIMING", timing))
+        faults = t.faults_t()
+        faults.step, faults.active = s, (-(2 ** 31)) if s == 2 else s   # bit 31 arrives as a negative int32
+        events.append(("DDYN_FAULTS", faults))
+    ds = load_any(_write(tmp_path / "tf.lcm", events))
+    np.testing.assert_allclose(ds.extras["loop_total_s"], [0.004, 0.008, 0.012, 0.016])
+    assert list(ds.extras["deadline_missed"]) == [0, 0, 0, 1]
+    assert list(ds.extras["faults_active"]) == [0, 1, 2 ** 31, 3]
 
 
 def test_min_vx_drops_slow_rows(tmp_path):
