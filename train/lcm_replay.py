@@ -11,7 +11,7 @@ without a controller:
     PLAN    the dataset's own next `horizon` rows (within the segment) as the plan,
             status 0 "replay", no QP iterations, cost 0: a replay has no optimiser
     FAULTS  none active
-    TIMING  the replay loop's own: the wall time each kind took to publish (tool option -m)
+    TIMING  the replay loop's own: the wall time each kind took to parse and publish (tool option -m)
 
 step = round((time - time[0]) / Ts), so gaps between segments stay gaps; utime is the
 row's time in microseconds. Rates per message kind are the tool's (-r KIND=HZ).

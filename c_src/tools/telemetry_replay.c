@@ -9,7 +9,8 @@
  *   SPEED: pace the messages by their utime at SPEED times real time (default 0: as fast as
  *          possible, which can overrun a UDP receiver's buffer)
  *   -m: publish this loop's own timing (no T lines then): per step, the wall time each
- *       message kind took to publish (stages state, coeffs, plan, faults), their total, the
+ *       message kind took to parse from its line and publish (stages state, coeffs, plan,
+ *       faults), their total, the
  *       period of the utime clock and a deadline of one control period
  * Input lines (numbers separated by spaces; utime in microseconds, step an integer):
  *   B lo[17] hi[17] margin                        guard bounds (only as the first line)
