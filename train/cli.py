@@ -31,6 +31,7 @@ SUBCOMMAND_MODULES = (
     "train.tune",
     "codegen.can",
     "train.can_log",
+    "train.can_bench",
 )
 
 

@@ -236,7 +236,7 @@ if [ $status -eq 0 ]; then
 fi
 if [ $status -eq 0 ]; then
   for t in {tests}; do
-    echo "DDYN_GUEST: running $t"
+    echo "DDYN_GUEST: up $(cut -d' ' -f1 /proc/uptime) s, running $t"
     /tests/$t vcan0 || status=1
   done
 fi

@@ -170,3 +170,15 @@ def test_cli_export_and_import(sim, tmp_path, capsys):
     assert "issues: none" in capsys.readouterr().out
     assert (tmp_path / "tab" / "GNSS_Heading.csv").is_file()
     assert main(["can-import", str(tmp_path / "missing.log"), "-o", str(tmp_path / "tab")]) == 2
+
+
+def test_can_bench_reports_c_and_python_side_by_side():
+    from train import can_bench
+
+    tool = REPO / "build" / "c_src" / "ddyn_dbw_bench"
+    if not tool.is_file():
+        pytest.fail(f"{tool} missing: build the C side first (scripts/test.sh does)")
+    rows = can_bench.run(tool, calls=1000, py_calls=200)
+    assert [r["name"] for r in rows] == ["C dbw_on_frame", "C dbw_command_frame", "Python cantools decode"]
+    for r in rows:
+        assert 0 < r["median_ns"] <= r["p99_ns"] <= r["max_ns"], r
