@@ -10,7 +10,7 @@
            module's .modinfo), in dependency order, decompressed (.ko.xz/.ko.zst/.ko.gz) here so
            the guest's busybox insmod needs no decompressor.
   initramfs busybox-static, the modules, the test binaries (statically linked: the guest has no
-           libc) and an /init that loads the modules, creates vcan0, runs the tests and prints
+           libc) and an /init that loads the modules, creates vcan0 (MTU 72: CAN FD capable), runs the tests and prints
            "DDYN_GUEST_EXIT: <status>" on the serial console.
 
 The kernel and modules are cached in the cache directory (default build/vcan-guest, outside
@@ -232,7 +232,8 @@ for m in {modules}; do
   insmod /lib/modules/$m.ko || {{ echo "DDYN_GUEST: insmod $m failed"; status=1; }}
 done
 if [ $status -eq 0 ]; then
-  ip link add dev vcan0 type vcan && ip link set up vcan0 || {{ echo "DDYN_GUEST: cannot create vcan0"; status=1; }}
+  # MTU 72 (CANFD_MTU): vcan then carries CAN FD frames as well as classic ones
+  ip link add dev vcan0 type vcan && ip link set vcan0 mtu 72 && ip link set up vcan0 || {{ echo "DDYN_GUEST: cannot create vcan0"; status=1; }}
 fi
 if [ $status -eq 0 ]; then
   for t in {tests}; do

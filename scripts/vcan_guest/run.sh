@@ -15,7 +15,7 @@ TIMEOUT="${DDYN_VCAN_TIMEOUT:-300}"
 
 host_has_vcan() {
   [ -e /sys/class/net/vcan0 ] && { ip link set up vcan0 2>/dev/null || true; return 0; }
-  ip link add dev vcan0 type vcan 2>/dev/null && ip link set up vcan0 2>/dev/null
+  ip link add dev vcan0 type vcan 2>/dev/null && ip link set vcan0 mtu 72 && ip link set up vcan0 2>/dev/null
 }
 
 if [ "$MODE" = host ] || { [ "$MODE" = auto ] && host_has_vcan; }; then
