@@ -15,9 +15,19 @@ clang -std=c99 -g -O1 -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=
   -I"$ROOT/c_src/include" -I"$ROOT/c_src/generated/can" \
   "$ROOT/tests/fuzz/fuzz_dbw.c" "$ROOT/c_src/src/dbw.c" "$ROOT/c_src/generated/can/ddyn_can.c" -lm \
   -o "$out/fuzz_dbw" || { echo "fuzz: FAIL: could not build the fuzz target with libFuzzer"; exit 1; }
+# Seeds (regenerated each run, never edited by libFuzzer): scripts that drive the monitor to ACTIVE,
+# the region random bytes rarely reach: six well-formed frames (op 6, kinds 0-5), a control period
+# (op 4, READY), the enable (op 3), a control period (ACTIVE); the second adds a checksum failure
+# (a raw frame, op 0, id 0x120 with a wrong checksum) and the recovery.
+mkdir -p "$out/seeds"
+frames=""; for k in 0 1 2 3 4 5; do frames+="\x06\x0$k\x80\x80\x80\x80\x80\x80\x80\x80\x00"; done
+active="$frames\x04\x80\x10\x80\x03\x04\x80\x10\x80"
+printf "$active" >"$out/seeds/active"
+printf "$active\x00\x20\x01\x08\x01\x02\x03\x04\x05\x06\x07\x00\x00\x04\x80\x10\x80$frames\x04\x80\x10\x80\x03\x04\x80\x10\x80" \
+  >"$out/seeds/fail_recover"
 log="$out/last-run.log"
 ( cd "$out" && ./fuzz_dbw -max_total_time="$secs" -print_final_stats=1 -artifact_prefix="$out/" \
-    -max_len=512 corpus ) >"$log" 2>&1
+    -max_len=512 corpus seeds ) >"$log" 2>&1
 rc=$?
 runs=$(grep -oE "Done [0-9]+ runs in [0-9]+ second" "$log" | tail -1)
 execs=$(grep -oE "stat::number_of_executed_units: *[0-9]+" "$log" | grep -oE "[0-9]+$")
