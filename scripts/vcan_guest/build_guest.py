@@ -292,8 +292,8 @@ def build_initramfs(cache: Path, meta: dict, tests: list[Path], out: Path) -> No
         c.file(f"tests/{t.name}", t.read_bytes())
     c.file("init", INIT.format(modules=" ".join(meta["modules"]), tests=" ".join(t.name for t in tests)).encode())
     out.parent.mkdir(parents=True, exist_ok=True)
-    # mtime 0: the same inputs give the same bytes
-    with open(out, "wb") as f, gzip.GzipFile(fileobj=f, mode="wb", compresslevel=1, mtime=0) as gz:
+    # mtime 0 and no file name in the gzip header: the same inputs give the same bytes
+    with open(out, "wb") as f, gzip.GzipFile(filename="", fileobj=f, mode="wb", compresslevel=1, mtime=0) as gz:
         gz.write(c.finish())
 
 

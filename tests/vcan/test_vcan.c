@@ -32,13 +32,11 @@
 #define PERIOD_US 10000u
 #define PERIODS 100
 #define INJECT_PERIOD 25
-#define STALE_GAP_PERIODS 35 /* 350 ms without IMU frames */
-/* deadlines of 250 ms rather than the DBC's 3 cycles: a software-emulated guest on a shared,
- * loaded host stalls for tens, at times over a hundred, milliseconds; the stale case opens a gap
- * of 350 ms. (The unit tests check the DBC's own deadlines.) */
-#define TEST_DEADLINE_US 250000u
-/* a scenario that fails is run once more: a guest stall longer than the deadline makes every
- * frame stale, which is the host's doing, not the protocol's; a real defect fails both times */
+#define STALE_GAP_PERIODS 15 /* 150 ms without IMU frames: five times its 30 ms deadline */
+/* Both ends use the DBC's deadlines (ddyn_dbw_default_config: 3 cycle times). The guest runs
+ * with a virtual clock driven by the instruction count (scripts/vcan_guest/run.sh), so a loaded
+ * host slows the test down but does not stretch the guest's time between frames. On a real host
+ * with vcan (no such clock) scheduling stalls could still exceed 30 ms, hence the retry: */
 #define ATTEMPTS 2
 
 typedef enum {
@@ -164,7 +162,6 @@ static void emulator(injection inj, uint64_t t0, int out_fd)
     rep.first_safe_period = -1;
     rep.last_autonomous_period = -1;
     ddyn_dbw_default_config(&cfg, DDYN_DBW_MONITOR_DBW_UNIT);
-    cfg.deadline_us[DDYN_DBW_FRAME_COMMAND] = TEST_DEADLINE_US;
     if (ddyn_dbw_init(&unit, &cfg) != 0 || ddyn_dbw_socketcan_open(&sock, iface, DDYN_DBW_ROLE_DBW_UNIT) != 0) {
         rep.setup_error = 1;
         (void)!write(out_fd, &rep, sizeof(rep));
@@ -343,17 +340,11 @@ static void receive_timed(ctl_run *c, uint64_t deadline)
 static int controller(ctl_run *c, injection inj, uint64_t t0)
 {
     ddyn_dbw_config cfg;
-    unsigned f;
     int p;
     memset(c, 0, sizeof(*c));
     c->detect_period = -1;
     c->stamps_monotone = true;
     ddyn_dbw_default_config(&cfg, DDYN_DBW_MONITOR_CONTROLLER);
-    for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
-        if (cfg.deadline_us[f] != 0u) {
-            cfg.deadline_us[f] = TEST_DEADLINE_US;
-        }
-    }
     if (ddyn_dbw_init(&c->dbw, &cfg) != 0) {
         return -1;
     }
@@ -377,7 +368,7 @@ static int controller(ctl_run *c, injection inj, uint64_t t0)
         if (c->detect_period < 0 && total_failures(&c->dbw) > 0u) {
             c->detect_period = p;
             c->stale_lateness_us = (int64_t)c->dbw.last_failure_us -
-                                   (int64_t)(c->dbw.rx[DDYN_DBW_FRAME_IMU].last_rx_us + TEST_DEADLINE_US);
+                                   (int64_t)(c->dbw.rx[DDYN_DBW_FRAME_IMU].last_rx_us + cfg.deadline_us[DDYN_DBW_FRAME_IMU]);
             c->safe_at_detect = sent.mode == DDYN_DBW_MODE_SAFE_STOP && sent.throttle == 0.0 &&
                                 sent.brake == cfg.safe_brake && fabs(sent.steering - 0.05) < 1e-12;
         }
@@ -479,11 +470,10 @@ static void judge(injection inj, ctl_run *c, const emu_report *e)
     if (inj == INJ_IFACE_GONE && e->first_safe_period < INJECT_PERIOD) {
         fail(name, "the DBW unit never got a safe command after the link came back");
     }
-    /* the deadline is checked twice per period: a lapse is seen within one period of expiring,
-     * plus whatever the emulated guest's scheduler adds (one more period allowed for that) */
-    if (inj == INJ_STALE && (c->stale_lateness_us < 0 || c->stale_lateness_us > 2 * (int64_t)PERIOD_US)) {
+    /* the deadline is checked twice per period: a lapse is seen within one period of expiring */
+    if (inj == INJ_STALE && (c->stale_lateness_us < 0 || c->stale_lateness_us > (int64_t)PERIOD_US)) {
         fail(name, "stale detected %lld us after the deadline expired, expected 0..%u", (long long)c->stale_lateness_us,
-             2u * PERIOD_US);
+             PERIOD_US);
     }
     if (c->enables != 2) {
         fail(name, "%d enables, expected 2 (start, and after recovery)", c->enables);
@@ -500,7 +490,7 @@ static void judge(injection inj, ctl_run *c, const emu_report *e)
                name, c->dbw.failures[kind], c->detect_period, e->first_safe_period, c->dbw.config.recovery_good_frames);
         if (inj == INJ_STALE) {
             printf("; detected %lld us after the %u us deadline expired", (long long)c->stale_lateness_us,
-                   TEST_DEADLINE_US);
+                   c->dbw.config.deadline_us[DDYN_DBW_FRAME_IMU]);
         }
         printf("\n");
     }
