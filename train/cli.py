@@ -30,6 +30,9 @@ SUBCOMMAND_MODULES = (
     "train.denoise",
     "train.denoise_study",
     "train.tune",
+    "codegen.can",
+    "train.can_log",
+    "train.can_bench",
 )
 
 
