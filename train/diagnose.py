@@ -25,7 +25,23 @@ How far  held-out one-step RMSE per channel and ADE/FDE before (nominal as given
          the normalised mean squared error above a measurement-noise floor estimated from the
          residuals' lag-1 autocovariance (white sensor noise makes one-step residuals MA(1)).
 
-DIR/diagnosis.json (schema in the README), DIR/diagnosis.md and PNG plots.
+Output: DIR/diagnosis.json, DIR/diagnosis.md and PNG plots (where.png, residuals.png, which.png).
+diagnosis.json ("schema": "ddyn-diagnosis 1"):
+  selected        [effect names], in the order added; [] means none is significant
+  verdict         one line: the selected effects with estimate +- uncertainty, or "none: ..."
+  candidates      best first (by dBIC), one per effect tried alone against the refitted nominal:
+                  effect, params {name: value}, uncertainty {name: std}, unit, refit {coefficient: factor},
+                  heldout {rmse_before, rmse_refit_only, rmse_after: {vx, vy, omega}, ade_before, ade_after,
+                  fde_before, fde_after}, gap_closed_pct, error_reduction_pct, delta_bic, delta_loglik,
+                  lr_p_value, significant (dBIC < 0), fit_seconds
+  model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit}],
+                  refit, heldout (as above), gap_closed_pct, error_reduction_pct
+  greedy          the selection steps: best candidate, its dBIC, whether it was added
+  where           one_step_rmse, noise_floor_rmse, rmse_over_noise_floor {vx, vy, omega}; ade (m) and
+                  horizon_steps; factors {speed, lateral_acceleration, front_slip, rear_slip, throttle_brake,
+                  steering_rate, time, [track_position]: [{bin, samples_share, error_share, rmse, ade}]};
+                  summary [sentences naming the regions that hold most of the error]
+  nominal, split, method, data, seconds: what was compared, how, on what
 """
 from __future__ import annotations
 

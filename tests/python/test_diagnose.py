@@ -135,3 +135,39 @@ def test_checkpoint_nominal(delay_log, tmp_path):
     d = D.diagnose(delay_log, nominal, candidates=("steer_delay", "grade"), refit=())
     _check_schema(D.public(d))
     assert d["nominal"]["source"].startswith("DDM checkpoint")
+
+
+# ---------------------------------------------------------------------------------------------- gap benchmark
+
+def test_benchmark_plan_and_scoring():
+    from train import effects as E
+    from train import gap_benchmark as GB
+
+    cases = GB.plan(39, seed=3)
+    assert {c["effect"] for c in cases} == set(E.EFFECT_NAMES) | {"none"}
+    assert sum(c["effect"] == "none" for c in cases) == 6 and {c["vehicle"] for c in cases} == {"orca_1_43", "av21"}
+    for c in cases:
+        if c["effect"] != "none":
+            m, t = abs(c["magnitude"]), GB.THRESHOLDS[c["vehicle"]][c["effect"]]
+            assert 0.4 * t <= m <= min(4 * t, GB.MAX_MAGNITUDE[c["vehicle"]].get(c["effect"], np.inf))
+    rows = [{"magnitude": m, "correct": ok} for m, ok in [(1, False), (2, True), (3, False), (4, True), (5, True),
+                                                          (6, True)]]
+    assert GB.reliable_threshold(rows) == 4
+    fake = [dict(c, status="ok", top1=c["effect"], correct=True, selected=[] if c["effect"] == "none" else
+                 [c["effect"]], param_error=0.05, gap_vs_oracle=0.97, diagnose_seconds=1.0) for c in cases]
+    fake[12]["selected"], fake[12]["top1"] = ["grade"], "grade"      # a false alarm on an effect-free log
+    sc = GB.score(fake)
+    assert sc["summary"]["false_alarm_rate"] == pytest.approx(1 / 6)
+    assert sc["summary"]["top1_above_threshold"] == 1.0 and sc["confusion"]["none"]["grade"] == 1
+    assert not sc["summary"]["targets"]["false_alarm_rate <= 0.05"]
+    assert "| none |" in GB.markdown(sc, {}, 60.0)
+
+
+def test_benchmark_case_runs(shared_data):
+    from train import gap_benchmark as GB
+
+    case = {"case": 0, "vehicle": "orca_1_43", "track": "ethzMobil", "effect": "bank_angle", "magnitude": 0.03,
+            "seed": 99}
+    r = GB.run_case(case, ORCA, ORCA.true_vector())
+    assert r["status"] == "ok" and r["correct"] and r["param_error"] < 0.15
+    assert r["e_diagnosed"] < r["e_nominal"] and 0.8 < r["gap_vs_oracle"] < 1.2
