@@ -29,6 +29,8 @@ SUBCOMMAND_MODULES = (
     "train.denoise",
     "train.denoise_study",
     "train.tune",
+    "train.diagnose",
+    "train.gap_benchmark",
 )
 
 

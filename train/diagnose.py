@@ -30,18 +30,22 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
   selected        [effect names], in the order added; [] means none is significant
   verdict         one line: the selected effects with estimate +- uncertainty, or "none: ..."
   candidates      best first (by dBIC), one per effect tried alone against the refitted nominal:
-                  effect, params {name: value}, uncertainty {name: std}, unit, refit {coefficient: factor},
+                  effect, params {name: value}, uncertainty {name: std}, unit, at_bound (the estimate sits
+                  on an edge of its search range), refit {coefficient: factor},
                   heldout {rmse_before, rmse_refit_only, rmse_after: {vx, vy, omega}, ade_before, ade_after,
                   fde_before, fde_after}, gap_closed_pct, error_reduction_pct, delta_bic, delta_loglik,
                   lr_p_value, significant (dBIC < 0), fit_seconds
-  model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit}],
+  model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit, at_bound}],
                   refit, heldout (as above), gap_closed_pct, error_reduction_pct
   greedy          the selection steps: best candidate, its dBIC, whether it was added
   where           one_step_rmse, noise_floor_rmse, rmse_over_noise_floor {vx, vy, omega}; ade (m) and
-                  horizon_steps; factors {speed, lateral_acceleration, front_slip, rear_slip, throttle_brake,
-                  steering_rate, time, [track_position]: [{bin, samples_share, error_share, rmse, ade}]};
+                  horizon_steps; multi_step_rmse (over the horizon), multi_step_final_rmse (at its end)
+                  {vx, vy, omega}; factors {speed, lateral_acceleration, front_slip, rear_slip, throttle_brake,
+                  steering_rate, time, [track_position]: [{bin, samples_share, error_share, rmse, ade,
+                  multi_step_rmse}]};
                   summary [sentences naming the regions that hold most of the error]
-  nominal, split, method, data, seconds: what was compared, how, on what
+  nominal, split, method, data, seconds: what was compared, how, on what (split.heldout_from_time: s after
+                  the log's first row)
 """
 from __future__ import annotations
 
@@ -144,6 +148,14 @@ def _bounds(name: str, ctx: dict) -> tuple[float, float]:
             "bank_angle": (-0.3, 0.3), "grade": (-0.3, 0.3), "downforce": (0.0, 3.0 / vmax ** 2),
             "combined_slip": (0.0, 5.0), "tire_relaxation": (0.0, 12 * dt * vmax), "tire_wear": (0.0, 3.0 / T),
             "yaw_rate_bias": (-0.5, 0.5), "mass_offset": (-0.5, 1.0)}[name]
+
+
+def at_bound(name: str, value: float, ctx: dict) -> bool:
+    """The estimate sits on a non-zero edge of its search range: the effect is likely standing in for a
+    different mismatch (its value is then a bound, not an estimate)."""
+    lo, hi = _bounds(name, ctx)
+    tol = 1e-3 * (hi - lo)
+    return any(b != 0.0 and abs(value - b) <= tol for b in (lo, hi))
 
 
 GRID_UNITS = {"steer_delay": (0.5, 1, 2, 3, 5, 8), "throttle_delay": (0.5, 1, 2, 3, 5, 8),
@@ -288,13 +300,17 @@ def _starts(prob: Problem, rows: np.ndarray, steps: int, max_starts: int) -> np.
     return ok
 
 
-def rollout_errors(prob: Problem, values: dict, rho, starts: np.ndarray, steps: int) -> np.ndarray:
-    """Position error (steps, n_starts) of rollouts from `starts`."""
+def rollout_errors(prob: Problem, values: dict, rho, starts: np.ndarray, steps: int,
+                   channels: bool = False):
+    """Position error (steps, n_starts) of rollouts from `starts`; channels: also the multi-step residuals of
+    (vx, vy, omega), (steps, n_starts, 3)."""
     if len(starts) == 0:
-        return np.zeros((steps, 0))
-    pos = prob.lm.rollout(E.EffectSet.from_values(values), starts, steps, prob.coeffs(rho))
-    truth = np.stack([prob.ds.states[starts + j + 1, :2] for j in range(steps)])
-    return np.linalg.norm(pos - truth, axis=-1)
+        return (np.zeros((steps, 0)), np.zeros((steps, 0, 3))) if channels else np.zeros((steps, 0))
+    pred = prob.lm.rollout(E.EffectSet.from_values(values), starts, steps, prob.coeffs(rho),
+                           whole_state=channels)
+    truth = np.stack([prob.ds.states[starts + j + 1] for j in range(steps)])
+    pos = np.linalg.norm(pred[..., :2] - truth[..., :2], axis=-1)
+    return (pos, truth[..., 3:6] - pred[..., 3:6]) if channels else pos
 
 
 def _noise_floor(prob: Problem, res: np.ndarray) -> np.ndarray:
@@ -386,7 +402,8 @@ def where(prob: Problem, steps: int, max_starts: int, track=None, floor=None) ->
     err = np.sum(res ** 2 / np.maximum(fl, (0.05 * prob.scale) ** 2), axis=1)
     total = float(err.sum()) or 1.0
     starts = _starts(prob, rows, steps, max_starts)
-    ade = rollout_errors(prob, {}, np.zeros(len(prob.refit)), starts, steps).mean(axis=0)
+    pos_err, ms_res = rollout_errors(prob, {}, np.zeros(len(prob.refit)), starts, steps, channels=True)
+    ade = pos_err.mean(axis=0)
     start_pos = np.searchsorted(rows, starts)
     fac = _factors(prob, rows, track)
     rmse = np.sqrt(np.mean(res ** 2, axis=0))
@@ -395,7 +412,11 @@ def where(prob: Problem, steps: int, max_starts: int, track=None, floor=None) ->
     out = {"one_step_rmse": _chan(rmse), "noise_floor_rmse": _chan(noise),
            "rmse_over_noise_floor": {c: (float(r) if np.isfinite(r) and n > 0 else None)
                                      for c, r, n in zip(CHANNELS, over, noise)},
-           "ade": float(ade.mean()) if len(ade) else None, "horizon_steps": steps, "factors": {}}
+           "ade": float(ade.mean()) if len(ade) else None, "horizon_steps": steps,
+           # multi-step residuals of the nominal by channel: RMSE over the whole horizon and at its end
+           "multi_step_rmse": _chan(np.sqrt(np.mean(ms_res ** 2, axis=(0, 1)))) if len(ade) else None,
+           "multi_step_final_rmse": _chan(np.sqrt(np.mean(ms_res[-1] ** 2, axis=0))) if len(ade) else None,
+           "factors": {}}
     notable = []
     for fname, (idx, labels) in fac.items():
         bins = []
@@ -406,7 +427,8 @@ def where(prob: Problem, steps: int, max_starts: int, track=None, floor=None) ->
             sm = idx[start_pos] == b if len(start_pos) else np.zeros(0, bool)
             row = {"bin": label, "samples_share": float(m.mean()), "error_share": float(err[m].sum() / total),
                    "rmse": _chan(np.sqrt(np.mean(res[m] ** 2, axis=0))),
-                   "ade": float(ade[sm].mean()) if sm.any() else None}
+                   "ade": float(ade[sm].mean()) if sm.any() else None,
+                   "multi_step_rmse": _chan(np.sqrt(np.mean(ms_res[:, sm] ** 2, axis=(0, 1)))) if sm.any() else None}
             bins.append(row)
             if row["samples_share"] >= 0.05:
                 notable.append((row["error_share"] / row["samples_share"], fname, row))
@@ -460,6 +482,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         h = ev["heldout"]
         return {"effect": name, "params": {E.MAIN_PARAM[name]: f.values[name]},
                 "uncertainty": {E.MAIN_PARAM[name]: f.std[name]}, "unit": E.UNITS[name],
+                "at_bound": at_bound(name, f.values[name], prob.ctx),
                 "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, f.rho)},
                 "heldout": {"rmse_before": _chan(before["rmse"]), "rmse_refit_only": _chan(base["rmse"]),
                             "rmse_after": _chan(h["rmse"]), "ade_before": before["ade"], "ade_after": h["ade"],
@@ -512,7 +535,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
     final = {"effects": [{"effect": n, "params": {E.MAIN_PARAM[n]: current.values[n]},
-                          "uncertainty": {E.MAIN_PARAM[n]: current.std[n]}, "unit": E.UNITS[n]} for n in selected],
+                          "uncertainty": {E.MAIN_PARAM[n]: current.std[n]}, "unit": E.UNITS[n],
+                          "at_bound": at_bound(n, current.values[n], prob.ctx)} for n in selected],
              "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, current.rho)},
              "heldout": {"rmse_before": _chan(before["rmse"]), "rmse_after": _chan(current_h["rmse"]),
                          "ade_before": before["ade"], "ade_after": current_h["ade"],
@@ -526,7 +550,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "selected": selected,
         "verdict": ("none: no candidate effect pays for its parameters on the held-out data" if not selected else
                     "; ".join(f"{e['effect']} {next(iter(e['params']))} = {next(iter(e['params'].values())):.4g} "
-                              f"+- {next(iter(e['uncertainty'].values())):.2g} {e['unit']}" for e in final["effects"])),
+                              f"+- {next(iter(e['uncertainty'].values())):.2g} {e['unit']}"
+                              + (" (AT THE EDGE of its range: a stand-in for another mismatch, not an estimate)"
+                                 if e["at_bound"] else "") for e in final["effects"])),
         "candidates": first,
         "model": final,
         "greedy": steps_log,
@@ -536,7 +562,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                     "refit_only": {"rmse": _chan(base["rmse"]), "factors": {n: 1.0 + float(r) for n, r in
                                                                              zip(prob.refit, base_fit.rho)}}},
         "split": {"fit_fraction": fit_fraction, "fit_rows": int(len(prob.rows_fit)),
-                  "heldout_rows": int(len(prob.rows_held)), "heldout_from_time": float(ds.time[prob.rows_held[0]]),
+                  "heldout_rows": int(len(prob.rows_held)), "heldout_from_time": float(ds.time[prob.rows_held[0]] - ds.time[0]),
                   "rollout_starts": int(len(starts)), "horizon_s": steps * ds.sample_time},
         "method": {"fit": "scipy.optimize.least_squares (trf) on one-step residuals normalised per channel, "
                           "after a grid scan of the new parameter",
@@ -581,19 +607,28 @@ def markdown(d: dict, figures: list[str]) -> str:
              f"Gap closed: {_fmt(m['gap_closed_pct'])} % of the held-out error above the estimated noise floor "
              f"({_fmt(m['error_reduction_pct'])} % of the normalised one-step error).", "",
              "## Where (nominal model, whole log)", ""]
-    lines += [f"- {s}" for s in d["where"]["summary"]]
+    w = d["where"]
+    lines += ["| nominal | vx (m/s) | vy (m/s) | omega (rad/s) |", "|---|---|---|---|"]
+    for label, key in (("one-step RMSE", "one_step_rmse"), ("noise floor (est.)", "noise_floor_rmse"),
+                       (f"multi-step RMSE ({w['horizon_steps']} steps)", "multi_step_rmse"),
+                       ("multi-step RMSE at the horizon", "multi_step_final_rmse")):
+        if w.get(key):
+            lines.append(f"| {label} | " + " | ".join(_fmt(w[key][c]) for c in CHANNELS) + " |")
+    lines += [""] + [f"- {s}" for s in w["summary"]]
     lines += ["", "## Which (each candidate alone against the refitted nominal, best first)", "",
               "| effect | estimate | +- | dBIC | gap closed % | vx | vy | omega | ADE |",
               "|---|---|---|---|---|---|---|---|---|"]
     for c in d["candidates"]:
         (pn, pv), = c["params"].items()
         hh = c["heldout"]
-        lines.append(f"| {c['effect']}{' **' if c['significant'] else ''} | {pn} = {_fmt(pv)} {c['unit']} | "
+        edge = " (at bound)" if c["at_bound"] else ""
+        lines.append(f"| {c['effect']}{' **' if c['significant'] else ''} | {pn} = {_fmt(pv)} {c['unit']}{edge} | "
                      f"{_fmt(c['uncertainty'][pn])} | {c['delta_bic']:.1f} | {_fmt(c['gap_closed_pct'])} | "
                      + " | ".join(_fmt(hh["rmse_after"][ch]) for ch in CHANNELS) + f" | {_fmt(hh['ade_after'])} |")
     lines += ["", "dBIC < 0 (marked **): the effect pays for its parameter on the held-out part. Tyre peak forces "
               f"({', '.join(d['nominal']['refit_under_every_hypothesis']) or 'none'}) are refitted under every "
-              "hypothesis.", ""]
+              "hypothesis. \"at bound\": the estimate sits on an edge of its search range, so the effect is "
+              "standing in for some other mismatch and its value is a bound, not an estimate.", ""]
     lines += [f"![{Path(f).stem}]({Path(f).name})" for f in figures]
     return "\n".join(lines) + "\n"
 

@@ -3,26 +3,45 @@
 Each case: a nominal model identified on effect-free simulated data (per vehicle, once: the
 17 coefficients fitted by least squares to one-step predictions of a separate noisy log,
 starting from the vehicle file's values perturbed by up to 10 %), and a noisy simulated log
-(sensor noise at the vehicle's sensor_noise_std) with one hidden effect of random magnitude
-(log-uniform from 0.4 to 4 times the effect's stated detection threshold, capped where the
-simulated driver would lose the car, random sign where the effect has one), on a random track and seed; a share of the cases has no effect at all.
-The diagnosis runs without being told. Scores: top-1 identification (the first effect the
-greedy selection adds, "none" when it adds none) with a confusion matrix; relative error of
-the estimated parameter; gap closed against the oracle (the true plant with its true effect):
-(E_nominal - E_diagnosed) / (E_nominal - E_oracle) on the held-out normalised one-step MSE;
-false alarms (anything selected on an effect-free log); and, per effect, the smallest
-magnitude above which it is identified in at least 95 % of the cases.
+(sensor noise at the vehicle's sensor_noise_std) with one hidden effect of random magnitude,
+on a random track and seed; two cases in thirteen have no effect at all. The diagnosis runs
+without being told.
 
-Targets (the issue's): top-1 >= 95 % above the thresholds, false alarms <= 5 %, median
-parameter error <= 15 %, median gap closed >= 90 % of the oracle's.
+Magnitudes are drawn log-uniformly from 0.25 to 4 times a PRIOR GUESS of each effect's
+detectable magnitude (PRIOR_THRESHOLDS, written down before the benchmark; their origin is
+an informal development sweep whose seeds are not recorded, so they are treated as guesses
+that only place the drawn range), capped where the simulated driver would lose the car,
+with a random sign where the effect has one.
+
+Scores: top-1 identification (the first effect the greedy selection adds, "none" when it adds
+none) with confusion matrices; relative error of the estimated parameter; gap closed against
+the oracle (the true plant with its true effect): (E_nominal - E_diagnosed) / (E_nominal -
+E_oracle) on the held-out normalised one-step MSE; false alarms (anything selected on an
+effect-free log).
+
+Detection thresholds are MEASURED: per vehicle and effect, reliable_threshold is the smallest
+drawn |magnitude| from which the cases are identified at >= 95 % (every larger drawn magnitude
+included). Accuracy "above the threshold" computed on the cases that set the threshold would
+be >= 95 % by construction, so it is cross-fitted: the cases are split into two folds (blocks of
+39 cases, each holding every effect and vehicle) and each fold is scored above the threshold
+measured on the other fold. Accuracy above the prior guesses is reported beside it.
+
+Targets (the issue's): top-1 >= 95 % above the (measured) thresholds, false alarms <= 5 %,
+median parameter error <= 15 %, median gap closed >= 90 % of the oracle's.
+
+Seeds: the case seeds are 1000 + 100000 seed + case. Settings (draw range, tries, fold size)
+were chosen with --seed 0 and 7 (DEVELOPMENT_SEEDS) and the tests' simulator seeds 21-24, 99;
+the reported benchmark uses --seed 2026 (the default), which none of them touches.
 
 --real: the Putnam log of the AV-21, split by time: the first part identifies the nominal
-coefficients (or a given checkpoint is the nominal), the rest is diagnosed.
+coefficients (or a given checkpoint is the nominal), the rest is diagnosed (itself split by
+time into fit and held-out parts); the vehicle file's coefficients are diagnosed beside it.
 """
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -35,12 +54,12 @@ from .model import COEFF_NAMES
 from .vehicle import Vehicle, load as load_vehicle
 
 NOISE = 1.0
+VEHICLES = ("orca_1_43", "av21")
 TRACKS = {"orca_1_43": ("ethz", "ethzMobil"), "av21": ("putnam",)}
 LAPS = {"orca_1_43": 3.0, "av21": 1.0}
-# stated detection thresholds (|main parameter|) per vehicle: set beforehand from a development sweep
-# (magnitudes 0.15-6 x a first guess, other seeds than the benchmark's): the smallest magnitude from which
-# the effect was identified in (nearly) every development case
-THRESHOLDS = {
+# prior guesses of the detectable |main parameter| per vehicle (see the module docstring): they set the drawn
+# range (DRAW_RANGE x guess) and are scored beside the measured thresholds, never in their place
+PRIOR_THRESHOLDS = {
     "orca_1_43": {"steer_delay": 0.012, "throttle_delay": 0.02, "steer_lag": 0.01, "bank_angle": 0.008,
                   "grade": 0.02, "downforce": 0.012, "combined_slip": 0.5, "tire_relaxation": 0.015,
                   "tire_wear": 0.002, "yaw_rate_bias": 0.03, "mass_offset": 0.04},
@@ -48,6 +67,7 @@ THRESHOLDS = {
              "grade": 0.025, "downforce": 1e-4, "combined_slip": 0.8, "tire_relaxation": 0.6,
              "tire_wear": 0.001, "yaw_rate_bias": 0.004, "mass_offset": 0.15},
 }
+DRAW_RANGE = (0.25, 4.0)
 # largest magnitudes drawn: beyond these the simulator's driver loses the car (or the delay leaves the fit's range)
 MAX_MAGNITUDE = {
     "orca_1_43": {"combined_slip": 1.0, "tire_relaxation": 0.04, "tire_wear": 0.008},
@@ -56,6 +76,10 @@ MAX_MAGNITUDE = {
 SIGNED = ("bank_angle", "grade", "yaw_rate_bias", "mass_offset")
 NONE = "none"
 IDENT_SEED = 9000
+DEFAULT_SEED = 2026
+DEVELOPMENT_SEEDS = (0, 7)
+FOLD_BLOCK = 39          # cases per fold block: a multiple of the 13 effect slots and of the 3-case vehicle cycle
+RELIABLE_RATE = 0.95
 
 
 # ----------------------------------------------------------------------------------------------- nominal
@@ -85,8 +109,9 @@ def identified_nominal(vehicle: Vehicle) -> tuple[np.ndarray, dict]:
 
 # ----------------------------------------------------------------------------------------------- cases
 
-def plan(n: int, seed: int = 0, vehicles=("orca_1_43", "av21")) -> list[dict]:
-    """n cases: effects cycled (two 'none' slots in 13), magnitudes log-uniform over 0.4-4 x threshold."""
+def plan(n: int, seed: int = DEFAULT_SEED, vehicles=VEHICLES) -> list[dict]:
+    """n cases: effects cycled (two 'none' slots in 13), two of three cases on the first vehicle, magnitudes
+    log-uniform over DRAW_RANGE x the prior guess; fold 0/1 alternates every FOLD_BLOCK cases."""
     rng = np.random.default_rng(seed)
     slots = list(E.EFFECT_NAMES) + [NONE, NONE]
     cases = []
@@ -96,13 +121,13 @@ def plan(n: int, seed: int = 0, vehicles=("orca_1_43", "av21")) -> list[dict]:
         track = str(rng.choice(TRACKS[v]))
         mag = 0.0
         if eff != NONE:
-            lo = 0.4 * THRESHOLDS[v][eff]
-            hi = min(4.0 * THRESHOLDS[v][eff], MAX_MAGNITUDE[v].get(eff, math.inf))
+            lo = DRAW_RANGE[0] * PRIOR_THRESHOLDS[v][eff]
+            hi = min(DRAW_RANGE[1] * PRIOR_THRESHOLDS[v][eff], MAX_MAGNITUDE[v].get(eff, math.inf))
             mag = math.exp(rng.uniform(math.log(lo), math.log(hi)))
             if eff in SIGNED and rng.uniform() < 0.5:
                 mag = -mag
-        cases.append({"case": i, "vehicle": v, "track": track, "effect": eff, "magnitude": mag,
-                      "seed": int(1000 + seed * 100000 + i)})
+        cases.append({"case": i, "fold": (i // FOLD_BLOCK) % 2, "vehicle": v, "track": track, "effect": eff,
+                      "magnitude": mag, "seed": int(1000 + seed * 100000 + i)})
     return cases
 
 
@@ -170,8 +195,14 @@ def _median(xs):
     return float(np.median(xs)) if xs else None
 
 
-def reliable_threshold(rows: list[dict], rate: float = 0.95, min_cases: int = 3) -> float | None:
-    """Smallest |magnitude| m such that cases with |magnitude| >= m are identified at >= rate (>= min_cases)."""
+def _rate(rows, key="correct"):
+    return float(np.mean([bool(r[key]) for r in rows])) if rows else None
+
+
+def reliable_threshold(rows: list[dict], rate: float = RELIABLE_RATE, min_cases: int = 3) -> float | None:
+    """Smallest drawn |magnitude| m such that the cases with |magnitude| >= m are identified at >= rate, taking
+    the cases from the largest magnitude down and stopping at the first tail that falls below the rate; None
+    when fewer than min_cases cases or when the largest ones are already missed."""
     rows = sorted(rows, key=lambda r: abs(r["magnitude"]))
     best = None
     for i in range(len(rows) - min_cases, -1, -1):
@@ -183,48 +214,83 @@ def reliable_threshold(rows: list[dict], rate: float = 0.95, min_cases: int = 3)
     return best
 
 
+def measured_thresholds(effect_rows: list[dict]) -> dict:
+    """{(vehicle, effect): {"all": threshold, 0: threshold on fold 0, 1: threshold on fold 1}}."""
+    out = {}
+    for key in sorted({(r["vehicle"], r["effect"]) for r in effect_rows}):
+        rows = [r for r in effect_rows if (r["vehicle"], r["effect"]) == key]
+        out[key] = {"all": reliable_threshold(rows),
+                    **{f: reliable_threshold([r for r in rows if r["fold"] == f]) for f in (0, 1)}}
+    return out
+
+
+def _above(r: dict, threshold: float | None) -> bool:
+    return threshold is not None and abs(r["magnitude"]) >= threshold
+
+
+def _confusion(rows: list[dict]) -> dict:
+    labels = list(E.EFFECT_NAMES) + [NONE]
+    conf = {t: {p: 0 for p in labels} for t in labels}
+    for r in rows:
+        conf[r["effect"]][r["top1"] if r["top1"] in labels else NONE] += 1
+    return conf
+
+
 def score(results: list[dict]) -> dict:
     ok = [r for r in results if r["status"] == "ok"]
     none = [r for r in ok if r["effect"] == NONE]
     eff = [r for r in ok if r["effect"] != NONE]
-    above = [r for r in eff if abs(r["magnitude"]) >= THRESHOLDS[r["vehicle"]][r["effect"]]]
+    thr = measured_thresholds(eff)
+    # cross-fitted: each case is judged against the threshold measured on the other fold
+    above = [r for r in eff if _above(r, thr[(r["vehicle"], r["effect"])][1 - r["fold"]])]
+    above_prior = [r for r in eff if abs(r["magnitude"]) >= PRIOR_THRESHOLDS[r["vehicle"]][r["effect"]]]
     good = [r for r in above if r["correct"]]
-    labels = list(E.EFFECT_NAMES) + [NONE]
-    conf = {t: {p: 0 for p in labels} for t in labels}
-    for r in above + none:
-        conf[r["effect"]][r["top1"] if r["top1"] in labels else NONE] += 1
+    identified = [r for r in eff if r["correct"]]
     per = {}
-    for v in THRESHOLDS:
-        for e in E.EFFECT_NAMES:
-            rows = [r for r in eff if r["vehicle"] == v and r["effect"] == e]
-            if not rows:
-                continue
-            ab = [r for r in rows if abs(r["magnitude"]) >= THRESHOLDS[v][e]]
-            per[f"{v}/{e}"] = {
-                "vehicle": v, "effect": e, "stated_threshold": THRESHOLDS[v][e], "cases": len(rows),
-                "above": len(ab), "top1_above": float(np.mean([r["correct"] for r in ab])) if ab else None,
-                "top1_all": float(np.mean([r["correct"] for r in rows])),
-                "reliable_from": reliable_threshold(rows),
-                "median_param_error": _median([r["param_error"] for r in ab if r["correct"]]),
-                "median_gap_vs_oracle": _median([r["gap_vs_oracle"] for r in ab if r["correct"]]),
-            }
+    for (v, e), t in thr.items():
+        rows = [r for r in eff if r["vehicle"] == v and r["effect"] == e]
+        ab = [r for r in rows if _above(r, t[1 - r["fold"]])]
+        mags = [abs(r["magnitude"]) for r in rows]
+        missed = [abs(r["magnitude"]) for r in rows if not r["correct"]]
+        per[f"{v}/{e}"] = {
+            "vehicle": v, "effect": e, "unit": E.UNITS[e], "cases": len(rows),
+            "drawn_min": min(mags), "drawn_max": max(mags),
+            "prior_threshold": PRIOR_THRESHOLDS[v][e],
+            "reliable_from": t["all"], "reliable_from_fold0": t[0], "reliable_from_fold1": t[1],
+            # every drawn case was found: the true threshold may lie lower than anything drawn
+            "reliable_from_is_lowest_drawn": t["all"] is not None and t["all"] <= min(mags),
+            "largest_missed": max(missed) if missed else None,
+            "above_measured": len(ab), "top1_above_measured": _rate(ab),
+            "top1_above_prior": _rate([r for r in rows if abs(r["magnitude"]) >= PRIOR_THRESHOLDS[v][e]]),
+            "top1_all": _rate(rows),
+            "median_param_error": _median([r["param_error"] for r in ab if r["correct"]]),
+            "median_gap_vs_oracle": _median([r["gap_vs_oracle"] for r in ab if r["correct"]]),
+        }
+    secs = [r["diagnose_seconds"] for r in ok]
     s = {
         "cases": len(results), "simulated": len(ok), "simulation_failed": len(results) - len(ok),
-        "effect_cases": len(eff), "above_threshold": len(above), "none_cases": len(none),
-        "top1_above_threshold": len(good) / len(above) if above else None,
-        "top1_all_effect_cases": float(np.mean([r["correct"] for r in eff])) if eff else None,
-        "false_alarm_rate": float(np.mean([bool(r["selected"]) for r in none])) if none else None,
+        "effect_cases": len(eff), "none_cases": len(none),
+        "above_measured_threshold": len(above), "above_prior_threshold": len(above_prior),
+        "top1_above_measured_threshold": _rate(above),
+        "top1_above_prior_threshold": _rate(above_prior),
+        "top1_all_effect_cases": _rate(eff),
+        "false_alarm_rate": _rate(none, "selected") if none else None,
         "median_param_error": _median([r["param_error"] for r in good]),
+        "median_param_error_all_identified": _median([r["param_error"] for r in identified]),
         "median_gap_vs_oracle": _median([r["gap_vs_oracle"] for r in good]),
-        "mean_diagnose_seconds": _median([r["diagnose_seconds"] for r in ok]),
+        "median_gap_vs_oracle_all_identified": _median([r["gap_vs_oracle"] for r in identified]),
+        "never_reliable": [k for k, p in per.items() if p["reliable_from"] is None],
+        "median_diagnose_seconds": _median(secs), "max_diagnose_seconds": max(secs) if secs else None,
     }
     s["targets"] = {
-        "top1_above_threshold >= 0.95": s["top1_above_threshold"] is not None and s["top1_above_threshold"] >= 0.95,
+        "top1_above_measured_threshold >= 0.95": s["top1_above_measured_threshold"] is not None
+        and s["top1_above_measured_threshold"] >= 0.95,
         "false_alarm_rate <= 0.05": s["false_alarm_rate"] is not None and s["false_alarm_rate"] <= 0.05,
         "median_param_error <= 0.15": s["median_param_error"] is not None and s["median_param_error"] <= 0.15,
         "median_gap_vs_oracle >= 0.90": s["median_gap_vs_oracle"] is not None and s["median_gap_vs_oracle"] >= 0.9,
     }
-    return {"summary": s, "per_effect": per, "confusion": conf}
+    return {"summary": s, "per_effect": per,
+            "confusion": {"above_measured_and_effect_free": _confusion(above + none), "all": _confusion(ok)}}
 
 
 def _f(x, pct=False) -> str:
@@ -235,51 +301,81 @@ def _f(x, pct=False) -> str:
     return f"{x:.3g}"
 
 
-def markdown(sc: dict, nominal_info: dict, seconds: float) -> str:
-    s = sc["summary"]
-    t = s["targets"]
-    yes = lambda k: "**met**" if t[k] else "**not met**"  # noqa: E731
-    lines = [
-        f"{s['cases']} cases ({s['simulation_failed']} could not be simulated), {s['effect_cases']} with a hidden "
-        f"effect ({s['above_threshold']} at or above the stated threshold), {s['none_cases']} effect-free; "
-        f"{seconds / 60:.1f} min.", "",
-        "| metric | result | target | |", "|---|---|---|---|",
-        f"| top-1 identification above the thresholds | {_f(s['top1_above_threshold'], True)} | >= 95 % | "
-        f"{yes('top1_above_threshold >= 0.95')} |",
-        f"| top-1 over all effect cases (incl. below threshold) | {_f(s['top1_all_effect_cases'], True)} | | |",
-        f"| false alarms on effect-free logs | {_f(s['false_alarm_rate'], True)} | <= 5 % | "
-        f"{yes('false_alarm_rate <= 0.05')} |",
-        f"| median parameter error (identified, above threshold) | {_f(s['median_param_error'], True)} | <= 15 % | "
-        f"{yes('median_param_error <= 0.15')} |",
-        f"| median gap closed vs the oracle | {_f(s['median_gap_vs_oracle'], True)} | >= 90 % | "
-        f"{yes('median_gap_vs_oracle >= 0.90')} |", "",
-        "| vehicle | effect | stated threshold | cases (above) | top-1 above | top-1 all | reliable from | "
-        "param error | gap vs oracle |", "|---|---|---|---|---|---|---|---|---|"]
-    for k, p in sc["per_effect"].items():
-        lines.append(f"| {p['vehicle']} | {p['effect']} | {p['stated_threshold']:.3g} {E.UNITS[p['effect']]} | "
-                     f"{p['cases']} ({p['above']}) | {_f(p['top1_above'], True)} | {_f(p['top1_all'], True)} | "
-                     f"{_f(p['reliable_from'])} | {_f(p['median_param_error'], True)} | "
-                     f"{_f(p['median_gap_vs_oracle'], True)} |")
+def _confusion_table(conf: dict) -> list[str]:
     labels = list(E.EFFECT_NAMES) + [NONE]
     short = {n: "".join(w[0] for w in n.split("_")) for n in labels}
     short[NONE] = "none"
-    lines += ["", "Confusion (rows: hidden effect, cases at or above threshold and effect-free; columns: top-1 "
-              "found; " + ", ".join(f"{short[n]} = {n}" for n in labels[:-1]) + ")", "",
-              "| hidden \\ found | " + " | ".join(short[n] for n in labels) + " |",
-              "|---|" + "---|" * len(labels)]
+    lines = ["| hidden \\ found | " + " | ".join(short[n] for n in labels) + " |", "|---|" + "---|" * len(labels)]
     for a in labels:
-        row = sc["confusion"][a]
+        row = conf[a]
         if sum(row.values()) == 0:
             continue
         lines.append(f"| {a} | " + " | ".join(str(row[b]) if row[b] else "." for b in labels) + " |")
-    lines += ["", "Nominal models identified on effect-free logs: " + "; ".join(
-        f"{v}: {i['rows']} rows of {i['track']}, median |coefficient error| "
-        f"{100 * float(np.median(np.abs(list(i['relative_error'].values())))):.2g} %"
-        for v, i in nominal_info.items())]
+    return lines
+
+
+def markdown(sc: dict, nominal_info: dict, seconds: float, settings: dict | None = None) -> str:
+    s = sc["summary"]
+    t = s["targets"]
+    yes = lambda k: "**met**" if t[k] else "**not met**"  # noqa: E731
+    lines = []
+    if settings:
+        lines += [f"Seed {settings['seed']} (case seeds {settings['case_seeds']}); "
+                  + ("**a development seed: these figures are not a blind test**; " if settings["development_seed"]
+                     else "not a seed used to choose settings; ")
+                  + f"magnitudes drawn log-uniformly over {DRAW_RANGE[0]}-{DRAW_RANGE[1]} x the prior guesses.", ""]
+    lines += [
+        f"{s['cases']} cases ({s['simulation_failed']} could not be simulated), {s['effect_cases']} with a hidden "
+        f"effect ({s['above_measured_threshold']} at or above the measured threshold of the other fold, "
+        f"{s['above_prior_threshold']} at or above the prior guess), {s['none_cases']} effect-free; "
+        f"{seconds / 60:.1f} min; diagnosis median {_f(s['median_diagnose_seconds'])} s per log "
+        f"(max {_f(s['max_diagnose_seconds'])} s).", "",
+        "| metric | result | target | |", "|---|---|---|---|",
+        f"| top-1 identification above the measured thresholds (cross-fitted) | "
+        f"{_f(s['top1_above_measured_threshold'], True)} | >= 95 % | {yes('top1_above_measured_threshold >= 0.95')} |",
+        f"| top-1 above the prior-guess thresholds | {_f(s['top1_above_prior_threshold'], True)} | | |",
+        f"| top-1 over all effect cases (any magnitude) | {_f(s['top1_all_effect_cases'], True)} | | |",
+        f"| false alarms on effect-free logs | {_f(s['false_alarm_rate'], True)} | <= 5 % | "
+        f"{yes('false_alarm_rate <= 0.05')} |",
+        f"| median parameter error (identified, above measured threshold) | {_f(s['median_param_error'], True)} | "
+        f"<= 15 % | {yes('median_param_error <= 0.15')} |",
+        f"| median parameter error (every identified case) | {_f(s['median_param_error_all_identified'], True)} | | |",
+        f"| median gap closed vs the oracle (identified, above measured threshold) | "
+        f"{_f(s['median_gap_vs_oracle'], True)} | >= 90 % | {yes('median_gap_vs_oracle >= 0.90')} |",
+        f"| median gap closed vs the oracle (every identified case) | "
+        f"{_f(s['median_gap_vs_oracle_all_identified'], True)} | | |", ""]
+    if s["never_reliable"]:
+        lines += ["Never identified reliably within the drawn range (no measured threshold): "
+                  + ", ".join(s["never_reliable"]) + ".", ""]
+    lines += ["Per effect. *reliable from*: the smallest drawn magnitude from which >= 95 % of the cases are "
+              "identified (all cases; per fold in brackets); '<=' when every drawn case was found, so the true "
+              "threshold may be lower. *top-1 above*: cross-fitted (the other fold's threshold).", "",
+              "| vehicle | effect | cases | drawn range | prior guess | reliable from (fold 0, 1) | largest missed | "
+              "top-1 above measured | top-1 above prior | top-1 all | param error | gap vs oracle |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for p in sc["per_effect"].values():
+        rel = ("-" if p["reliable_from"] is None else
+               ("<= " if p["reliable_from_is_lowest_drawn"] else "") + _f(p["reliable_from"]))
+        lines.append(f"| {p['vehicle']} | {p['effect']} | {p['cases']} | {_f(p['drawn_min'])}-{_f(p['drawn_max'])} "
+                     f"{p['unit']} | {_f(p['prior_threshold'])} | {rel} ({_f(p['reliable_from_fold0'])}, "
+                     f"{_f(p['reliable_from_fold1'])}) | {_f(p['largest_missed'])} | "
+                     f"{_f(p['top1_above_measured'], True)} ({p['above_measured']}) | {_f(p['top1_above_prior'], True)} | "
+                     f"{_f(p['top1_all'], True)} | {_f(p['median_param_error'], True)} | "
+                     f"{_f(p['median_gap_vs_oracle'], True)} |")
+    labels = list(E.EFFECT_NAMES)
+    lines += ["", "Confusion, cases above the measured threshold (cross-fitted) and effect-free (rows: hidden effect; "
+              "columns: top-1 found; " + ", ".join(f"{''.join(w[0] for w in n.split('_'))} = {n}" for n in labels)
+              + "):", ""] + _confusion_table(sc["confusion"]["above_measured_and_effect_free"])
+    lines += ["", "Confusion, every case at any magnitude:", ""] + _confusion_table(sc["confusion"]["all"])
+    if nominal_info:
+        lines += ["", "Nominal models identified on effect-free logs: " + "; ".join(
+            f"{v}: {i['rows']} rows of {i['track']}, median |coefficient error| "
+            f"{100 * float(np.median(np.abs(list(i['relative_error'].values())))):.2g} %"
+            for v, i in nominal_info.items())]
     return "\n".join(lines) + "\n"
 
 
-def detection_plot(results: list[dict], out: Path) -> Path:
+def detection_plot(results: list[dict], per_effect: dict, out: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -287,20 +383,24 @@ def detection_plot(results: list[dict], out: Path) -> Path:
 
     fig, axes = plt.subplots(3, 4, figsize=(14, 9))
     for ax, e in zip(axes.ravel(), E.EFFECT_NAMES):
-        for v, mk in (("orca_1_43", "o"), ("av21", "s")):
+        for v, mk, dy, col in (("orca_1_43", "o", -0.03, "C0"), ("av21", "s", 0.03, "C1")):
             rows = [r for r in results if r["status"] == "ok" and r["effect"] == e and r["vehicle"] == v]
             if not rows:
                 continue
-            x = np.array([abs(r["magnitude"]) / THRESHOLDS[v][e] for r in rows])
-            y = np.array([1.0 if r["correct"] else 0.0 for r in rows]) + (0.03 if v == "av21" else -0.03)
+            prior = PRIOR_THRESHOLDS[v][e]
+            x = np.array([abs(r["magnitude"]) / prior for r in rows])
+            y = np.array([1.0 if r["correct"] else 0.0 for r in rows]) + dy
             ax.scatter(x, y, marker=mk, c=["C2" if r["correct"] else "C3" for r in rows], s=18, label=v)
-        ax.axvline(1.0, color="0.5", ls="--")
+            thr = per_effect.get(f"{v}/{e}", {}).get("reliable_from")
+            if thr is not None:
+                ax.axvline(thr / prior, color=col, ls=":", lw=1.2)
+        ax.axvline(1.0, color="0.5", ls="--", lw=0.8)
         ax.set_xscale("log")
         ax.set_yticks([0, 1], ["missed", "found"])
         ax.set_title(e, fontsize=9)
     axes.ravel()[-1].axis("off")
     axes.ravel()[0].legend(fontsize=7)
-    fig.supxlabel("magnitude / stated threshold")
+    fig.supxlabel("magnitude / prior guess (dashed: prior guess; dotted: measured threshold, blue orca, orange av21)")
     fig.tight_layout()
     path = out / "detection.png"
     fig.savefig(path, dpi=100)
@@ -308,17 +408,18 @@ def detection_plot(results: list[dict], out: Path) -> Path:
     return path
 
 
-def run(n_cases: int, out: Path, seed: int = 0, progress: bool = True) -> dict:
+def run(n_cases: int, out: Path, seed: int = DEFAULT_SEED, progress: bool = True, vehicles=VEHICLES) -> dict:
     import torch
 
     torch.set_num_threads(1)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    vehicles = {name: load_vehicle(name) for name in THRESHOLDS}
+    cases = plan(n_cases, seed, tuple(vehicles))
+    used = sorted({c["vehicle"] for c in cases})
+    models = {name: load_vehicle(name) for name in used}
     nominal, info = {}, {}
-    for name, v in vehicles.items():
+    for name, v in models.items():
         nominal[name], info[name] = identified_nominal(v)
-    cases = plan(n_cases, seed)
     results = []
     bar = None
     if progress:
@@ -326,17 +427,21 @@ def run(n_cases: int, out: Path, seed: int = 0, progress: bool = True) -> dict:
 
         bar = tqdm(total=len(cases), desc="gap-benchmark")
     for c in cases:
-        results.append(run_case(c, vehicles[c["vehicle"]], nominal[c["vehicle"]]))
+        results.append(run_case(c, models[c["vehicle"]], nominal[c["vehicle"]]))
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
     seconds = time.perf_counter() - t0
     sc = score(results)
-    md = markdown(sc, info, seconds)
-    detection_plot(results, out)
-    doc = {"settings": {"cases": n_cases, "seed": seed, "noise_scale": NOISE, "laps": LAPS, "tracks": TRACKS,
-                        "thresholds": THRESHOLDS, "max_magnitude": MAX_MAGNITUDE}, "nominal": info, **sc, "results": results, "seconds": seconds}
+    settings = {"cases": n_cases, "seed": seed, "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}",
+                "development_seed": seed in DEVELOPMENT_SEEDS, "development_seeds": list(DEVELOPMENT_SEEDS),
+                "vehicles": list(vehicles), "noise_scale": NOISE, "laps": LAPS, "tracks": TRACKS,
+                "prior_thresholds": PRIOR_THRESHOLDS, "draw_range": list(DRAW_RANGE), "max_magnitude": MAX_MAGNITUDE,
+                "fold_block": FOLD_BLOCK, "reliable_rate": RELIABLE_RATE, "threads": torch.get_num_threads()}
+    md = markdown(sc, info, seconds, settings)
+    detection_plot(results, sc["per_effect"], out)
+    doc = {"settings": settings, "nominal": info, **sc, "results": results, "seconds": seconds}
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(md + "\n![detection](detection.png)\n")
     return doc | {"markdown": md}
@@ -410,8 +515,15 @@ def _run(args) -> int:
         print(md)
         print(f"wrote {out / 'real.json'} and {out / 'real.md'}")
         return 0
-    n = args.cases or (26 if args.quick else 390)
-    doc = run(n, out, args.seed, progress=not args.no_progress)
+    n = args.cases or (2 * FOLD_BLOCK if args.quick else 30 * FOLD_BLOCK)
+    vehicles = tuple(v.strip() for v in args.vehicles.split(","))
+    bad = [v for v in vehicles if v not in VEHICLES]
+    if bad or n < 1:
+        raise DdynError(f"--vehicles: expected some of {', '.join(VEHICLES)}" if bad else "--cases must be >= 1")
+    if args.seed in DEVELOPMENT_SEEDS:
+        print(f"note: seed {args.seed} was used to choose the benchmark's settings: not a blind test",
+              file=sys.stderr)
+    doc = run(n, out, args.seed, progress=not args.no_progress, vehicles=vehicles)
     print(doc["markdown"])
     print(f"wrote {out / 'results.json'}, {out / 'results.md'} and {out / 'detection.png'}")
     return 0
@@ -420,10 +532,14 @@ def _run(args) -> int:
 def register(subparsers) -> None:
     p = subparsers.add_parser("gap-benchmark", help="hidden-effect benchmark of ddyn diagnose (and --real: the "
                                                     "Putnam log)", description=__doc__.splitlines()[0])
-    p.add_argument("--cases", type=int, default=None, help="number of cases (default 390; --quick 26)")
+    p.add_argument("--cases", type=int, default=None,
+                   help=f"number of cases (default {30 * FOLD_BLOCK}; --quick {2 * FOLD_BLOCK})")
     p.add_argument("--out", default="runs/gap_benchmark", help="output directory")
-    p.add_argument("--quick", action="store_true", help="a small run (26 cases)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quick", action="store_true", help=f"a small run ({2 * FOLD_BLOCK} cases)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                   help=f"benchmark seed (default {DEFAULT_SEED}; {', '.join(map(str, DEVELOPMENT_SEEDS))} were "
+                        "used to choose settings)")
+    p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")
     p.add_argument("--real", action="store_true", help="diagnose the Putnam log: nominal from its first half "
                                                        "(or --model), diagnosis on the rest")
     p.add_argument("--model", default=None, help="with --real: a DDM checkpoint as the nominal model")

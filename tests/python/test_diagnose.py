@@ -143,24 +143,81 @@ def test_benchmark_plan_and_scoring():
     from train import effects as E
     from train import gap_benchmark as GB
 
-    cases = GB.plan(39, seed=3)
+    cases = GB.plan(390, seed=3)
     assert {c["effect"] for c in cases} == set(E.EFFECT_NAMES) | {"none"}
-    assert sum(c["effect"] == "none" for c in cases) == 6 and {c["vehicle"] for c in cases} == {"orca_1_43", "av21"}
+    assert sum(c["effect"] == "none" for c in cases) == 60 and {c["vehicle"] for c in cases} == {"orca_1_43", "av21"}
+    # each fold holds every effect on every vehicle it visits
+    for f in (0, 1):
+        fold = [c for c in cases if c["fold"] == f]
+        assert len(fold) == 195 and {(c["vehicle"], c["effect"]) for c in fold} == \
+            {(c["vehicle"], c["effect"]) for c in cases}
     for c in cases:
         if c["effect"] != "none":
-            m, t = abs(c["magnitude"]), GB.THRESHOLDS[c["vehicle"]][c["effect"]]
-            assert 0.4 * t <= m <= min(4 * t, GB.MAX_MAGNITUDE[c["vehicle"]].get(c["effect"], np.inf))
+            m, t = abs(c["magnitude"]), GB.PRIOR_THRESHOLDS[c["vehicle"]][c["effect"]]
+            assert GB.DRAW_RANGE[0] * t <= m <= min(GB.DRAW_RANGE[1] * t,
+                                                     GB.MAX_MAGNITUDE[c["vehicle"]].get(c["effect"], np.inf))
+    assert len({c["seed"] for c in cases}) == len(cases)
+    assert not {c["seed"] for c in cases} & {c["seed"] for c in GB.plan(390, seed=GB.DEFAULT_SEED)}
+    assert GB.DEFAULT_SEED not in GB.DEVELOPMENT_SEEDS
+
     rows = [{"magnitude": m, "correct": ok} for m, ok in [(1, False), (2, True), (3, False), (4, True), (5, True),
                                                           (6, True)]]
     assert GB.reliable_threshold(rows) == 4
-    fake = [dict(c, status="ok", top1=c["effect"], correct=True, selected=[] if c["effect"] == "none" else
-                 [c["effect"]], param_error=0.05, gap_vs_oracle=0.97, diagnose_seconds=1.0) for c in cases]
-    fake[12]["selected"], fake[12]["top1"] = ["grade"], "grade"      # a false alarm on an effect-free log
+    assert GB.reliable_threshold(rows[:5] + [{"magnitude": 6, "correct": False}]) is None   # the largest missed
+
+    # detection depends on magnitude: found from 1.5 x the prior guess up, missed below; one false alarm
+    def outcome(c):
+        found = c["effect"] == "none" or abs(c["magnitude"]) >= 1.5 * GB.PRIOR_THRESHOLDS[c["vehicle"]][c["effect"]]
+        top1 = c["effect"] if found else "none"
+        return dict(c, status="ok", top1=top1, correct=found, selected=[] if top1 == "none" else [top1],
+                    param_error=0.05 if found else None, gap_vs_oracle=0.97 if found else None, diagnose_seconds=1.0)
+    fake = [outcome(c) for c in cases]
+    alarm = next(r for r in fake if r["effect"] == "none")
+    alarm["selected"], alarm["top1"], alarm["correct"] = ["grade"], "grade", False
     sc = GB.score(fake)
-    assert sc["summary"]["false_alarm_rate"] == pytest.approx(1 / 6)
-    assert sc["summary"]["top1_above_threshold"] == 1.0 and sc["confusion"]["none"]["grade"] == 1
+    s = sc["summary"]
+    assert s["false_alarm_rate"] == pytest.approx(1 / 60)
+    assert sc["confusion"]["all"]["none"]["grade"] == 1
+    assert s["targets"]["false_alarm_rate <= 0.05"]
+    # measured thresholds: the smallest found magnitude, never below 1.5 x the guess; cross-fitted accuracy 100 %
+    for p in sc["per_effect"].values():
+        if p["reliable_from"] is not None:
+            assert p["reliable_from"] >= 1.5 * p["prior_threshold"] * (1 - 1e-12)
+    assert s["top1_above_measured_threshold"] == 1.0 and "orca_1_43/grade" not in s["never_reliable"]
+    assert s["top1_above_prior_threshold"] < 1.0 and s["top1_all_effect_cases"] < 1.0
+    md = GB.markdown(sc, {}, 60.0, {"seed": 3, "case_seeds": "x", "development_seed": False})
+    assert "| none |" in md and "reliable from" in md
+    # more alarms fail the target; a miss at the largest magnitude leaves the effect without a threshold
+    for r in [r for r in fake if r["effect"] == "none"][1:4]:
+        r["selected"], r["top1"], r["correct"] = ["bank_angle"], "bank_angle", False
+    grade = [r for r in fake if r["effect"] == "grade" and r["vehicle"] == "orca_1_43"]
+    max(grade, key=lambda r: abs(r["magnitude"]))["correct"] = False
+    sc = GB.score(fake)
+    assert sc["summary"]["false_alarm_rate"] == pytest.approx(4 / 60)
     assert not sc["summary"]["targets"]["false_alarm_rate <= 0.05"]
-    assert "| none |" in GB.markdown(sc, {}, 60.0)
+    assert set(sc["summary"]["never_reliable"]) == set(s["never_reliable"]) | {"orca_1_43/grade"}
+
+
+def test_benchmark_cli_tiny_run(shared_data, tmp_path):
+    """Two cases end to end on the 1:43 car: simulate, identify the nominal, diagnose blind, score, write."""
+    from train import gap_benchmark as GB
+
+    parser = argparse.ArgumentParser()
+    GB.register(parser.add_subparsers())
+    out = tmp_path / "gb"
+    # the plan's first two slots: steer_delay and throttle_delay at random magnitudes (maybe below detection),
+    # so the bookkeeping is checked, not the verdicts
+    args = parser.parse_args(["gap-benchmark", "--cases", "2", "--vehicles", "orca_1_43", "--out", str(out),
+                              "--no-progress", "--seed", "5"])
+    assert args.func(args) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert [r["effect"] for r in doc["results"]] == ["steer_delay", "throttle_delay"]
+    assert all(r["status"] == "ok" and r["rows"] > 500 for r in doc["results"])
+    assert doc["settings"]["seed"] == 5 and not doc["settings"]["development_seed"]
+    assert doc["summary"]["effect_cases"] == 2 and doc["summary"]["none_cases"] == 0
+    for r in doc["results"]:
+        assert r["e_oracle"] <= r["e_nominal"] and (r["top1"] != r["effect"] or r["e_diagnosed"] < r["e_nominal"])
+    assert "top-1" in (out / "results.md").read_text() and (out / "detection.png").stat().st_size > 1000
 
 
 def test_benchmark_case_runs(shared_data):
