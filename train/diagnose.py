@@ -313,12 +313,42 @@ def rollout_errors(prob: Problem, values: dict, rho, starts: np.ndarray, steps: 
     return (pos, truth[..., 3:6] - pred[..., 3:6]) if channels else pos
 
 
+def _state_jacobian(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Mean J and mean J**2 (elementwise) over the log of d(vx, vy, omega)_k+1 / d(vx, vy, omega)_k of the
+    nominal one-step map (central differences): how a state's sensor noise reaches the next prediction."""
+    if getattr(prob, "_jac", None) is None:
+        rows, ds, lm = prob.rows_all, prob.ds, prob.lm
+        c = prob.nominal.coeffs[rows] if prob.nominal.coeffs.ndim == 2 else prob.nominal.coeffs
+        x = ds.states[rows]
+        J = np.empty((len(rows), 3, 3))
+        for j in range(3):
+            h = 1e-6 * max(float(np.sqrt(np.mean(x[:, 3 + j] ** 2))), 1e-3)
+            xp, xm = x.copy(), x.copy()
+            xp[:, 3 + j] += h
+            xm[:, 3 + j] -= h
+            step = lambda s: E.step_numpy(s, ds.inputs[rows], c, lm.p, lm.dt, lm.method, lm.substeps,  # noqa: E731
+                                          E.EffectSet(), None, E.Aux())[:, 3:6]
+            J[:, :, j] = (step(xp) - step(xm)) / (2 * h)
+        prob._jac = (J.mean(axis=0), (J ** 2).mean(axis=0))
+    return prob._jac
+
+
 def _noise_floor(prob: Problem, res: np.ndarray) -> np.ndarray:
-    """Per channel: one-step MSE of a perfect model under white sensor noise, 2 sigma^2, sigma^2 = (g0 - g1) / 3."""
+    """Per channel: one-step MSE a perfect model would leave under white sensor noise of variances s2.
+
+    With r_k = n_k+1 - J n_k (+ model error m_k): E r_i^2 = s2_i + sum_j J2_ij s2_j, and the lag-1
+    autocovariance is -J_ii s2_i (+ that of m). Slowly varying model error cancels in g0 - g1, so
+    s2 solves (diag(1 + J_ii) + J2) s2 = g0 - g1; the floor is (I + J2) s2 (<= g0). With J = I this is
+    the MA(1) rule 2 (g0 - g1) / 3."""
     r = res - res.mean(axis=0)
     g0 = np.mean(r * r, axis=0)
     g1 = np.mean(r[1:] * r[:-1], axis=0)
-    return np.clip(2.0 * (g0 - g1) / 3.0, 0.0, g0)
+    mj, mj2 = _state_jacobian(prob)
+    try:
+        s2 = np.linalg.solve(np.diag(1.0 + np.diag(mj)) + mj2, g0 - g1)
+    except np.linalg.LinAlgError:
+        s2 = (g0 - g1) / 3.0
+    return np.clip((np.eye(3) + mj2) @ np.maximum(s2, 0.0), 0.0, g0)
 
 
 def heldout_summary(prob: Problem, values: dict, rho, starts, steps) -> dict:

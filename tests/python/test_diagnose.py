@@ -65,6 +65,20 @@ def test_noise_free_fit_is_exact(shared_data):
     assert d["model"]["effects"][0]["params"]["rate"] == pytest.approx(0.01, rel=1e-4)
 
 
+def test_noise_floor_matches_the_true_models_error(shared_data):
+    """The floor (what a perfect model leaves under white sensor noise, fed through the model's Jacobian) equals
+    the true plant's one-step MSE, and a slowly varying model error (a constant bank) does not raise it."""
+    ds = _sim("bank_angle=0.03", seed=22)
+    prob = D.Problem(ds, D.nominal_from_vehicle(ORCA, ds), 0.6, refit=())
+    rows = prob.rows_all
+    res_true = prob.target[rows + 1] - prob.predict({"bank_angle": 0.03}, np.zeros(0), rows)
+    res_nominal = prob.target[rows + 1] - prob.predict({}, np.zeros(0), rows)
+    mse_true = np.mean(res_true ** 2, axis=0)
+    assert D._noise_floor(prob, res_true) == pytest.approx(mse_true, rel=0.05)
+    assert np.mean(res_nominal[:, 1] ** 2) > 1.5 * mse_true[1]              # the bank shows in vy ...
+    assert D._noise_floor(prob, res_nominal) == pytest.approx(mse_true, rel=0.05)   # ... but not in the floor
+
+
 SCHEMA_KEYS = {"selected", "candidates", "where", "model", "nominal", "split", "method", "schema", "verdict"}
 
 
@@ -78,7 +92,8 @@ def _check_schema(d: dict):
         assert {"ade_before", "ade_after"} <= set(h)
     bics = [c["delta_bic"] for c in d["candidates"]]
     assert bics == sorted(bics)                           # best first
-    assert {"factors", "summary", "one_step_rmse"} <= set(d["where"])
+    assert {"factors", "summary", "one_step_rmse", "multi_step_rmse", "multi_step_final_rmse"} <= set(d["where"])
+    assert set(d["where"]["multi_step_rmse"]) == {"vx", "vy", "omega"}
 
 
 def test_cli_writes_json_markdown_and_plots(delay_log, tmp_path):
@@ -228,3 +243,11 @@ def test_benchmark_case_runs(shared_data):
     r = GB.run_case(case, ORCA, ORCA.true_vector())
     assert r["status"] == "ok" and r["correct"] and r["param_error"] < 0.15
     assert r["e_diagnosed"] < r["e_nominal"] and 0.8 < r["gap_vs_oracle"] < 1.2
+
+
+def test_estimate_at_a_range_edge_is_flagged():
+    ctx = {"dt": 0.02, "v_ref": 2.0, "v_max": 4.0, "duration": 30.0}
+    assert D.at_bound("mass_offset", -0.5, ctx) and D.at_bound("combined_slip", 5.0, ctx)
+    assert not D.at_bound("mass_offset", 0.1, ctx)
+    assert not D.at_bound("steer_delay", 0.0, ctx)          # zero is "off", not an edge
+    assert D.at_bound("steer_delay", 12 * 0.02, ctx)
