@@ -237,14 +237,17 @@ def _long_run_factor(res: np.ndarray, lags: int = 20) -> float:
     return max(1.0, float(np.mean(out))) if out else 1.0
 
 
-def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, scan: str | None = None) -> Fit:
-    """Fit the main parameters of `names` (and the refit factors) on the fit rows."""
+def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, scan: str | None = None,
+        rho_bounds=None) -> Fit:
+    """Fit the main parameters of `names` (and the refit factors, 1 + rho, rho within rho_bounds (lo, hi),
+    default +-0.5) on the fit rows."""
     t0 = _time.perf_counter()
     names = tuple(names)
     start = dict(start or {})
     units = np.array([_param_unit(n, prob.ctx) for n in names])
-    lo = np.array([_bounds(n, prob.ctx)[0] for n in names] + [-0.5] * len(prob.refit))
-    hi = np.array([_bounds(n, prob.ctx)[1] for n in names] + [0.5] * len(prob.refit))
+    rlo, rhi = (np.full(len(prob.refit), -0.5), np.full(len(prob.refit), 0.5)) if rho_bounds is None else rho_bounds
+    lo = np.array([_bounds(n, prob.ctx)[0] for n in names] + list(rlo))
+    hi = np.array([_bounds(n, prob.ctx)[1] for n in names] + list(rhi))
     nr = len(prob.refit)
     rows = prob.rows_fit
     rho0 = np.zeros(nr) if start_rho is None else np.asarray(start_rho, float)
