@@ -291,6 +291,8 @@ def score(results: list[dict]) -> dict:
         "median_gap_vs_oracle": _median([r["gap_vs_oracle"] for r in good]),
         "median_gap_vs_oracle_all_identified": _median([r["gap_vs_oracle"] for r in identified]),
         "never_reliable": [k for k, p in per.items() if p["reliable_from"] is None],
+        # the greedy step went on to add a second (wrong) effect after the right first one
+        "extra_effects_rate": _rate([{"correct": len(r["selected"]) > 1} for r in identified]) if identified else None,
         "median_diagnose_seconds": _median(secs), "max_diagnose_seconds": max(secs) if secs else None,
     }
     s["targets"] = {
@@ -354,7 +356,9 @@ def markdown(sc: dict, nominal_info: dict, seconds: float, settings: dict | None
         f"| median gap closed vs the oracle (identified, above measured threshold) | "
         f"{_f(s['median_gap_vs_oracle'], True)} | >= 90 % | {yes('median_gap_vs_oracle >= 0.90')} |",
         f"| median gap closed vs the oracle (every identified case) | "
-        f"{_f(s['median_gap_vs_oracle_all_identified'], True)} | | |", ""]
+        f"{_f(s['median_gap_vs_oracle_all_identified'], True)} | | |",
+        f"| identified cases where further (wrong) effects were added | {_f(s['extra_effects_rate'], True)} | | |",
+        ""]
     if s["never_reliable"]:
         lines += ["Never identified reliably within the drawn range (no measured threshold): "
                   + ", ".join(s["never_reliable"]) + ".", ""]

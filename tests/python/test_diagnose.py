@@ -199,6 +199,7 @@ def test_benchmark_plan_and_scoring():
         if p["reliable_from"] is not None:
             assert p["reliable_from"] >= 1.5 * p["prior_threshold"] * (1 - 1e-12)
     assert s["top1_above_measured_threshold"] == 1.0 and "orca_1_43/grade" not in s["never_reliable"]
+    assert s["extra_effects_rate"] == 0.0
     assert s["top1_above_prior_threshold"] < 1.0 and s["top1_all_effect_cases"] < 1.0
     md = GB.markdown(sc, {}, 60.0, {"seed": 3, "case_seeds": "x", "development_seed": False})
     assert "| none |" in md and "reliable from" in md
@@ -251,3 +252,24 @@ def test_estimate_at_a_range_edge_is_flagged():
     assert not D.at_bound("mass_offset", 0.1, ctx)
     assert not D.at_bound("steer_delay", 0.0, ctx)          # zero is "off", not an edge
     assert D.at_bound("steer_delay", 12 * 0.02, ctx)
+
+
+def test_benchmark_real_log(shared_data, tmp_path):
+    """--real: the nominal identified on the first half of the Putnam log, the rest diagnosed; honest caveats."""
+    from train import gap_benchmark as GB
+
+    if not (shared_data / "real" / "Putnam_park2023_run4_2.csv").is_file():
+        pytest.skip("SHARED DATA MISSING: the Putnam log")
+    summary = GB.run_real(tmp_path)
+    assert set(summary) == {"vehicle_file", "identified"}
+    for r in summary.values():
+        assert isinstance(r["selected"], list) and r["where"]
+        at_edge = [e["effect"] for e in r["model"]["effects"] if e["at_bound"]]
+        assert all(any(n in c for c in r["caveats"]) for n in at_edge)
+        assert r["split"]["heldout_rows"] > 1000
+    ident = summary["identified"]["nominal"]
+    lo, hi = GB.load_vehicle("av21").range_arrays()
+    c = np.array(list(ident["coefficients"].values()))
+    assert np.all(c >= lo - 1e-9) and np.all(c <= hi + 1e-9)
+    assert (tmp_path / "identified" / "diagnosis.json").is_file() and (tmp_path / "real.json").is_file()
+    assert "Nominal: identified" in GB.real_markdown(summary)
