@@ -395,6 +395,8 @@ def detection_plot(results: list[dict], per_effect: dict, out: Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import NullFormatter
 
     fig, axes = plt.subplots(3, 4, figsize=(14, 9))
     for ax, e in zip(axes.ravel(), E.EFFECT_NAMES):
@@ -411,16 +413,39 @@ def detection_plot(results: list[dict], per_effect: dict, out: Path) -> Path:
                 ax.axvline(thr / prior, color=col, ls=":", lw=1.2)
         ax.axvline(1.0, color="0.5", ls="--", lw=0.8)
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_yticks([0, 1], ["missed", "found"])
         ax.set_title(e, fontsize=9)
     axes.ravel()[-1].axis("off")
-    axes.ravel()[0].legend(fontsize=7)
+    axes.ravel()[-1].legend(handles=[Line2D([], [], marker="o", ls="", color="0.4", label="orca_1_43"),
+                                     Line2D([], [], marker="s", ls="", color="0.4", label="av21"),
+                                     Line2D([], [], marker="o", ls="", color="C2", label="found (top-1)"),
+                                     Line2D([], [], marker="o", ls="", color="C3", label="missed")],
+                            loc="center", fontsize=9)
     fig.supxlabel("magnitude / prior guess (dashed: prior guess; dotted: measured threshold, blue orca, orange av21)")
     fig.tight_layout()
     path = out / "detection.png"
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def _write(doc: dict, info: dict, out: Path) -> str:
+    md = markdown({k: doc[k] for k in ("summary", "per_effect", "confusion")}, info, doc["seconds"], doc["settings"])
+    detection_plot(doc["results"], doc["per_effect"], out)
+    (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
+    (out / "results.md").write_text(md + "\n![detection](detection.png)\n")
+    return md
+
+
+def rescore(out: Path) -> dict:
+    """Score, tabulate and plot again the cases of an earlier run (out/results.json) without rerunning them."""
+    path = out / "results.json"
+    if not path.is_file():
+        raise DdynError(f"--rescore: {path} not found")
+    doc = json.loads(path.read_text())
+    doc.update(score(doc["results"]))
+    return doc | {"markdown": _write(doc, doc["nominal"], out)}
 
 
 def run(n_cases: int, out: Path, seed: int = DEFAULT_SEED, progress: bool = True, vehicles=VEHICLES) -> dict:
@@ -454,12 +479,8 @@ def run(n_cases: int, out: Path, seed: int = DEFAULT_SEED, progress: bool = True
                 "vehicles": list(vehicles), "noise_scale": NOISE, "laps": LAPS, "tracks": TRACKS,
                 "prior_thresholds": PRIOR_THRESHOLDS, "draw_range": list(DRAW_RANGE), "max_magnitude": MAX_MAGNITUDE,
                 "fold_block": FOLD_BLOCK, "reliable_rate": RELIABLE_RATE, "threads": torch.get_num_threads()}
-    md = markdown(sc, info, seconds, settings)
-    detection_plot(results, sc["per_effect"], out)
     doc = {"settings": settings, "nominal": info, **sc, "results": results, "seconds": seconds}
-    (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
-    (out / "results.md").write_text(md + "\n![detection](detection.png)\n")
-    return doc | {"markdown": md}
+    return doc | {"markdown": _write(doc, info, out)}
 
 
 # ----------------------------------------------------------------------------------------------- real data
@@ -551,6 +572,11 @@ def _run(args) -> int:
         print(md)
         print(f"wrote {out / 'real.json'} and {out / 'real.md'}")
         return 0
+    if args.rescore:
+        doc = rescore(out)
+        print(doc["markdown"])
+        print(f"rescored {out / 'results.json'}; wrote {out / 'results.md'} and {out / 'detection.png'}")
+        return 0
     n = args.cases or (2 * FOLD_BLOCK if args.quick else 30 * FOLD_BLOCK)
     vehicles = tuple(v.strip() for v in args.vehicles.split(","))
     bad = [v for v in vehicles if v not in VEHICLES]
@@ -579,5 +605,7 @@ def register(subparsers) -> None:
     p.add_argument("--real", action="store_true", help="diagnose the Putnam log: nominal from its first half "
                                                        "(or --model), diagnosis on the rest")
     p.add_argument("--model", default=None, help="with --real: a DDM checkpoint as the nominal model")
+    p.add_argument("--rescore", action="store_true", help="score, tabulate and plot again the cases in "
+                                                         "OUT/results.json without rerunning them")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run)

@@ -234,6 +234,12 @@ def test_benchmark_cli_tiny_run(shared_data, tmp_path):
     for r in doc["results"]:
         assert r["e_oracle"] <= r["e_nominal"] and (r["top1"] != r["effect"] or r["e_diagnosed"] < r["e_nominal"])
     assert "top-1" in (out / "results.md").read_text() and (out / "detection.png").stat().st_size > 1000
+    # --rescore: the same cases scored again from results.json give the same summary
+    (out / "results.md").unlink()
+    args = parser.parse_args(["gap-benchmark", "--rescore", "--out", str(out)])
+    assert args.func(args) == 0
+    again = json.loads((out / "results.json").read_text())
+    assert again["summary"] == doc["summary"] and (out / "results.md").is_file()
 
 
 def test_benchmark_case_runs(shared_data):
