@@ -501,6 +501,11 @@ def run_real(out: Path, model: str | None = None, ident_fraction: float = 0.5) -
     track = D._track("putnam", rest)
     reports, notes = {}, {}
     if model:
+        from . import checkpoint
+
+        vname = checkpoint.vehicle_of(checkpoint.read(model)).name
+        if vname != "av21":
+            raise DdynError(f"--model: the checkpoint is for {vname}; the Putnam log needs an av21 model")
         nominal = D.nominal_from_checkpoint(model, rest)
         label = "checkpoint"
         notes[label] = {"source": str(model)}

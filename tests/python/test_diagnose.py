@@ -145,6 +145,11 @@ def test_checkpoint_nominal(delay_log, tmp_path):
     model = build_model(cfg, ORCA, f.mean(axis=0), np.maximum(f.std(axis=0), 1e-9))
     path = checkpoint.save(checkpoint.make(TrainResult(model, cfg, np.ones(3), [], 0.0, 0.0), ORCA, "x", "x", 0),
                            tmp_path / "ddm.ckpt")
+    from train import gap_benchmark as GB
+    from train.errors import DdynError
+
+    with pytest.raises(DdynError, match="av21"):          # --real --model wants a model of the Putnam car
+        GB.run_real(tmp_path / "real", model=str(path))
     nominal = D.nominal_from_checkpoint(path, delay_log)
     assert nominal.coeffs.shape == (len(delay_log), 17) and not nominal.valid[:2].any() and nominal.valid[2:-1].all()
     d = D.diagnose(delay_log, nominal, candidates=("steer_delay", "grade"), refit=())
