@@ -23,7 +23,8 @@ Which    the log's transitions are split by time: the first `fit_fraction` fit, 
 How far  held-out one-step RMSE per channel and ADE/FDE before (nominal as given) and after;
          gap_closed_pct = share of the nominal's held-out excess error removed, the excess being
          the normalised mean squared error above a measurement-noise floor estimated from the
-         residuals' lag-1 autocovariance (white sensor noise makes one-step residuals MA(1)).
+         residuals' variance and lag-1 autocovariance, white sensor noise being fed through the
+         nominal one-step map's Jacobian (see _noise_floor).
 
 Output: DIR/diagnosis.json, DIR/diagnosis.md and PNG plots (where.png, residuals.png, which.png).
 diagnosis.json ("schema": "ddyn-diagnosis 1"):
