@@ -47,4 +47,12 @@ ddyn crosscheck --data "$OUT/orca_ethzMobil_rk4_noisy.csv" --method rk4
 ddyn crosscheck --data "$OUT/dyn_pp_ethz.csv" --coeffs reference_dataset
 ddyn crosscheck --data "$OUT/putnam.csv" --method rk4
 
+step "diagnose: a noisy log with one unmodelled effect, diagnosed blind (where, which effect, how far)"
+# the simulator records its effects in the log's metadata; the diagnosis does not read them (it only echoes
+# them under data.effects_in_metadata), so the verdict below is found, not told
+ddyn simulate --vehicle orca_1_43 --track ethzMobil --laps 3 --noise 1 --seed 31 --quiet \
+  --effects "throttle_delay=0.04" -o "$OUT/orca_hidden_effect.csv"
+OMP_NUM_THREADS=1 ddyn diagnose --vehicle orca_1_43 --data "$OUT/orca_hidden_effect.csv" --out "$OUT/diagnosis"
+echo "the log's hidden effect was: throttle_delay = 0.04 s; report: $OUT/diagnosis/diagnosis.md"
+
 printf '\nmain job done; outputs in %s\n' "$OUT"

@@ -33,6 +33,8 @@ SUBCOMMAND_MODULES = (
     "codegen.can",
     "train.can_log",
     "train.can_bench",
+    "train.diagnose",
+    "train.gap_benchmark",
 )
 
 

@@ -23,9 +23,30 @@ Which    the log's transitions are split by time: the first `fit_fraction` fit, 
 How far  held-out one-step RMSE per channel and ADE/FDE before (nominal as given) and after;
          gap_closed_pct = share of the nominal's held-out excess error removed, the excess being
          the normalised mean squared error above a measurement-noise floor estimated from the
-         residuals' lag-1 autocovariance (white sensor noise makes one-step residuals MA(1)).
+         residuals' variance and lag-1 autocovariance, white sensor noise being fed through the
+         nominal one-step map's Jacobian (see _noise_floor).
 
-DIR/diagnosis.json (schema in the README), DIR/diagnosis.md and PNG plots.
+Output: DIR/diagnosis.json, DIR/diagnosis.md and PNG plots (where.png, residuals.png, which.png).
+diagnosis.json ("schema": "ddyn-diagnosis 1"):
+  selected        [effect names], in the order added; [] means none is significant
+  verdict         one line: the selected effects with estimate +- uncertainty, or "none: ..."
+  candidates      best first (by dBIC), one per effect tried alone against the refitted nominal:
+                  effect, params {name: value}, uncertainty {name: std}, unit, at_bound (the estimate sits
+                  on an edge of its search range), refit {coefficient: factor},
+                  heldout {rmse_before, rmse_refit_only, rmse_after: {vx, vy, omega}, ade_before, ade_after,
+                  fde_before, fde_after}, gap_closed_pct, error_reduction_pct, delta_bic, delta_loglik,
+                  lr_p_value, significant (dBIC < 0), fit_seconds
+  model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit, at_bound}],
+                  refit, heldout (as above), gap_closed_pct, error_reduction_pct
+  greedy          the selection steps: best candidate, its dBIC, whether it was added
+  where           one_step_rmse, noise_floor_rmse, rmse_over_noise_floor {vx, vy, omega}; ade (m) and
+                  horizon_steps; multi_step_rmse (over the horizon), multi_step_final_rmse (at its end)
+                  {vx, vy, omega}; factors {speed, lateral_acceleration, front_slip, rear_slip, throttle_brake,
+                  steering_rate, time, [track_position]: [{bin, samples_share, error_share, rmse, ade,
+                  multi_step_rmse}]};
+                  summary [sentences naming the regions that hold most of the error]
+  nominal, split, method, data, seconds: what was compared, how, on what (split.heldout_from_time: s after
+                  the log's first row)
 """
 from __future__ import annotations
 
@@ -130,6 +151,14 @@ def _bounds(name: str, ctx: dict) -> tuple[float, float]:
             "yaw_rate_bias": (-0.5, 0.5), "mass_offset": (-0.5, 1.0)}[name]
 
 
+def at_bound(name: str, value: float, ctx: dict) -> bool:
+    """The estimate sits on a non-zero edge of its search range: the effect is likely standing in for a
+    different mismatch (its value is then a bound, not an estimate)."""
+    lo, hi = _bounds(name, ctx)
+    tol = 1e-3 * (hi - lo)
+    return any(b != 0.0 and abs(value - b) <= tol for b in (lo, hi))
+
+
 GRID_UNITS = {"steer_delay": (0.5, 1, 2, 3, 5, 8), "throttle_delay": (0.5, 1, 2, 3, 5, 8),
               "steer_lag": (0.5, 1, 2, 3, 5, 8), "downforce": (0.5, 1, 2, 4), "combined_slip": (1, 3, 6, 12),
               "tire_relaxation": (0.1, 0.2, 0.3, 0.5, 0.75, 1, 1.5, 2, 3, 5, 8), "tire_wear": (0.5, 1, 2, 4)}
@@ -209,14 +238,17 @@ def _long_run_factor(res: np.ndarray, lags: int = 20) -> float:
     return max(1.0, float(np.mean(out))) if out else 1.0
 
 
-def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, scan: str | None = None) -> Fit:
-    """Fit the main parameters of `names` (and the refit factors) on the fit rows."""
+def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, scan: str | None = None,
+        rho_bounds=None) -> Fit:
+    """Fit the main parameters of `names` (and the refit factors, 1 + rho, rho within rho_bounds (lo, hi),
+    default +-0.5) on the fit rows."""
     t0 = _time.perf_counter()
     names = tuple(names)
     start = dict(start or {})
     units = np.array([_param_unit(n, prob.ctx) for n in names])
-    lo = np.array([_bounds(n, prob.ctx)[0] for n in names] + [-0.5] * len(prob.refit))
-    hi = np.array([_bounds(n, prob.ctx)[1] for n in names] + [0.5] * len(prob.refit))
+    rlo, rhi = (np.full(len(prob.refit), -0.5), np.full(len(prob.refit), 0.5)) if rho_bounds is None else rho_bounds
+    lo = np.array([_bounds(n, prob.ctx)[0] for n in names] + list(rlo))
+    hi = np.array([_bounds(n, prob.ctx)[1] for n in names] + list(rhi))
     nr = len(prob.refit)
     rows = prob.rows_fit
     rho0 = np.zeros(nr) if start_rho is None else np.asarray(start_rho, float)
@@ -272,21 +304,55 @@ def _starts(prob: Problem, rows: np.ndarray, steps: int, max_starts: int) -> np.
     return ok
 
 
-def rollout_errors(prob: Problem, values: dict, rho, starts: np.ndarray, steps: int) -> np.ndarray:
-    """Position error (steps, n_starts) of rollouts from `starts`."""
+def rollout_errors(prob: Problem, values: dict, rho, starts: np.ndarray, steps: int,
+                   channels: bool = False):
+    """Position error (steps, n_starts) of rollouts from `starts`; channels: also the multi-step residuals of
+    (vx, vy, omega), (steps, n_starts, 3)."""
     if len(starts) == 0:
-        return np.zeros((steps, 0))
-    pos = prob.lm.rollout(E.EffectSet.from_values(values), starts, steps, prob.coeffs(rho))
-    truth = np.stack([prob.ds.states[starts + j + 1, :2] for j in range(steps)])
-    return np.linalg.norm(pos - truth, axis=-1)
+        return (np.zeros((steps, 0)), np.zeros((steps, 0, 3))) if channels else np.zeros((steps, 0))
+    pred = prob.lm.rollout(E.EffectSet.from_values(values), starts, steps, prob.coeffs(rho),
+                           whole_state=channels)
+    truth = np.stack([prob.ds.states[starts + j + 1] for j in range(steps)])
+    pos = np.linalg.norm(pred[..., :2] - truth[..., :2], axis=-1)
+    return (pos, truth[..., 3:6] - pred[..., 3:6]) if channels else pos
+
+
+def _state_jacobian(prob: Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Mean J and mean J**2 (elementwise) over the log of d(vx, vy, omega)_k+1 / d(vx, vy, omega)_k of the
+    nominal one-step map (central differences): how a state's sensor noise reaches the next prediction."""
+    if getattr(prob, "_jac", None) is None:
+        rows, ds, lm = prob.rows_all, prob.ds, prob.lm
+        c = prob.nominal.coeffs[rows] if prob.nominal.coeffs.ndim == 2 else prob.nominal.coeffs
+        x = ds.states[rows]
+        J = np.empty((len(rows), 3, 3))
+        for j in range(3):
+            h = 1e-6 * max(float(np.sqrt(np.mean(x[:, 3 + j] ** 2))), 1e-3)
+            xp, xm = x.copy(), x.copy()
+            xp[:, 3 + j] += h
+            xm[:, 3 + j] -= h
+            step = lambda s: E.step_numpy(s, ds.inputs[rows], c, lm.p, lm.dt, lm.method, lm.substeps,  # noqa: E731
+                                          E.EffectSet(), None, E.Aux())[:, 3:6]
+            J[:, :, j] = (step(xp) - step(xm)) / (2 * h)
+        prob._jac = (J.mean(axis=0), (J ** 2).mean(axis=0))
+    return prob._jac
 
 
 def _noise_floor(prob: Problem, res: np.ndarray) -> np.ndarray:
-    """Per channel: one-step MSE of a perfect model under white sensor noise, 2 sigma^2, sigma^2 = (g0 - g1) / 3."""
+    """Per channel: one-step MSE a perfect model would leave under white sensor noise of variances s2.
+
+    With r_k = n_k+1 - J n_k (+ model error m_k): E r_i^2 = s2_i + sum_j J2_ij s2_j, and the lag-1
+    autocovariance is -J_ii s2_i (+ that of m). Slowly varying model error cancels in g0 - g1, so
+    s2 solves (diag(1 + J_ii) + J2) s2 = g0 - g1; the floor is (I + J2) s2 (<= g0). With J = I this is
+    the MA(1) rule 2 (g0 - g1) / 3."""
     r = res - res.mean(axis=0)
     g0 = np.mean(r * r, axis=0)
     g1 = np.mean(r[1:] * r[:-1], axis=0)
-    return np.clip(2.0 * (g0 - g1) / 3.0, 0.0, g0)
+    mj, mj2 = _state_jacobian(prob)
+    try:
+        s2 = np.linalg.solve(np.diag(1.0 + np.diag(mj)) + mj2, g0 - g1)
+    except np.linalg.LinAlgError:
+        s2 = (g0 - g1) / 3.0
+    return np.clip((np.eye(3) + mj2) @ np.maximum(s2, 0.0), 0.0, g0)
 
 
 def heldout_summary(prob: Problem, values: dict, rho, starts, steps) -> dict:
@@ -370,7 +436,8 @@ def where(prob: Problem, steps: int, max_starts: int, track=None, floor=None) ->
     err = np.sum(res ** 2 / np.maximum(fl, (0.05 * prob.scale) ** 2), axis=1)
     total = float(err.sum()) or 1.0
     starts = _starts(prob, rows, steps, max_starts)
-    ade = rollout_errors(prob, {}, np.zeros(len(prob.refit)), starts, steps).mean(axis=0)
+    pos_err, ms_res = rollout_errors(prob, {}, np.zeros(len(prob.refit)), starts, steps, channels=True)
+    ade = pos_err.mean(axis=0)
     start_pos = np.searchsorted(rows, starts)
     fac = _factors(prob, rows, track)
     rmse = np.sqrt(np.mean(res ** 2, axis=0))
@@ -379,7 +446,11 @@ def where(prob: Problem, steps: int, max_starts: int, track=None, floor=None) ->
     out = {"one_step_rmse": _chan(rmse), "noise_floor_rmse": _chan(noise),
            "rmse_over_noise_floor": {c: (float(r) if np.isfinite(r) and n > 0 else None)
                                      for c, r, n in zip(CHANNELS, over, noise)},
-           "ade": float(ade.mean()) if len(ade) else None, "horizon_steps": steps, "factors": {}}
+           "ade": float(ade.mean()) if len(ade) else None, "horizon_steps": steps,
+           # multi-step residuals of the nominal by channel: RMSE over the whole horizon and at its end
+           "multi_step_rmse": _chan(np.sqrt(np.mean(ms_res ** 2, axis=(0, 1)))) if len(ade) else None,
+           "multi_step_final_rmse": _chan(np.sqrt(np.mean(ms_res[-1] ** 2, axis=0))) if len(ade) else None,
+           "factors": {}}
     notable = []
     for fname, (idx, labels) in fac.items():
         bins = []
@@ -390,7 +461,8 @@ def where(prob: Problem, steps: int, max_starts: int, track=None, floor=None) ->
             sm = idx[start_pos] == b if len(start_pos) else np.zeros(0, bool)
             row = {"bin": label, "samples_share": float(m.mean()), "error_share": float(err[m].sum() / total),
                    "rmse": _chan(np.sqrt(np.mean(res[m] ** 2, axis=0))),
-                   "ade": float(ade[sm].mean()) if sm.any() else None}
+                   "ade": float(ade[sm].mean()) if sm.any() else None,
+                   "multi_step_rmse": _chan(np.sqrt(np.mean(ms_res[:, sm] ** 2, axis=(0, 1)))) if sm.any() else None}
             bins.append(row)
             if row["samples_share"] >= 0.05:
                 notable.append((row["error_share"] / row["samples_share"], fname, row))
@@ -444,6 +516,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         h = ev["heldout"]
         return {"effect": name, "params": {E.MAIN_PARAM[name]: f.values[name]},
                 "uncertainty": {E.MAIN_PARAM[name]: f.std[name]}, "unit": E.UNITS[name],
+                "at_bound": at_bound(name, f.values[name], prob.ctx),
                 "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, f.rho)},
                 "heldout": {"rmse_before": _chan(before["rmse"]), "rmse_refit_only": _chan(base["rmse"]),
                             "rmse_after": _chan(h["rmse"]), "ade_before": before["ade"], "ade_after": h["ade"],
@@ -496,7 +569,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
     final = {"effects": [{"effect": n, "params": {E.MAIN_PARAM[n]: current.values[n]},
-                          "uncertainty": {E.MAIN_PARAM[n]: current.std[n]}, "unit": E.UNITS[n]} for n in selected],
+                          "uncertainty": {E.MAIN_PARAM[n]: current.std[n]}, "unit": E.UNITS[n],
+                          "at_bound": at_bound(n, current.values[n], prob.ctx)} for n in selected],
              "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, current.rho)},
              "heldout": {"rmse_before": _chan(before["rmse"]), "rmse_after": _chan(current_h["rmse"]),
                          "ade_before": before["ade"], "ade_after": current_h["ade"],
@@ -510,7 +584,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "selected": selected,
         "verdict": ("none: no candidate effect pays for its parameters on the held-out data" if not selected else
                     "; ".join(f"{e['effect']} {next(iter(e['params']))} = {next(iter(e['params'].values())):.4g} "
-                              f"+- {next(iter(e['uncertainty'].values())):.2g} {e['unit']}" for e in final["effects"])),
+                              f"+- {next(iter(e['uncertainty'].values())):.2g} {e['unit']}"
+                              + (" (AT THE EDGE of its range: a stand-in for another mismatch, not an estimate)"
+                                 if e["at_bound"] else "") for e in final["effects"])),
         "candidates": first,
         "model": final,
         "greedy": steps_log,
@@ -520,7 +596,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                     "refit_only": {"rmse": _chan(base["rmse"]), "factors": {n: 1.0 + float(r) for n, r in
                                                                              zip(prob.refit, base_fit.rho)}}},
         "split": {"fit_fraction": fit_fraction, "fit_rows": int(len(prob.rows_fit)),
-                  "heldout_rows": int(len(prob.rows_held)), "heldout_from_time": float(ds.time[prob.rows_held[0]]),
+                  "heldout_rows": int(len(prob.rows_held)), "heldout_from_time": float(ds.time[prob.rows_held[0]] - ds.time[0]),
                   "rollout_starts": int(len(starts)), "horizon_s": steps * ds.sample_time},
         "method": {"fit": "scipy.optimize.least_squares (trf) on one-step residuals normalised per channel, "
                           "after a grid scan of the new parameter",
@@ -565,19 +641,28 @@ def markdown(d: dict, figures: list[str]) -> str:
              f"Gap closed: {_fmt(m['gap_closed_pct'])} % of the held-out error above the estimated noise floor "
              f"({_fmt(m['error_reduction_pct'])} % of the normalised one-step error).", "",
              "## Where (nominal model, whole log)", ""]
-    lines += [f"- {s}" for s in d["where"]["summary"]]
+    w = d["where"]
+    lines += ["| nominal | vx (m/s) | vy (m/s) | omega (rad/s) |", "|---|---|---|---|"]
+    for label, key in (("one-step RMSE", "one_step_rmse"), ("noise floor (est.)", "noise_floor_rmse"),
+                       (f"multi-step RMSE ({w['horizon_steps']} steps)", "multi_step_rmse"),
+                       ("multi-step RMSE at the horizon", "multi_step_final_rmse")):
+        if w.get(key):
+            lines.append(f"| {label} | " + " | ".join(_fmt(w[key][c]) for c in CHANNELS) + " |")
+    lines += [""] + [f"- {s}" for s in w["summary"]]
     lines += ["", "## Which (each candidate alone against the refitted nominal, best first)", "",
               "| effect | estimate | +- | dBIC | gap closed % | vx | vy | omega | ADE |",
               "|---|---|---|---|---|---|---|---|---|"]
     for c in d["candidates"]:
         (pn, pv), = c["params"].items()
         hh = c["heldout"]
-        lines.append(f"| {c['effect']}{' **' if c['significant'] else ''} | {pn} = {_fmt(pv)} {c['unit']} | "
+        edge = " (at bound)" if c["at_bound"] else ""
+        lines.append(f"| {c['effect']}{' **' if c['significant'] else ''} | {pn} = {_fmt(pv)} {c['unit']}{edge} | "
                      f"{_fmt(c['uncertainty'][pn])} | {c['delta_bic']:.1f} | {_fmt(c['gap_closed_pct'])} | "
                      + " | ".join(_fmt(hh["rmse_after"][ch]) for ch in CHANNELS) + f" | {_fmt(hh['ade_after'])} |")
     lines += ["", "dBIC < 0 (marked **): the effect pays for its parameter on the held-out part. Tyre peak forces "
               f"({', '.join(d['nominal']['refit_under_every_hypothesis']) or 'none'}) are refitted under every "
-              "hypothesis.", ""]
+              "hypothesis. \"at bound\": the estimate sits on an edge of its search range, so the effect is "
+              "standing in for some other mismatch and its value is a bound, not an estimate.", ""]
     lines += [f"![{Path(f).stem}]({Path(f).name})" for f in figures]
     return "\n".join(lines) + "\n"
 

@@ -540,9 +540,9 @@ class LogModel:
         out[:, 2] += fx.yaw_bias
         return out
 
-    def rollout(self, fx: EffectSet, starts: np.ndarray, steps: int, coeffs) -> np.ndarray:
+    def rollout(self, fx: EffectSet, starts: np.ndarray, steps: int, coeffs, whole_state: bool = False) -> np.ndarray:
         """Positions (steps, n, 2) predicted from each start row with the logged inputs; coefficients held
-        at the start row's."""
+        at the start row's. whole_state: the whole measured state (steps, n, 8) instead (omega as the sensor reads it)."""
         states = self.true_states(fx)
         ch = self.channels(fx)
         c = coeffs[starts] if np.ndim(coeffs) == 2 else coeffs
@@ -554,7 +554,7 @@ class LogModel:
             first = np.isin(starts, [a for a, _ in self.segments])
             steer0 = states[starts, 7] if ch is None else ch.steering[starts]
             mem = np.where(first[:, None], self._alpha(x, steer0, c), full[prev])
-        out = np.empty((steps, len(starts), 2))
+        out = np.empty((steps, len(starts), N_STATE if whole_state else 2))
         for j in range(steps):
             rows = starts + j
             chj = self._ch(ch, rows)
@@ -566,7 +566,9 @@ class LogModel:
                 offset = (off[:, 0], off[:, 1])
             x = step_numpy(x, self.inputs[rows], c, self.p, self.dt, self.method, self.substeps, fx, chj,
                            self._aux(fx, rows, offset))
-            out[j] = x[:, :2]
+            out[j] = x if whole_state else x[:, :2]
+        if whole_state:
+            out[..., 5] += fx.yaw_bias
         return out
 
 
