@@ -35,6 +35,7 @@ SUBCOMMAND_MODULES = (
     "train.can_bench",
     "train.diagnose",
     "train.gap_benchmark",
+    "train.mpc_lap",
 )
 
 
