@@ -216,14 +216,15 @@ void ddyn_mpc_qp_newton_solve(const ddyn_mpc_qp *qp, double *b)
     }
 }
 
-/* Newton direction for complementarity target rc (t .* lam - rc = 0): dz (z and s parts), dlam, dt. */
-static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const double *rc, double scale, double *dz,
+/* Newton direction for complementarity target rc (t .* lam - rc = 0), given as rcl = rc ./ lam (one
+ * division per row, done once by the caller): dz (z and s parts), dlam, dt. */
+static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const double *rcl, double scale, double *dz,
                    double *dlam, double *dt)
 {
     double vz[DDYN_QP_NV], vs[DDYN_QP_NS], mq[DDYN_QP_NS], beta[DDYN_QP_NS];
     int i, q, n = l->n;
     for (i = 0; i < l->m; ++i) {
-        qp->w[i] = D[i] * (qp->rp[i] - rc[i] / qp->lam[i]);
+        qp->w[i] = D[i] * (qp->rp[i] - rcl[i]);
     }
     mul_ct(qp, l, qp->w, vz, vs);
     for (i = 0; i < n; ++i) {
@@ -250,7 +251,7 @@ static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const doub
     }
     mul_c(qp, l, dz, dz + n, qp->cz);
     for (i = 0; i < l->m; ++i) {
-        dlam[i] = D[i] * (qp->cz[i] + qp->rp[i] - rc[i] / qp->lam[i]);
+        dlam[i] = D[i] * (qp->cz[i] + qp->rp[i] - rcl[i]);
         dt[i] = -qp->rp[i] - qp->cz[i];
     }
 }
@@ -401,9 +402,9 @@ ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
             D[i] = qp->lam[i] / qp->t[i];
         }
         ddyn_mpc_qp_newton_factor(qp, D, scale);
-        /* predictor (affine scaling direction) */
+        /* predictor (affine scaling direction): target t .* lam = 0, i.e. rc ./ lam = t */
         for (i = 0; i < l.m; ++i) {
-            rc[i] = qp->t[i] * qp->lam[i];
+            rc[i] = qp->t[i];
         }
         newton(qp, &l, D, rc, scale, qp->dz, qp->dl_aff, qp->dt_aff);
         a_aff = fmin(max_step(qp->t, qp->dt_aff, l.m), max_step(qp->lam, qp->dl_aff, l.m));
@@ -417,7 +418,7 @@ ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
         }
         /* corrector: second-order term and centring, same factorisation */
         for (i = 0; i < l.m; ++i) {
-            rc[i] = qp->t[i] * qp->lam[i] + qp->dt_aff[i] * qp->dl_aff[i] - sigma * mu;
+            rc[i] = qp->t[i] + (qp->dt_aff[i] * qp->dl_aff[i] - sigma * mu) / qp->lam[i];
         }
         newton(qp, &l, D, rc, scale, qp->dz, qp->dl_aff, qp->dt_aff);
         a = STEP_FRACTION * fmin(max_step(qp->t, qp->dt_aff, l.m), max_step(qp->lam, qp->dl_aff, l.m));
