@@ -136,8 +136,10 @@ def format_controller(r: dict) -> str:
     s = r["controller_step"]
     bits = {k.removeprefix("steps_DDYN_CTRL_").lower(): int(v) for k, v in r.items()
             if k.startswith("steps_DDYN_CTRL_") and v > 0}
+    m = r.get("mpc_solve")
+    mpc = f"; of it the MPC solve {m['median_us']:.2f} / {m['p99_us']:.2f} / {m['max_us']:.1f}" if m else ""
     return (f"| controller_step (closed loop) | {s['median_us']:.2f} / {s['p99_us']:.2f} / {s['max_us']:.1f} "
-            f"(n={s['n']}) | laps {r.get('laps', 0.0):.2f}, max raceline offset {r.get('max_raceline_offset_m', 0.0):.3f} m"
+            f"(n={s['n']}){mpc} | laps {r.get('laps', 0.0):.2f}, max raceline offset {r.get('max_raceline_offset_m', 0.0):.3f} m"
             f" | periods with status bits: {bits or 'none'}; load average {r['loadavg_1min'][0]:.1f} -> "
             f"{r['loadavg_1min'][1]:.1f} on {r['cpus']} CPUs |")
 
