@@ -195,6 +195,11 @@ def _run(args) -> int:
         print(f"MPC: QP iterations median {m['qp_iterations']['median']:.0f}, p99 {m['qp_iterations']['p99']:.0f}, "
               f"max {m['qp_iterations']['max']}; status {m['c_status_counts']}; closed loop "
               f"{m['c_closed_loop']['steps']} steps, {m['c_closed_loop']['violation_steps']} track violations")
+    if args.controller:  # the whole controller step in closed loop (train/controller_bench.py)
+        from .controller_bench import format_controller, run_controller
+
+        r["controller_step"] = run_controller(Path(args.tool).parent / "ddyn_controller_bench", args.controller_steps)
+        print(format_controller(r["controller_step"]))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(json.dumps(r, indent=2))
@@ -214,4 +219,7 @@ def register(subparsers) -> None:
     p.add_argument("--n-python", type=int, default=2000, help="calls of each Python alternative")
     p.add_argument("--tool", default=str(DEFAULT_TOOL), help="ddyn_bench binary (default: %(default)s)")
     p.add_argument("--out", help="write the results as JSON here")
+    p.add_argument("--controller", action="store_true",
+                   help="also time the whole controller step in closed loop (ddyn_controller_bench beside --tool)")
+    p.add_argument("--controller-steps", type=int, default=20000, help="closed-loop periods (default %(default)s)")
     p.set_defaults(func=_run)
