@@ -29,6 +29,7 @@ SUBCOMMAND_MODULES = (
     "train.denoise",
     "train.denoise_study",
     "train.tune",
+    "codegen.can",
 )
 
 
