@@ -6,6 +6,17 @@ namespace fsim {
 
 LapMonitor::LapMonitor(const Track& track, const Footprint& footprint) : track_(track), footprint_(footprint) {}
 
+void LapMonitor::restore(double t, double x, double y, double s, double lap_start_time, const LapMonitorResult& r) {
+  started_ = true;
+  t_prev_ = t;
+  x_prev_ = x;
+  y_prev_ = y;
+  s_ = s;
+  lap_start_time_ = lap_start_time;
+  result_ = r;
+  outside_ = false;
+}
+
 void LapMonitor::update(double t, double x, double y, double yaw) {
   // the car moves far less than this between two updates; wide enough for any plant step
   const double window = 0.1 * track_.length();

@@ -22,6 +22,9 @@ class LapMonitor {
   LapMonitor(const Track& track, const Footprint& footprint);
   // the car's pose at time t; the first call fixes the start line (at the car's s)
   void update(double t, double x, double y, double yaw);
+  // continue a run from a snapshot (plant restart): the last pose's time, s, and the result so far
+  void restore(double t, double x, double y, double s, double lap_start_time, const LapMonitorResult& r);
+  double lap_start_time() const { return lap_start_time_; }
   int laps_completed() const { return static_cast<int>(result_.lap_times.size()); }
   const LapMonitorResult& result() const { return result_; }
   double s() const { return s_; }
