@@ -71,7 +71,8 @@ def generate(dbc: Path = DBC_PATH, out: Path = DEFAULT_OUT) -> list[Path]:
     db = load_database(dbc)
     header, source, _fuzzer, _makefile = c_source.generate(
         db, DATABASE_NAME, HEADER_NAME, SOURCE_NAME, f"{DATABASE_NAME}_fuzzer.c",
-        floating_point_numbers=True, bit_fields=False, use_float=False, node_name=None)
+        floating_point_numbers=True, bit_fields=False, use_float=False, node_name=None,
+        use_round=True)  # round to the nearest raw value, not truncate (a bias of up to one LSB)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for name, text, what in ((HEADER_NAME, header, "Drive-by-wire CAN frames: structs, pack/unpack, encode/decode, range checks."),

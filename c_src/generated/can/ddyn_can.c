@@ -35,6 +35,7 @@
  * SOFTWARE.
  */
 
+#include <math.h>
 #include <string.h>
 
 #include "ddyn_can.h"
@@ -209,7 +210,7 @@ int ddyn_can_dbw_command_init(struct ddyn_can_dbw_command_t *msg_p)
 
 uint16_t ddyn_can_dbw_command_throttle_encode(double value)
 {
-    return (uint16_t)(cantools_unsigned_from_double(value / 0.0001));
+    return (uint16_t)(cantools_unsigned_from_double(round(value / 0.0001)));
 }
 
 double ddyn_can_dbw_command_throttle_decode(uint16_t value)
@@ -229,7 +230,7 @@ bool ddyn_can_dbw_command_throttle_is_in_phys_range(double value)
 
 uint16_t ddyn_can_dbw_command_brake_encode(double value)
 {
-    return (uint16_t)(cantools_unsigned_from_double(value / 0.0001));
+    return (uint16_t)(cantools_unsigned_from_double(round(value / 0.0001)));
 }
 
 double ddyn_can_dbw_command_brake_decode(uint16_t value)
@@ -249,7 +250,7 @@ bool ddyn_can_dbw_command_brake_is_in_phys_range(double value)
 
 int16_t ddyn_can_dbw_command_steering_angle_encode(double value)
 {
-    return (int16_t)(value / 0.0001);
+    return (int16_t)(round(value / 0.0001));
 }
 
 double ddyn_can_dbw_command_steering_angle_decode(int16_t value)
@@ -269,7 +270,7 @@ bool ddyn_can_dbw_command_steering_angle_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_command_enable_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_command_enable_decode(uint8_t value)
@@ -289,7 +290,7 @@ bool ddyn_can_dbw_command_enable_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_command_mode_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_command_mode_decode(uint8_t value)
@@ -309,7 +310,7 @@ bool ddyn_can_dbw_command_mode_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_command_counter_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_command_counter_decode(uint8_t value)
@@ -329,7 +330,7 @@ bool ddyn_can_dbw_command_counter_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_command_checksum_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_command_checksum_decode(uint8_t value)
@@ -410,7 +411,7 @@ int ddyn_can_dbw_steering_init(struct ddyn_can_dbw_steering_t *msg_p)
 
 int16_t ddyn_can_dbw_steering_steering_angle_encode(double value)
 {
-    return (int16_t)(value / 0.0001);
+    return (int16_t)(round(value / 0.0001));
 }
 
 double ddyn_can_dbw_steering_steering_angle_decode(int16_t value)
@@ -430,7 +431,7 @@ bool ddyn_can_dbw_steering_steering_angle_is_in_phys_range(double value)
 
 int16_t ddyn_can_dbw_steering_steering_rate_encode(double value)
 {
-    return (int16_t)(value / 0.001);
+    return (int16_t)(round(value / 0.001));
 }
 
 double ddyn_can_dbw_steering_steering_rate_decode(int16_t value)
@@ -450,7 +451,7 @@ bool ddyn_can_dbw_steering_steering_rate_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_steering_counter_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_steering_counter_decode(uint8_t value)
@@ -470,7 +471,7 @@ bool ddyn_can_dbw_steering_counter_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_steering_checksum_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_steering_checksum_decode(uint8_t value)
@@ -551,7 +552,7 @@ int ddyn_can_dbw_status_init(struct ddyn_can_dbw_status_t *msg_p)
 
 uint16_t ddyn_can_dbw_status_throttle_pedal_encode(double value)
 {
-    return (uint16_t)(cantools_unsigned_from_double(value / 0.0001));
+    return (uint16_t)(cantools_unsigned_from_double(round(value / 0.0001)));
 }
 
 double ddyn_can_dbw_status_throttle_pedal_decode(uint16_t value)
@@ -571,7 +572,7 @@ bool ddyn_can_dbw_status_throttle_pedal_is_in_phys_range(double value)
 
 uint16_t ddyn_can_dbw_status_brake_pedal_encode(double value)
 {
-    return (uint16_t)(cantools_unsigned_from_double(value / 0.0001));
+    return (uint16_t)(cantools_unsigned_from_double(round(value / 0.0001)));
 }
 
 double ddyn_can_dbw_status_brake_pedal_decode(uint16_t value)
@@ -591,7 +592,7 @@ bool ddyn_can_dbw_status_brake_pedal_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_status_mode_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_status_mode_decode(uint8_t value)
@@ -611,7 +612,7 @@ bool ddyn_can_dbw_status_mode_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_status_enabled_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_status_enabled_decode(uint8_t value)
@@ -631,7 +632,7 @@ bool ddyn_can_dbw_status_enabled_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_status_driver_override_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_status_driver_override_decode(uint8_t value)
@@ -651,7 +652,7 @@ bool ddyn_can_dbw_status_driver_override_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_status_faults_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_status_faults_decode(uint8_t value)
@@ -671,7 +672,7 @@ bool ddyn_can_dbw_status_faults_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_status_counter_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_status_counter_decode(uint8_t value)
@@ -691,7 +692,7 @@ bool ddyn_can_dbw_status_counter_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_status_checksum_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_status_checksum_decode(uint8_t value)
@@ -772,7 +773,7 @@ int ddyn_can_dbw_wheel_speeds_init(struct ddyn_can_dbw_wheel_speeds_t *msg_p)
 
 int16_t ddyn_can_dbw_wheel_speeds_wheel_speed_front_encode(double value)
 {
-    return (int16_t)(value / 0.005);
+    return (int16_t)(round(value / 0.005));
 }
 
 double ddyn_can_dbw_wheel_speeds_wheel_speed_front_decode(int16_t value)
@@ -792,7 +793,7 @@ bool ddyn_can_dbw_wheel_speeds_wheel_speed_front_is_in_phys_range(double value)
 
 int16_t ddyn_can_dbw_wheel_speeds_wheel_speed_rear_encode(double value)
 {
-    return (int16_t)(value / 0.005);
+    return (int16_t)(round(value / 0.005));
 }
 
 double ddyn_can_dbw_wheel_speeds_wheel_speed_rear_decode(int16_t value)
@@ -812,7 +813,7 @@ bool ddyn_can_dbw_wheel_speeds_wheel_speed_rear_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_wheel_speeds_counter_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_wheel_speeds_counter_decode(uint8_t value)
@@ -832,7 +833,7 @@ bool ddyn_can_dbw_wheel_speeds_counter_is_in_phys_range(double value)
 
 uint8_t ddyn_can_dbw_wheel_speeds_checksum_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_dbw_wheel_speeds_checksum_decode(uint8_t value)
@@ -921,7 +922,7 @@ int ddyn_can_imu_init(struct ddyn_can_imu_t *msg_p)
 
 int16_t ddyn_can_imu_yaw_rate_encode(double value)
 {
-    return (int16_t)(value / 0.0005);
+    return (int16_t)(round(value / 0.0005));
 }
 
 double ddyn_can_imu_yaw_rate_decode(int16_t value)
@@ -941,7 +942,7 @@ bool ddyn_can_imu_yaw_rate_is_in_phys_range(double value)
 
 int16_t ddyn_can_imu_accel_x_encode(double value)
 {
-    return (int16_t)(value / 0.005);
+    return (int16_t)(round(value / 0.005));
 }
 
 double ddyn_can_imu_accel_x_decode(int16_t value)
@@ -961,7 +962,7 @@ bool ddyn_can_imu_accel_x_is_in_phys_range(double value)
 
 int16_t ddyn_can_imu_accel_y_encode(double value)
 {
-    return (int16_t)(value / 0.005);
+    return (int16_t)(round(value / 0.005));
 }
 
 double ddyn_can_imu_accel_y_decode(int16_t value)
@@ -981,7 +982,7 @@ bool ddyn_can_imu_accel_y_is_in_phys_range(double value)
 
 uint8_t ddyn_can_imu_counter_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_imu_counter_decode(uint8_t value)
@@ -1001,7 +1002,7 @@ bool ddyn_can_imu_counter_is_in_phys_range(double value)
 
 uint8_t ddyn_can_imu_checksum_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_imu_checksum_decode(uint8_t value)
@@ -1100,7 +1101,7 @@ int ddyn_can_gnss_position_init(struct ddyn_can_gnss_position_t *msg_p)
 
 int32_t ddyn_can_gnss_position_position_x_encode(double value)
 {
-    return (int32_t)(value / 0.001);
+    return (int32_t)(round(value / 0.001));
 }
 
 double ddyn_can_gnss_position_position_x_decode(int32_t value)
@@ -1120,7 +1121,7 @@ bool ddyn_can_gnss_position_position_x_is_in_phys_range(double value)
 
 int32_t ddyn_can_gnss_position_position_y_encode(double value)
 {
-    return (int32_t)(value / 0.001);
+    return (int32_t)(round(value / 0.001));
 }
 
 double ddyn_can_gnss_position_position_y_decode(int32_t value)
@@ -1140,7 +1141,7 @@ bool ddyn_can_gnss_position_position_y_is_in_phys_range(double value)
 
 uint8_t ddyn_can_gnss_position_counter_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_gnss_position_counter_decode(uint8_t value)
@@ -1160,7 +1161,7 @@ bool ddyn_can_gnss_position_counter_is_in_phys_range(double value)
 
 uint8_t ddyn_can_gnss_position_checksum_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_gnss_position_checksum_decode(uint8_t value)
@@ -1235,7 +1236,7 @@ int ddyn_can_gnss_heading_init(struct ddyn_can_gnss_heading_t *msg_p)
 
 int16_t ddyn_can_gnss_heading_heading_encode(double value)
 {
-    return (int16_t)(value / 0.0001);
+    return (int16_t)(round(value / 0.0001));
 }
 
 double ddyn_can_gnss_heading_heading_decode(int16_t value)
@@ -1255,7 +1256,7 @@ bool ddyn_can_gnss_heading_heading_is_in_phys_range(double value)
 
 uint8_t ddyn_can_gnss_heading_fix_type_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_gnss_heading_fix_type_decode(uint8_t value)
@@ -1275,7 +1276,7 @@ bool ddyn_can_gnss_heading_fix_type_is_in_phys_range(double value)
 
 uint8_t ddyn_can_gnss_heading_counter_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_gnss_heading_counter_decode(uint8_t value)
@@ -1295,7 +1296,7 @@ bool ddyn_can_gnss_heading_counter_is_in_phys_range(double value)
 
 uint8_t ddyn_can_gnss_heading_checksum_encode(double value)
 {
-    return (uint8_t)(cantools_unsigned_from_double(value));
+    return (uint8_t)(cantools_unsigned_from_double(round(value)));
 }
 
 double ddyn_can_gnss_heading_checksum_decode(uint8_t value)

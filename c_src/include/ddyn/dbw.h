@@ -1,0 +1,256 @@
+/*
+ * ddyn/dbw.h - the drive-by-wire protocol logic, portable (no OS, no CAN driver, no allocation).
+ *
+ * The frames are defined by can/ddyn_dbw.dbc and packed/unpacked by the cantools-generated
+ * c_src/generated/can/ddyn_can.{h,c}. This layer adds what a DBC cannot say:
+ *   - the rolling counter (+1 modulo 16 per identifier) and the CRC-8 checksum of every frame;
+ *   - range checks of physical values on the sending side and of raw values on the receiving side;
+ *   - a monitor per endpoint: per-frame receive deadlines, counter jump/repeat, bad checksum,
+ *     out-of-range signal, unknown frame, bad length, bus-off and interface-gone reports; each
+ *     failure is counted by kind and drops the endpoint to the safe command at once;
+ *   - explicit recovery: after a failure, every monitored frame must arrive fresh and good
+ *     `recovery_good_frames` times in a row (state READY), and then the caller must call
+ *     ddyn_dbw_enable() again. Nothing resumes actuation on its own.
+ *
+ * The same monitor serves both ends: the controller monitors the feedback and sensor frames,
+ * a drive-by-wire unit (or the SIL simulator's emulator) monitors DBW_Command.
+ *
+ * Time is a caller-supplied monotonic clock in microseconds (uint64_t).
+ */
+#ifndef DDYN_DBW_H
+#define DDYN_DBW_H
+
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* The frames of the protocol, in DBC order. */
+typedef enum {
+    DDYN_DBW_FRAME_COMMAND = 0,   /* 0x100 DBW_Command     controller -> DBW */
+    DDYN_DBW_FRAME_STEERING,      /* 0x110 DBW_Steering    DBW -> controller */
+    DDYN_DBW_FRAME_STATUS,        /* 0x111 DBW_Status      DBW -> controller */
+    DDYN_DBW_FRAME_WHEEL_SPEEDS,  /* 0x112 DBW_WheelSpeeds DBW -> controller */
+    DDYN_DBW_FRAME_IMU,           /* 0x120 IMU             sensors -> controller */
+    DDYN_DBW_FRAME_GNSS_POSITION, /* 0x130 GNSS_Position   sensors -> controller */
+    DDYN_DBW_FRAME_GNSS_HEADING,  /* 0x131 GNSS_Heading    sensors -> controller */
+    DDYN_DBW_FRAME_COUNT
+} ddyn_dbw_frame;
+
+#define DDYN_DBW_FRAME_LEN 8u
+#define DDYN_DBW_COUNTER_MODULO 16u
+/* the identifier block the protocol lives in: 0x100-0x13F (acceptance filter id/mask) */
+#define DDYN_DBW_ID_BLOCK_BASE 0x100u
+#define DDYN_DBW_ID_BLOCK_MASK 0x7C0u
+
+/* Mode signal values (DBC VAL_ tables of DBW_Command.Mode and DBW_Status.Mode). */
+typedef enum { DDYN_DBW_MODE_STANDBY = 0, DDYN_DBW_MODE_AUTONOMOUS = 1, DDYN_DBW_MODE_SAFE_STOP = 2 } ddyn_dbw_mode;
+
+/* DBW_Status.Faults bits, as the DBW unit reports them. */
+enum {
+    DDYN_DBW_FAULT_CMD_TIMEOUT = 1u << 0,
+    DDYN_DBW_FAULT_CMD_COUNTER = 1u << 1,
+    DDYN_DBW_FAULT_CMD_CHECKSUM = 1u << 2,
+    DDYN_DBW_FAULT_CMD_RANGE = 1u << 3,
+    DDYN_DBW_FAULT_ACTUATOR = 1u << 4,
+    DDYN_DBW_FAULT_ESTOP = 1u << 5
+};
+
+/* What can go wrong; every kind is counted separately (ddyn_dbw.failures[kind]). */
+typedef enum {
+    DDYN_DBW_FAIL_STALE = 0,      /* a monitored frame older than its deadline */
+    DDYN_DBW_FAIL_COUNTER_JUMP,   /* counter not previous + 1: frames lost */
+    DDYN_DBW_FAIL_COUNTER_REPEAT, /* counter equal to the previous one: a stuck sender */
+    DDYN_DBW_FAIL_CHECKSUM,       /* CRC-8 mismatch */
+    DDYN_DBW_FAIL_RANGE,          /* a received signal outside its DBC range */
+    DDYN_DBW_FAIL_UNKNOWN_FRAME,  /* an identifier inside the protocol's block that the DBC does not define */
+    DDYN_DBW_FAIL_BAD_LENGTH,     /* a known identifier with a data length other than 8 */
+    DDYN_DBW_FAIL_BUS_OFF,        /* the controller went bus-off (reported by the transport) */
+    DDYN_DBW_FAIL_BUS_ERROR,      /* other error frames: error passive, protocol, transceiver, lost arbitration excluded */
+    DDYN_DBW_FAIL_IFACE_GONE,     /* the interface went down or disappeared (reported by the transport) */
+    DDYN_DBW_FAIL_COMMAND_RANGE,  /* the caller asked to send a non-finite or out-of-range command */
+    DDYN_DBW_FAIL_COUNT
+} ddyn_dbw_failure;
+
+typedef enum {
+    DDYN_DBW_WAIT_GOOD = 0, /* safe command; waiting for every monitored frame to be good N times in a row */
+    DDYN_DBW_READY,         /* safe command; the link is good, waiting for an explicit ddyn_dbw_enable() */
+    DDYN_DBW_ACTIVE         /* the caller's commands go out */
+} ddyn_dbw_state;
+
+/* Result of decoding one frame. */
+typedef enum {
+    DDYN_DBW_DECODE_OK = 0,
+    DDYN_DBW_DECODE_UNKNOWN_ID,  /* inside the protocol's block, not in the DBC */
+    DDYN_DBW_DECODE_FOREIGN_ID,  /* outside the protocol's block (or extended): not ours, ignored */
+    DDYN_DBW_DECODE_BAD_LENGTH,
+    DDYN_DBW_DECODE_CHECKSUM,
+    DDYN_DBW_DECODE_RANGE,
+    DDYN_DBW_DECODE_ARGUMENT     /* NULL pointer */
+} ddyn_dbw_decode_result;
+
+/* The actuator command in physical units (DBW_Command). */
+typedef struct {
+    double throttle; /* [0, 1] pedal fraction */
+    double brake;    /* [0, 1] brake fraction */
+    double steering; /* [-0.6, 0.6] rad road-wheel angle, positive left */
+    bool enable;
+    ddyn_dbw_mode mode;
+} ddyn_dbw_command;
+
+/* Feedback of the DBW unit (DBW_Steering, DBW_Status, DBW_WheelSpeeds). */
+typedef struct {
+    double steering;       /* rad, measured */
+    double steering_rate;  /* rad/s */
+    double throttle_pedal; /* [0, 1] */
+    double brake_pedal;    /* [0, 1] */
+    ddyn_dbw_mode mode;
+    bool enabled;
+    bool driver_override;
+    uint8_t faults;          /* DDYN_DBW_FAULT_* bits */
+    double wheel_speed_front; /* m/s, longitudinal speed of the front wheel plane */
+    double wheel_speed_rear;  /* m/s, rear axle */
+} ddyn_dbw_feedback;
+
+/* Sensor readings (IMU, GNSS_Position, GNSS_Heading), the units of train/sensors.py. */
+typedef struct {
+    double yaw_rate; /* rad/s */
+    double accel_x;  /* m/s^2, body frame */
+    double accel_y;
+    double gnss_x;   /* m, local track frame */
+    double gnss_y;
+    double heading;  /* rad */
+    uint8_t fix_type; /* 0 none, 1 single, 2 DGNSS, 3 RTK float, 4 RTK fixed */
+} ddyn_dbw_sensors;
+
+/* Every signal of the protocol: what a frame decodes into / encodes from. */
+typedef struct {
+    ddyn_dbw_command command;
+    ddyn_dbw_feedback feedback;
+    ddyn_dbw_sensors sensors;
+} ddyn_dbw_signals;
+
+typedef struct {
+    /* receive deadline per frame in microseconds; 0 = this endpoint does not monitor the frame
+     * (it is still decoded and checked if it arrives, but its absence is no failure) */
+    uint32_t deadline_us[DDYN_DBW_FRAME_COUNT];
+    /* consecutive good frames of every monitored frame needed before READY */
+    uint32_t recovery_good_frames;
+    /* the safe command's brake fraction */
+    double safe_brake;
+} ddyn_dbw_config;
+
+typedef struct {
+    uint64_t last_rx_us;
+    uint32_t good_streak;
+    uint32_t received;   /* good frames since init */
+    uint8_t last_counter;
+    bool seen;           /* a good frame has arrived since init */
+    bool counter_valid;  /* last_counter is meaningful */
+    bool stale;          /* the deadline has passed since the last good frame (reported once) */
+} ddyn_dbw_rx_track;
+
+typedef struct {
+    ddyn_dbw_config config;
+    ddyn_dbw_state state;
+    ddyn_dbw_signals latest;          /* last good values of every received frame */
+    uint32_t fresh_mask;              /* bit f: frame f decoded good since ddyn_dbw_take_fresh() */
+    ddyn_dbw_rx_track rx[DDYN_DBW_FRAME_COUNT];
+    uint32_t failures[DDYN_DBW_FAIL_COUNT]; /* counts by kind since init */
+    uint32_t failure_mask;            /* bit k: failure k since ddyn_dbw_take_failures() */
+    ddyn_dbw_failure last_failure;
+    int last_failure_frame;           /* ddyn_dbw_frame, or -1 when no frame is concerned */
+    uint64_t last_failure_us;
+    uint8_t tx_counter[DDYN_DBW_FRAME_COUNT];
+    double held_steering;             /* the last steering sent while ACTIVE: the safe command holds it */
+    bool any_failure;
+} ddyn_dbw;
+
+/* ---- frames: pure functions ---- */
+
+/* CAN identifier of a frame, and the frame of an identifier (-1 when unknown). */
+uint32_t ddyn_dbw_frame_id(ddyn_dbw_frame frame);
+int ddyn_dbw_frame_of_id(uint32_t can_id);
+/* The DBC's cycle time of a frame in microseconds. */
+uint32_t ddyn_dbw_cycle_us(ddyn_dbw_frame frame);
+
+/* CRC-8/SAE-J1850 over the identifier (two bytes, little-endian) and data bytes 0..6. */
+uint8_t ddyn_dbw_checksum(uint32_t can_id, const uint8_t data[DDYN_DBW_FRAME_LEN]);
+
+/* Encode frame `frame` from `s` (its physical values) with rolling counter `counter` into data[8].
+ * Returns 0, or -1 when a value is non-finite or outside its DBC range (data is then unspecified). */
+int ddyn_dbw_encode(ddyn_dbw_frame frame, const ddyn_dbw_signals *s, uint8_t counter,
+                    uint8_t data[DDYN_DBW_FRAME_LEN]);
+
+/* Decode one received frame: identifier, length, checksum and raw ranges are checked; on OK
+ * the frame's signals are written into `s` (other members untouched), *frame and *counter set. */
+ddyn_dbw_decode_result ddyn_dbw_decode(uint32_t can_id, const uint8_t *data, size_t len,
+                                       ddyn_dbw_signals *s, ddyn_dbw_frame *frame, uint8_t *counter);
+
+/* ---- the endpoint monitor ---- */
+
+/* Defaults: deadline = 3 cycle times for every frame in `monitored_mask` (bit per ddyn_dbw_frame),
+ * 0 for the others; 5 good frames to recover; safe brake 0.3. */
+void ddyn_dbw_default_config(ddyn_dbw_config *config, uint32_t monitored_mask);
+/* The controller's mask: all feedback and sensor frames. The DBW unit's: the command frame. */
+#define DDYN_DBW_MONITOR_CONTROLLER \
+    ((1u << DDYN_DBW_FRAME_STEERING) | (1u << DDYN_DBW_FRAME_STATUS) | (1u << DDYN_DBW_FRAME_WHEEL_SPEEDS) | \
+     (1u << DDYN_DBW_FRAME_IMU) | (1u << DDYN_DBW_FRAME_GNSS_POSITION) | (1u << DDYN_DBW_FRAME_GNSS_HEADING))
+#define DDYN_DBW_MONITOR_DBW_UNIT (1u << DDYN_DBW_FRAME_COMMAND)
+
+/* Returns 0, or -1 for a NULL argument or a config with no monitored frame, recovery_good_frames 0
+ * or a safe brake outside [0, 1]. Starts in WAIT_GOOD. */
+int ddyn_dbw_init(ddyn_dbw *dbw, const ddyn_dbw_config *config);
+
+/* Feed one received frame (kernel receive time t_us). Foreign identifiers are ignored; everything
+ * else either updates `latest` or is a failure. Returns the decode result. */
+ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const uint8_t *data, size_t len,
+                                         uint64_t t_us);
+
+/* Report a failure seen by the transport (DDYN_DBW_FAIL_BUS_OFF, _BUS_ERROR, _IFACE_GONE) or the caller. */
+void ddyn_dbw_report(ddyn_dbw *dbw, ddyn_dbw_failure kind, uint64_t t_us);
+
+/* Deadlines and recovery at time now_us: a monitored frame older than its deadline is a STALE
+ * failure (counted once per lapse); WAIT_GOOD becomes READY when every monitored frame is fresh
+ * with a good streak of recovery_good_frames. Returns the state. */
+ddyn_dbw_state ddyn_dbw_check(ddyn_dbw *dbw, uint64_t now_us);
+
+/* READY -> ACTIVE. Returns 0, or -1 in any other state (the caller must wait for good frames). */
+int ddyn_dbw_enable(ddyn_dbw *dbw);
+/* Back to WAIT_GOOD without a failure (the operator disengages). */
+void ddyn_dbw_disable(ddyn_dbw *dbw);
+
+/* The safe command: zero throttle, the configured brake, steering held, mode SAFE_STOP. */
+void ddyn_dbw_safe_command(const ddyn_dbw *dbw, ddyn_dbw_command *out);
+
+/* Once per control period: ddyn_dbw_check(now_us), then `desired` (enable forced on, mode
+ * AUTONOMOUS) when ACTIVE, otherwise the safe command; a desired command that is non-finite or
+ * out of range is a COMMAND_RANGE failure and the safe command goes out instead. The result is
+ * encoded into data[8] with the next rolling counter. Returns the state after the call. */
+ddyn_dbw_state ddyn_dbw_command_frame(ddyn_dbw *dbw, uint64_t now_us, const ddyn_dbw_command *desired,
+                                      ddyn_dbw_command *sent, uint8_t data[DDYN_DBW_FRAME_LEN]);
+
+/* Encode frame `frame` from `s` with this endpoint's next rolling counter for it (for the DBW
+ * unit / simulator side sending feedback and sensors). Returns 0 or -1 as ddyn_dbw_encode. */
+int ddyn_dbw_next_frame(ddyn_dbw *dbw, ddyn_dbw_frame frame, const ddyn_dbw_signals *s,
+                        uint8_t data[DDYN_DBW_FRAME_LEN]);
+
+/* Read-and-clear of the fresh-frame and failure bit sets. */
+uint32_t ddyn_dbw_take_fresh(ddyn_dbw *dbw);
+uint32_t ddyn_dbw_take_failures(ddyn_dbw *dbw);
+
+/* The DBW_Status.Faults bits a DBW unit reports for the failures in `failure_mask` (command side). */
+uint8_t ddyn_dbw_fault_bits(uint32_t failure_mask);
+
+const char *ddyn_dbw_failure_name(ddyn_dbw_failure kind);
+const char *ddyn_dbw_frame_name(ddyn_dbw_frame frame);
+const char *ddyn_dbw_state_name(ddyn_dbw_state state);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* DDYN_DBW_H */

@@ -1,0 +1,466 @@
+/*
+ * Drive-by-wire protocol logic (c_src/src/dbw.c) on the host, without any CAN: frames
+ * round-trip through the cantools-generated packers, every failure kind is counted once and
+ * gives the safe command in the same control period, and recovery needs N good frames of
+ * every monitored frame plus an explicit enable.
+ */
+#include <math.h>
+#include <setjmp.h>
+#include <stdarg.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <string.h>
+
+#include <cmocka.h>
+
+#include "ddyn/dbw.h"
+
+#define PERIOD_US 10000u /* the controller's period in these tests: the DBC's 10 ms */
+
+static ddyn_dbw ctl;    /* the controller's endpoint under test */
+static ddyn_dbw sender; /* the DBW unit / simulator side: only its tx counters are used */
+static ddyn_dbw_signals truth;
+static uint64_t now;
+
+static void fill_truth(void)
+{
+    memset(&truth, 0, sizeof(truth));
+    truth.command.throttle = 0.25;
+    truth.command.brake = 0.0;
+    truth.command.steering = -0.1234;
+    truth.command.enable = true;
+    truth.command.mode = DDYN_DBW_MODE_AUTONOMOUS;
+    truth.feedback.steering = 0.0567;
+    truth.feedback.steering_rate = -1.25;
+    truth.feedback.throttle_pedal = 0.5;
+    truth.feedback.brake_pedal = 0.125;
+    truth.feedback.mode = DDYN_DBW_MODE_AUTONOMOUS;
+    truth.feedback.enabled = true;
+    truth.feedback.driver_override = false;
+    truth.feedback.faults = DDYN_DBW_FAULT_ACTUATOR;
+    truth.feedback.wheel_speed_front = 31.415;
+    truth.feedback.wheel_speed_rear = -2.5;
+    truth.sensors.yaw_rate = 0.7325;
+    truth.sensors.accel_x = -9.81;
+    truth.sensors.accel_y = 25.005;
+    truth.sensors.gnss_x = -1234.567;
+    truth.sensors.gnss_y = 8765.432;
+    truth.sensors.heading = -3.0;
+    truth.sensors.fix_type = 4;
+}
+
+/* one frame of `frame` from the sender, received by the controller at `now` */
+static ddyn_dbw_decode_result deliver(ddyn_dbw_frame frame)
+{
+    uint8_t data[8];
+    assert_int_equal(ddyn_dbw_next_frame(&sender, frame, &truth, data), 0);
+    return ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(frame), data, 8, now);
+}
+
+/* one control period: every feedback and sensor frame once, then the clock advances */
+static void deliver_period(void)
+{
+    int f;
+    for (f = DDYN_DBW_FRAME_STEERING; f < (int)DDYN_DBW_FRAME_COUNT; ++f) {
+        assert_int_equal(deliver((ddyn_dbw_frame)f), DDYN_DBW_DECODE_OK);
+    }
+    now += PERIOD_US;
+}
+
+static int setup(void **state)
+{
+    ddyn_dbw_config c;
+    (void)state;
+    fill_truth();
+    now = 1000000u;
+    ddyn_dbw_default_config(&c, DDYN_DBW_MONITOR_CONTROLLER);
+    assert_int_equal(ddyn_dbw_init(&ctl, &c), 0);
+    ddyn_dbw_default_config(&c, DDYN_DBW_MONITOR_DBW_UNIT);
+    assert_int_equal(ddyn_dbw_init(&sender, &c), 0);
+    return 0;
+}
+
+static void bring_to_active(void)
+{
+    unsigned i;
+    for (i = 0; i < ctl.config.recovery_good_frames; ++i) {
+        deliver_period();
+    }
+    assert_int_equal(ddyn_dbw_check(&ctl, now), DDYN_DBW_READY);
+    assert_int_equal(ddyn_dbw_enable(&ctl), 0);
+    assert_int_equal(ctl.state, DDYN_DBW_ACTIVE);
+}
+
+static void assert_safe(const ddyn_dbw_command *c, double held_steering)
+{
+    assert_true(c->throttle == 0.0);
+    assert_true(c->brake == ctl.config.safe_brake);
+    assert_true(c->steering == held_steering);
+    assert_true(c->enable);
+    assert_int_equal(c->mode, DDYN_DBW_MODE_SAFE_STOP);
+}
+
+/* the command that goes out in this period, decoded back from its bytes */
+static ddyn_dbw_state period_command(const ddyn_dbw_command *desired, ddyn_dbw_command *on_wire)
+{
+    ddyn_dbw_command sent;
+    ddyn_dbw_signals back;
+    ddyn_dbw_frame f;
+    uint8_t data[8], counter;
+    ddyn_dbw_state st = ddyn_dbw_command_frame(&ctl, now, desired, &sent, data);
+    memset(&back, 0, sizeof(back));
+    assert_int_equal(ddyn_dbw_decode(ddyn_dbw_frame_id(DDYN_DBW_FRAME_COMMAND), data, 8, &back, &f, &counter),
+                     DDYN_DBW_DECODE_OK);
+    assert_int_equal(f, DDYN_DBW_FRAME_COMMAND);
+    *on_wire = back.command;
+    assert_true(fabs(on_wire->steering - sent.steering) <= 0.5e-4 + 1e-12);
+    return st;
+}
+
+static ddyn_dbw_command driving(void)
+{
+    ddyn_dbw_command d = {0.6, 0.0, 0.2, true, DDYN_DBW_MODE_AUTONOMOUS};
+    return d;
+}
+
+/* ---- frames ---- */
+
+static void test_checksum_is_crc8_sae_j1850(void **state)
+{
+    /* the identifier 0x3231 contributes the bytes "12", the data bytes 0-6 "3456789": the CRC
+     * catalogue's check input, whose CRC-8/SAE-J1850 is 0x4B; byte 7 is excluded */
+    const uint8_t data[8] = {'3', '4', '5', '6', '7', '8', '9', 0xAA};
+    (void)state;
+    assert_int_equal(ddyn_dbw_checksum(0x3231u, data), 0x4Bu);
+}
+
+static void test_every_frame_round_trips_within_half_a_bit(void **state)
+{
+    static const double lsb_command[3] = {1e-4, 1e-4, 1e-4};
+    ddyn_dbw_signals back;
+    ddyn_dbw_frame f;
+    uint8_t data[8], counter;
+    int i;
+    (void)state;
+    for (i = 0; i < (int)DDYN_DBW_FRAME_COUNT; ++i) {
+        assert_int_equal(ddyn_dbw_encode((ddyn_dbw_frame)i, &truth, (uint8_t)(i + 3), data), 0);
+        memset(&back, 0, sizeof(back));
+        assert_int_equal(ddyn_dbw_decode(ddyn_dbw_frame_id((ddyn_dbw_frame)i), data, 8, &back, &f, &counter),
+                         DDYN_DBW_DECODE_OK);
+        assert_int_equal(f, i);
+        assert_int_equal(counter, (i + 3) % 16);
+    }
+    /* the decoded values of every frame together (each frame wrote its own members) */
+    memset(&back, 0, sizeof(back));
+    for (i = 0; i < (int)DDYN_DBW_FRAME_COUNT; ++i) {
+        assert_int_equal(ddyn_dbw_encode((ddyn_dbw_frame)i, &truth, 0, data), 0);
+        assert_int_equal(ddyn_dbw_decode(ddyn_dbw_frame_id((ddyn_dbw_frame)i), data, 8, &back, &f, &counter),
+                         DDYN_DBW_DECODE_OK);
+    }
+    assert_true(fabs(back.command.throttle - truth.command.throttle) <= lsb_command[0] / 2);
+    assert_true(fabs(back.command.brake - truth.command.brake) <= lsb_command[1] / 2);
+    assert_true(fabs(back.command.steering - truth.command.steering) <= lsb_command[2] / 2 + 1e-12);
+    assert_true(back.command.enable);
+    assert_int_equal(back.command.mode, DDYN_DBW_MODE_AUTONOMOUS);
+    assert_true(fabs(back.feedback.steering - truth.feedback.steering) <= 0.5e-4 + 1e-12);
+    assert_true(fabs(back.feedback.steering_rate - truth.feedback.steering_rate) <= 0.5e-3 + 1e-12);
+    assert_true(fabs(back.feedback.throttle_pedal - 0.5) <= 0.5e-4);
+    assert_true(fabs(back.feedback.brake_pedal - 0.125) <= 0.5e-4);
+    assert_int_equal(back.feedback.faults, DDYN_DBW_FAULT_ACTUATOR);
+    assert_true(back.feedback.enabled && !back.feedback.driver_override);
+    assert_true(fabs(back.feedback.wheel_speed_front - 31.415) <= 0.0025 + 1e-9);
+    assert_true(fabs(back.feedback.wheel_speed_rear + 2.5) <= 0.0025 + 1e-9);
+    assert_true(fabs(back.sensors.yaw_rate - 0.7325) <= 0.00025 + 1e-12);
+    assert_true(fabs(back.sensors.accel_x + 9.81) <= 0.0025 + 1e-9);
+    assert_true(fabs(back.sensors.accel_y - 25.005) <= 0.0025 + 1e-9);
+    assert_true(fabs(back.sensors.gnss_x + 1234.567) <= 0.0005 + 1e-9);
+    assert_true(fabs(back.sensors.gnss_y - 8765.432) <= 0.0005 + 1e-9);
+    assert_true(fabs(back.sensors.heading + 3.0) <= 0.5e-4 + 1e-12);
+    assert_int_equal(back.sensors.fix_type, 4);
+}
+
+static void test_encode_refuses_out_of_range_and_non_finite(void **state)
+{
+    uint8_t data[8];
+    ddyn_dbw_signals s = truth;
+    (void)state;
+    s.command.throttle = 1.0001;
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), -1);
+    s = truth;
+    s.command.steering = NAN;
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), -1);
+    s = truth;
+    s.command.brake = -0.01; /* cantools' encode would wrap this to a large raw value */
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), -1);
+    s = truth;
+    s.sensors.gnss_x = 30000.5;
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_GNSS_POSITION, &s, 0, data), -1);
+    s = truth;
+    s.sensors.fix_type = 5;
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_GNSS_HEADING, &s, 0, data), -1);
+    s = truth;
+    s.sensors.yaw_rate = INFINITY;
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_IMU, &s, 0, data), -1);
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COUNT, &truth, 0, data), -1);
+}
+
+static void test_decode_names_each_defect(void **state)
+{
+    ddyn_dbw_signals back;
+    ddyn_dbw_frame f;
+    uint8_t data[8], counter;
+    const uint32_t cmd_id = ddyn_dbw_frame_id(DDYN_DBW_FRAME_COMMAND);
+    (void)state;
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &truth, 1, data), 0);
+    assert_int_equal(ddyn_dbw_decode(cmd_id, data, 7, &back, &f, &counter), DDYN_DBW_DECODE_BAD_LENGTH);
+    assert_int_equal(ddyn_dbw_decode(0x13Fu, data, 8, &back, &f, &counter), DDYN_DBW_DECODE_UNKNOWN_ID);
+    assert_int_equal(ddyn_dbw_decode(0x200u, data, 8, &back, &f, &counter), DDYN_DBW_DECODE_FOREIGN_ID);
+    assert_int_equal(ddyn_dbw_decode(0x1000100u, data, 8, &back, &f, &counter), DDYN_DBW_DECODE_FOREIGN_ID);
+    data[2] ^= 0x01u;
+    assert_int_equal(ddyn_dbw_decode(cmd_id, data, 8, &back, &f, &counter), DDYN_DBW_DECODE_CHECKSUM);
+    /* a raw throttle of 10001 (1.0001) with a correct checksum: the receiving range check */
+    data[0] = 0x11u;
+    data[1] = 0x27u;
+    data[7] = ddyn_dbw_checksum(cmd_id, data);
+    assert_int_equal(ddyn_dbw_decode(cmd_id, data, 8, &back, &f, &counter), DDYN_DBW_DECODE_RANGE);
+    assert_int_equal(ddyn_dbw_decode(cmd_id, NULL, 8, &back, &f, &counter), DDYN_DBW_DECODE_ARGUMENT);
+}
+
+/* ---- the monitor ---- */
+
+static void test_init_refuses_bad_configs(void **state)
+{
+    ddyn_dbw_config c;
+    ddyn_dbw d;
+    (void)state;
+    ddyn_dbw_default_config(&c, 0u);
+    assert_int_equal(ddyn_dbw_init(&d, &c), -1); /* monitors nothing */
+    ddyn_dbw_default_config(&c, DDYN_DBW_MONITOR_CONTROLLER);
+    c.recovery_good_frames = 0u;
+    assert_int_equal(ddyn_dbw_init(&d, &c), -1);
+    ddyn_dbw_default_config(&c, DDYN_DBW_MONITOR_CONTROLLER);
+    c.safe_brake = NAN;
+    assert_int_equal(ddyn_dbw_init(&d, &c), -1);
+    c.safe_brake = 1.5;
+    assert_int_equal(ddyn_dbw_init(&d, &c), -1);
+    assert_int_equal(ddyn_dbw_init(NULL, &c), -1);
+    assert_int_equal(c.deadline_us[DDYN_DBW_FRAME_IMU], 30000u);
+    assert_int_equal(c.deadline_us[DDYN_DBW_FRAME_GNSS_POSITION], 60000u);
+    assert_int_equal(c.deadline_us[DDYN_DBW_FRAME_COMMAND], 0u);
+}
+
+static void test_starts_safe_and_needs_good_frames_and_enable(void **state)
+{
+    ddyn_dbw_command d = driving(), w;
+    unsigned i;
+    (void)state;
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
+    assert_safe(&w, 0.0);
+    assert_int_equal(ddyn_dbw_enable(&ctl), -1); /* no feedback yet */
+    for (i = 0; i + 1 < ctl.config.recovery_good_frames; ++i) {
+        deliver_period();
+    }
+    assert_int_equal(ddyn_dbw_check(&ctl, now), DDYN_DBW_WAIT_GOOD); /* one good frame short */
+    deliver_period();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_READY);
+    assert_safe(&w, 0.0); /* READY is still safe: nothing resumes without enable */
+    assert_int_equal(ddyn_dbw_enable(&ctl), 0);
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_true(fabs(w.throttle - 0.6) < 1e-4 && fabs(w.steering - 0.2) < 1e-4 && w.brake == 0.0);
+    assert_int_equal(w.mode, DDYN_DBW_MODE_AUTONOMOUS);
+    for (i = 0; i < DDYN_DBW_FAIL_COUNT; ++i) {
+        assert_int_equal(ctl.failures[i], 0u);
+    }
+    /* the decoded feedback is what the sender sent */
+    assert_true(fabs(ctl.latest.sensors.gnss_y - truth.sensors.gnss_y) < 1e-3);
+    assert_int_equal(ddyn_dbw_take_fresh(&ctl), (uint32_t)DDYN_DBW_MONITOR_CONTROLLER);
+    assert_int_equal(ddyn_dbw_take_fresh(&ctl), 0u);
+}
+
+/* Drive to ACTIVE holding steering 0.2, inject one failure with `inject`, and check: exactly
+ * one count of `kind`, the safe command in the same period, and explicit recovery. */
+static void check_failure(ddyn_dbw_failure kind, void (*inject)(void))
+{
+    ddyn_dbw_command d = driving(), w;
+    unsigned i;
+    bring_to_active();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    inject();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
+    assert_safe(&w, 0.2);
+    for (i = 0; i < DDYN_DBW_FAIL_COUNT; ++i) {
+        assert_int_equal(ctl.failures[i], i == (unsigned)kind ? 1u : 0u);
+    }
+    assert_int_equal(ctl.last_failure, kind);
+    assert_int_equal(ddyn_dbw_take_failures(&ctl), 1u << kind);
+    /* good frames resume: N periods bring READY, still safe until enabled */
+    assert_int_equal(ddyn_dbw_enable(&ctl), -1);
+    for (i = 0; i < ctl.config.recovery_good_frames; ++i) {
+        assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
+        assert_safe(&w, 0.2);
+        deliver_period();
+    }
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_READY);
+    assert_safe(&w, 0.2);
+    assert_int_equal(ddyn_dbw_enable(&ctl), 0);
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_true(fabs(w.throttle - 0.6) < 1e-4);
+    assert_int_equal(ctl.failures[kind], 1u); /* the recovery itself counted nothing */
+}
+
+static void inject_stale(void)
+{
+    /* the IMU stops for longer than its deadline while everything else keeps coming */
+    int f, p;
+    for (p = 0; p < 4; ++p) {
+        for (f = DDYN_DBW_FRAME_STEERING; f < (int)DDYN_DBW_FRAME_COUNT; ++f) {
+            if (f != DDYN_DBW_FRAME_IMU) {
+                (void)deliver((ddyn_dbw_frame)f);
+            }
+        }
+        now += PERIOD_US;
+    }
+    now += 1u;
+}
+static void inject_counter_jump(void)
+{
+    sender.tx_counter[DDYN_DBW_FRAME_STATUS] = (uint8_t)((sender.tx_counter[DDYN_DBW_FRAME_STATUS] + 2u) % 16u);
+    (void)deliver(DDYN_DBW_FRAME_STATUS);
+}
+static void inject_counter_repeat(void)
+{
+    sender.tx_counter[DDYN_DBW_FRAME_STEERING] = (uint8_t)((sender.tx_counter[DDYN_DBW_FRAME_STEERING] + 15u) % 16u);
+    (void)deliver(DDYN_DBW_FRAME_STEERING);
+}
+static void inject_checksum(void)
+{
+    uint8_t data[8];
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_WHEEL_SPEEDS, &truth, data), 0);
+    data[7] ^= 0x80u;
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_WHEEL_SPEEDS), data, 8, now),
+                     DDYN_DBW_DECODE_CHECKSUM);
+}
+static void inject_range(void)
+{
+    /* a heading of raw 32000 (3.2 rad > 3.1416) with a valid checksum and the next counter */
+    uint8_t data[8];
+    const uint32_t id = ddyn_dbw_frame_id(DDYN_DBW_FRAME_GNSS_HEADING);
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_GNSS_HEADING, &truth, data), 0);
+    data[0] = 0x00u;
+    data[1] = 0x7Du;
+    data[7] = ddyn_dbw_checksum(id, data);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, id, data, 8, now), DDYN_DBW_DECODE_RANGE);
+}
+static void inject_unknown(void)
+{
+    const uint8_t data[8] = {0};
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, 0x121u, data, 8, now), DDYN_DBW_DECODE_UNKNOWN_ID);
+}
+static void inject_bad_length(void)
+{
+    uint8_t data[8];
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_IMU, &truth, data), 0);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_IMU), data, 6, now),
+                     DDYN_DBW_DECODE_BAD_LENGTH);
+}
+static void inject_bus_off(void) { ddyn_dbw_report(&ctl, DDYN_DBW_FAIL_BUS_OFF, now); }
+static void inject_iface_gone(void) { ddyn_dbw_report(&ctl, DDYN_DBW_FAIL_IFACE_GONE, now); }
+
+static void test_stale(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_STALE, inject_stale); }
+static void test_counter_jump(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_COUNTER_JUMP, inject_counter_jump); }
+static void test_counter_repeat(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_COUNTER_REPEAT, inject_counter_repeat); }
+static void test_checksum(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_CHECKSUM, inject_checksum); }
+static void test_range(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_RANGE, inject_range); }
+static void test_unknown_frame(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_UNKNOWN_FRAME, inject_unknown); }
+static void test_bad_length(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_BAD_LENGTH, inject_bad_length); }
+static void test_bus_off(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_BUS_OFF, inject_bus_off); }
+static void test_iface_gone(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_IFACE_GONE, inject_iface_gone); }
+
+static void test_out_of_range_command_is_refused(void **state)
+{
+    ddyn_dbw_command d = driving(), w;
+    (void)state;
+    bring_to_active();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    d.steering = NAN;
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
+    assert_safe(&w, 0.2);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_COMMAND_RANGE], 1u);
+    bring_to_active();
+    d = driving();
+    d.throttle = 1.2;
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_COMMAND_RANGE], 2u);
+}
+
+static void test_bad_frame_keeps_last_good_values(void **state)
+{
+    uint8_t data[8];
+    const uint32_t id = ddyn_dbw_frame_id(DDYN_DBW_FRAME_GNSS_POSITION);
+    double x;
+    (void)state;
+    deliver_period();
+    x = ctl.latest.sensors.gnss_x;
+    truth.sensors.gnss_x = 42.0;
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_GNSS_POSITION, &truth, data), 0);
+    data[7] ^= 0x01u;
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, id, data, 8, now), DDYN_DBW_DECODE_CHECKSUM);
+    assert_true(ctl.latest.sensors.gnss_x == x);
+    assert_int_equal(ddyn_dbw_take_fresh(&ctl) & (1u << DDYN_DBW_FRAME_GNSS_POSITION), 1u << DDYN_DBW_FRAME_GNSS_POSITION);
+    assert_int_equal(ddyn_dbw_take_fresh(&ctl), 0u);
+}
+
+static void test_stale_is_counted_once_per_lapse(void **state)
+{
+    unsigned i;
+    (void)state;
+    bring_to_active();
+    for (i = 0; i < 20; ++i) { /* nothing arrives for 200 ms */
+        now += PERIOD_US;
+        (void)ddyn_dbw_check(&ctl, now);
+    }
+    /* one lapse of each of the six monitored frames, not one per period */
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_STALE], 6u);
+    /* after the gap any counter is accepted: the first frames back are good, not jumps */
+    sender.tx_counter[DDYN_DBW_FRAME_IMU] = 9u;
+    deliver_period();
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_COUNTER_JUMP], 0u);
+}
+
+static void test_fault_bits_for_the_status_frame(void **state)
+{
+    (void)state;
+    assert_int_equal(ddyn_dbw_fault_bits(1u << DDYN_DBW_FAIL_STALE), DDYN_DBW_FAULT_CMD_TIMEOUT);
+    assert_int_equal(ddyn_dbw_fault_bits(1u << DDYN_DBW_FAIL_COUNTER_REPEAT), DDYN_DBW_FAULT_CMD_COUNTER);
+    assert_int_equal(ddyn_dbw_fault_bits((1u << DDYN_DBW_FAIL_CHECKSUM) | (1u << DDYN_DBW_FAIL_RANGE)),
+                     DDYN_DBW_FAULT_CMD_CHECKSUM | DDYN_DBW_FAULT_CMD_RANGE);
+    assert_int_equal(ddyn_dbw_fault_bits(0u), 0u);
+    assert_string_equal(ddyn_dbw_failure_name(DDYN_DBW_FAIL_BUS_OFF), "bus_off");
+    assert_string_equal(ddyn_dbw_frame_name(DDYN_DBW_FRAME_IMU), "IMU");
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test_setup(test_checksum_is_crc8_sae_j1850, setup),
+        cmocka_unit_test_setup(test_every_frame_round_trips_within_half_a_bit, setup),
+        cmocka_unit_test_setup(test_encode_refuses_out_of_range_and_non_finite, setup),
+        cmocka_unit_test_setup(test_decode_names_each_defect, setup),
+        cmocka_unit_test_setup(test_init_refuses_bad_configs, setup),
+        cmocka_unit_test_setup(test_starts_safe_and_needs_good_frames_and_enable, setup),
+        cmocka_unit_test_setup(test_stale, setup),
+        cmocka_unit_test_setup(test_counter_jump, setup),
+        cmocka_unit_test_setup(test_counter_repeat, setup),
+        cmocka_unit_test_setup(test_checksum, setup),
+        cmocka_unit_test_setup(test_range, setup),
+        cmocka_unit_test_setup(test_unknown_frame, setup),
+        cmocka_unit_test_setup(test_bad_length, setup),
+        cmocka_unit_test_setup(test_bus_off, setup),
+        cmocka_unit_test_setup(test_iface_gone, setup),
+        cmocka_unit_test_setup(test_out_of_range_command_is_refused, setup),
+        cmocka_unit_test_setup(test_bad_frame_keeps_last_good_values, setup),
+        cmocka_unit_test_setup(test_stale_is_counted_once_per_lapse, setup),
+        cmocka_unit_test_setup(test_fault_bits_for_the_status_frame, setup),
+    };
+    return cmocka_run_group_tests(tests, NULL, NULL);
+}
