@@ -38,16 +38,32 @@ static ddyn_net_real mish(ddyn_net_real x)
     return x * NET_TANH(softplus);
 }
 
-/* y[r] = b[r] + sum_c W[r][c] x[c] */
+/* y[r] = b[r] + sum_c W[r][c] x[c].
+ * The dot product keeps NET_LANES independent partial sums: a single running sum is a chain
+ * of dependent additions the compiler may not reorder (IEEE semantics without -ffast-math),
+ * so it runs at one add per FP latency; independent lanes let it use SIMD registers and
+ * pipelining. The summation order differs from PyTorch's either way (it blocks its own sums);
+ * the parity tests bound the difference. */
+#define NET_LANES 8
 static void affine(const ddyn_net_real *W, const ddyn_net_real *b, const ddyn_net_real *x, int rows, int cols,
                    ddyn_net_real *y)
 {
-    int r, c;
+    const int blocked = cols - cols % NET_LANES;
+    int r, c, k;
     for (r = 0; r < rows; ++r) {
+        ddyn_net_real lane[NET_LANES] = {0};
         ddyn_net_real acc = b[r];
         const ddyn_net_real *w = W + (size_t)r * (size_t)cols;
-        for (c = 0; c < cols; ++c) {
+        for (c = 0; c < blocked; c += NET_LANES) {
+            for (k = 0; k < NET_LANES; ++k) {
+                lane[k] += w[c + k] * x[c + k];
+            }
+        }
+        for (; c < cols; ++c) {
             acc += w[c] * x[c];
+        }
+        for (k = 0; k < NET_LANES; ++k) {
+            acc += lane[k];
         }
         y[r] = acc;
     }

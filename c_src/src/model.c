@@ -179,6 +179,10 @@ const char *ddyn_status_name(ddyn_status status)
         return "DDYN_ERR_EVALUATION";
     case DDYN_ERR_NOT_POSITIVE_DEFINITE:
         return "DDYN_ERR_NOT_POSITIVE_DEFINITE";
+    case DDYN_ERR_QP_NOT_CONVERGED:
+        return "DDYN_ERR_QP_NOT_CONVERGED";
+    case DDYN_ERR_NOT_READY:
+        return "DDYN_ERR_NOT_READY";
     }
     return "DDYN_ERR_UNKNOWN";
 }

@@ -30,7 +30,9 @@ typedef enum {
     DDYN_ERR_NONFINITE_INPUT = 2,   /* NaN or inf in x, u or c: nothing computed */
     DDYN_ERR_NONFINITE_OUTPUT = 3,  /* the model produced NaN or inf (e.g. Iz = 0) */
     DDYN_ERR_EVALUATION = 4,        /* the generated function reported failure */
-    DDYN_ERR_NOT_POSITIVE_DEFINITE = 5 /* a covariance that must be positive definite is not */
+    DDYN_ERR_NOT_POSITIVE_DEFINITE = 5, /* a covariance that must be positive definite is not */
+    DDYN_ERR_QP_NOT_CONVERGED = 6,  /* the MPC's QP hit its iteration cap: the command is defined but not optimal */
+    DDYN_ERR_NOT_READY = 7          /* the MPC lacks its track or coefficients */
 } ddyn_status;
 
 typedef enum { DDYN_DISC_EULER = 0, DDYN_DISC_RK4 = 1, DDYN_DISC_COUNT = 2 } ddyn_discretisation;

@@ -1,0 +1,173 @@
+/*
+ * ddyn/controller.h - one control period of the car: EKF -> history -> guard network -> MPC -> command.
+ *
+ * The chain (docs/controller.md), once per sample time, in ddyn_ctrl_step:
+ *   1. history: the row [vx, vy, omega, throttle, steering, dthrottle, dsteering] of the previous
+ *      period (the filter's estimate then and the command applied from it) enters the guard
+ *      network's history of DDYN_NET_TAU rows, exactly the rows the network was trained on
+ *      (train/windows.py: row k = state at k and the input applied from k to k+1);
+ *   2. coefficients: the guard network reads the history (the 17 coefficients of the step that
+ *      led to now); while the history fills, or when the history lies outside the network's
+ *      training range or the network's output is not finite, the last good coefficients (for a
+ *      bounded number of periods) or the vehicle's nominal ones are used instead;
+ *   3. EKF predict over the period with the previous command and those coefficients, then an
+ *      update for every reading marked valid this period (sensors arrive at their own rates);
+ *      NaN/inf readings are rejected and counted, the filter goes on predicting;
+ *   4. MPC: one real-time iteration from the estimate with the coefficients;
+ *   5. command: the MPC's input, or the shifted previous plan while the QP does not converge
+ *      (a bounded number of periods), or the SAFE COMMAND.
+ *
+ * Every check that fails sets a bit of the returned status (several at once), nothing returns
+ * garbage: the command is always finite. The SAFE COMMAND holds the steering (dsteering = 0)
+ * and drives the throttle state to a target as fast as the rate bound allows,
+ * dthrottle = clamp((target - throttle) / dt, rate_lo, rate_hi): while the estimated vx is above
+ * safe_stop_speed the target is the braking value (the throttle state's lower bound); below it,
+ * the throttle that holds the car at standstill in the model, Cr0 / Cm1 of the nominal
+ * coefficients (the model has no brake: a negative throttle at standstill drives backwards).
+ * Safe mode latches: it is left only after `recovery_steps` consecutive periods without a
+ * safe-mode cause (DDYN_CTRL_RECOVERED marks the period), and the MPC then restarts cold.
+ *
+ * Embedded rules: C99, everything in the caller-owned ddyn_ctrl (no allocation, no recursion,
+ * no VLAs, loops bounded by compile-time sizes). One context per controller; not thread-safe.
+ * The guard-network shape comes from the export the library is built for (ddyn_net_config.h).
+ */
+#ifndef DDYN_CONTROLLER_H
+#define DDYN_CONTROLLER_H
+
+#include <stdint.h>
+
+#include "ddyn/ekf.h"
+#include "ddyn/guard_net.h"
+#include "ddyn/model.h"
+#include "ddyn/mpc.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#if DDYN_NET_NOUT != DDYN_NC
+#error "the controller needs a guard network with all 17 coefficients (a DDM export)"
+#endif
+
+/* Status bits of one period (ddyn_ctrl_step's return value and ddyn_ctrl_output.status). */
+#define DDYN_CTRL_OK 0u
+#define DDYN_CTRL_ERR_ARGUMENT (1ul << 0)      /* null pointer, or context not initialised: u = {0, 0} */
+#define DDYN_CTRL_MEAS_NONFINITE (1ul << 1)    /* a reading held NaN/inf: rejected and counted */
+#define DDYN_CTRL_MEAS_REJECTED (1ul << 2)     /* the EKF refused a finite reading (innovation not PD,
+                                                  non-finite update): not fused, counted */
+#define DDYN_CTRL_SENSOR_FAULT (1ul << 3)      /* a sensor failed max_sensor_faults readings in a row: safe */
+#define DDYN_CTRL_NO_MEASUREMENTS (1ul << 4)   /* no reading fused for more than max_blind_steps: safe */
+#define DDYN_CTRL_HISTORY_FILLING (1ul << 5)   /* fewer than DDYN_NET_TAU rows yet: nominal coefficients */
+#define DDYN_CTRL_OUT_OF_RANGE (1ul << 6)      /* history outside the network's training range: fallback */
+#define DDYN_CTRL_NET_FAULT (1ul << 7)         /* the guard network's output was not finite: fallback */
+#define DDYN_CTRL_COEFF_LAST_GOOD (1ul << 8)   /* the MPC and EKF use the last good coefficients */
+#define DDYN_CTRL_COEFF_NOMINAL (1ul << 9)     /* the MPC and EKF use the vehicle's nominal coefficients */
+#define DDYN_CTRL_EKF_DIVERGED (1ul << 10)     /* covariance blow-up or failed prediction: filter reset, safe */
+#define DDYN_CTRL_MPC_NOT_CONVERGED (1ul << 11) /* the QP hit its iteration cap */
+#define DDYN_CTRL_MPC_FAILED (1ul << 12)       /* the MPC returned another error (not ready, model failure) */
+#define DDYN_CTRL_PLAN_SHIFTED (1ul << 13)     /* command taken from the last converged plan, shifted */
+#define DDYN_CTRL_SAFE_COMMAND (1ul << 14)     /* the command is the safe command */
+#define DDYN_CTRL_RECOVERED (1ul << 15)        /* safe mode left this period */
+#define DDYN_CTRL_STATUS_BITS 16
+
+typedef uint32_t ddyn_ctrl_status;
+
+typedef struct {
+    ddyn_discretisation ekf_disc; /* the filter's prediction model (default Euler, as the network trains) */
+    /* EKF: initial covariance (also used when the filter is reset), process noise per period,
+     * measurement noise variance per sensor kind and component */
+    double p0_diag[DDYN_NX];
+    double q_diag[DDYN_NX];
+    double r_diag[DDYN_MEAS_COUNT][DDYN_MEAS_MAX_DIM];
+    /* covariance blow-up: the filter has diverged when a variance P_ii exceeds p_max[i] */
+    double p_max[DDYN_NX];
+    /* the vehicle's nominal coefficients (COEFF_NAMES order): the fallback of last resort */
+    double c_nominal[DDYN_NC];
+    /* a history feature is out of range when |f - mean| > range_sigmas * std of the network's
+     * input normalisation (the training data's statistics, exported with the weights) */
+    double range_sigmas;
+    double safe_stop_speed; /* m/s: below it the safe command holds the car instead of braking */
+    int max_coeff_age;      /* periods the last good coefficients stay usable, then nominal */
+    int max_sensor_faults;  /* consecutive rejected readings of one sensor before safe mode (>= 1) */
+    int max_blind_steps;    /* consecutive periods without a fused reading before safe mode (>= 1) */
+    int max_plan_shift;     /* periods the shifted plan replaces a non-converged QP, then safe
+                               (0 .. horizon - 1) */
+    int recovery_steps;     /* consecutive healthy periods that end safe mode (>= 1) */
+    ddyn_mpc_config mpc;    /* the MPC's configuration (its bounds also define the safe command) */
+} ddyn_ctrl_config;
+
+/* One reading per sensor kind; valid = 1 when a new reading arrived this period. */
+typedef struct {
+    int valid;
+    double z[DDYN_MEAS_MAX_DIM]; /* ddyn_meas_dim(kind) components */
+} ddyn_ctrl_reading;
+
+typedef struct {
+    ddyn_ctrl_reading reading[DDYN_MEAS_COUNT]; /* indexed by ddyn_meas_kind */
+} ddyn_ctrl_input;
+
+typedef struct {
+    double u[DDYN_NU];          /* the command to apply now: dthrottle, dsteering (always finite) */
+    ddyn_ctrl_status status;    /* bits DDYN_CTRL_* of this period */
+    double x_est[DDYN_NX];      /* the filter's estimate after this period's readings */
+    double coeffs[DDYN_NC];     /* the coefficients used this period */
+    ddyn_status mpc_status;     /* what ddyn_mpc_solve returned */
+    ddyn_mpc_info mpc_info;
+} ddyn_ctrl_output;
+
+/* The caller-owned controller context (large: it holds the MPC, ~120 kB by default). */
+typedef struct {
+    ddyn_ctrl_config cfg;
+    const ddyn_vehicle_model *model;
+    ddyn_ekf ekf;
+    ddyn_guard_net net;
+    ddyn_mpc mpc;
+    double history[DDYN_NET_TAU][DDYN_NET_NFEAT]; /* oldest row first */
+    int history_rows;                             /* 0 .. DDYN_NET_TAU */
+    double coeffs[DDYN_NC];                       /* used this period */
+    double last_good[DDYN_NC];                    /* the network's last accepted output */
+    int last_good_age;                            /* periods since it was computed; -1: none yet */
+    double plan_u[DDYN_MPC_NV];                   /* last converged plan, stage-major */
+    int plan_horizon;                             /* its horizon; 0: none */
+    int plan_age;                                 /* periods since it was computed */
+    double x_prev[DDYN_NX];                       /* estimate at the end of the previous period */
+    double u_prev[DDYN_NU];                       /* command applied from it */
+    int started;                                  /* 0 before the first period */
+    int sensor_fault_run[DDYN_MEAS_COUNT];        /* consecutive rejected readings per sensor */
+    uint32_t nonfinite_count[DDYN_MEAS_COUNT];    /* NaN/inf readings rejected since init (saturating) */
+    uint32_t rejected_count[DDYN_MEAS_COUNT];     /* finite readings the EKF refused (saturating) */
+    int blind_steps;                              /* consecutive periods without a fused reading */
+    int safe_mode;
+    int healthy_steps;                            /* consecutive periods without a safe-mode cause */
+    int initialised;
+} ddyn_ctrl;
+
+/* Defaults for a vehicle model: the MPC's defaults (ddyn_mpc_default_config), the fault limits
+ * documented in docs/controller.md; p0/q/r/p_max/c_nominal are set to generic values the caller
+ * should overwrite with the car's (nominal coefficients: the vehicle file's). */
+ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_config *cfg);
+
+/* Check cfg, validate the network tables (ddyn_guard_net_init) and set up the filter at x0.
+ * Returns DDYN_ERR_ARGUMENT for a bad configuration or tables the library was not built for. */
+ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, const ddyn_net_tables *tables,
+                           const ddyn_ctrl_config *cfg, const double x0[DDYN_NX]);
+
+/* The raceline the MPC tracks (ddyn_mpc_set_track). */
+ddyn_status ddyn_ctrl_set_track(ddyn_ctrl *ctl, int n, const double *x, const double *y, const double *speed,
+                                const double *width_left, const double *width_right);
+
+/* One control period: readings in, command out. Returns out->status (also when out is NULL:
+ * DDYN_CTRL_ERR_ARGUMENT). in may hold no valid reading at all. */
+ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctrl_output *out);
+
+/* The safe command in state x under cfg's bounds and the model's sample time (see the top). */
+void ddyn_ctrl_safe_command(const ddyn_ctrl *ctl, const double x[DDYN_NX], double u[DDYN_NU]);
+
+/* Name of one status bit (e.g. "DDYN_CTRL_SAFE_COMMAND"), or "DDYN_CTRL_UNKNOWN". */
+const char *ddyn_ctrl_status_name(ddyn_ctrl_status bit);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* DDYN_CONTROLLER_H */

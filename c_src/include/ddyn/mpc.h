@@ -1,0 +1,157 @@
+/*
+ * ddyn/mpc.h - the raceline-tracking model predictive controller of the car (real-time iteration).
+ *
+ * Problem (the Deep Dynamics paper's MPC, with all 17 coefficients as run-time parameters):
+ *
+ *   min  sum_{k=1..H} w_k |p_k - r_k|^2_Q  +  sum_{k=0..H-1} |u_k|^2_R  +  sum_k (rho1 s_k + rho2 s_k^2)
+ *   s.t. x_{k+1} = step(x_k, u_k, c)               (the generated discrete model, Euler or RK4)
+ *        rate_lo <= u_k <= rate_hi                  (u = dthrottle, dsteering: the inputs ARE rates,
+ *                                                     so R weights the input increments)
+ *        state_lo <= (throttle, steering)_k <= state_hi   (states 6, 7, bounded as states)
+ *        -width_right(r_k) - s_k <= n_k . (p_k - r_k) <= width_left(r_k) + s_k,  s_k >= 0
+ *                                                   (soft track bounds: exact L1 + quadratic penalty,
+ *                                                     so the QP is feasible from any state)
+ *
+ * p_k = (x, y) of the predicted state, r_k the raceline reference of stage k, n_k the raceline's
+ * left normal there, w_k = 1 for k < H and q_terminal_scale for k = H. The references follow the
+ * raceline's speed profile: r_0 is the projection of x0 onto the raceline, r_{k+1} lies
+ * speed(r_k) * dt further along it (the paper's time-parameterised reference).
+ *
+ * Real-time iteration: each ddyn_mpc_solve does ONE Gauss-Newton SQP step around the previous
+ * plan shifted by one period (the warm start): forward simulation and Jacobians of the generated
+ * step (ddyn_model_step, ddyn_model_step_jacobians), condensing onto the H*2 input rates, one
+ * dense QP solved by a primal-dual interior-point method (Mehrotra predictor-corrector, Cholesky of
+ * the condensed Hessian, soft-constraint slacks eliminated in closed form) with an iteration cap.
+ *
+ * Embedded rules: C99, no allocation, no recursion, no VLAs, every loop bounded by the
+ * compile-time sizes below. Everything lives in the caller-owned ddyn_mpc (about 120 kB with the
+ * defaults: lower DDYN_MPC_MAX_TRACK_POINTS / DDYN_MPC_MAX_HORIZON at compile time to shrink it).
+ * Not thread-safe per context; contexts are independent.
+ */
+#ifndef DDYN_MPC_H
+#define DDYN_MPC_H
+
+#include "ddyn/model.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* Compile-time capacities (override with -D...). The run-time horizon is cfg.horizon <= max. */
+#ifndef DDYN_MPC_MAX_HORIZON
+#define DDYN_MPC_MAX_HORIZON 20
+#endif
+#ifndef DDYN_MPC_MAX_TRACK_POINTS
+#define DDYN_MPC_MAX_TRACK_POINTS 1024
+#endif
+#define DDYN_MPC_DEFAULT_HORIZON 20
+#define DDYN_MPC_NV (DDYN_MPC_MAX_HORIZON * DDYN_NU)       /* QP variables: input rates */
+#define DDYN_MPC_NROWS (DDYN_MPC_MAX_HORIZON * 3)          /* two-sided rows: throttle, steering, track */
+#define DDYN_MPC_MAX_QP_ITERATIONS 50
+
+typedef struct {
+    int horizon;                /* H, 1..DDYN_MPC_MAX_HORIZON (default 20) */
+    ddyn_discretisation disc;   /* prediction model (default RK4, the plant's discretisation) */
+    double q_pos[2];            /* Q: weight of the x and y error to the reference, per stage */
+    double q_terminal_scale;    /* the last stage's position weight is q_pos * this */
+    double r_rate[DDYN_NU];     /* R: weight of dthrottle, dsteering (the input increments) */
+    double rate_lo[DDYN_NU];    /* bounds of the inputs dthrottle, dsteering (vehicle input_limits) */
+    double rate_hi[DDYN_NU];
+    double state_lo[2];         /* bounds of the states throttle, steering (vehicle input_limits) */
+    double state_hi[2];
+    double slack_l1;            /* rho1: exact penalty of a track-bound violation, per metre */
+    double slack_l2;            /* rho2: quadratic penalty, per square metre (> 0) */
+    int qp_max_iterations;      /* interior-point iteration cap, 1..DDYN_MPC_MAX_QP_ITERATIONS */
+    double qp_tolerance;        /* stop when residuals and mean complementarity are below this */
+} ddyn_mpc_config;
+
+/* Raceline table with the room to the track bounds (set once per track with ddyn_mpc_set_track). */
+typedef struct {
+    int n;                                      /* points of the closed raceline, 0 = none set */
+    double length;                              /* m, closed-loop arc length */
+    double s[DDYN_MPC_MAX_TRACK_POINTS];        /* arc length at each point */
+    double x[DDYN_MPC_MAX_TRACK_POINTS];
+    double y[DDYN_MPC_MAX_TRACK_POINTS];
+    double speed[DDYN_MPC_MAX_TRACK_POINTS];    /* reference speed (m/s), > 0 */
+    double width_left[DDYN_MPC_MAX_TRACK_POINTS];  /* usable room along the left normal (m) */
+    double width_right[DDYN_MPC_MAX_TRACK_POINTS]; /* usable room along the right normal (m) */
+} ddyn_mpc_track;
+
+/* What one solve did. */
+typedef struct {
+    int qp_iterations;          /* interior-point iterations used */
+    int converged;              /* 1 if the QP met qp_tolerance within qp_max_iterations */
+    double kkt_residual;        /* final max(primal residual, dual residual, mean complementarity) */
+    double max_slack;           /* largest track-bound slack of the plan (m): > 0 = the plan leaves the track */
+    double max_bound_violation; /* largest violation of a hard bound (rates, throttle, steering) by the
+                                   linearised plan before the command was clipped (0 when converged) */
+    double cost;                /* QP objective at the returned plan (linearised) */
+    double progress;            /* arc length of x0's projection on the raceline (m) */
+    int track_index;            /* raceline segment of that projection */
+} ddyn_mpc_info;
+
+typedef struct {
+    const ddyn_vehicle_model *model;
+    ddyn_mpc_config cfg;
+    double c[DDYN_NC];          /* coefficients the prediction uses (ddyn_mpc_set_coefficients) */
+    int have_coefficients;
+    ddyn_mpc_track track;
+    int have_warm_start;        /* u_plan holds a plan from the previous solve (shifted) */
+    int last_index;             /* raceline segment found last time: local search from here */
+    /* plan: x_plan[k*8 + i] state i at stage k (k = 0..H), u_plan[k*2 + j] input j at stage k */
+    double x_plan[(DDYN_MPC_MAX_HORIZON + 1) * DDYN_NX];
+    double u_plan[DDYN_MPC_NV];
+    /* stage references (k = 0..H): point, left normal, room to the bounds */
+    double ref[(DDYN_MPC_MAX_HORIZON + 1) * 6];
+    /* work memory (contents meaningless between calls) */
+    double A[DDYN_MPC_MAX_HORIZON * DDYN_NX * DDYN_NX];
+    double B[DDYN_MPC_MAX_HORIZON * DDYN_NX * DDYN_NU];
+    double sens[4 * DDYN_MPC_MAX_HORIZON * DDYN_MPC_NV]; /* d(x, y, throttle, steering)_k / du */
+    double qp_work[DDYN_MPC_NV * DDYN_MPC_NV * 3 + DDYN_MPC_NROWS * DDYN_MPC_NV + 40 * DDYN_MPC_NROWS];
+    ddyn_model_work model_work;
+} ddyn_mpc;
+
+/* Defaults for a vehicle: its input_limits (from the vehicle file, generated by `ddyn codegen`),
+ * horizon DDYN_MPC_DEFAULT_HORIZON, RK4, the tuned weights of docs/mpc.md. */
+ddyn_status ddyn_mpc_default_config(const ddyn_vehicle_model *model, ddyn_mpc_config *cfg);
+
+/* Check cfg and set up the context (no track, no coefficients, no warm start yet). */
+ddyn_status ddyn_mpc_init(ddyn_mpc *mpc, const ddyn_vehicle_model *model, const ddyn_mpc_config *cfg);
+
+/* The 17 coefficients (COEFF_NAMES order) the prediction model uses from the next solve on; call
+ * every control period with the guard network's estimate. Non-finite -> DDYN_ERR_NONFINITE_INPUT
+ * and the previous coefficients are kept. Nothing is regenerated: they are plain parameters. */
+ddyn_status ddyn_mpc_set_coefficients(ddyn_mpc *mpc, const double c[DDYN_NC]);
+
+/* The closed raceline: n points (4..DDYN_MPC_MAX_TRACK_POINTS, no repeated end point), the
+ * reference speed at each (> 0) and the usable room from each point to the left and right track
+ * bounds along the raceline's normal (already reduced by the car's half width and any margin; may
+ * be negative where the raceline itself is too close). Clears the warm start. */
+ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const double *y, const double *speed,
+                               const double *width_left, const double *width_right);
+
+/* One real-time iteration from the current state x0 (8 states).
+ * Returns DDYN_OK: u (2 input rates) is the first input of the new plan.
+ *   DDYN_ERR_QP_NOT_CONVERGED: the QP hit its iteration cap; u is the last iterate's first input
+ *     clipped to the rate bounds (finite, defined), the plan is that iterate; info says how far
+ *     it was. The caller decides whether to apply it.
+ *   DDYN_ERR_NONFINITE_INPUT (NaN/inf in x0 or the coefficients), DDYN_ERR_NOT_READY (no track or
+ *     no coefficients), DDYN_ERR_ARGUMENT (null pointer), DDYN_ERR_NONFINITE_OUTPUT / _EVALUATION
+ *     (the model failed along the prediction): u = {0, 0} (hold throttle and steering), the plan
+ *     and the warm start are left as they were.
+ * u is never NaN. info may be NULL. */
+ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info);
+
+/* The plan of the last successful (or not converged) solve: x_plan (H+1)*8, u_plan H*2 (either
+ * may be NULL). Returns the horizon H, 0 if there is no plan yet. */
+int ddyn_mpc_plan(const ddyn_mpc *mpc, double *x_plan, double *u_plan);
+
+/* Forget the warm start (e.g. after a discontinuity in the state); the next solve starts from
+ * zero input rates and a global search for the raceline position. */
+void ddyn_mpc_reset(ddyn_mpc *mpc);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* DDYN_MPC_H */

@@ -1,0 +1,411 @@
+/* One control period: EKF -> history -> guard network -> MPC -> command, with defined fallbacks
+ * (see ddyn/controller.h and docs/controller.md for the policy). */
+#include "ddyn/controller.h"
+
+#include <math.h>
+#include <stddef.h>
+#include <string.h>
+
+#define NX DDYN_NX
+#define NU DDYN_NU
+#define NC DDYN_NC
+#define TAU DDYN_NET_TAU
+#define NFEAT DDYN_NET_NFEAT
+
+/* state indices of the history features vx, vy, omega, throttle, steering (train/windows.py) */
+#define FIRST_FEATURE_STATE 3
+#define VX 3
+#define THROTTLE 6
+#define CM1 12
+#define CR0 14
+/* the model's coefficient order (ddyn/model.h, train/model.py COEFF_NAMES) */
+#define COEFF_ORDER "Bf,Cf,Df,Ef,Gf,Kf,Br,Cr,Dr,Er,Gr,Kr,Cm1,Cm2,Cr0,Cd,Iz"
+
+static int finite_all(const double *v, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        if (!isfinite(v[i])) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static double clamp(double v, double lo, double hi)
+{
+    return v < lo ? lo : (v > hi ? hi : v);
+}
+
+static uint32_t saturating_increment(uint32_t v)
+{
+    return v == UINT32_MAX ? v : v + 1u;
+}
+
+ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_config *cfg)
+{
+    static const double p0[NX] = {1e-2, 1e-2, 1e-2, 1e-2, 1e-2, 1e-2, 1e-6, 1e-6};
+    static const double q[NX] = {1e-8, 1e-8, 1e-8, 1e-6, 1e-6, 1e-4, 1e-12, 1e-12};
+    int i, k;
+    ddyn_status s;
+    if (model == NULL || cfg == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    memset(cfg, 0, sizeof *cfg);
+    s = ddyn_mpc_default_config(model, &cfg->mpc);
+    if (s != DDYN_OK) {
+        return s;
+    }
+    cfg->ekf_disc = DDYN_DISC_EULER;
+    for (i = 0; i < NX; ++i) {
+        cfg->p0_diag[i] = p0[i];
+        cfg->q_diag[i] = q[i];
+        cfg->p_max[i] = 1e4 * p0[i]; /* a hundred times the initial standard deviation */
+    }
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        for (i = 0; i < DDYN_MEAS_MAX_DIM; ++i) {
+            cfg->r_diag[k][i] = 1e-2;
+        }
+    }
+    /* no generic coefficients exist: c_nominal stays 0 so that init refuses a config without them */
+    cfg->range_sigmas = 6.0;
+    cfg->safe_stop_speed = 10.0 * model->known[3]; /* ten times the model's low-speed floor v_min */
+    cfg->max_coeff_age = 50;
+    cfg->max_sensor_faults = 5;
+    cfg->max_blind_steps = 25;
+    cfg->max_plan_shift = 3;
+    cfg->recovery_steps = 10;
+    return DDYN_OK;
+}
+
+static int config_ok(const ddyn_ctrl_config *cfg)
+{
+    int i, k;
+    if ((unsigned)cfg->ekf_disc >= (unsigned)DDYN_DISC_COUNT || !finite_all(cfg->c_nominal, NC) ||
+        !(cfg->range_sigmas > 0.0) || !(cfg->safe_stop_speed >= 0.0) || !(cfg->c_nominal[CM1] > 0.0) ||
+        cfg->max_coeff_age < 0 || cfg->max_sensor_faults < 1 ||
+        cfg->max_blind_steps < 1 || cfg->recovery_steps < 1 || cfg->max_plan_shift < 0 ||
+        cfg->max_plan_shift >= cfg->mpc.horizon) {
+        return 0;
+    }
+    for (i = 0; i < NX; ++i) {
+        if (!(cfg->p_max[i] > cfg->p0_diag[i])) {
+            return 0; /* also rejects NaN */
+        }
+    }
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        for (i = 0; i < ddyn_meas_dim((ddyn_meas_kind)k); ++i) {
+            if (!(cfg->r_diag[k][i] > 0.0) || !isfinite(cfg->r_diag[k][i])) {
+                return 0;
+            }
+        }
+    }
+    /* the nominal coefficients must at least make a finite model step (Iz = 0 would not) */
+    return cfg->c_nominal[NC - 1] > 0.0;
+}
+
+ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, const ddyn_net_tables *tables,
+                           const ddyn_ctrl_config *cfg, const double x0[DDYN_NX])
+{
+    ddyn_status s;
+    if (ctl == NULL || model == NULL || tables == NULL || cfg == NULL || x0 == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    memset(ctl, 0, sizeof *ctl);
+    if (!config_ok(cfg)) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    /* the network's outputs feed the model directly: their order must be the model's */
+    if (strcmp(DDYN_NET_OUTPUT_NAMES, COEFF_ORDER) != 0) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    if (ddyn_guard_net_init(&ctl->net, tables) != DDYN_NET_OK) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    s = ddyn_ekf_init(&ctl->ekf, model, cfg->ekf_disc, x0, cfg->p0_diag, cfg->q_diag);
+    if (s != DDYN_OK) {
+        return s;
+    }
+    s = ddyn_mpc_init(&ctl->mpc, model, &cfg->mpc);
+    if (s != DDYN_OK) {
+        return s;
+    }
+    ctl->cfg = *cfg;
+    ctl->model = model;
+    memcpy(ctl->coeffs, cfg->c_nominal, sizeof ctl->coeffs);
+    ctl->last_good_age = -1;
+    memcpy(ctl->x_prev, x0, sizeof ctl->x_prev);
+    ctl->initialised = 1;
+    return DDYN_OK;
+}
+
+ddyn_status ddyn_ctrl_set_track(ddyn_ctrl *ctl, int n, const double *x, const double *y, const double *speed,
+                                const double *width_left, const double *width_right)
+{
+    if (ctl == NULL || !ctl->initialised) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    return ddyn_mpc_set_track(&ctl->mpc, n, x, y, speed, width_left, width_right);
+}
+
+void ddyn_ctrl_safe_command(const ddyn_ctrl *ctl, const double x[DDYN_NX], double u[DDYN_NU])
+{
+    const ddyn_mpc_config *m = &ctl->cfg.mpc;
+    const double *c = ctl->cfg.c_nominal;
+    double dt = ctl->model->sample_time, target, rate;
+    if (!isfinite(x[VX]) || x[VX] > ctl->cfg.safe_stop_speed) {
+        target = m->state_lo[0]; /* brake: the throttle state's lower bound */
+    } else {
+        /* stopped: the throttle whose drive force cancels the rolling resistance at vx = 0,
+         * (Cm1 - Cm2 * 0) T = Cr0. In the single-track model a negative throttle accelerates
+         * backwards once the car stands, so holding the brake would reverse the car. */
+        target = clamp(c[CR0] / c[CM1], m->state_lo[0], m->state_hi[0]);
+    }
+    /* reach the target within one period if the rate bound allows, otherwise as fast as it
+     * allows; a non-finite throttle estimate brakes at the full rate */
+    rate = isfinite(x[THROTTLE]) ? (target - x[THROTTLE]) / dt : m->rate_lo[0];
+    u[0] = clamp(rate, m->rate_lo[0], m->rate_hi[0]);
+    u[1] = 0.0; /* hold the steering angle */
+}
+
+/* Step 1: append the previous period's row to the history (oldest row first). */
+static void push_history_row(ddyn_ctrl *ctl)
+{
+    int t, f;
+    for (t = 0; t + 1 < TAU; ++t) {
+        for (f = 0; f < NFEAT; ++f) {
+            ctl->history[t][f] = ctl->history[t + 1][f];
+        }
+    }
+    for (f = 0; f < NFEAT - NU; ++f) {
+        ctl->history[TAU - 1][f] = ctl->x_prev[FIRST_FEATURE_STATE + f];
+    }
+    for (f = 0; f < NU; ++f) {
+        ctl->history[TAU - 1][NFEAT - NU + f] = ctl->u_prev[f];
+    }
+    if (ctl->history_rows < TAU) {
+        ctl->history_rows += 1;
+    }
+}
+
+/* Is every feature of the (full) history within range_sigmas standard deviations of the
+ * network's training mean? */
+static int history_in_range(const ddyn_ctrl *ctl)
+{
+    const ddyn_net_tables *t = ctl->net.tables;
+    int row, f;
+    for (row = 0; row < TAU; ++row) {
+        for (f = 0; f < NFEAT; ++f) {
+            double dev = fabs(ctl->history[row][f] - (double)t->mean[f]);
+            if (!(dev <= ctl->cfg.range_sigmas * (double)t->std[f])) {
+                return 0;
+            }
+        }
+    }
+    return 1;
+}
+
+/* Step 2: the coefficients of this period, with their fallbacks. */
+static ddyn_ctrl_status choose_coefficients(ddyn_ctrl *ctl)
+{
+    ddyn_ctrl_status st = DDYN_CTRL_OK;
+    double c[NC];
+    if (ctl->last_good_age >= 0 && ctl->last_good_age < ctl->cfg.max_coeff_age + 1) {
+        ctl->last_good_age += 1; /* ages by one period whatever happens next */
+    }
+    if (ctl->history_rows < TAU) {
+        st |= DDYN_CTRL_HISTORY_FILLING;
+    } else if (!history_in_range(ctl)) {
+        st |= DDYN_CTRL_OUT_OF_RANGE;
+    } else if (ddyn_guard_net_infer(&ctl->net, (const double(*)[NFEAT])ctl->history, c) != DDYN_NET_OK ||
+               !finite_all(c, NC)) {
+        st |= DDYN_CTRL_NET_FAULT;
+    } else {
+        memcpy(ctl->coeffs, c, sizeof c);
+        memcpy(ctl->last_good, c, sizeof c);
+        ctl->last_good_age = 0;
+        return st;
+    }
+    if (ctl->last_good_age >= 0 && ctl->last_good_age <= ctl->cfg.max_coeff_age) {
+        memcpy(ctl->coeffs, ctl->last_good, sizeof ctl->coeffs);
+        st |= DDYN_CTRL_COEFF_LAST_GOOD;
+    } else {
+        memcpy(ctl->coeffs, ctl->cfg.c_nominal, sizeof ctl->coeffs);
+        st |= DDYN_CTRL_COEFF_NOMINAL;
+    }
+    return st;
+}
+
+/* The filter has diverged when a variance is not finite or above its bound. */
+static int covariance_ok(const ddyn_ctrl *ctl)
+{
+    int i;
+    for (i = 0; i < NX; ++i) {
+        double v = ctl->ekf.P[i * NX + i];
+        if (!(v <= ctl->cfg.p_max[i]) || !(v > 0.0)) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+/* Step 3: predict, fuse this period's readings, check the filter. */
+static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
+{
+    ddyn_ctrl_status st = DDYN_CTRL_OK;
+    int k, fused = 0, diverged = 0;
+    if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_prev, ctl->coeffs) != DDYN_OK) {
+        diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
+    }
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        const ddyn_ctrl_reading *r = &in->reading[k];
+        int m = ddyn_meas_dim((ddyn_meas_kind)k);
+        if (!r->valid) {
+            continue; /* no new reading of this sensor: its fault count stands */
+        }
+        if (!finite_all(r->z, m)) {
+            st |= DDYN_CTRL_MEAS_NONFINITE;
+            ctl->nonfinite_count[k] = saturating_increment(ctl->nonfinite_count[k]);
+            ctl->sensor_fault_run[k] += ctl->sensor_fault_run[k] < ctl->cfg.max_sensor_faults ? 1 : 0;
+        } else if (ddyn_ekf_update(&ctl->ekf, (ddyn_meas_kind)k, r->z, ctl->cfg.r_diag[k], ctl->coeffs, NULL) !=
+                   DDYN_OK) {
+            st |= DDYN_CTRL_MEAS_REJECTED;
+            ctl->rejected_count[k] = saturating_increment(ctl->rejected_count[k]);
+            ctl->sensor_fault_run[k] += ctl->sensor_fault_run[k] < ctl->cfg.max_sensor_faults ? 1 : 0;
+        } else {
+            ctl->sensor_fault_run[k] = 0;
+            fused = 1;
+        }
+        if (ctl->sensor_fault_run[k] >= ctl->cfg.max_sensor_faults) {
+            st |= DDYN_CTRL_SENSOR_FAULT;
+        }
+    }
+    /* a sensor that stays silent keeps its fault run: a faulty sensor that stops sending stays faulty */
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        if (ctl->sensor_fault_run[k] >= ctl->cfg.max_sensor_faults) {
+            st |= DDYN_CTRL_SENSOR_FAULT;
+        }
+    }
+    ctl->blind_steps = fused ? 0 : (ctl->blind_steps < ctl->cfg.max_blind_steps + 1 ? ctl->blind_steps + 1
+                                                                                    : ctl->blind_steps);
+    if (ctl->blind_steps > ctl->cfg.max_blind_steps) {
+        st |= DDYN_CTRL_NO_MEASUREMENTS;
+    }
+    if (diverged || !covariance_ok(ctl) || !finite_all(ctl->ekf.x, NX)) {
+        /* restart the filter at its last finite estimate with the initial covariance: the
+         * readings of the next periods pull it in again, while safe mode holds the car */
+        const double *x = finite_all(ctl->ekf.x, NX) ? ctl->ekf.x : ctl->x_prev;
+        double x_restart[NX];
+        memcpy(x_restart, x, sizeof x_restart);
+        (void)ddyn_ekf_init(&ctl->ekf, ctl->model, ctl->cfg.ekf_disc, x_restart, ctl->cfg.p0_diag,
+                            ctl->cfg.q_diag);
+        st |= DDYN_CTRL_EKF_DIVERGED;
+    }
+    return st;
+}
+
+/* Steps 4-5: solve the MPC and pick the command; *safe_cause set when the plan is exhausted. */
+static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_cause)
+{
+    ddyn_ctrl_status st = DDYN_CTRL_OK;
+    double u[NU];
+    ddyn_status s = ddyn_mpc_set_coefficients(&ctl->mpc, ctl->coeffs);
+    if (s == DDYN_OK) {
+        s = ddyn_mpc_solve(&ctl->mpc, ctl->ekf.x, u, &out->mpc_info);
+    }
+    out->mpc_status = s;
+    if (ctl->plan_horizon > 0 && ctl->plan_age < ctl->plan_horizon) {
+        ctl->plan_age += 1;
+    }
+    if (s == DDYN_OK && finite_all(u, NU)) {
+        int h = ddyn_mpc_plan(&ctl->mpc, NULL, ctl->plan_u);
+        ctl->plan_horizon = h > 0 && h <= DDYN_MPC_MAX_HORIZON ? h : 0;
+        ctl->plan_age = 0;
+        memcpy(out->u, u, sizeof u);
+        return st;
+    }
+    st |= s == DDYN_ERR_QP_NOT_CONVERGED ? DDYN_CTRL_MPC_NOT_CONVERGED : DDYN_CTRL_MPC_FAILED;
+    if (s != DDYN_ERR_NOT_READY && s != DDYN_ERR_ARGUMENT && ctl->plan_horizon > 0 &&
+        ctl->plan_age <= ctl->cfg.max_plan_shift && ctl->plan_age < ctl->plan_horizon) {
+        /* the plan computed plan_age periods ago, at the stage that is now */
+        out->u[0] = ctl->plan_u[ctl->plan_age * NU + 0];
+        out->u[1] = ctl->plan_u[ctl->plan_age * NU + 1];
+        st |= DDYN_CTRL_PLAN_SHIFTED;
+    } else {
+        *safe_cause = 1;
+    }
+    return st;
+}
+
+ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctrl_output *out)
+{
+    ddyn_ctrl_status st;
+    int safe_cause = 0;
+    if (out == NULL) {
+        return DDYN_CTRL_ERR_ARGUMENT;
+    }
+    memset(out, 0, sizeof *out);
+    if (ctl == NULL || in == NULL || !ctl->initialised) {
+        out->status = DDYN_CTRL_ERR_ARGUMENT; /* no context to know the throttle: u = {0, 0} holds both */
+        return out->status;
+    }
+    if (ctl->started) {
+        push_history_row(ctl);
+    }
+    st = choose_coefficients(ctl);
+    st |= estimate(ctl, in);
+    st |= plan(ctl, out, &safe_cause);
+    if (st & (DDYN_CTRL_SENSOR_FAULT | DDYN_CTRL_NO_MEASUREMENTS | DDYN_CTRL_EKF_DIVERGED)) {
+        safe_cause = 1;
+    }
+    if (safe_cause) {
+        ctl->safe_mode = 1;
+        ctl->healthy_steps = 0;
+    } else if (ctl->safe_mode) {
+        ctl->healthy_steps += 1;
+        if (ctl->healthy_steps >= ctl->cfg.recovery_steps) {
+            /* explicit recovery: the warm start and the stored plan predate the fault */
+            ctl->safe_mode = 0;
+            ctl->healthy_steps = 0;
+            ctl->plan_age = ctl->plan_horizon; /* no shifted plan from before the fault */
+            ddyn_mpc_reset(&ctl->mpc);
+            st |= DDYN_CTRL_RECOVERED;
+        }
+    }
+    if (ctl->safe_mode) {
+        ddyn_ctrl_safe_command(ctl, ctl->ekf.x, out->u);
+        st |= DDYN_CTRL_SAFE_COMMAND;
+    }
+    if (!finite_all(out->u, NU)) { /* cannot happen by the checks above; never hand out garbage */
+        ddyn_ctrl_safe_command(ctl, ctl->ekf.x, out->u);
+        st |= DDYN_CTRL_SAFE_COMMAND;
+    }
+    memcpy(out->x_est, ctl->ekf.x, sizeof out->x_est);
+    memcpy(out->coeffs, ctl->coeffs, sizeof out->coeffs);
+    memcpy(ctl->x_prev, ctl->ekf.x, sizeof ctl->x_prev);
+    memcpy(ctl->u_prev, out->u, sizeof ctl->u_prev);
+    ctl->started = 1;
+    out->status = st;
+    return st;
+}
+
+const char *ddyn_ctrl_status_name(ddyn_ctrl_status bit)
+{
+    static const char *const names[DDYN_CTRL_STATUS_BITS] = {
+        "DDYN_CTRL_ERR_ARGUMENT",    "DDYN_CTRL_MEAS_NONFINITE",    "DDYN_CTRL_MEAS_REJECTED",
+        "DDYN_CTRL_SENSOR_FAULT",    "DDYN_CTRL_NO_MEASUREMENTS",   "DDYN_CTRL_HISTORY_FILLING",
+        "DDYN_CTRL_OUT_OF_RANGE",    "DDYN_CTRL_NET_FAULT",         "DDYN_CTRL_COEFF_LAST_GOOD",
+        "DDYN_CTRL_COEFF_NOMINAL",   "DDYN_CTRL_EKF_DIVERGED",      "DDYN_CTRL_MPC_NOT_CONVERGED",
+        "DDYN_CTRL_MPC_FAILED",      "DDYN_CTRL_PLAN_SHIFTED",      "DDYN_CTRL_SAFE_COMMAND",
+        "DDYN_CTRL_RECOVERED"};
+    int i;
+    if (bit == DDYN_CTRL_OK) {
+        return "DDYN_CTRL_OK";
+    }
+    for (i = 0; i < DDYN_CTRL_STATUS_BITS; ++i) {
+        if (bit == ((ddyn_ctrl_status)1u << i)) {
+            return names[i];
+        }
+    }
+    return "DDYN_CTRL_UNKNOWN";
+}

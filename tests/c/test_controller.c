@@ -1,0 +1,352 @@
+/*
+ * Controller step contract (c_src/src/controller.c): the history rows the guard network reads,
+ * and every defined fallback with its status bit, safe command and recovery. Runs on the
+ * fixture network (tests/c/generated/net_fixture, orca_1_43) with a closed loop: the plant is the
+ * generated model step with the true coefficients, the readings its exact sensor models.
+ */
+#include <math.h>
+#include <setjmp.h>
+#include <stdarg.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <string.h>
+
+#include <cmocka.h>
+
+#include "ddyn/controller.h"
+#include "ddyn_models.h"
+
+extern const ddyn_net_tables ddyn_net_weights;
+
+#define TRACK_N 120
+#define RADIUS 1.5
+#define SPEED 1.0
+
+static const double C_TRUE[DDYN_NC] = {5.579, 1.2, 0.192, -0.083, -0.0013, 0.00043, 5.3852, 1.2691, 0.1737,
+                                       -0.019, -0.00376, 0.00091, 0.287, 0.0545, 0.0518, 0.00035, 2.78e-5};
+
+static ddyn_ctrl ctl;
+static ddyn_ctrl_config cfg;
+static double plant[DDYN_NX];
+static ddyn_model_work plant_work;
+static const ddyn_vehicle_model *model = &ddyn_model_orca_1_43;
+
+/* a circle driven counter-clockwise at SPEED: the car starts on it, tangent, at that speed */
+static void start_on_circle(const ddyn_net_tables *tables)
+{
+    static double x[TRACK_N], y[TRACK_N], speed[TRACK_N], wl[TRACK_N], wr[TRACK_N];
+    const double pi = 3.14159265358979323846;
+    int i;
+    for (i = 0; i < TRACK_N; ++i) {
+        double a = 2.0 * pi * i / TRACK_N;
+        x[i] = RADIUS * cos(a);
+        y[i] = RADIUS * sin(a);
+        speed[i] = SPEED;
+        wl[i] = 0.15;
+        wr[i] = 0.15;
+    }
+    plant[0] = RADIUS;
+    plant[1] = 0.0;
+    plant[2] = pi / 2.0;
+    plant[3] = SPEED;
+    plant[4] = 0.0;
+    plant[5] = SPEED / RADIUS;
+    plant[6] = (C_TRUE[14] + C_TRUE[15] * SPEED * SPEED) / (C_TRUE[12] - C_TRUE[13] * SPEED);
+    plant[7] = atan((0.029 + 0.033) / RADIUS);
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, tables, &cfg, plant), DDYN_OK);
+    assert_int_equal(ddyn_ctrl_set_track(&ctl, TRACK_N, x, y, speed, wl, wr), DDYN_OK);
+}
+
+static int setup(void **state)
+{
+    (void)state;
+    assert_int_equal(ddyn_ctrl_default_config(model, &cfg), DDYN_OK);
+    memcpy(cfg.c_nominal, C_TRUE, sizeof C_TRUE);
+    start_on_circle(&ddyn_net_weights);
+    return 0;
+}
+
+/* exact readings of the plant: every sensor every period (GNSS and heading every 5th) */
+static void readings(ddyn_ctrl_input *in, int period)
+{
+    int k;
+    memset(in, 0, sizeof *in);
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * DDYN_NX];
+        if ((k == DDYN_MEAS_GNSS_POSITION || k == DDYN_MEAS_HEADING) && period % 5 != 0) {
+            continue;
+        }
+        assert_int_equal(ddyn_model_measure(model, (ddyn_meas_kind)k, plant, C_TRUE, h, H, &plant_work), DDYN_OK);
+        in->reading[k].valid = 1;
+        in->reading[k].z[0] = h[0];
+        in->reading[k].z[1] = h[1];
+    }
+}
+
+/* one closed-loop period with the given input; the plant moves by the command */
+static ddyn_ctrl_status run(const ddyn_ctrl_input *in, ddyn_ctrl_output *out)
+{
+    double next[DDYN_NX];
+    ddyn_ctrl_status st = ddyn_ctrl_step(&ctl, in, out);
+    assert_int_equal(st, out->status);
+    assert_true(isfinite(out->u[0]) && isfinite(out->u[1]));
+    assert_int_equal(ddyn_model_step(model, DDYN_DISC_RK4, plant, out->u, C_TRUE, next, &plant_work), DDYN_OK);
+    memcpy(plant, next, sizeof next);
+    return st;
+}
+
+static ddyn_ctrl_status run_exact(int period, ddyn_ctrl_output *out)
+{
+    ddyn_ctrl_input in;
+    readings(&in, period);
+    return run(&in, out);
+}
+
+static void test_bad_arguments_and_configurations(void **state)
+{
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    ddyn_ctrl_config bad;
+    (void)state;
+    memset(&in, 0, sizeof in);
+    assert_int_equal(ddyn_ctrl_step(NULL, &in, &out), DDYN_CTRL_ERR_ARGUMENT);
+    assert_true(out.u[0] == 0.0 && out.u[1] == 0.0);
+    assert_int_equal(ddyn_ctrl_step(&ctl, NULL, &out), DDYN_CTRL_ERR_ARGUMENT);
+    assert_int_equal(ddyn_ctrl_step(&ctl, &in, NULL), DDYN_CTRL_ERR_ARGUMENT);
+    bad = cfg;
+    memset(bad.c_nominal, 0, sizeof bad.c_nominal); /* no nominal coefficients: no fallback */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_ctrl_step(&ctl, &in, &out), DDYN_CTRL_ERR_ARGUMENT); /* refused init: unusable */
+    bad = cfg;
+    bad.max_plan_shift = bad.mpc.horizon; /* a shifted plan has only horizon - 1 stages left */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.p_max[3] = bad.p0_diag[3]; /* would call the fresh filter diverged */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.r_diag[DDYN_MEAS_WHEEL_SPEED][1] = NAN;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+}
+
+static void test_status_bits_have_distinct_names(void **state)
+{
+    int i, j;
+    (void)state;
+    for (i = 0; i < DDYN_CTRL_STATUS_BITS; ++i) {
+        const char *a = ddyn_ctrl_status_name((ddyn_ctrl_status)1u << i);
+        assert_true(strncmp(a, "DDYN_CTRL_", 10) == 0 && strcmp(a, "DDYN_CTRL_UNKNOWN") != 0);
+        for (j = 0; j < i; ++j) {
+            assert_string_not_equal(a, ddyn_ctrl_status_name((ddyn_ctrl_status)1u << j));
+        }
+    }
+    assert_string_equal(ddyn_ctrl_status_name((ddyn_ctrl_status)1u << DDYN_CTRL_STATUS_BITS), "DDYN_CTRL_UNKNOWN");
+    assert_string_equal(ddyn_ctrl_status_name(DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_NET_FAULT), "DDYN_CTRL_UNKNOWN");
+}
+
+static void test_safe_command_brakes_then_holds(void **state)
+{
+    double x[DDYN_NX] = {0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.5, 0.2}, u[DDYN_NU];
+    const double dt = model->sample_time;
+    (void)state;
+    ddyn_ctrl_safe_command(&ctl, x, u);
+    assert_true(u[0] == cfg.mpc.rate_lo[0]); /* 0.5 -> -0.1 needs -30/s: limited to the rate bound */
+    assert_true(u[1] == 0.0);                /* steering held */
+    x[6] = -0.05;
+    ddyn_ctrl_safe_command(&ctl, x, u);
+    assert_float_equal(u[0], (cfg.mpc.state_lo[0] - x[6]) / dt, 1e-12); /* braking value within one period */
+    x[3] = 0.5 * cfg.safe_stop_speed;                                   /* stopped: hold, do not reverse */
+    x[6] = 0.1;
+    ddyn_ctrl_safe_command(&ctl, x, u);
+    assert_float_equal(u[0], (C_TRUE[14] / C_TRUE[12] - x[6]) / dt, 1e-12);
+    x[6] = NAN;
+    ddyn_ctrl_safe_command(&ctl, x, u);
+    assert_true(u[0] == cfg.mpc.rate_lo[0] && u[1] == 0.0);
+}
+
+static void test_history_rows_are_the_training_rows(void **state)
+{
+    ddyn_ctrl_output out, prev;
+    ddyn_guard_net net;
+    double expect[DDYN_NC], hist[DDYN_NET_TAU][DDYN_NET_NFEAT];
+    int k, f;
+    (void)state;
+    assert_int_equal(ddyn_guard_net_init(&net, &ddyn_net_weights), DDYN_NET_OK);
+    for (k = 0; k <= DDYN_NET_TAU; ++k) {
+        ddyn_ctrl_status st = run_exact(k, &out);
+        if (k < DDYN_NET_TAU) {
+            /* row k of the history needs period k's estimate and command: not there yet */
+            assert_true(st & DDYN_CTRL_HISTORY_FILLING);
+            assert_true(st & DDYN_CTRL_COEFF_NOMINAL);
+            assert_memory_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
+        } else {
+            assert_false(st & (DDYN_CTRL_HISTORY_FILLING | DDYN_CTRL_COEFF_NOMINAL | DDYN_CTRL_COEFF_LAST_GOOD));
+        }
+        if (k > 0) {
+            /* newest row: the previous period's estimate (vx..steering) and the command applied from it */
+            for (f = 0; f < 5; ++f) {
+                assert_true(ctl.history[DDYN_NET_TAU - 1][f] == prev.x_est[3 + f]);
+            }
+            assert_true(ctl.history[DDYN_NET_TAU - 1][5] == prev.u[0]);
+            assert_true(ctl.history[DDYN_NET_TAU - 1][6] == prev.u[1]);
+        }
+        prev = out;
+    }
+    /* the coefficients of the full history are the network's output for exactly that history */
+    memcpy(hist, ctl.history, sizeof hist);
+    assert_int_equal(ddyn_guard_net_infer(&net, (const double(*)[DDYN_NET_NFEAT])hist, expect), DDYN_NET_OK);
+    assert_memory_equal(out.coeffs, expect, sizeof expect);
+    assert_memory_not_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
+}
+
+static void test_nonfinite_readings_rejected_counted_then_sensor_fault(void **state)
+{
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double x_before[DDYN_NX];
+    int k;
+    (void)state;
+    run_exact(0, &out);
+    for (k = 1; k <= cfg.max_sensor_faults; ++k) {
+        ddyn_ctrl_status st;
+        readings(&in, k);
+        in.reading[DDYN_MEAS_YAW_RATE].z[0] = NAN;
+        in.reading[DDYN_MEAS_WHEEL_SPEED].z[1] = INFINITY;
+        memcpy(x_before, ctl.ekf.x, sizeof x_before);
+        st = run(&in, &out);
+        assert_true(st & DDYN_CTRL_MEAS_NONFINITE);
+        assert_int_equal(ctl.nonfinite_count[DDYN_MEAS_YAW_RATE], k);
+        assert_int_equal(ctl.nonfinite_count[DDYN_MEAS_WHEEL_SPEED], k);
+        assert_int_equal(ctl.nonfinite_count[DDYN_MEAS_STEERING], 0);
+        /* the filter went on: predicted (the car moved ~ vx dt) and fused the good readings */
+        assert_true(fabs(out.x_est[1] - x_before[1]) > 0.5 * SPEED * model->sample_time);
+        assert_true(isfinite(out.x_est[5]));
+        assert_false(st & DDYN_CTRL_NO_MEASUREMENTS);
+        if (k < cfg.max_sensor_faults) {
+            assert_false(st & DDYN_CTRL_SENSOR_FAULT);
+        } else {
+            assert_true(st & DDYN_CTRL_SENSOR_FAULT);
+            assert_true(st & DDYN_CTRL_SAFE_COMMAND);
+            assert_true(out.u[1] == 0.0);
+        }
+    }
+    /* a silent faulty sensor stays faulty */
+    readings(&in, 7);
+    in.reading[DDYN_MEAS_YAW_RATE].valid = 0;
+    in.reading[DDYN_MEAS_WHEEL_SPEED].valid = 0;
+    assert_true(run(&in, &out) & DDYN_CTRL_SENSOR_FAULT);
+    /* good readings again clear the fault; safe mode still holds until recovery */
+    readings(&in, 8);
+    assert_false(run(&in, &out) & DDYN_CTRL_SENSOR_FAULT);
+    assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
+    assert_int_equal(ctl.sensor_fault_run[DDYN_MEAS_YAW_RATE], 0);
+}
+
+static void test_no_readings_for_too_long_is_safe(void **state)
+{
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input none;
+    int k;
+    (void)state;
+    memset(&none, 0, sizeof none);
+    for (k = 0; k < cfg.max_blind_steps; ++k) {
+        assert_false(run(&none, &out) & DDYN_CTRL_NO_MEASUREMENTS);
+    }
+    assert_true(run(&none, &out) & DDYN_CTRL_NO_MEASUREMENTS);
+    assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
+    assert_false(run_exact(0, &out) & DDYN_CTRL_NO_MEASUREMENTS);
+}
+
+static void test_out_of_range_history_falls_back_last_good_then_nominal(void **state)
+{
+    ddyn_ctrl_output out;
+    double last_good[DDYN_NC];
+    int k;
+    (void)state;
+    for (k = 0; k <= DDYN_NET_TAU; ++k) {
+        run_exact(k, &out);
+    }
+    assert_false(out.status & (DDYN_CTRL_OUT_OF_RANGE | DDYN_CTRL_COEFF_LAST_GOOD | DDYN_CTRL_COEFF_NOMINAL));
+    memcpy(last_good, out.coeffs, sizeof last_good);
+    /* the same car, judged against a range of a millionth of a standard deviation */
+    ctl.cfg.range_sigmas = 1e-6;
+    for (k = 1; k <= cfg.max_coeff_age; ++k) {
+        ddyn_ctrl_status st = run_exact(k, &out);
+        assert_true(st & DDYN_CTRL_OUT_OF_RANGE);
+        assert_true(st & DDYN_CTRL_COEFF_LAST_GOOD);
+        assert_memory_equal(out.coeffs, last_good, sizeof last_good);
+    }
+    run_exact(0, &out);
+    assert_true(out.status & DDYN_CTRL_OUT_OF_RANGE);
+    assert_true(out.status & DDYN_CTRL_COEFF_NOMINAL); /* the last good ones are too old now */
+    assert_memory_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
+    /* back in range: the network's coefficients again */
+    ctl.cfg.range_sigmas = cfg.range_sigmas;
+    run_exact(1, &out);
+    assert_false(out.status & (DDYN_CTRL_OUT_OF_RANGE | DDYN_CTRL_COEFF_LAST_GOOD | DDYN_CTRL_COEFF_NOMINAL));
+    assert_memory_not_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
+}
+
+static void test_nonfinite_network_output_falls_back_to_nominal(void **state)
+{
+    static ddyn_net_real nan_bias[DDYN_NET_NOUT];
+    ddyn_net_tables broken = ddyn_net_weights;
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    int k;
+    (void)state;
+    for (k = 0; k < DDYN_NET_NOUT; ++k) {
+        nan_bias[k] = (ddyn_net_real)NAN; /* a corrupted weight table */
+    }
+    broken.head_b = nan_bias;
+    start_on_circle(&broken);
+    for (k = 0; k <= DDYN_NET_TAU; ++k) {
+        run_exact(k, &out);
+    }
+    assert_true(out.status & DDYN_CTRL_NET_FAULT);
+    assert_true(out.status & DDYN_CTRL_COEFF_NOMINAL);
+    assert_memory_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
+    assert_int_equal(ctl.last_good_age, -1);
+    /* several causes in one period are all reported */
+    readings(&in, 1);
+    in.reading[DDYN_MEAS_STEERING].z[0] = -INFINITY;
+    run(&in, &out);
+    assert_true((out.status & (DDYN_CTRL_NET_FAULT | DDYN_CTRL_MEAS_NONFINITE | DDYN_CTRL_COEFF_NOMINAL)) ==
+                (DDYN_CTRL_NET_FAULT | DDYN_CTRL_MEAS_NONFINITE | DDYN_CTRL_COEFF_NOMINAL));
+}
+
+static void test_covariance_blowup_resets_filter_and_is_safe(void **state)
+{
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input none;
+    int k, i;
+    (void)state;
+    /* position variance may grow to twice its initial value; without readings it does */
+    cfg.p_max[0] = 2.0 * cfg.p0_diag[0];
+    start_on_circle(&ddyn_net_weights);
+    memset(&none, 0, sizeof none);
+    for (k = 0; k < 1000 && !(run(&none, &out) & DDYN_CTRL_EKF_DIVERGED); ++k) {
+        assert_true(ctl.ekf.P[0] <= cfg.p_max[0]);
+    }
+    assert_true(k < 1000);
+    assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
+    for (i = 0; i < DDYN_NX; ++i) { /* restarted with the initial covariance */
+        assert_true(ctl.ekf.P[i * DDYN_NX + i] == cfg.p0_diag[i]);
+    }
+    assert_true(isfinite(out.x_est[0]) && isfinite(out.x_est[1]));
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test_setup(test_bad_arguments_and_configurations, setup),
+        cmocka_unit_test_setup(test_status_bits_have_distinct_names, setup),
+        cmocka_unit_test_setup(test_safe_command_brakes_then_holds, setup),
+        cmocka_unit_test_setup(test_history_rows_are_the_training_rows, setup),
+        cmocka_unit_test_setup(test_nonfinite_readings_rejected_counted_then_sensor_fault, setup),
+        cmocka_unit_test_setup(test_no_readings_for_too_long_is_safe, setup),
+        cmocka_unit_test_setup(test_out_of_range_history_falls_back_last_good_then_nominal, setup),
+        cmocka_unit_test_setup(test_nonfinite_network_output_falls_back_to_nominal, setup),
+        cmocka_unit_test_setup(test_covariance_blowup_resets_filter_and_is_safe, setup),
+    };
+    return cmocka_run_group_tests_name("controller", tests, NULL, NULL);
+}
