@@ -291,7 +291,7 @@ bool PlantApp::step() {
     const double due = wall_start_ + (t1 - t_start_) / cfg_.realtime_factor;
     const double now = wall_now();
     if (due > now) std::this_thread::sleep_for(std::chrono::duration<double>(due - now));
-  } else if (gnss_sent_) {
+  } else if (cfg_.realtime_factor == 0.0 && gnss_sent_) {
     const double deadline = wall_now() + cfg_.lockstep_timeout;
     bool got = false;
     while (!got) {

@@ -37,7 +37,8 @@ struct PlantAppConfig {
   int laps = 1;
   double max_time = 60.0;     // s of simulated time
   double max_off_track = 0.5; // m: a corner this far outside ends the run
-  double realtime_factor = 1.0;    // > 0: paced at this multiple of real time; 0: lock-step
+  double realtime_factor = 1.0;    // > 0: paced at this multiple of real time; 0: lock-step;
+                                   // < 0: free-running (in-process tests drive both sides)
   double lockstep_timeout = 0.25;  // s (wall): lock-step wait for a command after a GNSS frame
   std::array<SensorConfig, DDYN_MEAS_COUNT> sensors{};
   double status_rate = 100.0;      // Hz: DBW_Status

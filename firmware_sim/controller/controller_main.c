@@ -1,0 +1,333 @@
+/*
+ * ddyn_sil_controller: the car's controller as its own process (Linux). The c_src runtime
+ * (ddyn/controller.h: EKF -> history -> guard network -> MPC) behind the drive-by-wire protocol
+ * (ddyn/dbw.h frame checks, can/ddyn_dbw.dbc) on a SocketCAN interface. It talks to the plant
+ * ONLY through CAN frames.
+ *
+ * usage: ddyn_sil_controller SETUP [--can IFACE]     (IFACE default vcan0)
+ *
+ * One control period runs when a GNSS_Position frame arrives (the plant sends it last in a
+ * period), or on the controller's own timer when none has come for 1.5 periods, so the car is
+ * commanded (safely) even when the sensors fall silent. The controller's time is counted in
+ * periods, which makes it run unchanged in real time and in lock-step with a faster-than-real-
+ * time plant.
+ *
+ * Frame policy and the command: controller_node.h.
+ *
+ * SETUP (text, keywords in this order, numbers whitespace-separated):
+ *   vehicle NAME  period SEC  fixed 0|1  nominal 17  coeffs 17  x0 8  r_std 12 (sensor kind order,
+ *   2 components each)  stale 7 (periods per ddyn_dbw_frame; 0 = not monitored)  max_steps N
+ *   idle_exit SEC  metrics PATH  log PATH  track N  then N rows: x y speed width_left width_right
+ * fixed 1: the MPC and EKF use `coeffs` throughout (the network is bypassed: its history is
+ * declared out of range, so the controller's nominal coefficients, set to `coeffs`, are used).
+ *
+ * Writes the metrics (JSON: loop time median/p99/max, deadline misses, status counts, frame
+ * counts, safe-state timing) and a per-period CSV log. Exit 0 after a clean end (SIGTERM/SIGINT,
+ * idle_exit seconds without frames, or max_steps), 2 on bad setup.
+ */
+#define _POSIX_C_SOURCE 200809L
+#include <errno.h>
+#include <linux/can.h>
+#include <linux/can/raw.h>
+#include <math.h>
+#include <net/if.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "controller_node.h"
+
+#define MAX_STEPS 200000
+#define PATH_LEN 512
+
+extern const ddyn_net_tables ddyn_net_weights;
+
+static ddyn_sil_node node; /* large: static storage, not the stack */
+static double loop_us[MAX_STEPS];
+static double sorted_us[MAX_STEPS];
+static double track[5][DDYN_MPC_MAX_TRACK_POINTS];
+static volatile sig_atomic_t stop_requested = 0;
+
+typedef struct {
+    char vehicle[64];
+    double period;
+    int fixed;
+    double nominal[DDYN_NC], coeffs[DDYN_NC], x0[DDYN_NX], r_std[DDYN_MEAS_COUNT][2];
+    int stale[DDYN_DBW_FRAME_COUNT];
+    long max_steps;
+    double idle_exit;
+    char metrics[PATH_LEN], log[PATH_LEN];
+    int n_track;
+} setup_t;
+
+static void on_signal(int sig)
+{
+    (void)sig;
+    stop_requested = 1;
+}
+
+static double now_s(void)
+{
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)t.tv_sec + (double)t.tv_nsec * 1e-9;
+}
+
+static int cmp_double(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static int expect(FILE *in, const char *key)
+{
+    char word[64];
+    if (fscanf(in, "%63s", word) != 1 || strcmp(word, key) != 0) {
+        fprintf(stderr, "ddyn_sil_controller: setup: expected '%s'\n", key);
+        return 0;
+    }
+    return 1;
+}
+
+static int read_n(FILE *in, double *v, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        if (fscanf(in, "%lf", &v[i]) != 1 || !isfinite(v[i])) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static int read_setup(const char *path, setup_t *s)
+{
+    FILE *in = fopen(path, "r");
+    double r[2 * DDYN_MEAS_COUNT], st[DDYN_DBW_FRAME_COUNT];
+    int ok, i, k;
+    if (in == NULL) {
+        fprintf(stderr, "ddyn_sil_controller: cannot read setup %s: %s\n", path, strerror(errno));
+        return 0;
+    }
+    ok = expect(in, "vehicle") && fscanf(in, "%63s", s->vehicle) == 1 && expect(in, "period") &&
+         fscanf(in, "%lf", &s->period) == 1 && s->period > 0.0 && expect(in, "fixed") &&
+         fscanf(in, "%d", &s->fixed) == 1 && expect(in, "nominal") && read_n(in, s->nominal, DDYN_NC) &&
+         expect(in, "coeffs") && read_n(in, s->coeffs, DDYN_NC) && expect(in, "x0") && read_n(in, s->x0, DDYN_NX) &&
+         expect(in, "r_std") && read_n(in, r, 2 * DDYN_MEAS_COUNT) && expect(in, "stale") &&
+         read_n(in, st, DDYN_DBW_FRAME_COUNT) && expect(in, "max_steps") && fscanf(in, "%ld", &s->max_steps) == 1 &&
+         s->max_steps > 0 && s->max_steps <= MAX_STEPS && expect(in, "idle_exit") &&
+         fscanf(in, "%lf", &s->idle_exit) == 1 && expect(in, "metrics") && fscanf(in, "%511s", s->metrics) == 1 &&
+         expect(in, "log") && fscanf(in, "%511s", s->log) == 1 && expect(in, "track") &&
+         fscanf(in, "%d", &s->n_track) == 1 && s->n_track >= 4 && s->n_track <= DDYN_MPC_MAX_TRACK_POINTS;
+    for (i = 0; ok && i < s->n_track; ++i) {
+        double row[5];
+        ok = read_n(in, row, 5);
+        for (k = 0; ok && k < 5; ++k) {
+            track[k][i] = row[k];
+        }
+    }
+    fclose(in);
+    if (!ok) {
+        fprintf(stderr, "ddyn_sil_controller: setup %s is malformed (see the header comment)\n", path);
+        return 0;
+    }
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        s->r_std[k][0] = r[2 * k];
+        s->r_std[k][1] = r[2 * k + 1];
+    }
+    for (k = 0; k < DDYN_DBW_FRAME_COUNT; ++k) {
+        s->stale[k] = (int)st[k];
+    }
+    return 1;
+}
+
+static int open_can(const char *ifname)
+{
+    struct sockaddr_can addr;
+    unsigned idx;
+    int fd = socket(PF_CAN, SOCK_RAW, CAN_RAW), own = 0;
+    if (fd < 0) {
+        fprintf(stderr, "ddyn_sil_controller: socket(): %s\n", strerror(errno));
+        return -1;
+    }
+    idx = if_nametoindex(ifname);
+    if (idx == 0) {
+        fprintf(stderr, "ddyn_sil_controller: no CAN interface '%s'\n", ifname);
+        close(fd);
+        return -1;
+    }
+    memset(&addr, 0, sizeof addr);
+    addr.can_family = AF_CAN;
+    addr.can_ifindex = (int)idx;
+    if (bind(fd, (struct sockaddr *)&addr, sizeof addr) < 0) {
+        fprintf(stderr, "ddyn_sil_controller: bind(%s): %s\n", ifname, strerror(errno));
+        close(fd);
+        return -1;
+    }
+    setsockopt(fd, SOL_CAN_RAW, CAN_RAW_RECV_OWN_MSGS, &own, sizeof own);
+    return fd;
+}
+
+int main(int argc, char **argv)
+{
+    static setup_t s;
+    const char *iface = "vcan0";
+    const ddyn_vehicle_model *model;
+    ddyn_ctrl_config cfg;
+    struct sigaction sa;
+    long steps = 0, misses = 0, timer_steps = 0, send_failed = 0, status_count[DDYN_CTRL_STATUS_BITS] = {0};
+    int fd, i, k;
+    double last_step_wall, last_any_rx, last_gnss_wall = -1.0, safe_latency = -1.0;
+    int was_safe = 0;
+    FILE *log;
+
+    if (argc < 2) {
+        fprintf(stderr, "usage: %s SETUP [--can IFACE]\n", argv[0]);
+        return 2;
+    }
+    for (i = 2; i + 1 < argc; ++i) {
+        if (strcmp(argv[i], "--can") == 0) {
+            iface = argv[i + 1];
+        }
+    }
+    if (!read_setup(argv[1], &s)) {
+        return 2;
+    }
+    model = ddyn_model_find(s.vehicle);
+    if (model == NULL) {
+        fprintf(stderr, "ddyn_sil_controller: no generated model '%s'\n", s.vehicle);
+        return 2;
+    }
+    ddyn_ctrl_default_config(model, &cfg);
+    memcpy(cfg.c_nominal, s.fixed ? s.coeffs : s.nominal, sizeof cfg.c_nominal);
+    if (s.fixed) {
+        cfg.range_sigmas = 1e-300; /* every history "out of range": the network is never used */
+    }
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        for (i = 0; i < DDYN_MEAS_MAX_DIM; ++i) {
+            double sd = s.r_std[k][i];
+            cfg.r_diag[k][i] = sd > 0.0 ? sd * sd : 1e-8;
+        }
+    }
+    if (ddyn_sil_node_init(&node, model, &ddyn_net_weights, &cfg, s.x0, s.period, s.stale) != DDYN_OK ||
+        ddyn_ctrl_set_track(&node.ctl, s.n_track, track[0], track[1], track[2], track[3], track[4]) != DDYN_OK) {
+        fprintf(stderr, "ddyn_sil_controller: the controller refused the setup (network built for another export?)\n");
+        return 2;
+    }
+    fd = open_can(iface);
+    if (fd < 0) {
+        return 2;
+    }
+    log = fopen(s.log, "w");
+    if (log == NULL) {
+        fprintf(stderr, "ddyn_sil_controller: cannot write %s\n", s.log);
+        return 2;
+    }
+    fprintf(log, "step,wall,loop_us,status,trigger,safe,stale,throttle_cmd,steering_cmd,"
+                 "x,y,yaw,vx,vy,omega,throttle,steering\n");
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = on_signal; /* no SA_RESTART: poll() returns at once */
+    sigaction(SIGTERM, &sa, NULL);
+    sigaction(SIGINT, &sa, NULL);
+
+    last_step_wall = last_any_rx = now_s();
+    while (!stop_requested && steps < s.max_steps) {
+        double now = now_s(), wait = 1.5 * s.period - (now - last_step_wall);
+        int trigger = 0;
+        struct pollfd p;
+        p.fd = fd;
+        p.events = POLLIN;
+        p.revents = 0;
+        if (poll(&p, 1, wait > 0.0 ? (int)ceil(wait * 1e3) : 0) > 0) {
+            struct can_frame cf;
+            if (read(fd, &cf, sizeof cf) == (ssize_t)sizeof cf) {
+                last_any_rx = now_s();
+                if (ddyn_sil_node_on_frame(&node, cf.can_id & CAN_EFF_MASK, cf.data, cf.can_dlc)) {
+                    trigger = 1;
+                    last_gnss_wall = last_any_rx;
+                }
+            }
+        }
+        now = now_s();
+        if (!trigger && now - last_step_wall >= 1.5 * s.period) {
+            trigger = 2; /* the controller's own timer */
+        }
+        if (now - last_any_rx > s.idle_exit) {
+            break; /* the plant is gone for good */
+        }
+        if (trigger) {
+            ddyn_sil_period per;
+            struct can_frame cf;
+            double t0 = now_s(), t1;
+            ddyn_sil_node_period(&node, &per);
+            t1 = now_s();
+            memset(&cf, 0, sizeof cf);
+            cf.can_id = per.can_id;
+            cf.can_dlc = DDYN_DBW_FRAME_LEN;
+            memcpy(cf.data, per.data, DDYN_DBW_FRAME_LEN);
+            if (write(fd, &cf, sizeof cf) != (ssize_t)sizeof cf) {
+                send_failed += 1;
+            }
+            loop_us[steps] = (t1 - t0) * 1e6;
+            misses += (t1 - t0) > s.period ? 1 : 0;
+            for (k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) {
+                status_count[k] += (long)((per.out.status >> k) & 1u);
+            }
+            /* the first entry into the safe state after driving: how long after the last position frame */
+            if (per.safe && !was_safe && steps > 0 && safe_latency < 0.0 && last_gnss_wall >= 0.0) {
+                safe_latency = t1 - last_gnss_wall;
+            }
+            was_safe = per.safe;
+            timer_steps += trigger == 2 ? 1 : 0;
+            fprintf(log, "%ld,%.6f,%.2f,%u,%d,%d,%d,%.6f,%.6f", steps, t1, loop_us[steps], (unsigned)per.out.status,
+                    trigger, per.safe, per.stale, per.throttle, per.steering);
+            for (k = 0; k < DDYN_NX; ++k) {
+                fprintf(log, ",%.6g", per.out.x_est[k]);
+            }
+            fputc('\n', log);
+            last_step_wall = now_s();
+            steps += 1;
+        }
+    }
+    fclose(log);
+    close(fd);
+
+    {
+        FILE *m = fopen(s.metrics, "w");
+        double median = 0.0, p99 = 0.0, mx = 0.0;
+        if (m == NULL) {
+            fprintf(stderr, "ddyn_sil_controller: cannot write %s\n", s.metrics);
+            return 2;
+        }
+        if (steps > 0) {
+            memcpy(sorted_us, loop_us, (size_t)steps * sizeof(double));
+            qsort(sorted_us, (size_t)steps, sizeof(double), cmp_double);
+            median = sorted_us[steps / 2];
+            p99 = sorted_us[(long)floor(0.99 * (double)(steps - 1))];
+            mx = sorted_us[steps - 1];
+        }
+        fprintf(m, "{\n  \"steps\": %ld,\n  \"period\": %.6f,\n", steps, s.period);
+        fprintf(m, "  \"loop_us\": {\"median\": %.3f, \"p99\": %.3f, \"max\": %.3f},\n", median, p99, mx);
+        fprintf(m, "  \"deadline_misses\": %ld,\n  \"safe_steps\": %ld,\n  \"timer_steps\": %ld,\n", misses,
+                node.safe_steps, timer_steps);
+        fprintf(m, "  \"first_safe_latency\": %.6f,\n", safe_latency);
+        fprintf(m, "  \"frames\": {\"ok\": %ld, \"lost\": %ld, \"repeated_counter\": %ld, \"unknown_id\": %ld, "
+                   "\"bad_length\": %ld, \"checksum\": %ld, \"range\": %ld, \"send_failed\": %ld},\n",
+                node.frames_ok, node.frames_lost, node.repeated_counter, node.unknown_id, node.bad_length,
+                node.checksum, node.range, send_failed);
+        fprintf(m, "  \"status_counts\": {");
+        for (k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) {
+            fprintf(m, "%s\"%s\": %ld", k ? ", " : "", ddyn_ctrl_status_name(1u << k), status_count[k]);
+        }
+        fprintf(m, "},\n  \"fixed_coefficients\": %s\n}\n", s.fixed ? "true" : "false");
+        fclose(m);
+    }
+    printf("controller: %ld periods, loop median %.1f us, max %.1f us, %ld deadline misses, %ld safe\n", steps,
+           steps ? sorted_us[steps / 2] : 0.0, steps ? sorted_us[steps - 1] : 0.0, misses, node.safe_steps);
+    return 0;
+}
