@@ -19,6 +19,13 @@ dpkg -s nlohmann-json3-dev >/dev/null 2>&1 || missing+=(nlohmann-json3-dev)
 # the Cortex-M7 cross-build of the runtime (scripts/test.sh)
 command -v arm-none-eabi-gcc >/dev/null || missing+=(gcc-arm-none-eabi)
 dpkg -s libnewlib-arm-none-eabi >/dev/null 2>&1 || missing+=(libnewlib-arm-none-eabi)
+# the virtual-CAN tests: a qemu guest (software emulation) with busybox (scripts/vcan_guest/);
+# apt-get download and dpkg-deb fetch its kernel
+command -v qemu-system-x86_64 >/dev/null || missing+=(qemu-system-x86)
+dpkg -s busybox-static >/dev/null 2>&1 || missing+=(busybox-static)
+# the CAN decoder's fuzz target: clang with libFuzzer (scripts/fuzz_can.sh)
+command -v clang >/dev/null || missing+=(clang)
+ls /usr/lib/llvm-*/lib/clang/*/lib/linux/libclang_rt.fuzzer-x86_64.a >/dev/null 2>&1 || missing+=(libclang-rt-dev)
 python3 -c 'import venv, ensurepip' >/dev/null 2>&1 || missing+=(python3-venv)
 # PostgreSQL server binaries (/usr/lib/postgresql/<ver>/bin): the shared-study test of ddyn tune starts a throwaway one
 dpkg -s postgresql >/dev/null 2>&1 || missing+=(postgresql)

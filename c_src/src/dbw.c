@@ -412,9 +412,18 @@ static void fail(ddyn_dbw *dbw, ddyn_dbw_failure kind, int frame, uint64_t t_us)
 
 void ddyn_dbw_report(ddyn_dbw *dbw, ddyn_dbw_failure kind, uint64_t t_us)
 {
-    if (dbw != NULL) {
-        fail(dbw, kind, -1, t_us);
+    unsigned f;
+    if (dbw == NULL) {
+        return;
     }
+    if (kind == DDYN_DBW_FAIL_BUS_OFF || kind == DDYN_DBW_FAIL_IFACE_GONE) {
+        /* frames were lost for certain: the first counter after the outage starts a new sequence
+         * (the outage is counted once here, not again as a jump of every frame) */
+        for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
+            dbw->rx[f].counter_valid = false;
+        }
+    }
+    fail(dbw, kind, -1, t_us);
 }
 
 ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const uint8_t *data, size_t len,

@@ -210,7 +210,8 @@ int ddyn_dbw_init(ddyn_dbw *dbw, const ddyn_dbw_config *config);
 ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const uint8_t *data, size_t len,
                                          uint64_t t_us);
 
-/* Report a failure seen by the transport (DDYN_DBW_FAIL_BUS_OFF, _BUS_ERROR, _IFACE_GONE) or the caller. */
+/* Report a failure seen by the transport (DDYN_DBW_FAIL_BUS_OFF, _BUS_ERROR, _IFACE_GONE) or the caller.
+ * After BUS_OFF and IFACE_GONE the next counter of every frame is accepted as a new sequence. */
 void ddyn_dbw_report(ddyn_dbw *dbw, ddyn_dbw_failure kind, uint64_t t_us);
 
 /* Deadlines and recovery at time now_us: a monitored frame older than its deadline is a STALE
