@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 from pathlib import Path
 
@@ -121,10 +122,11 @@ def run_controller(tool: str | Path = DEFAULT_CONTROLLER_TOOL, steps: int = 2000
     if not tool.is_file():
         raise DdynError(f"{tool} not found: build with scripts/build.sh (DDYN_BUILD_TOOLS=ON)")
     setup = controller_setup(vehicle, track, speed_scale)
+    load_before = os.getloadavg()[0]  # the machine may be shared: a loaded one inflates p99 and max
     proc = subprocess.run([str(tool), str(steps), str(seed)], input=setup, capture_output=True, text=True)
     if proc.returncode != 0:
         raise DdynError(f"{tool} failed: {proc.stderr.strip()}")
-    results = {}
+    results = {"loadavg_1min": [load_before, os.getloadavg()[0]], "cpus": os.cpu_count()}
     for line in proc.stdout.splitlines():
         parts = line.split()
         if len(parts) == 5 and parts[1].isdigit():
@@ -133,6 +135,55 @@ def run_controller(tool: str | Path = DEFAULT_CONTROLLER_TOOL, steps: int = 2000
         elif line.startswith("# ") and len(parts) == 3:
             results[parts[1]] = float(parts[2])
     return results
+
+
+def format_controller(r: dict) -> str:
+    """One table row of the closed-loop run, and what the controller did in it."""
+    s = r["controller_step"]
+    bits = {k.removeprefix("steps_DDYN_CTRL_").lower(): int(v) for k, v in r.items()
+            if k.startswith("steps_DDYN_CTRL_") and v > 0}
+    return (f"| controller_step (closed loop) | {s['median_us']:.2f} / {s['p99_us']:.2f} / {s['max_us']:.1f} "
+            f"(n={s['n']}) | laps {r.get('laps', 0.0):.2f}, max raceline offset {r.get('max_raceline_offset_m', 0.0):.3f} m"
+            f" | periods with status bits: {bits or 'none'}; load average {r['loadavg_1min'][0]:.1f} -> "
+            f"{r['loadavg_1min'][1]:.1f} on {r['cpus']} CPUs |")
+
+
+def build_for(ckpt: str | Path, directory: str | Path) -> Path:
+    """`ddyn export` the checkpoint into directory/export and build the C side against it in
+    directory/build (one build per network: the shapes are compile-time constants)."""
+    from .export import export
+
+    directory = Path(directory).resolve()
+    export(ckpt, directory / "export", torch_export=False)
+    build = directory / "build"
+    for cmd in (["cmake", "-S", str(REPO), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release", "-DDDYN_BUILD_TESTS=OFF",
+                 f"-DDDYN_NET_EXPORT_DIR={directory / 'export'}"],
+                ["cmake", "--build", str(build), "-j2", "--target", "ddyn_bench", "ddyn_controller_bench"]):
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise DdynError(f"{' '.join(cmd[:2])} failed:\n{proc.stdout[-2000:]}{proc.stderr[-2000:]}")
+    return build / "c_src"
+
+
+def large_net_bench(directory: str | Path, data: str | Path | None, tau: int, hidden: int, layers: int,
+                    gru_layers: int, n: int, n_python: int, steps: int) -> dict:
+    """A random DDM of the given shape: C inference against PyTorch (`ddyn bench`), and the whole
+    controller step in closed loop with that network."""
+    from . import bench
+    from .dataset import write_canonical
+    from .simulate import simulate
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    if data is None:  # the histories and the normalisation come from a simulated run on ETHZ
+        data = write_canonical(simulate("orca_1_43", "ethz", laps=2, seed=1, noise_scale=1.0, progress=False), directory / "data.csv")
+    ckpt, count = make_net(directory / "net.ckpt", data, tau, hidden, layers, gru_layers)
+    tools = build_for(ckpt, directory)
+    torch.set_num_threads(1)
+    r = bench.run(str(ckpt), str(data), n, n_python, tools / "ddyn_bench")
+    r["controller"] = run_controller(tools / "ddyn_controller_bench", steps)
+    r["shape"] = {"tau": tau, "hidden": hidden, "layers": layers, "gru_layers": gru_layers, "parameters": count}
+    return r
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,6 +198,17 @@ def main(argv: list[str] | None = None) -> int:
     m.add_argument("--layers", type=int, default=2)
     m.add_argument("--gru-layers", type=int, default=1)
     m.add_argument("--seed", type=int, default=0)
+    b = sub.add_parser("large-net", help="make, export, build and time a ~100k-parameter guard network")
+    b.add_argument("--dir", default=str(REPO / "build-net100k"), help="working folder (default %(default)s)")
+    b.add_argument("--data", help="dataset for histories and normalisation (default: a simulated ETHZ run)")
+    b.add_argument("--tau", type=int, default=5)
+    b.add_argument("--hidden", type=int, default=210)
+    b.add_argument("--layers", type=int, default=3)
+    b.add_argument("--gru-layers", type=int, default=0)
+    b.add_argument("-n", type=int, default=10000, help="C inference calls")
+    b.add_argument("--n-python", type=int, default=2000, help="PyTorch inference calls")
+    b.add_argument("--steps", type=int, default=10000, help="closed-loop controller periods")
+    b.add_argument("--out", help="write the results as JSON here")
     c = sub.add_parser("controller", help="closed-loop timing of the C controller step")
     c.add_argument("--tool", default=str(DEFAULT_CONTROLLER_TOOL))
     c.add_argument("--steps", type=int, default=20000)
@@ -156,8 +218,19 @@ def main(argv: list[str] | None = None) -> int:
         path, n = make_net(args.out, args.data, args.tau, args.hidden, args.layers, args.gru_layers, args.seed)
         print(f"wrote {path}: {n} parameters")
         return 0
+    if args.cmd == "large-net":
+        from .bench import format_table
+
+        r = large_net_bench(args.dir, args.data, args.tau, args.hidden, args.layers, args.gru_layers, args.n,
+                            args.n_python, args.steps)
+        print(f"network: {r['shape']}")
+        print(format_table(r))
+        print(format_controller(r["controller"]))
+        if args.out:
+            Path(args.out).write_text(json.dumps(r, indent=2) + "\n")
+        return 0
     r = run_controller(args.tool, args.steps)
-    print(json.dumps(r, indent=2))
+    print(format_controller(r))
     if args.out:
         Path(args.out).write_text(json.dumps(r, indent=2) + "\n")
     return 0

@@ -69,6 +69,7 @@ ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_
     }
     /* no generic coefficients exist: c_nominal stays 0 so that init refuses a config without them */
     cfg->range_sigmas = 6.0;
+    cfg->nis_gate = 100.0; /* a 10-sigma innovation of a scalar reading */
     cfg->safe_stop_speed = 10.0 * model->known[3]; /* ten times the model's low-speed floor v_min */
     cfg->max_coeff_age = 50;
     cfg->max_sensor_faults = 5;
@@ -82,7 +83,8 @@ static int config_ok(const ddyn_ctrl_config *cfg)
 {
     int i, k;
     if ((unsigned)cfg->ekf_disc >= (unsigned)DDYN_DISC_COUNT || !finite_all(cfg->c_nominal, NC) ||
-        !(cfg->range_sigmas > 0.0) || !(cfg->safe_stop_speed >= 0.0) || !(cfg->c_nominal[CM1] > 0.0) ||
+        !(cfg->range_sigmas > 0.0) || !(cfg->nis_gate > 0.0) || !(cfg->safe_stop_speed >= 0.0) ||
+        !(cfg->c_nominal[CM1] > 0.0) ||
         cfg->max_coeff_age < 0 || cfg->max_sensor_faults < 1 ||
         cfg->max_blind_steps < 1 || cfg->recovery_steps < 1 || cfg->max_plan_shift < 0 ||
         cfg->max_plan_shift >= cfg->mpc.horizon) {
@@ -249,6 +251,34 @@ static int covariance_ok(const ddyn_ctrl *ctl)
     return 1;
 }
 
+/* Fuse one finite reading unless the EKF refuses it or its normalised innovation squared exceeds
+ * the gate (then the update is undone: x and P are restored). 0: fused, 1: refused, 2: gated. */
+static int fuse(ddyn_ctrl *ctl, int k, const double *z)
+{
+    double x[NX], P[NX * NX], nis = 0.0;
+    memcpy(x, ctl->ekf.x, sizeof x);
+    memcpy(P, ctl->ekf.P, sizeof P);
+    if (ddyn_ekf_update(&ctl->ekf, (ddyn_meas_kind)k, z, ctl->cfg.r_diag[k], ctl->coeffs, &nis) != DDYN_OK) {
+        return 1; /* the filter is left unchanged by a refused update */
+    }
+    if (!(nis <= ctl->cfg.nis_gate)) {
+        memcpy(ctl->ekf.x, x, sizeof x);
+        memcpy(ctl->ekf.P, P, sizeof P);
+        return 2;
+    }
+    return 0;
+}
+
+/* count one rejected reading of sensor k; 1 when this rejection makes the sensor faulty */
+static int count_fault(ddyn_ctrl *ctl, int k)
+{
+    if (ctl->sensor_fault_run[k] < ctl->cfg.max_sensor_faults) {
+        ctl->sensor_fault_run[k] += 1;
+        return ctl->sensor_fault_run[k] == ctl->cfg.max_sensor_faults;
+    }
+    return 0;
+}
+
 /* Step 3: predict, fuse this period's readings, check the filter. */
 static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
 {
@@ -259,25 +289,25 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
     }
     for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
         const ddyn_ctrl_reading *r = &in->reading[k];
-        int m = ddyn_meas_dim((ddyn_meas_kind)k);
+        int m = ddyn_meas_dim((ddyn_meas_kind)k), result;
         if (!r->valid) {
             continue; /* no new reading of this sensor: its fault count stands */
         }
         if (!finite_all(r->z, m)) {
             st |= DDYN_CTRL_MEAS_NONFINITE;
             ctl->nonfinite_count[k] = saturating_increment(ctl->nonfinite_count[k]);
-            ctl->sensor_fault_run[k] += ctl->sensor_fault_run[k] < ctl->cfg.max_sensor_faults ? 1 : 0;
-        } else if (ddyn_ekf_update(&ctl->ekf, (ddyn_meas_kind)k, r->z, ctl->cfg.r_diag[k], ctl->coeffs, NULL) !=
-                   DDYN_OK) {
+            (void)count_fault(ctl, k);
+        } else if ((result = fuse(ctl, k, r->z)) != 0) {
             st |= DDYN_CTRL_MEAS_REJECTED;
             ctl->rejected_count[k] = saturating_increment(ctl->rejected_count[k]);
-            ctl->sensor_fault_run[k] += ctl->sensor_fault_run[k] < ctl->cfg.max_sensor_faults ? 1 : 0;
+            if (count_fault(ctl, k) && result == 2) {
+                /* readings that stay outside the gate: the filter no longer believes its sensors
+                 * (or a sensor lies); restart it with P0 so the gate opens, once per episode */
+                diverged = 1;
+            }
         } else {
             ctl->sensor_fault_run[k] = 0;
             fused = 1;
-        }
-        if (ctl->sensor_fault_run[k] >= ctl->cfg.max_sensor_faults) {
-            st |= DDYN_CTRL_SENSOR_FAULT;
         }
     }
     /* a sensor that stays silent keeps its fault run: a faulty sensor that stops sending stays faulty */

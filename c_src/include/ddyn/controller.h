@@ -53,8 +53,8 @@ extern "C" {
 #define DDYN_CTRL_OK 0u
 #define DDYN_CTRL_ERR_ARGUMENT (1ul << 0)      /* null pointer, or context not initialised: u = {0, 0} */
 #define DDYN_CTRL_MEAS_NONFINITE (1ul << 1)    /* a reading held NaN/inf: rejected and counted */
-#define DDYN_CTRL_MEAS_REJECTED (1ul << 2)     /* the EKF refused a finite reading (innovation not PD,
-                                                  non-finite update): not fused, counted */
+#define DDYN_CTRL_MEAS_REJECTED (1ul << 2)     /* a finite reading outside the innovation gate, or refused
+                                                  by the EKF (innovation not PD): not fused, counted */
 #define DDYN_CTRL_SENSOR_FAULT (1ul << 3)      /* a sensor failed max_sensor_faults readings in a row: safe */
 #define DDYN_CTRL_NO_MEASUREMENTS (1ul << 4)   /* no reading fused for more than max_blind_steps: safe */
 #define DDYN_CTRL_HISTORY_FILLING (1ul << 5)   /* fewer than DDYN_NET_TAU rows yet: nominal coefficients */
@@ -62,7 +62,8 @@ extern "C" {
 #define DDYN_CTRL_NET_FAULT (1ul << 7)         /* the guard network's output was not finite: fallback */
 #define DDYN_CTRL_COEFF_LAST_GOOD (1ul << 8)   /* the MPC and EKF use the last good coefficients */
 #define DDYN_CTRL_COEFF_NOMINAL (1ul << 9)     /* the MPC and EKF use the vehicle's nominal coefficients */
-#define DDYN_CTRL_EKF_DIVERGED (1ul << 10)     /* covariance blow-up or failed prediction: filter reset, safe */
+#define DDYN_CTRL_EKF_DIVERGED (1ul << 10)     /* covariance blow-up, failed prediction, or a sensor gated
+                                                  max_sensor_faults times in a row: filter reset, safe */
 #define DDYN_CTRL_MPC_NOT_CONVERGED (1ul << 11) /* the QP hit its iteration cap */
 #define DDYN_CTRL_MPC_FAILED (1ul << 12)       /* the MPC returned another error (not ready, model failure) */
 #define DDYN_CTRL_PLAN_SHIFTED (1ul << 13)     /* command taken from the last converged plan, shifted */
@@ -81,6 +82,9 @@ typedef struct {
     double r_diag[DDYN_MEAS_COUNT][DDYN_MEAS_MAX_DIM];
     /* covariance blow-up: the filter has diverged when a variance P_ii exceeds p_max[i] */
     double p_max[DDYN_NX];
+    /* innovation gate: a reading whose normalised innovation squared exceeds it is not fused
+     * (INFINITY: no gate) */
+    double nis_gate;
     /* the vehicle's nominal coefficients (COEFF_NAMES order): the fallback of last resort */
     double c_nominal[DDYN_NC];
     /* a history feature is out of range when |f - mean| > range_sigmas * std of the network's

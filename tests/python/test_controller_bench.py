@@ -1,0 +1,54 @@
+"""The controller benchmark's Python side (train/controller_bench.py) and a short closed-loop run
+of the C tool: the parameter count of the large-network recipe, the raceline table the MPC gets,
+and that the tool's report parses with every status bit accounted for."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from train import checkpoint
+from train.controller_bench import DEFAULT_CONTROLLER_TOOL, make_net, parameter_count, raceline_table, run_controller
+from train.dataset import write_canonical
+from train.simulate import simulate
+
+
+@pytest.mark.parametrize("tau,hidden,layers,gru", [(5, 137, 2, 1), (5, 210, 3, 0), (3, 12, 2, 1), (1, 8, 1, 2)])
+def test_parameter_count_matches_the_network(tmp_path, tau, hidden, layers, gru):
+    ds = simulate("orca_1_43", "ethz", duration=2.0, seed=0)
+    path = write_canonical(ds, tmp_path / "data.csv")
+    ckpt, n = make_net(tmp_path / "net.ckpt", path, tau, hidden, layers, gru)
+    model, _ = checkpoint.load(ckpt)
+    assert n == parameter_count(tau, hidden, layers, gru) == sum(p.numel() for p in model.parameters())
+    # normalisation from the data, so the export's out-of-range test judges against real statistics
+    assert np.allclose(model.encoder.mean.numpy(), np.column_stack([ds.states[:, 3:8], ds.inputs]).mean(0), atol=1e-5)
+    with torch.no_grad():
+        c = model.coefficients(torch.zeros(1, tau, 7))
+    assert torch.all((c >= model.lo) & (c <= model.hi))
+
+
+def test_default_large_network_is_about_100k_parameters():
+    assert 95_000 <= parameter_count(5, 137, 2, 1) <= 105_000
+    assert 95_000 <= parameter_count(5, 210, 3, 0) <= 105_000
+
+
+def test_raceline_table_is_inside_the_track():
+    t = raceline_table("ethz", speed_scale=0.8, margin=0.03)
+    assert t.shape[1] == 5 and len(t) > 100
+    assert np.all(t[:, 2] >= 0.5)
+    # the racing line hugs the bounds at the apexes, but on average there is room on both sides
+    assert np.median(t[:, 3]) > 0.0 and np.median(t[:, 4]) > 0.0
+    assert np.all(t[:, 3] + t[:, 4] > 0.2)  # 0.37 m track less twice the margin
+
+
+def test_closed_loop_tool_reports_timing_and_every_status_bit():
+    if not DEFAULT_CONTROLLER_TOOL.is_file():
+        pytest.fail(f"{DEFAULT_CONTROLLER_TOOL} missing: build the C side first (scripts/test.sh does)")
+    r = run_controller(DEFAULT_CONTROLLER_TOOL, steps=300)
+    s = r["controller_step"]
+    assert s["n"] == 300 and 0 < s["median_us"] <= s["p99_us"] <= s["max_us"]
+    bits = [k for k in r if k.startswith("steps_DDYN_CTRL_")]
+    assert len(bits) == 16
+    assert r["steps_DDYN_CTRL_ERR_ARGUMENT"] == 0
+    # the first tau periods fill the history (the fixture network reads 3 rows)
+    assert r["steps_DDYN_CTRL_HISTORY_FILLING"] == 3
