@@ -30,6 +30,7 @@ SUBCOMMAND_MODULES = (
     "train.denoise_study",
     "train.tune",
     "codegen.can",
+    "train.sil",
 )
 
 

@@ -17,7 +17,8 @@
  * SETUP (text, keywords in this order, numbers whitespace-separated):
  *   vehicle NAME  period SEC  fixed 0|1  nominal 17  coeffs 17  x0 8  r_std 12 (sensor kind order,
  *   2 components each)  stale 7 (periods per ddyn_dbw_frame; 0 = not monitored)  max_steps N
- *   idle_exit SEC  metrics PATH  log PATH  track N  then N rows: x y speed width_left width_right
+ *   idle_exit SEC  die_at_step N (fault scenario: the process kills itself with SIGKILL at
+ *   period N, as if killed from outside; -1 = never)  metrics PATH  log PATH  track N  then N rows: x y speed width_left width_right
  * fixed 1: the MPC and EKF use `coeffs` throughout (the network is bypassed: its history is
  * declared out of range, so the controller's nominal coefficients, set to `coeffs`, are used).
  *
@@ -61,6 +62,7 @@ typedef struct {
     int stale[DDYN_DBW_FRAME_COUNT];
     long max_steps;
     double idle_exit;
+    long die_at_step;
     char metrics[PATH_LEN], log[PATH_LEN];
     int n_track;
 } setup_t;
@@ -121,7 +123,8 @@ static int read_setup(const char *path, setup_t *s)
          expect(in, "r_std") && read_n(in, r, 2 * DDYN_MEAS_COUNT) && expect(in, "stale") &&
          read_n(in, st, DDYN_DBW_FRAME_COUNT) && expect(in, "max_steps") && fscanf(in, "%ld", &s->max_steps) == 1 &&
          s->max_steps > 0 && s->max_steps <= MAX_STEPS && expect(in, "idle_exit") &&
-         fscanf(in, "%lf", &s->idle_exit) == 1 && expect(in, "metrics") && fscanf(in, "%511s", s->metrics) == 1 &&
+         fscanf(in, "%lf", &s->idle_exit) == 1 && expect(in, "die_at_step") &&
+         fscanf(in, "%ld", &s->die_at_step) == 1 && expect(in, "metrics") && fscanf(in, "%511s", s->metrics) == 1 &&
          expect(in, "log") && fscanf(in, "%511s", s->log) == 1 && expect(in, "track") &&
          fscanf(in, "%d", &s->n_track) == 1 && s->n_track >= 4 && s->n_track <= DDYN_MPC_MAX_TRACK_POINTS;
     for (i = 0; ok && i < s->n_track; ++i) {
@@ -176,6 +179,7 @@ static int open_can(const char *ifname)
 int main(int argc, char **argv)
 {
     static setup_t s;
+    static const char *const meas_names[DDYN_MEAS_COUNT] = DDYN_MEAS_NAMES;
     const char *iface = "vcan0";
     const ddyn_vehicle_model *model;
     ddyn_ctrl_config cfg;
@@ -260,6 +264,10 @@ int main(int argc, char **argv)
         if (now - last_any_rx > s.idle_exit) {
             break; /* the plant is gone for good */
         }
+        if (trigger && steps == s.die_at_step) {
+            fflush(log);
+            raise(SIGKILL); /* the fault scenario: gone without a word, files left as they are */
+        }
         if (trigger) {
             ddyn_sil_period per;
             struct can_frame cf;
@@ -323,6 +331,14 @@ int main(int argc, char **argv)
         fprintf(m, "  \"status_counts\": {");
         for (k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) {
             fprintf(m, "%s\"%s\": %ld", k ? ", " : "", ddyn_ctrl_status_name(1u << k), status_count[k]);
+        }
+        fprintf(m, "},\n  \"sensor_rejected\": {");
+        for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+            fprintf(m, "%s\"%s\": %lu", k ? ", " : "", meas_names[k], (unsigned long)node.ctl.rejected_count[k]);
+        }
+        fprintf(m, "},\n  \"sensor_nonfinite\": {");
+        for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+            fprintf(m, "%s\"%s\": %lu", k ? ", " : "", meas_names[k], (unsigned long)node.ctl.nonfinite_count[k]);
         }
         fprintf(m, "},\n  \"fixed_coefficients\": %s\n}\n", s.fixed ? "true" : "false");
         fclose(m);

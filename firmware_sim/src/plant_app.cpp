@@ -2,6 +2,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <cstdlib>
 #include <cstdio>
 #include <fstream>
 #include <stdexcept>
@@ -94,6 +95,7 @@ PlantAppConfig PlantAppConfig::from_json(const nlohmann::json& j) {
   get_if(j, "log_period", c.log_period);
   get_if(j, "resume", c.resume);
   get_if(j, "snapshot_period", c.snapshot_period);
+  get_if(j, "crash_at", c.crash_at);
   for (int k = 0; k < DDYN_MEAS_COUNT; ++k) {
     c.sensors[k].enabled = false;
     if (!j.contains("sensors") || !j.at("sensors").contains(kSensorNames[k])) continue;
@@ -280,6 +282,12 @@ bool PlantApp::step() {
     last_snapshot_ = t1;
     snapshot(t1);
   }
+  if (cfg_.crash_at >= 0.0 && t1 >= cfg_.crash_at && cfg_.resume.empty()) {
+    // fault scenario: the plant process dies; what it logged so far and its last snapshot survive
+    write_trajectory();
+    std::fflush(nullptr);
+    std::_Exit(3);
+  }
   // 6. end of the run
   if (monitor_.laps_completed() >= cfg_.laps) end_reason_ = "laps_completed";
   else if (t1 >= cfg_.max_time) end_reason_ = "max_time";
@@ -394,6 +402,11 @@ PlantRunResult PlantApp::run() {
   res.end_reason = end_reason_;
   res.metrics = metrics();
   std::ofstream(cfg_.out_dir + "/plant_metrics.json") << res.metrics.dump(2) << "\n";
+  write_trajectory();
+  return res;
+}
+
+void PlantApp::write_trajectory() const {
   std::FILE* out = std::fopen((cfg_.out_dir + "/trajectory.csv").c_str(), cfg_.resume.empty() ? "w" : "a");
   if (out == nullptr) throw std::runtime_error("cannot write " + cfg_.out_dir + "/trajectory.csv");
   if (cfg_.resume.empty())
@@ -403,7 +416,6 @@ PlantRunResult PlantApp::run() {
     std::fputc('\n', out);
   }
   std::fclose(out);
-  return res;
 }
 
 }  // namespace fsim

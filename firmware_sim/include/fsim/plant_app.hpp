@@ -49,6 +49,7 @@ struct PlantAppConfig {
   double log_period = 0.01;        // s between trajectory rows
   std::string resume;              // snapshot to resume from (plant restart)
   double snapshot_period = 0.05;   // s between state snapshots (0: none)
+  double crash_at = -1.0;          // s: fault scenario, the process ends abruptly (exit 3) here
 
   static PlantAppConfig from_json(const nlohmann::json& j);
 };
@@ -63,7 +64,8 @@ class PlantApp {
   PlantApp(const PlantAppConfig& cfg, Bus& bus);
   // one plant period; false when the run has ended (reason in end_reason())
   bool step();
-  PlantRunResult run();  // until the end; writes metrics.json, trajectory.csv in out_dir
+  PlantRunResult run();  // until the end; writes plant_metrics.json, trajectory.csv in out_dir
+  void write_trajectory() const;
   nlohmann::json metrics() const;
 
   const Plant& plant() const { return plant_; }
