@@ -186,7 +186,7 @@ int main(int argc, char **argv)
     struct sigaction sa;
     long steps = 0, misses = 0, timer_steps = 0, send_failed = 0, status_count[DDYN_CTRL_STATUS_BITS] = {0};
     int fd, i, k;
-    double last_step_wall, last_any_rx, last_gnss_wall = -1.0, safe_latency = -1.0;
+    double last_step_wall, last_any_rx, last_gnss_wall = -1.0, safe_latency = -1.0, stale_latency = -1.0;
     int was_safe = 0;
     FILE *log;
 
@@ -291,6 +291,10 @@ int main(int argc, char **argv)
                 safe_latency = t1 - last_gnss_wall;
             }
             was_safe = per.safe;
+            /* the first period commanded safe because frames stopped arriving, after the first position */
+            if (per.stale && stale_latency < 0.0 && last_gnss_wall >= 0.0) {
+                stale_latency = t1 - last_gnss_wall;
+            }
             timer_steps += trigger == 2 ? 1 : 0;
             fprintf(log, "%ld,%.6f,%.2f,%u,%d,%d,%d,%.6f,%.6f", steps, t1, loop_us[steps], (unsigned)per.out.status,
                     trigger, per.safe, per.stale, per.throttle, per.steering);
@@ -323,7 +327,8 @@ int main(int argc, char **argv)
         fprintf(m, "  \"loop_us\": {\"median\": %.3f, \"p99\": %.3f, \"max\": %.3f},\n", median, p99, mx);
         fprintf(m, "  \"deadline_misses\": %ld,\n  \"safe_steps\": %ld,\n  \"timer_steps\": %ld,\n", misses,
                 node.safe_steps, timer_steps);
-        fprintf(m, "  \"first_safe_latency\": %.6f,\n", safe_latency);
+        fprintf(m, "  \"first_safe_latency\": %.6f,\n  \"first_stale_latency\": %.6f,\n", safe_latency,
+                stale_latency);
         fprintf(m, "  \"frames\": {\"ok\": %ld, \"lost\": %ld, \"repeated_counter\": %ld, \"unknown_id\": %ld, "
                    "\"bad_length\": %ld, \"checksum\": %ld, \"range\": %ld, \"send_failed\": %ld},\n",
                 node.frames_ok, node.frames_lost, node.repeated_counter, node.unknown_id, node.bad_length,
