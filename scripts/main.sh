@@ -47,4 +47,7 @@ ddyn crosscheck --data "$OUT/orca_ethzMobil_rk4_noisy.csv" --method rk4
 ddyn crosscheck --data "$OUT/dyn_pp_ethz.csv" --coeffs reference_dataset
 ddyn crosscheck --data "$OUT/putnam.csv" --method rk4
 
+step "sil: one lap of ETHZMobil, the plant and the controller (the DDM above) as two processes over vcan"
+ddyn sil --track ethzMobil --vehicle orca_1_43 --model "$OUT/ddm_orca.ckpt" --laps 1 --out "$OUT/sil"
+
 printf '\nmain job done; outputs in %s\n' "$OUT"

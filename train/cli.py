@@ -31,6 +31,7 @@ SUBCOMMAND_MODULES = (
     "train.tune",
     "codegen.can",
     "train.sil",
+    "train.sil_table",
 )
 
 

@@ -458,9 +458,10 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         # wall time from the last position frame to the controller's safe command for missing frames
         safe["controller_stale_latency_wall"] = cm.get("first_stale_latency")
     if "silent" in f and clog and len(clog.get("step", [])):
-        # the first safe period after the silence began (controller periods -> seconds)
+        # the first period commanded safe for the missing frames after the silence began
+        # (controller periods -> seconds)
         t_ctl = clog["step"] * spec.vehicle.sample_time
-        idx = np.nonzero((clog["safe"] > 0) & (t_ctl >= float(f["silent_at"])))[0]
+        idx = np.nonzero((clog["stale"] > 0) & (t_ctl >= float(f["silent_at"])))[0]
         safe["controller_safe_after_silence"] = (float(t_ctl[idx[0]] - float(f["silent_at"]))
                                                  if len(idx) else None)
     if safe:
