@@ -16,6 +16,7 @@ from .errors import DdynError
 SUBCOMMAND_MODULES = (
     "train.simulate",
     "train.importers",
+    "train.lcm_replay",
     "codegen.generate",
     "train.crosscheck",
     "train.fidelity",

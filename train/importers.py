@@ -1,11 +1,12 @@
 """Importers: every dataset file the project reads becomes a canonical Dataset.
 
-Three formats are accepted (docs/dataset_format.md gives the exact mappings):
+Four formats are accepted (docs/dataset_format.md gives the exact mappings):
 
 - "canonical": the project's own CSV format, written by train.dataset.write_canonical;
 - "ddm_npz": the Deep Dynamics simulated sets (.npz with time, states, dstates, inputs);
 - "racecar_csv": the RACECAR logs of the Indy Autonomous Challenge (a CSV whose
-  header line starts with '#').
+  header line starts with '#');
+- "lcm_log": an LCM log of the controller's telemetry (train/lcm_import.py, docs/lcm.md).
 
 `load_any` detects the format from the file's first bytes and is what every other
 command uses. Bad input raises DataError naming the file and, where known, the
@@ -19,14 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
+from . import lcm_import
 from . import vehicle as vehicle_mod
 from .dataset import COLUMNS, FORMAT_MAGIC, SAMPLE_TIME_RTOL, Dataset, write_canonical
 from .errors import DataError, DdynError
 from .model import INPUT_NAMES, STATE_NAMES
 
-FORMATS = ("canonical", "ddm_npz", "racecar_csv")
+FORMATS = ("canonical", "ddm_npz", "racecar_csv", "lcm_log")
 FORMAT_HELP = ("a canonical dataset (first line '# ddyn-dataset 1'), a Deep Dynamics .npz archive "
-               "(arrays time, states, dstates, inputs) or a RACECAR CSV (first line '# time(s),x(m),...')")
+               "(arrays time, states, dstates, inputs), a RACECAR CSV (first line '# time(s),x(m),...') "
+               "or an LCM log of the controller's telemetry")
 
 DEFAULT_MIN_VX = 5.0                  # m/s; the papers drop slower rows of the real log
 DEFAULT_BRAKE_FULL_SCALE_KPA = 2757.9  # brake pressure that maps to throttle -1 (400 psi)
@@ -503,11 +506,13 @@ def _racecar_metadata(names: list[str], ignored: list[str], n_file: int, n_kept:
 # any format
 
 def detect_format(path: str | Path) -> str:
-    """"canonical", "ddm_npz" or "racecar_csv", from the file's first bytes (not its extension)."""
+    """"canonical", "ddm_npz", "racecar_csv" or "lcm_log", from the file's first bytes (not its extension)."""
     path = Path(path)
     head = _read_bytes(path, 4096)
     if head.startswith(_ZIP_MAGIC):
         return "ddm_npz"
+    if lcm_import.is_lcm_log(head):
+        return "lcm_log"
     first = head.split(b"\n", 1)[0].removeprefix(b"\xef\xbb\xbf").decode("utf-8", "replace").strip()
     if first.startswith(_CANONICAL_PREFIX):
         return "canonical"
@@ -517,15 +522,18 @@ def detect_format(path: str | Path) -> str:
     raise DataError(path, f"{what}; expected {FORMAT_HELP}")
 
 
-_READERS = {"canonical": read_canonical, "ddm_npz": read_ddm_npz, "racecar_csv": read_racecar_csv}
-_READER_OPTIONS = {"canonical": (), "ddm_npz": ("state_key",), "racecar_csv": ("min_vx", "brake_full_scale_kpa")}
+_READERS = {"canonical": read_canonical, "ddm_npz": read_ddm_npz, "racecar_csv": read_racecar_csv,
+            "lcm_log": lcm_import.read_lcm_log}
+_READER_OPTIONS = {"canonical": (), "ddm_npz": ("state_key",), "racecar_csv": ("min_vx", "brake_full_scale_kpa"),
+                   "lcm_log": ("min_vx", "channel_prefix")}
 
 
 def load_any(path: str | Path, vehicle: str | None = None, fmt: str = "auto", **options) -> Dataset:
     """Read any accepted dataset file as a canonical Dataset.
 
     fmt: "auto" (detect from the first bytes) or one of FORMATS. options: state_key
-    (ddm_npz), min_vx and brake_full_scale_kpa (racecar_csv); options of the other
+    (ddm_npz), min_vx and brake_full_scale_kpa (racecar_csv), min_vx and channel_prefix
+    (lcm_log); options of the other
     formats and None values are ignored, so one call serves any file. vehicle: for
     the imported formats, the vehicle the data belongs to (default: the reader's);
     for a canonical file it must agree with the vehicle the file names, if any.
@@ -558,18 +566,21 @@ def _with_vehicle(path: Path, ds: Dataset, vehicle: str | None) -> Dataset:
 # `ddyn import`
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("import", help="convert a dataset (Deep Dynamics .npz, RACECAR .csv, canonical) "
-                              "to the canonical format")
+    p = subparsers.add_parser("import", help="convert a dataset (Deep Dynamics .npz, RACECAR .csv, LCM log, "
+                              "canonical) to the canonical format")
     p.add_argument("src", help="dataset file to read")
     p.add_argument("-o", "--out", required=True, help="canonical dataset to write")
     p.add_argument("--vehicle", help="vehicle the data belongs to (default: orca_1_43 for .npz, av21 for "
-                   "RACECAR CSV, the file's own for canonical)")
+                   "RACECAR CSV, the one whose sample time an LCM log shows, the file's own for canonical)")
     p.add_argument("--format", choices=("auto",) + FORMATS, default="auto",
                    help="input format (default: detect from the file's first bytes)")
     p.add_argument("--min-vx", type=float,
-                   help=f"RACECAR: drop rows slower than this, m/s (default {DEFAULT_MIN_VX:g})")
+                   help=f"RACECAR, LCM log: drop rows slower than this, m/s (default {DEFAULT_MIN_VX:g} for "
+                   "RACECAR, none for an LCM log)")
     p.add_argument("--brake-full-scale-kpa", type=float,
                    help=f"RACECAR: brake pressure mapped to throttle -1 (default {DEFAULT_BRAKE_FULL_SCALE_KPA:g})")
+    p.add_argument("--channel-prefix",
+                   help="LCM log: prefix of the telemetry channels (default DDYN_: DDYN_STATE, DDYN_COEFFS, ...)")
     p.add_argument("--state-key", choices=DDM_STATE_KEYS,
                    help="Deep Dynamics .npz: Euler chain (dstates, default) or high-order integrator (states)")
     p.set_defaults(func=_run_import)
@@ -577,7 +588,8 @@ def register(subparsers) -> None:
 
 def _run_import(args) -> int:
     ds = load_any(args.src, vehicle=args.vehicle, fmt=args.format, min_vx=args.min_vx,
-                  brake_full_scale_kpa=args.brake_full_scale_kpa, state_key=args.state_key)
+                  brake_full_scale_kpa=args.brake_full_scale_kpa, state_key=args.state_key,
+                  channel_prefix=args.channel_prefix)
     try:
         write_canonical(ds, args.out)
     except OSError as e:
