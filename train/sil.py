@@ -14,7 +14,8 @@ result does not depend on the machine's load); `--realtime F` paces it at F time
 
 Outputs (in --out): sil_metrics.json (lap times, average speed, violations, tracking error,
 controller loop time median/p99/max, deadline misses, DBW and bus counts, fault timings),
-trajectory.csv, controller_log.csv, lap.png, and the exact configs both processes ran with.
+trajectory.csv, controller_log.csv, controller.lcm (the controller's estimate and timing as an LCM
+log, converted from its log on the host), lap.png, and the exact configs both processes ran with.
 """
 from __future__ import annotations
 
@@ -54,8 +55,8 @@ SENSOR_ORDER = ("gnss_position", "heading", "yaw_rate", "acceleration", "wheel_s
 # DBW frames in ddyn_dbw_frame order and how many control periods (50 Hz) each may be missing
 # before the controller commands the safe stop: more than one period for the 100 Hz frames (two
 # frames in a row lost), more than two for the 50 Hz GNSS frames. Without frames the controller
-# runs a period every 1.5 periods on its own timer, so a silent bus gives the safe command about
-# 60 ms after the last position frame (the target is 100 ms); a bus losing 5 % of its frames
+# runs a period on its own timer 1.5 periods after the last one, then every period, so a silent
+# bus gives the safe command about 50 ms after the last position frame (the target is 100 ms); a bus losing 5 % of its frames
 # rarely trips it (three GNSS frames in a row: about 1e-4 per period).
 FRAME_STALE_PERIODS = {"command": 0, "steering": 1, "status": 1, "wheel_speeds": 1, "imu": 1,
                        "gnss_position": 2, "gnss_heading": 2}
@@ -469,6 +470,44 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
     return out
 
 
+def write_lcm_log(work: Path, period: float) -> Path | None:
+    """The controller's per-period log as an LCM event log (DDYN_STATE, DDYN_TIMING; lcmtypes/).
+
+    The controller in the guest is static and the pinned `lcm` package ships only a shared liblcm,
+    so the process itself does not publish: its log is converted here, on the host, with the same
+    message types (utime = the controller's period count times the period).
+    """
+    from .lcm_types import lcm_module, types
+    clog = read_csv(work / "controller_log.csv")
+    if not clog or len(clog.get("step", [])) == 0:
+        return None
+    lcm, t = lcm_module(), types()
+    path = work / "controller.lcm"
+    log = lcm.EventLog(str(path), "w", overwrite=True)
+    misses, worst = 0, 0.0
+    names = ("x", "y", "yaw", "vx", "vy", "omega", "throttle", "steering")
+    for i in range(len(clog["step"])):
+        step = int(clog["step"][i])
+        utime = int(round(step * period * 1e6))
+        m = t.state_estimate_t()
+        m.utime, m.step = utime, step
+        for n in names:
+            setattr(m, n, float(clog[n][i]))
+        m.cov_diag = [float(clog[f"P{k}"][i]) for k in range(8)]
+        log.write_event(utime, "DDYN_STATE", m.encode())
+        total = float(clog["loop_us"][i]) * 1e-6
+        missed = total > period
+        misses += int(missed)
+        worst = max(worst, total)
+        tm = t.loop_timing_t()
+        tm.utime, tm.step, tm.period_s, tm.total_s, tm.deadline_s = utime, step, period, total, period
+        tm.deadline_missed, tm.deadline_misses, tm.max_total_s = bool(missed), misses, worst
+        tm.n_stages, tm.stage_names, tm.stage_s = 1, ["controller_step"], [total]
+        log.write_event(utime, "DDYN_TIMING", tm.encode())
+    log.close()
+    return path
+
+
 def plot_lap(path: Path, track: Track, table: np.ndarray, work: Path, title: str) -> None:
     import matplotlib
     matplotlib.use("Agg")
@@ -542,6 +581,8 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
             kvm = os.environ.get("DDYN_VCAN_KVM", "0") == "1"
         run = run_guest(bins, out, track_dir, spec.track.name, kvm, timeout)
     metrics = summarise(out, spec, table, run)
+    lcm_path = write_lcm_log(out, spec.vehicle.sample_time)
+    metrics["lcm_log"] = str(lcm_path) if lcm_path else None
     (out / "sil_metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     laps = ", ".join(f"{t:.2f} s" for t in metrics["lap_times"]) or "none"
     plot_lap(out / "lap.png", spec.track, table, out,

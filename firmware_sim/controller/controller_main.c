@@ -7,7 +7,8 @@
  * usage: ddyn_sil_controller SETUP [--can IFACE]     (IFACE default vcan0)
  *
  * One control period runs when a GNSS_Position frame arrives (the plant sends it last in a
- * period), or on the controller's own timer when none has come for 1.5 periods, so the car is
+ * period), or on the controller's own timer when none has come for 1.5 periods (then every period
+ * until one comes), so the car is
  * commanded (safely) even when the sensors fall silent. The controller's time is counted in
  * periods, which makes it run unchanged in real time and in lock-step with a faster-than-real-
  * time plant.
@@ -187,7 +188,7 @@ int main(int argc, char **argv)
     long steps = 0, misses = 0, timer_steps = 0, send_failed = 0, status_count[DDYN_CTRL_STATUS_BITS] = {0};
     int fd, i, k;
     double last_step_wall, last_any_rx, last_gnss_wall = -1.0, safe_latency = -1.0, stale_latency = -1.0;
-    int was_safe = 0;
+    int was_safe = 0, timer_mode = 0;
     FILE *log;
 
     if (argc < 2) {
@@ -233,7 +234,7 @@ int main(int argc, char **argv)
         return 2;
     }
     fprintf(log, "step,wall,loop_us,status,trigger,safe,stale,throttle_cmd,steering_cmd,"
-                 "x,y,yaw,vx,vy,omega,throttle,steering\n");
+                 "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7\n");
     memset(&sa, 0, sizeof sa);
     sa.sa_handler = on_signal; /* no SA_RESTART: poll() returns at once */
     sigaction(SIGTERM, &sa, NULL);
@@ -241,7 +242,9 @@ int main(int argc, char **argv)
 
     last_step_wall = last_any_rx = now_s();
     while (!stop_requested && steps < s.max_steps) {
-        double now = now_s(), wait = 1.5 * s.period - (now - last_step_wall);
+        /* 1.5 periods of grace for the next position frame, then the nominal period on the timer */
+        double timeout = (timer_mode ? 1.0 : 1.5) * s.period;
+        double now = now_s(), wait = timeout - (now - last_step_wall);
         int trigger = 0;
         struct pollfd p;
         p.fd = fd;
@@ -258,7 +261,7 @@ int main(int argc, char **argv)
             }
         }
         now = now_s();
-        if (!trigger && now - last_step_wall >= 1.5 * s.period) {
+        if (!trigger && now - last_step_wall >= timeout) {
             trigger = 2; /* the controller's own timer */
         }
         if (now - last_any_rx > s.idle_exit) {
@@ -296,10 +299,14 @@ int main(int argc, char **argv)
                 stale_latency = t1 - last_gnss_wall;
             }
             timer_steps += trigger == 2 ? 1 : 0;
+            timer_mode = trigger == 2;
             fprintf(log, "%ld,%.6f,%.2f,%u,%d,%d,%d,%.6f,%.6f", steps, t1, loop_us[steps], (unsigned)per.out.status,
                     trigger, per.safe, per.stale, per.throttle, per.steering);
             for (k = 0; k < DDYN_NX; ++k) {
                 fprintf(log, ",%.6g", per.out.x_est[k]);
+            }
+            for (k = 0; k < DDYN_NX; ++k) {
+                fprintf(log, ",%.6g", node.ctl.ekf.P[k * DDYN_NX + k]);
             }
             fputc('\n', log);
             last_step_wall = now_s();

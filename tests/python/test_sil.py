@@ -134,7 +134,12 @@ def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_pat
     assert t[0] < 0.05 and t[-1] > 1.95  # both halves of the run are in the log
     lat = m["controller"]["first_stale_latency"]
     # an IMU frame may be missing for one period; without frames the controller's timer runs a
-    # period every 1.5 periods (30 ms): the safe command follows at the second one, about 60 ms
-    assert 0.05 < lat < 0.1, lat
+    # period after 1.5 periods (30 ms), then every period: the safe command follows at the second
+    # one, about 50 ms (wall time, in an emulated guest on a shared machine)
+    assert 0.04 < lat < 0.1, lat
     assert m["safe_state"]["controller_stale_latency_wall"] == lat
     assert json.loads((tmp_path / "plant_resume.json").read_text())["resume"].endswith("snapshot.json")
+    # the controller's LCM log goes straight into ddyn import
+    from train.importers import load_any
+    ds = load_any(tmp_path / "controller.lcm")
+    assert len(ds) == m["controller"]["periods"]
