@@ -336,9 +336,9 @@ int main(int argc, char **argv)
                 node.safe_steps, timer_steps);
         fprintf(m, "  \"first_safe_latency\": %.6f,\n  \"first_stale_latency\": %.6f,\n", safe_latency,
                 stale_latency);
-        fprintf(m, "  \"frames\": {\"ok\": %ld, \"lost\": %ld, \"repeated_counter\": %ld, \"unknown_id\": %ld, "
+        fprintf(m, "  \"frames\": {\"ok\": %ld, \"lost\": %ld, \"repeated_counter\": %ld, \"late\": %ld, \"unknown_id\": %ld, "
                    "\"bad_length\": %ld, \"checksum\": %ld, \"range\": %ld, \"send_failed\": %ld},\n",
-                node.frames_ok, node.frames_lost, node.repeated_counter, node.unknown_id, node.bad_length,
+                node.frames_ok, node.frames_lost, node.repeated_counter, node.late, node.unknown_id, node.bad_length,
                 node.checksum, node.range, send_failed);
         fprintf(m, "  \"status_counts\": {");
         for (k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) {

@@ -93,13 +93,19 @@ int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *
     if (f == DDYN_DBW_FRAME_COMMAND) {
         return 0; /* our own kind of frame (another controller's): not for us */
     }
-    if (node->last_counter[f] == (int)counter) {
-        node->repeated_counter += 1; /* a stuck sender: the data is stale */
-        return 0;
-    }
     if (node->last_counter[f] >= 0) {
-        node->frames_lost += (long)((counter + DDYN_DBW_COUNTER_MODULO - (unsigned)node->last_counter[f] - 1u) %
-                                    DDYN_DBW_COUNTER_MODULO);
+        /* forward by 1..8 (mod 16): new, a skip means lost frames; 0: a stuck sender; 9..15: an
+         * older frame arriving late. Neither of the last two may overwrite newer data. */
+        unsigned step = (counter + DDYN_DBW_COUNTER_MODULO - (unsigned)node->last_counter[f]) % DDYN_DBW_COUNTER_MODULO;
+        if (step == 0u) {
+            node->repeated_counter += 1;
+            return 0;
+        }
+        if (step > DDYN_DBW_COUNTER_MODULO / 2u) {
+            node->late += 1;
+            return 0;
+        }
+        node->frames_lost += (long)(step - 1u);
     }
     node->last_counter[f] = counter;
     node->last_rx_step[f] = node->steps;

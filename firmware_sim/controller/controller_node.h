@@ -3,8 +3,9 @@
  * control period, the command frame out. The process (controller_main.c) adds the socket, the
  * clock and the files; the in-process SIL tests drive the same node through memory.
  *
- * Frame policy: checksum, length and range (ddyn_dbw_decode) and repeated counters reject a frame;
- * a counter jump means frames were lost and is counted, the frame itself is used. A monitored
+ * Frame policy: checksum, length and range (ddyn_dbw_decode), a repeated counter and a counter up
+ * to 8 behind (an older frame arriving late) reject a frame; a counter jump forward means frames
+ * were lost and is counted, the frame itself is used. A monitored
  * frame missing for more than `stale[f]` periods, or the controller's own safe mode, gives the safe
  * command (ddyn_ctrl_safe_command: brake, then hold; steering held). (The strict monitor of
  * ddyn/dbw.h, where every counter jump is a failure that needs an explicit re-enable, would stop
@@ -37,7 +38,7 @@ typedef struct {
     long steps;
     uint8_t tx_counter;
     /* counts */
-    long frames_ok, frames_lost, repeated_counter, checksum, bad_length, range, unknown_id, safe_steps;
+    long frames_ok, frames_lost, repeated_counter, late, checksum, bad_length, range, unknown_id, safe_steps;
 } ddyn_sil_node;
 
 typedef struct {

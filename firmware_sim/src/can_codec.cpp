@@ -55,6 +55,7 @@ const char* command_check_name(CommandCheck c) {
     case CommandCheck::kRepeatedCounter: return "repeated_counter";
     case CommandCheck::kOutOfRange: return "out_of_range";
     case CommandCheck::kNotEnabled: return "not_enabled";
+    case CommandCheck::kStaleCounter: return "stale_counter";
   }
   return "unknown";
 }
@@ -64,7 +65,13 @@ CommandCheck CommandDecoder::decode(const CanFrame& f, DbwCommand& out) {
   if (dbc_checksum(f.id, f.data.data()) != f.data[7]) return CommandCheck::kBadChecksum;
   ddyn_can_dbw_command_t m;
   if (ddyn_can_dbw_command_unpack(&m, f.data.data(), f.dlc) != 0) return CommandCheck::kWrongLength;
-  if (m.counter == last_counter_) return CommandCheck::kRepeatedCounter;
+  if (last_counter_ >= 0) {
+    // counters move forward by 1 (mod 16); a step of 1..8 is new (a skip means lost frames), 0 is a
+    // repeat (stuck sender) and 9..15 is an older frame arriving late: neither may be applied
+    const int step = (m.counter - last_counter_ + 16) % 16;
+    if (step == 0) return CommandCheck::kRepeatedCounter;
+    if (step > 8) return CommandCheck::kStaleCounter;
+  }
   last_counter_ = m.counter;
   if (!ddyn_can_dbw_command_throttle_is_in_range(m.throttle) || !ddyn_can_dbw_command_brake_is_in_range(m.brake) ||
       !ddyn_can_dbw_command_steering_angle_is_in_range(m.steering_angle) ||

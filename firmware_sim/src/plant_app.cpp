@@ -32,7 +32,8 @@ const ddyn_vehicle_model* find_model(const std::string& name) {
 // DBW_Status fault bits (can/ddyn_dbw.dbc): 0 timeout, 1 counter, 2 checksum, 3 range
 uint8_t fault_bit(CommandCheck c) {
   switch (c) {
-    case CommandCheck::kRepeatedCounter: return 1u << 1;
+    case CommandCheck::kRepeatedCounter:
+    case CommandCheck::kStaleCounter: return 1u << 1;
     case CommandCheck::kBadChecksum: return 1u << 2;
     case CommandCheck::kOutOfRange: return 1u << 3;
     default: return 0;
@@ -212,7 +213,7 @@ void PlantApp::emit(double t_prev, double t) {
                      : dbw_.mode() == DbwMode::kSafeStop ? DDYN_CAN_DBW_STATUS_MODE_SAFE_STOP_CHOICE
                                                          : DDYN_CAN_DBW_STATUS_MODE_STANDBY_CHOICE;
     uint8_t faults = dbw_.trips() > 0 ? 1u : 0u;
-    for (int c = 0; c < 6; ++c)
+    for (int c = 0; c < 7; ++c)
       if (rejected_[c] > 0) faults |= fault_bit(static_cast<CommandCheck>(c));
     out.push_back(encoder_.status(plant_.state()[kThrottle], mode, dbw_.mode() == DbwMode::kActive, faults));
   }
@@ -342,7 +343,7 @@ nlohmann::json PlantApp::metrics() const {
               {"commands_ok", commands_ok_},
               {"rejected", {{"wrong_length", rejected_[1]}, {"bad_checksum", rejected_[2]},
                             {"repeated_counter", rejected_[3]}, {"out_of_range", rejected_[4]},
-                            {"not_enabled", rejected_[5]}}}};
+                            {"not_enabled", rejected_[5]}, {"stale_counter", rejected_[6]}}}};
   j["bus"] = {{"frames_sent", frames_sent_}, {"frames_received", frames_received_},
               {"tx_dropped", tx_dropped_}, {"tx_corrupted", tx_corrupted_},
               {"rx_dropped", rx_dropped_}, {"rx_corrupted", rx_corrupted_},

@@ -37,6 +37,9 @@ TEST(CanCodec, CommandRoundTripAndChecks) {
     g.data[byte] ^= 0x10;
     EXPECT_EQ(dec.decode(g, cmd), CommandCheck::kBadChecksum) << byte;
   }
+  // an older frame arriving late (counter behind the last good one) is never applied
+  f = fsim::encode_command(0.9, 0.3, true, DDYN_CAN_DBW_COMMAND_MODE_AUTONOMOUS_CHOICE, 2);
+  EXPECT_EQ(dec.decode(f, cmd), CommandCheck::kStaleCounter);
   f = fsim::encode_command(0.3, 0.1, false, DDYN_CAN_DBW_COMMAND_MODE_AUTONOMOUS_CHOICE, 9);
   EXPECT_EQ(dec.decode(f, cmd), CommandCheck::kNotEnabled);
   f = fsim::encode_command(0.3, 0.1, true, DDYN_CAN_DBW_COMMAND_MODE_AUTONOMOUS_CHOICE, 10);

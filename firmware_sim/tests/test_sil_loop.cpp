@@ -63,3 +63,20 @@ TEST(SilLoop, ControllerKilledMidRunEndsInTheSafeStop) {
   EXPECT_EQ(loop.app->end_reason(), "safe_stop");
   EXPECT_DOUBLE_EQ(loop.app->plant().state()[fsim::kVx], 0.0);
 }
+
+// Frames held back up to two control periods arrive out of order: the late ones are refused on
+// both sides (never applied over newer data), and the DBW unit keeps receiving valid commands.
+TEST(SilLoop, DelayedFramesArriveLateAndAreNotApplied) {
+  FSIM_REQUIRE_TRACKS();
+  auto cfg = fsim_test::orca_sil_config();
+  cfg.max_time = 3.0;
+  cfg.faults.delay_max = 0.04;
+  fsim_test::SilLoop loop(cfg);
+  while (loop.step()) {
+  }
+  const auto m = loop.app->metrics();
+  EXPECT_GT(loop.node->late, 10);
+  EXPECT_GT(m["dbw"]["rejected"]["stale_counter"].get<long>(), 0);
+  EXPECT_GT(m["dbw"]["commands_ok"].get<long>(), 50);
+  EXPECT_EQ(m["dbw"]["trips"].get<int>(), 0);  // 80 ms deadline: a 40 ms delay never trips it
+}

@@ -22,7 +22,7 @@ struct CanFrame {
 uint8_t dbc_checksum(uint32_t id, const uint8_t* data);
 void seal(CanFrame& f);  // write the checksum into byte 7
 
-enum class CommandCheck { kOk, kWrongLength, kBadChecksum, kRepeatedCounter, kOutOfRange, kNotEnabled };
+enum class CommandCheck { kOk, kWrongLength, kBadChecksum, kRepeatedCounter, kOutOfRange, kNotEnabled, kStaleCounter };
 const char* command_check_name(CommandCheck c);
 
 struct DbwCommand {
@@ -34,7 +34,8 @@ struct DbwCommand {
 };
 
 // DBW-unit side: checks of a received DBW_Command frame. A repeated counter means a stuck sender
-// (rejected); a skipped counter means lost frames (accepted, counted by the caller if it wishes).
+// (rejected); a counter up to 8 behind means an older frame arriving late (rejected); a skipped
+// counter means lost frames (accepted).
 class CommandDecoder {
  public:
   CommandCheck decode(const CanFrame& f, DbwCommand& out);

@@ -101,7 +101,7 @@ class PlantApp {
   std::vector<Measurement> meas_;
   long frames_sent_ = 0, frames_received_ = 0, commands_ok_ = 0, lockstep_timeouts_ = 0;
   long rx_dropped_ = 0, rx_corrupted_ = 0, tx_dropped_ = 0, tx_corrupted_ = 0;
-  std::array<long, 6> rejected_{};
+  std::array<long, 7> rejected_{};
   bool gnss_sent_ = false, ended_ = false;
   std::string end_reason_;
   double wall_start_ = 0.0, t_start_ = 0.0, last_log_ = -1e9, last_snapshot_ = -1e9, wall_elapsed_ = 0.0;
