@@ -11,7 +11,8 @@ For each vehicle file it writes, into c_src/generated/ (committed; see README,
   ddyn_models.c/.h            the table of generated vehicles (ddyn_vehicle_model
                               descriptors) and the largest work sizes, so callers
                               can own fixed-size work memory.
-  ddyn_mpc_limits.h           each vehicle's input limits for the MPC (codegen/mpc.py).
+  ddyn_mpc_model.c/.h, ddyn_mpc_limits.h  the MPC's prediction step (single-step RK4 with
+                              its Jacobians) and each vehicle's input limits (codegen/mpc.py).
 and, into tests/c/generated/, reference vectors computed by the Python model
 (numpy for states, torch autograd for Jacobians: an implementation independent of
 CasADi) that the cmocka tests compare the generated C against.
@@ -221,7 +222,7 @@ def generate(vehicle_names: list[str] | None = None, out: Path = DEFAULT_OUT,
     for v in vehicles:
         written += _generate_casadi(v, funcs[v.name], out)
     written += _registry(vehicles, funcs, out)
-    written += mpc_codegen.generate_limits(vehicles, out, _banner)
+    written += mpc_codegen.generate(vehicles, out, _banner, CG_OPTIONS)
     if vectors_out is not None:
         Path(vectors_out).mkdir(parents=True, exist_ok=True)
         written.append(_vectors_header(vehicles, Path(vectors_out)))

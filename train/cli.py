@@ -33,6 +33,7 @@ SUBCOMMAND_MODULES = (
     "codegen.can",
     "train.sil",
     "train.sil_table",
+    "train.mpc_lap",
 )
 
 

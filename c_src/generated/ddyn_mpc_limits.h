@@ -10,16 +10,25 @@
 #ifndef DDYN_MPC_LIMITS_H
 #define DDYN_MPC_LIMITS_H
 
-/* one row per vehicle: name, then lo, hi of dthrottle, dsteering, throttle, steering */
+#include "ddyn/model.h"
+#include "ddyn_mpc_model.h"
+
+/* work sizes of the MPC step functions */
+#define DDYN_MPC_STEP_SZ_W 174
+#define DDYN_MPC_STEP_SZ_IW 1
+#define DDYN_MPC_STEP_SUBSTEPS 1
+
+/* one row per vehicle: name, lo, hi of dthrottle, dsteering, throttle, steering, the MPC step */
 typedef struct {
     const char *name;
     double lo_hi[4][2];
+    ddyn_casadi_fn step;
 } ddyn_mpc_vehicle_limits;
 
 #define DDYN_MPC_LIMITS_COUNT 2
 static const ddyn_mpc_vehicle_limits ddyn_mpc_limits[DDYN_MPC_LIMITS_COUNT] = {
-    {"av21", {{-5.0, 5.0}, {-0.6, 0.6}, {-1.0, 1.0}, {-0.25, 0.25}}},
-    {"orca_1_43", {{-10.0, 10.0}, {-5.0, 5.0}, {-0.1, 1.0}, {-0.35, 0.35}}},
+    {"av21", {{-5.0, 5.0}, {-0.6, 0.6}, {-1.0, 1.0}, {-0.25, 0.25}}, ddyn_av21_mpc_step},
+    {"orca_1_43", {{-10.0, 10.0}, {-5.0, 5.0}, {-0.1, 1.0}, {-0.35, 0.35}}, ddyn_orca_1_43_mpc_step},
 };
 
 #endif

@@ -1,10 +1,14 @@
 /* ddyn MPC: configuration, parameters, raceline table and the real-time-iteration step (see ddyn/mpc.h). */
 #include "ddyn/mpc.h"
+#include "ddyn/mpc_qp.h"
 #include "ddyn_mpc_limits.h"
 
 #include <math.h>
 #include <stddef.h>
 #include <string.h>
+
+/* the generated MPC step runs in the model's work memory */
+typedef char mpc_step_work_fits[(DDYN_MPC_STEP_SZ_W <= DDYN_MODEL_MAX_SZ_W && DDYN_MPC_STEP_SZ_IW <= DDYN_MODEL_MAX_SZ_IW) ? 1 : -1];
 
 static int all_finite(const double *v, int n)
 {
@@ -33,29 +37,31 @@ ddyn_status ddyn_mpc_default_config(const ddyn_vehicle_model *model, ddyn_mpc_co
     }
     memset(cfg, 0, sizeof *cfg);
     cfg->horizon = DDYN_MPC_DEFAULT_HORIZON;
-    cfg->disc = DDYN_DISC_RK4;
+    cfg->prediction = DDYN_MPC_PRED_RK4_SINGLE;
     for (j = 0; j < DDYN_NU; ++j) {
         cfg->rate_lo[j] = ddyn_mpc_limits[i].lo_hi[j][0];
         cfg->rate_hi[j] = ddyn_mpc_limits[i].lo_hi[j][1];
         cfg->state_lo[j] = ddyn_mpc_limits[i].lo_hi[2 + j][0];
         cfg->state_hi[j] = ddyn_mpc_limits[i].lo_hi[2 + j][1];
     }
-    cfg->q_pos[0] = 1.0;
-    cfg->q_pos[1] = 1.0;
+    /* weights tuned on the 1:43 car's closed-loop lap (docs/mpc.md): steering rate costly enough
+     * to keep the car out of oversteer at the grip limit, throttle rate nearly free */
+    cfg->q_pos[0] = 1000.0;
+    cfg->q_pos[1] = 1000.0;
     cfg->q_terminal_scale = 1.0;
-    cfg->r_rate[0] = 1e-4;
-    cfg->r_rate[1] = 1e-4;
-    cfg->slack_l1 = 100.0;
-    cfg->slack_l2 = 1000.0;
+    cfg->r_rate[0] = 1e-3;
+    cfg->r_rate[1] = 10.0;
+    cfg->slack_l1 = 1e4;
+    cfg->slack_l2 = 1e5;
     cfg->qp_max_iterations = 30;
-    cfg->qp_tolerance = 1e-8;
+    cfg->qp_tolerance = 1e-6;
     return DDYN_OK;
 }
 
 static int config_valid(const ddyn_mpc_config *cfg)
 {
     int j;
-    if (cfg->horizon < 1 || cfg->horizon > DDYN_MPC_MAX_HORIZON || (unsigned)cfg->disc >= (unsigned)DDYN_DISC_COUNT ||
+    if (cfg->horizon < 1 || cfg->horizon > DDYN_MPC_MAX_HORIZON || (unsigned)cfg->prediction >= (unsigned)DDYN_MPC_PRED_COUNT ||
         cfg->qp_max_iterations < 1 || cfg->qp_max_iterations > DDYN_MPC_MAX_QP_ITERATIONS) {
         return 0;
     }
@@ -80,14 +86,24 @@ static int config_valid(const ddyn_mpc_config *cfg)
 
 ddyn_status ddyn_mpc_init(ddyn_mpc *mpc, const ddyn_vehicle_model *model, const ddyn_mpc_config *cfg)
 {
+    int i;
     if (mpc == NULL || model == NULL || cfg == NULL) {
         return DDYN_ERR_ARGUMENT;
     }
     if (!config_valid(cfg)) {
         return DDYN_ERR_ARGUMENT;
     }
+    for (i = 0; i < DDYN_MPC_LIMITS_COUNT; ++i) {
+        if (strcmp(ddyn_mpc_limits[i].name, model->name) == 0) {
+            break;
+        }
+    }
+    if (i == DDYN_MPC_LIMITS_COUNT) {
+        return DDYN_ERR_ARGUMENT; /* a model without a generated MPC step */
+    }
     memset(mpc, 0, sizeof *mpc);
     mpc->model = model;
+    mpc->mpc_step = ddyn_mpc_limits[i].step;
     mpc->cfg = *cfg;
     return DDYN_OK;
 }
@@ -152,13 +168,364 @@ void ddyn_mpc_reset(ddyn_mpc *mpc)
     memset(mpc->u_plan, 0, sizeof mpc->u_plan);
 }
 
-int ddyn_mpc_plan(const ddyn_mpc *mpc, double *x_plan, double *u_plan)
+/* ---- raceline geometry ------------------------------------------------------------------ */
+
+#define LOCAL_WINDOW 40 /* raceline segments searched either side of the previous projection */
+
+/* nearest point of segment i to (px, py): squared distance, parameter in [0, 1] */
+static double segment_distance(const ddyn_mpc_track *t, int i, double px, double py, double *param)
 {
-    int h;
+    int j = i + 1 < t->n ? i + 1 : 0;
+    double dx = t->x[j] - t->x[i], dy = t->y[j] - t->y[i];
+    double rx = px - t->x[i], ry = py - t->y[i];
+    double u = (rx * dx + ry * dy) / (dx * dx + dy * dy);
+    double ex, ey;
+    u = u < 0.0 ? 0.0 : (u > 1.0 ? 1.0 : u);
+    ex = rx - u * dx;
+    ey = ry - u * dy;
+    *param = u;
+    return ex * ex + ey * ey;
+}
+
+/* Projection of (px, py) on the raceline: segment index and parameter. Searches +-LOCAL_WINDOW
+ * segments around hint, or every segment when hint < 0. */
+static int project(const ddyn_mpc_track *t, double px, double py, int hint, double *param)
+{
+    int best = 0, k, count = hint < 0 ? t->n : (2 * LOCAL_WINDOW + 1 < t->n ? 2 * LOCAL_WINDOW + 1 : t->n);
+    int start = hint < 0 ? 0 : hint - (count - 1) / 2;
+    double best_d = INFINITY, best_u = 0.0;
+    for (k = 0; k < count; ++k) {
+        int i = ((start + k) % t->n + t->n) % t->n;
+        double u, d = segment_distance(t, i, px, py, &u);
+        if (d < best_d) {
+            best_d = d;
+            best = i;
+            best_u = u;
+        }
+    }
+    *param = best_u;
+    return best;
+}
+
+/* point, unit tangent and interpolated table values at segment i, parameter u */
+typedef struct {
+    double x, y, tx, ty, speed, wl, wr, s;
+} track_point;
+
+static track_point track_at(const ddyn_mpc_track *t, int i, double u)
+{
+    int j = i + 1 < t->n ? i + 1 : 0;
+    double dx = t->x[j] - t->x[i], dy = t->y[j] - t->y[i], len = hypot(dx, dy);
+    track_point p;
+    p.x = t->x[i] + u * dx;
+    p.y = t->y[i] + u * dy;
+    p.tx = dx / len;
+    p.ty = dy / len;
+    p.speed = t->speed[i] + u * (t->speed[j] - t->speed[i]);
+    p.wl = t->width_left[i] + u * (t->width_left[j] - t->width_left[i]);
+    p.wr = t->width_right[i] + u * (t->width_right[j] - t->width_right[i]);
+    p.s = t->s[i] + u * len;
+    return p;
+}
+
+/* advance (i, u) by ds >= 0 metres along the closed raceline */
+static void advance(const ddyn_mpc_track *t, int *i, double *u, double ds)
+{
+    int k;
+    for (k = 0; k < t->n; ++k) { /* bounded: at most one lap of segments per call */
+        int j = *i + 1 < t->n ? *i + 1 : 0;
+        double len = hypot(t->x[j] - t->x[*i], t->y[j] - t->y[*i]);
+        double left = (1.0 - *u) * len;
+        if (ds <= left) {
+            *u += ds / len;
+            return;
+        }
+        ds -= left;
+        *i = j;
+        *u = 0.0;
+    }
+}
+
+/* ---- one real-time iteration --------------------------------------------------------------- */
+
+static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+/* One prediction step x_next = f(x, u) and, when A is not NULL, its Jacobians A, B. */
+static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, double *x_next, double *A, double *B)
+{
+    ddyn_status st;
+    if (mpc->cfg.prediction == DDYN_MPC_PRED_RK4_SINGLE) {
+        double out[DDYN_NX * (1 + DDYN_NX + DDYN_NU)];
+        double *res[3];
+        const double *arg[3];
+        arg[0] = x;
+        arg[1] = u;
+        arg[2] = mpc->c;
+        res[0] = out;
+        res[1] = out + DDYN_NX;
+        res[2] = out + DDYN_NX * (1 + DDYN_NX);
+        if (mpc->mpc_step(arg, res, mpc->model_work.iw, mpc->model_work.w, 0) != 0) {
+            return DDYN_ERR_EVALUATION;
+        }
+        if (!all_finite(out, DDYN_NX * (1 + DDYN_NX + DDYN_NU))) {
+            return DDYN_ERR_NONFINITE_OUTPUT;
+        }
+        memcpy(x_next, out, DDYN_NX * sizeof(double));
+        if (A != NULL) {
+            memcpy(A, res[1], DDYN_NX * DDYN_NX * sizeof(double));
+            memcpy(B, res[2], DDYN_NX * DDYN_NU * sizeof(double));
+        }
+        return DDYN_OK;
+    }
+    {
+        ddyn_discretisation disc = mpc->cfg.prediction == DDYN_MPC_PRED_EULER ? DDYN_DISC_EULER : DDYN_DISC_RK4;
+        st = ddyn_model_step(mpc->model, disc, x, u, mpc->c, x_next, &mpc->model_work);
+        if (st != DDYN_OK || A == NULL) {
+            return st;
+        }
+        return ddyn_model_step_jacobians(mpc->model, disc, x, u, mpc->c, A, B, NULL, &mpc->model_work);
+    }
+}
+
+/* Linearisation trajectory: x0 and the shifted previous plan (zeros without warm start), clipped
+ * to the rate bounds, simulated by the model; A, B along it. */
+static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX])
+{
+    const int h = mpc->cfg.horizon;
+    int k, j;
+    ddyn_status st;
+    for (k = 0; k < h; ++k) {
+        int src = mpc->have_warm_start ? (k + 1 < h ? k + 1 : h - 1) : -1;
+        for (j = 0; j < DDYN_NU; ++j) {
+            double v = src >= 0 ? mpc->u_plan[src * DDYN_NU + j] : 0.0;
+            mpc->u_lin[k * DDYN_NU + j] = clip(v, mpc->cfg.rate_lo[j], mpc->cfg.rate_hi[j]);
+        }
+    }
+    memcpy(mpc->x_lin, x0, DDYN_NX * sizeof(double));
+    for (k = 0; k < h; ++k) {
+        st = predict(mpc, mpc->x_lin + k * DDYN_NX, mpc->u_lin + k * DDYN_NU, mpc->x_lin + (k + 1) * DDYN_NX,
+                     mpc->A + k * DDYN_NX * DDYN_NX, mpc->B + k * DDYN_NX * DDYN_NU);
+        if (st != DDYN_OK) {
+            return st;
+        }
+    }
+    return DDYN_OK;
+}
+
+/* d(x, y)_k / du_j for j < k by forward propagation of the columns of B_j through A_{j+1..k-1}. */
+static void sensitivities(ddyn_mpc *mpc)
+{
+    const int h = mpc->cfg.horizon, n = 2 * h;
+    int j, k, ch, a, b;
+    memset(mpc->sens, 0, sizeof mpc->sens);
+    for (j = 0; j < h; ++j) {
+        for (ch = 0; ch < DDYN_NU; ++ch) {
+            double v[DDYN_NX], w[DDYN_NX];
+            memcpy(v, mpc->B + j * DDYN_NX * DDYN_NU + ch * DDYN_NX, sizeof v);
+            for (k = j + 1; k <= h; ++k) {
+                double *row = mpc->sens + (k - 1) * 2 * n;
+                row[2 * j + ch] = v[0];
+                row[n + 2 * j + ch] = v[1];
+                if (k == h) {
+                    break;
+                }
+                for (a = 0; a < DDYN_NX; ++a) {
+                    const double *Ak = mpc->A + k * DDYN_NX * DDYN_NX;
+                    double acc = 0.0;
+                    for (b = 0; b < DDYN_NX; ++b) {
+                        acc += Ak[a + b * DDYN_NX] * v[b];
+                    }
+                    w[a] = acc;
+                }
+                memcpy(v, w, sizeof v);
+            }
+        }
+    }
+}
+
+/* cost references along the raceline's speed profile, and track half-planes at the projections of
+ * the linearisation trajectory's positions */
+static void references(ddyn_mpc *mpc, int i0, double u0)
+{
+    const ddyn_mpc_track *t = &mpc->track;
+    const double dt = mpc->model->sample_time;
+    int k, i = i0, ic = i0;
+    double u = u0;
+    for (k = 0; k <= mpc->cfg.horizon; ++k) {
+        double *r = mpc->ref + k * 8, uc;
+        track_point p = track_at(t, i, u), c;
+        r[0] = p.x;
+        r[1] = p.y;
+        advance(t, &i, &u, p.speed * dt);
+        ic = project(t, mpc->x_lin[k * DDYN_NX], mpc->x_lin[k * DDYN_NX + 1], ic, &uc);
+        c = track_at(t, ic, uc);
+        r[2] = c.x;
+        r[3] = c.y;
+        r[4] = -c.ty; /* left normal */
+        r[5] = c.tx;
+        r[6] = c.wl;
+        r[7] = c.wr;
+    }
+}
+
+/* condensed QP in the deviations z = u - u_lin */
+static void build_qp(ddyn_mpc *mpc, const double x0[DDYN_NX])
+{
+    const ddyn_mpc_config *cfg = &mpc->cfg;
+    const int h = cfg->horizon, n = 2 * h;
+    const double dt = mpc->model->sample_time;
+    ddyn_mpc_qp *qp = &mpc->qp;
+    int i, j, k, ch;
+    qp->horizon = h;
+    qp->dt = dt;
+    qp->rho1 = cfg->slack_l1;
+    qp->rho2 = cfg->slack_l2;
+    for (j = 0; j < n; ++j) {
+        double rj = cfg->r_rate[j % DDYN_NU];
+        for (i = 0; i < n; ++i) {
+            qp->hess[i + j * DDYN_QP_NV] = 0.0;
+        }
+        qp->hess[j + j * DDYN_QP_NV] = 2.0 * rj;
+        qp->grad[j] = 2.0 * rj * mpc->u_lin[j];
+        qp->lb[j] = cfg->rate_lo[j % DDYN_NU] - mpc->u_lin[j];
+        qp->ub[j] = cfg->rate_hi[j % DDYN_NU] - mpc->u_lin[j];
+    }
+    for (k = 1; k <= h; ++k) {
+        const double *sx = mpc->sens + (k - 1) * 2 * n, *sy = sx + n, *r = mpc->ref + k * 8;
+        const double *xk = mpc->x_lin + k * DDYN_NX;
+        double w = k == h ? cfg->q_terminal_scale : 1.0;
+        double qx = 2.0 * w * cfg->q_pos[0], qy = 2.0 * w * cfg->q_pos[1];
+        double ex = xk[0] - r[0], ey = xk[1] - r[1], off;
+        int len = 2 * k;
+        double *g = qp->soft_row + (k - 1) * DDYN_QP_NV;
+        for (j = 0; j < len; ++j) {
+            double ax = qx * sx[j], ay = qy * sy[j];
+            for (i = j; i < len; ++i) {
+                qp->hess[i + j * DDYN_QP_NV] += ax * sx[i] + ay * sy[i];
+            }
+            qp->grad[j] += ax * ex + ay * ey;
+            g[j] = r[4] * sx[j] + r[5] * sy[j];
+        }
+        for (j = len; j < n; ++j) {
+            g[j] = 0.0;
+        }
+        /* track bound: -room_right <= n . (p - anchor) <= room_left, soft */
+        off = r[4] * (xk[0] - r[2]) + r[5] * (xk[1] - r[3]);
+        qp->soft_hi[k - 1] = r[6] - off;
+        qp->soft_lo[k - 1] = -r[7] - off;
+        /* throttle, steering (states 6, 7: exact integrators of the rates) within their bounds, the
+         * bounds widened to what the rate limits can reach when x0 itself lies outside them */
+        for (ch = 0; ch < 2; ++ch) {
+            double lo = fmin(cfg->state_lo[ch], x0[6 + ch] + k * dt * cfg->rate_hi[ch]);
+            double hi = fmax(cfg->state_hi[ch], x0[6 + ch] + k * dt * cfg->rate_lo[ch]);
+            qp->hard_lo[2 * (k - 1) + ch] = lo - xk[6 + ch];
+            qp->hard_hi[2 * (k - 1) + ch] = hi - xk[6 + ch];
+        }
+    }
+    for (j = 0; j < n; ++j) { /* mirror the lower triangle */
+        for (i = j + 1; i < n; ++i) {
+            qp->hess[j + i * DDYN_QP_NV] = qp->hess[i + j * DDYN_QP_NV];
+        }
+    }
+}
+
+/* what the returned plan violates of the hard bounds, and its objective */
+static void plan_info(const ddyn_mpc *mpc, ddyn_mpc_info *info)
+{
+    const ddyn_mpc_qp *qp = &mpc->qp;
+    const int h = mpc->cfg.horizon, n = 2 * h;
+    double viol = 0.0, cost = 0.0, acc[2] = {0.0, 0.0};
+    int i, j, k;
+    for (i = 0; i < n; ++i) {
+        double hz = 0.0;
+        viol = fmax(viol, fmax(qp->z[i] - qp->ub[i], qp->lb[i] - qp->z[i]));
+        for (j = 0; j < n; ++j) {
+            hz += qp->hess[i + j * DDYN_QP_NV] * qp->z[j];
+        }
+        cost += qp->z[i] * (0.5 * hz + qp->grad[i]);
+    }
+    for (k = 1; k <= h; ++k) {
+        for (j = 0; j < 2; ++j) {
+            int r = 2 * (k - 1) + j;
+            acc[j] += qp->z[r];
+            viol = fmax(viol, fmax(qp->dt * acc[j] - qp->hard_hi[r], qp->hard_lo[r] - qp->dt * acc[j]));
+        }
+        info->max_slack = fmax(info->max_slack, qp->slack[k - 1]);
+        cost += qp->rho1 * qp->slack[k - 1] + qp->rho2 * qp->slack[k - 1] * qp->slack[k - 1];
+    }
+    info->max_bound_violation = viol;
+    info->cost = cost;
+    info->qp_iterations = qp->iterations;
+    info->converged = qp->converged;
+    info->kkt_residual = qp->residual;
+}
+
+ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)
+{
+    ddyn_mpc_info local;
+    ddyn_status st, qst;
+    int i0, k, j, h;
+    double u0;
+    if (info == NULL) {
+        info = &local;
+    }
+    memset(info, 0, sizeof *info);
+    if (u != NULL) {
+        u[0] = 0.0;
+        u[1] = 0.0;
+    }
+    if (mpc == NULL || x0 == NULL || u == NULL || mpc->model == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    if (!all_finite(x0, DDYN_NX)) {
+        return DDYN_ERR_NONFINITE_INPUT;
+    }
+    if (mpc->track.n < 4 || !mpc->have_coefficients) {
+        return DDYN_ERR_NOT_READY;
+    }
+    h = mpc->cfg.horizon;
+    i0 = project(&mpc->track, x0[0], x0[1], mpc->last_index, &u0);
+    info->track_index = i0;
+    info->progress = track_at(&mpc->track, i0, u0).s;
+    st = linearise(mpc, x0);
+    if (st != DDYN_OK) {
+        return st;
+    }
+    sensitivities(mpc);
+    references(mpc, i0, u0);
+    build_qp(mpc, x0);
+    qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
+    if (qst != DDYN_OK && qst != DDYN_ERR_QP_NOT_CONVERGED) {
+        return qst; /* malformed QP (non-finite sensitivities): keep the old plan */
+    }
+    plan_info(mpc, info);
+    for (k = 0; k < h; ++k) {
+        for (j = 0; j < DDYN_NU; ++j) {
+            int idx = k * DDYN_NU + j;
+            mpc->u_plan[idx] = clip(mpc->u_lin[idx] + mpc->qp.z[idx], mpc->cfg.rate_lo[j], mpc->cfg.rate_hi[j]);
+        }
+    }
+    memcpy(mpc->x_plan, x0, DDYN_NX * sizeof(double));
+    mpc->have_warm_start = 1;
+    mpc->last_index = i0;
+    u[0] = mpc->u_plan[0];
+    u[1] = mpc->u_plan[1];
+    return qst;
+}
+
+int ddyn_mpc_plan(ddyn_mpc *mpc, double *x_plan, double *u_plan)
+{
+    int h, k;
     if (mpc == NULL || !mpc->have_warm_start) {
         return 0;
     }
     h = mpc->cfg.horizon;
+    for (k = 0; k < h; ++k) {
+        if (predict(mpc, mpc->x_plan + k * DDYN_NX, mpc->u_plan + k * DDYN_NU, mpc->x_plan + (k + 1) * DDYN_NX, NULL,
+                    NULL) != DDYN_OK) {
+            return 0;
+        }
+    }
     if (x_plan != NULL) {
         memcpy(x_plan, mpc->x_plan, (size_t)((h + 1) * DDYN_NX) * sizeof(double));
     }
@@ -166,23 +533,4 @@ int ddyn_mpc_plan(const ddyn_mpc *mpc, double *x_plan, double *u_plan)
         memcpy(u_plan, mpc->u_plan, (size_t)(h * DDYN_NU) * sizeof(double));
     }
     return h;
-}
-
-ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)
-{
-    if (u != NULL) {
-        u[0] = 0.0;
-        u[1] = 0.0;
-    }
-    if (info != NULL) {
-        memset(info, 0, sizeof *info);
-    }
-    if (mpc == NULL || x0 == NULL || u == NULL) {
-        return DDYN_ERR_ARGUMENT;
-    }
-    if (!all_finite(x0, DDYN_NX)) {
-        return DDYN_ERR_NONFINITE_INPUT;
-    }
-    /* skeleton (API commit): the real-time iteration follows in the next commit */
-    return DDYN_ERR_NOT_READY;
 }

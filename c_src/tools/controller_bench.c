@@ -10,8 +10,9 @@
  * loop. Only ddyn_ctrl_step is timed. setup (whitespace-separated numbers, in this order):
  *   vehicle name
  *   17 true coefficients (the plant), 17 nominal coefficients (the controller's fallback)
- *   8 initial states
- *   per sensor kind (ddyn_meas_kind order): period in control periods (0 = never), noise std
+ *   8 initial states, 8 process noise variances of the filter (per period)
+ *   per sensor kind (ddyn_meas_kind order): period in control periods (0 = never), noise std of
+ *   the simulated reading, std the filter assumes (its R: noise plus model error)
  *   n, then n raceline rows: x y speed width_left width_right
  * Output: "controller_step n median_us p99_us max_us", then "# key value" lines: steps with
  * each status bit, laps driven, largest distance of the true position from the raceline.
@@ -94,7 +95,7 @@ int main(int argc, char **argv)
 {
     static const int dims[DDYN_MEAS_COUNT] = DDYN_MEAS_DIMS;
     char name[64];
-    double c_true[DDYN_NC], c_nominal[DDYN_NC], x[DDYN_NX], period_noise[2 * DDYN_MEAS_COUNT];
+    double c_true[DDYN_NC], c_nominal[DDYN_NC], x[DDYN_NX], q[DDYN_NX], period_noise[3 * DDYN_MEAS_COUNT];
     long bit_count[DDYN_CTRL_STATUS_BITS] = {0};
     const ddyn_vehicle_model *model;
     ddyn_ctrl_config cfg;
@@ -109,8 +110,8 @@ int main(int argc, char **argv)
         return 2;
     }
     if (scanf("%63s", name) != 1 || (model = ddyn_model_find(name)) == NULL || !read_doubles(c_true, DDYN_NC) ||
-        !read_doubles(c_nominal, DDYN_NC) || !read_doubles(x, DDYN_NX) ||
-        !read_doubles(period_noise, 2 * DDYN_MEAS_COUNT) || scanf("%d", &n_track) != 1 || n_track < 4 ||
+        !read_doubles(c_nominal, DDYN_NC) || !read_doubles(x, DDYN_NX) || !read_doubles(q, DDYN_NX) ||
+        !read_doubles(period_noise, 3 * DDYN_MEAS_COUNT) || scanf("%d", &n_track) != 1 || n_track < 4 ||
         n_track > DDYN_MPC_MAX_TRACK_POINTS) {
         fprintf(stderr, "ddyn_controller_bench: malformed setup on stdin (see the tool's header comment)\n");
         return 2;
@@ -125,8 +126,9 @@ int main(int argc, char **argv)
     }
     ddyn_ctrl_default_config(model, &cfg);
     memcpy(cfg.c_nominal, c_nominal, sizeof c_nominal);
+    memcpy(cfg.q_diag, q, sizeof q);
     for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
-        double sd = period_noise[2 * k + 1];
+        double sd = period_noise[3 * k + 2];
         for (i = 0; i < DDYN_MEAS_MAX_DIM; ++i) {
             cfg.r_diag[k][i] = sd > 0.0 ? sd * sd : 1e-8;
         }
@@ -142,14 +144,14 @@ int main(int argc, char **argv)
         double t0, x_next[DDYN_NX];
         memset(&in, 0, sizeof in);
         for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
-            int period = (int)period_noise[2 * k];
+            int period = (int)period_noise[3 * k];
             double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * DDYN_NX];
             if (period > 0 && i % period == 0 &&
                 ddyn_model_measure(model, (ddyn_meas_kind)k, x, c_true, h, H, &work) == DDYN_OK) {
                 int d;
                 in.reading[k].valid = 1;
                 for (d = 0; d < dims[k]; ++d) {
-                    in.reading[k].z[d] = h[d] + period_noise[2 * k + 1] * gaussian();
+                    in.reading[k].z[d] = h[d] + period_noise[3 * k + 1] * gaussian();
                 }
             }
         }
@@ -187,6 +189,11 @@ int main(int argc, char **argv)
     }
     for (b = 0; b < DDYN_CTRL_STATUS_BITS; ++b) {
         printf("# steps_%s %ld\n", ddyn_ctrl_status_name((ddyn_ctrl_status)1u << b), bit_count[b]);
+    }
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        static const char *const names[DDYN_MEAS_COUNT] = DDYN_MEAS_NAMES;
+        printf("# rejected_%s %lu\n", names[k], (unsigned long)ctl.rejected_count[k]);
+        printf("# nonfinite_%s %lu\n", names[k], (unsigned long)ctl.nonfinite_count[k]);
     }
     printf("# laps %.3f\n", distance / ctl.mpc.track.length);
     printf("# max_raceline_offset_m %.4f\n", max_offset);

@@ -376,6 +376,116 @@ static void test_mpc_without_track_is_safe(void **state)
     assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
 }
 
+/* A "perfectly trained" network for the closed-loop tests: the fixture's tables with a zero head
+ * and the head bias that makes the guard output the true coefficients, and a normalisation wide
+ * enough that the MPC's commands stay in range. The random fixture network would let the MPC
+ * predict with coefficients that are anything inside the guard's ranges. */
+static const ddyn_net_tables *oracle_tables(void)
+{
+    static ddyn_net_tables t;
+    static ddyn_net_real head_w[DDYN_NET_NOUT * DDYN_NET_HIDDEN], head_b[DDYN_NET_NOUT];
+    static const ddyn_net_real mean[DDYN_NET_NFEAT] = {1.0f, 0.0f, 0.0f, 0.3f, 0.0f, 0.0f, 0.0f};
+    static const ddyn_net_real std[DDYN_NET_NFEAT] = {1.0f, 0.5f, 3.0f, 0.5f, 0.2f, 3.0f, 1.5f};
+    int i;
+    t = ddyn_net_weights;
+    for (i = 0; i < DDYN_NET_NOUT; ++i) {
+        double p = (C_TRUE[i] - (double)t.lo[i]) / ((double)t.hi[i] - (double)t.lo[i]);
+        head_b[i] = (ddyn_net_real)log(p / (1.0 - p)); /* sigmoid^-1 */
+    }
+    t.head_w = head_w;
+    t.head_b = head_b;
+    t.mean = mean;
+    t.std = std;
+    return &t;
+}
+
+/* periods of healthy driving: the MPC converges, nothing falls back */
+static void drive_healthy(int periods)
+{
+    ddyn_ctrl_output out;
+    int k;
+    for (k = 0; k < periods; ++k) {
+        ddyn_ctrl_status st = run_exact(k, &out);
+        double r = hypot(plant[0], plant[1]);
+        assert_false(st & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MEAS_NONFINITE | DDYN_CTRL_MEAS_REJECTED |
+                           DDYN_CTRL_EKF_DIVERGED | DDYN_CTRL_PLAN_SHIFTED | DDYN_CTRL_MPC_FAILED));
+        assert_true(fabs(r - RADIUS) < 0.15); /* on the track */
+    }
+}
+
+static void test_healthy_closed_loop_follows_the_track(void **state)
+{
+    int i;
+    (void)state;
+    start_on_circle(oracle_tables());
+    drive_healthy(150);
+    for (i = 0; i < DDYN_NC; ++i) { /* the network's coefficients: the true ones, to float precision */
+        double range = (double)ddyn_net_weights.hi[i] - (double)ddyn_net_weights.lo[i];
+        assert_true(fabs(ctl.coeffs[i] - C_TRUE[i]) <= 1e-6 * range);
+    } /* 3 s: more than half a lap of the 1.5 m circle at 1 m/s */
+    assert_true(ctl.last_good_age == 0);
+    assert_true(ctl.plan_horizon == cfg.mpc.horizon && ctl.plan_age == 0);
+}
+
+static void test_recovery_after_a_sensor_fault(void **state)
+{
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    int k;
+    (void)state;
+    start_on_circle(oracle_tables());
+    drive_healthy(20);
+    for (k = 0; k < cfg.max_sensor_faults; ++k) {
+        readings(&in, k);
+        in.reading[DDYN_MEAS_WHEEL_SPEED].z[0] = NAN;
+        run(&in, &out);
+    }
+    assert_true(out.status & DDYN_CTRL_SENSOR_FAULT);
+    assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
+    for (k = 1; k < cfg.recovery_steps; ++k) { /* good again, but safe mode holds */
+        assert_true(run_exact(k, &out) & DDYN_CTRL_SAFE_COMMAND);
+        assert_false(out.status & (DDYN_CTRL_SENSOR_FAULT | DDYN_CTRL_RECOVERED));
+    }
+    run_exact(0, &out);
+    assert_true(out.status & DDYN_CTRL_RECOVERED);
+    assert_false(out.status & DDYN_CTRL_SAFE_COMMAND);
+    drive_healthy(20); /* and drives on */
+}
+
+static void test_qp_not_converged_shifts_the_plan_then_safe(void **state)
+{
+    double plan[DDYN_MPC_NV];
+    ddyn_ctrl_output out;
+    int a, iterations = cfg.mpc.qp_max_iterations;
+    (void)state;
+    start_on_circle(oracle_tables());
+    drive_healthy(20);
+    memcpy(plan, ctl.plan_u, sizeof plan);
+    ctl.mpc.cfg.qp_max_iterations = 1; /* white box: a QP that cannot converge in one iteration */
+    ctl.mpc.cfg.qp_tolerance = 1e-300;
+    for (a = 1; a <= cfg.max_plan_shift; ++a) {
+        ddyn_ctrl_status st = run_exact(a, &out);
+        assert_int_equal(out.mpc_status, DDYN_ERR_QP_NOT_CONVERGED);
+        assert_true(st & DDYN_CTRL_MPC_NOT_CONVERGED);
+        assert_true(st & DDYN_CTRL_PLAN_SHIFTED);
+        assert_false(st & DDYN_CTRL_SAFE_COMMAND);
+        /* the converged plan of `a` periods ago, at the stage that is now */
+        assert_true(out.u[0] == plan[a * DDYN_NU] && out.u[1] == plan[a * DDYN_NU + 1]);
+    }
+    run_exact(0, &out);
+    assert_true(out.status & DDYN_CTRL_MPC_NOT_CONVERGED);
+    assert_false(out.status & DDYN_CTRL_PLAN_SHIFTED);
+    assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
+    assert_true(out.u[1] == 0.0);
+    /* the solver converges again: safe mode holds for recovery_steps periods, then the MPC drives */
+    ctl.mpc.cfg.qp_max_iterations = iterations;
+    ctl.mpc.cfg.qp_tolerance = cfg.mpc.qp_tolerance;
+    for (a = 1; a < cfg.recovery_steps; ++a) {
+        assert_true(run_exact(a, &out) & DDYN_CTRL_SAFE_COMMAND);
+    }
+    assert_true(run_exact(0, &out) & DDYN_CTRL_RECOVERED);
+    drive_healthy(20);
+}
 
 int main(void)
 {
@@ -391,6 +501,9 @@ int main(void)
         cmocka_unit_test_setup(test_nonfinite_network_output_falls_back_to_nominal, setup),
         cmocka_unit_test_setup(test_covariance_blowup_resets_filter_and_is_safe, setup),
         cmocka_unit_test_setup(test_mpc_without_track_is_safe, setup),
+        cmocka_unit_test_setup(test_healthy_closed_loop_follows_the_track, setup),
+        cmocka_unit_test_setup(test_recovery_after_a_sensor_fault, setup),
+        cmocka_unit_test_setup(test_qp_not_converged_shifts_the_plan_then_safe, setup),
     };
     return cmocka_run_group_tests_name("controller", tests, NULL, NULL);
 }

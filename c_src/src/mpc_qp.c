@@ -1,0 +1,414 @@
+/* Dense primal-dual interior-point solver of the MPC's condensed QP (see ddyn/mpc_qp.h).
+ *
+ * Inequalities C [z; s] <= d, one-sided, in this order (n = 2H, ns = H):
+ *   [0, n)          z_i <= ub_i                  [n, 2n)        -z_i <= -lb_i
+ *   [2n, 3n)        a_r <= hard_hi_r             [3n, 4n)       -a_r <= -hard_lo_r
+ *   [4n, 4n+ns)     g_q'z - s_q <= soft_hi_q     [4n+ns, 4n+2ns) -g_q'z - s_q <= -soft_lo_q
+ *   [4n+2ns, 4n+3ns) -s_q <= 0
+ * with a_r = dt * sum_{j<k} z[2j+ch] for r = 2(k-1)+ch. Each iteration solves the Newton system
+ * reduced to z: (H + C'DC) restricted to z after eliminating s, D = lambda / t. */
+#include "ddyn/mpc_qp.h"
+
+#include <math.h>
+#include <string.h>
+
+#define REG_PIVOT 1e-12 /* Cholesky pivots below this (relative) are replaced: keeps the factor finite */
+#define STEP_FRACTION 0.99
+
+typedef struct {
+    int n, ns, h;
+    int o_lb, o_hup, o_hlo, o_sup, o_slo, o_sg, m;
+} layout;
+
+static layout make_layout(int h)
+{
+    layout l;
+    l.h = h;
+    l.n = 2 * h;
+    l.ns = h;
+    l.o_lb = l.n;
+    l.o_hup = 2 * l.n;
+    l.o_hlo = 3 * l.n;
+    l.o_sup = 4 * l.n;
+    l.o_slo = 4 * l.n + l.ns;
+    l.o_sg = 4 * l.n + 2 * l.ns;
+    l.m = 4 * l.n + 3 * l.ns;
+    return l;
+}
+
+static int soft_len(int q) { return 2 * (q + 1); }
+
+/* out = C [z; s] */
+static void mul_c(const ddyn_mpc_qp *qp, const layout *l, const double *z, const double *s, double *out)
+{
+    int i, k, q;
+    for (i = 0; i < l->n; ++i) {
+        out[i] = z[i];
+        out[l->o_lb + i] = -z[i];
+    }
+    for (i = 0; i < 2; ++i) {
+        double acc = 0.0;
+        for (k = 1; k <= l->h; ++k) {
+            int r = 2 * (k - 1) + i;
+            acc += z[2 * (k - 1) + i];
+            out[l->o_hup + r] = qp->dt * acc;
+            out[l->o_hlo + r] = -qp->dt * acc;
+        }
+    }
+    for (q = 0; q < l->ns; ++q) {
+        const double *g = qp->soft_row + q * DDYN_QP_NV;
+        double acc = 0.0;
+        int len = soft_len(q);
+        for (i = 0; i < len; ++i) {
+            acc += g[i] * z[i];
+        }
+        out[l->o_sup + q] = acc - s[q];
+        out[l->o_slo + q] = -acc - s[q];
+        out[l->o_sg + q] = -s[q];
+    }
+}
+
+/* (oz, os) = C' v */
+static void mul_ct(const ddyn_mpc_qp *qp, const layout *l, const double *v, double *oz, double *os)
+{
+    int i, k, q;
+    for (i = 0; i < l->n; ++i) {
+        oz[i] = v[i] - v[l->o_lb + i];
+    }
+    for (i = 0; i < 2; ++i) {
+        double suffix = 0.0;
+        for (k = l->h; k >= 1; --k) {
+            int r = 2 * (k - 1) + i;
+            suffix += v[l->o_hup + r] - v[l->o_hlo + r];
+            oz[2 * (k - 1) + i] += qp->dt * suffix; /* z[2j+i] enters every row with stage k > j */
+        }
+    }
+    for (q = 0; q < l->ns; ++q) {
+        const double *g = qp->soft_row + q * DDYN_QP_NV;
+        double wq = v[l->o_sup + q] - v[l->o_slo + q];
+        int len = soft_len(q);
+        for (i = 0; i < len; ++i) {
+            oz[i] += g[i] * wq;
+        }
+        os[q] = -v[l->o_sup + q] - v[l->o_slo + q] - v[l->o_sg + q];
+    }
+}
+
+/* kkt = H + C'DC reduced onto z (lower triangle, column-major), then its Cholesky factor in place.
+ * Returns the number of regularised pivots. */
+static int form_and_factor(ddyn_mpc_qp *qp, const layout *l, const double *D, double scale)
+{
+    double *K = qp->kkt;
+    double suffix[DDYN_QP_NV];
+    int n = l->n, i, j, k, q, ch, regularised = 0;
+    for (j = 0; j < n; ++j) {
+        for (i = j; i < n; ++i) {
+            K[i + j * n] = qp->hess[i + j * DDYN_QP_NV] * scale;
+        }
+        K[j + j * n] += D[j] + D[l->o_lb + j];
+    }
+    /* integrator rows of channel ch: entry (2a+ch, 2b+ch) gets dt^2 * sum_{k > max(a, b)} W_k */
+    for (ch = 0; ch < 2; ++ch) {
+        double acc = 0.0;
+        for (k = l->h; k >= 1; --k) {
+            int r = 2 * (k - 1) + ch;
+            acc += D[l->o_hup + r] + D[l->o_hlo + r];
+            suffix[k - 1] = qp->dt * qp->dt * acc;
+        }
+        for (j = 0; j < l->h; ++j) {
+            for (i = j; i < l->h; ++i) {
+                K[(2 * i + ch) + (2 * j + ch) * n] += suffix[i];
+            }
+        }
+    }
+    /* soft rows, slack eliminated: weight Da + Db - (Db - Da)^2 / (2 rho2 + Da + Db + Dc) */
+    for (q = 0; q < l->ns; ++q) {
+        const double *g = qp->soft_row + q * DDYN_QP_NV;
+        double da = D[l->o_sup + q], db = D[l->o_slo + q], dc = D[l->o_sg + q];
+        double mq = 2.0 * qp->rho2 * scale + da + db + dc;
+        double w = da + db - (db - da) * (db - da) / mq;
+        int len = soft_len(q);
+        for (j = 0; j < len; ++j) {
+            double gj = w * g[j];
+            for (i = j; i < len; ++i) {
+                K[i + j * n] += gj * g[i];
+            }
+        }
+    }
+    /* Cholesky, lower, column-major (left-looking) */
+    for (j = 0; j < n; ++j) {
+        double pivot = K[j + j * n];
+        double ref = pivot;
+        for (k = 0; k < j; ++k) {
+            pivot -= K[j + k * n] * K[j + k * n];
+        }
+        if (!(pivot > REG_PIVOT * (fabs(ref) + 1.0))) {
+            pivot = REG_PIVOT * (fabs(ref) + 1.0);
+            ++regularised;
+        }
+        pivot = sqrt(pivot);
+        K[j + j * n] = pivot;
+        for (i = j + 1; i < n; ++i) {
+            double v = K[i + j * n];
+            for (k = 0; k < j; ++k) {
+                v -= K[i + k * n] * K[j + k * n];
+            }
+            K[i + j * n] = v / pivot;
+        }
+    }
+    return regularised;
+}
+
+static void chol_solve(const double *L, int n, double *b)
+{
+    int i, k;
+    for (i = 0; i < n; ++i) {
+        double v = b[i];
+        for (k = 0; k < i; ++k) {
+            v -= L[i + k * n] * b[k];
+        }
+        b[i] = v / L[i + i * n];
+    }
+    for (i = n - 1; i >= 0; --i) {
+        double v = b[i];
+        for (k = i + 1; k < n; ++k) {
+            v -= L[k + i * n] * b[k];
+        }
+        b[i] = v / L[i + i * n];
+    }
+}
+
+/* Newton direction for complementarity target rc (t .* lam - rc = 0): dz (z and s parts), dlam, dt. */
+static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const double *rc, double scale, double *dz,
+                   double *dlam, double *dt)
+{
+    double vz[DDYN_QP_NV], vs[DDYN_QP_NS], mq[DDYN_QP_NS], beta[DDYN_QP_NS];
+    int i, q, n = l->n;
+    for (i = 0; i < l->m; ++i) {
+        qp->w[i] = D[i] * (qp->rp[i] - rc[i] / qp->lam[i]);
+    }
+    mul_ct(qp, l, qp->w, vz, vs);
+    for (i = 0; i < n; ++i) {
+        dz[i] = -qp->rd[i] - vz[i];
+    }
+    for (q = 0; q < l->ns; ++q) {
+        const double *g = qp->soft_row + q * DDYN_QP_NV;
+        double da = D[l->o_sup + q], db = D[l->o_slo + q], dc = D[l->o_sg + q];
+        int len = soft_len(q);
+        mq[q] = 2.0 * qp->rho2 * scale + da + db + dc;
+        beta[q] = db - da;
+        dz[n + q] = -qp->rd[n + q] - vs[q];
+        for (i = 0; i < len; ++i) {
+            dz[i] -= g[i] * beta[q] * dz[n + q] / mq[q];
+        }
+    }
+    chol_solve(qp->kkt, n, dz);
+    for (q = 0; q < l->ns; ++q) {
+        const double *g = qp->soft_row + q * DDYN_QP_NV;
+        double gz = 0.0;
+        int len = soft_len(q);
+        for (i = 0; i < len; ++i) {
+            gz += g[i] * dz[i];
+        }
+        dz[n + q] = (dz[n + q] - beta[q] * gz) / mq[q];
+    }
+    mul_c(qp, l, dz, dz + n, qp->cz);
+    for (i = 0; i < l->m; ++i) {
+        dlam[i] = D[i] * (qp->cz[i] + qp->rp[i] - rc[i] / qp->lam[i]);
+        dt[i] = -qp->rp[i] - qp->cz[i];
+    }
+}
+
+static double max_step(const double *v, const double *dv, int m)
+{
+    double a = 1.0;
+    int i;
+    for (i = 0; i < m; ++i) {
+        if (dv[i] < 0.0) {
+            double ai = -v[i] / dv[i];
+            if (ai < a) {
+                a = ai;
+            }
+        }
+    }
+    return a;
+}
+
+static double inf_norm(const double *v, int n)
+{
+    double m = 0.0;
+    int i;
+    for (i = 0; i < n; ++i) {
+        if (fabs(v[i]) > m) {
+            m = fabs(v[i]);
+        }
+    }
+    return m;
+}
+
+/* residuals at the current iterate (scaled objective); returns the convergence measure */
+static double residuals(ddyn_mpc_qp *qp, const layout *l, double scale, double dnorm, double fnorm, double *mu)
+{
+    int i, j, q, n = l->n;
+    double gap = 0.0, rp, rd;
+    mul_c(qp, l, qp->z, qp->slack, qp->cz);
+    for (i = 0; i < l->m; ++i) {
+        qp->rp[i] = qp->cz[i] + qp->t[i] - qp->d[i];
+        gap += qp->t[i] * qp->lam[i];
+    }
+    mul_ct(qp, l, qp->lam, qp->rd, qp->rd + n);
+    for (i = 0; i < n; ++i) {
+        double hz = 0.0;
+        for (j = 0; j < n; ++j) {
+            hz += qp->hess[i + j * DDYN_QP_NV] * qp->z[j];
+        }
+        qp->rd[i] += scale * (hz + qp->grad[i]);
+    }
+    for (q = 0; q < l->ns; ++q) {
+        qp->rd[n + q] += scale * (2.0 * qp->rho2 * qp->slack[q] + qp->rho1);
+    }
+    *mu = gap / l->m;
+    rp = inf_norm(qp->rp, l->m) / (1.0 + dnorm);
+    rd = inf_norm(qp->rd, n + l->ns) / (1.0 + fnorm);
+    /* complementarity relative to the size of the (scaled) prices, like the dual residual */
+    return fmax(fmax(rp, rd), *mu / (1.0 + fnorm));
+}
+
+static int problem_finite(const ddyn_mpc_qp *qp, const layout *l)
+{
+    int i, j;
+    double v = qp->rho1 + qp->rho2 + qp->dt;
+    for (j = 0; j < l->n; ++j) {
+        v += qp->grad[j] + qp->lb[j] + qp->ub[j] + qp->hard_lo[j] + qp->hard_hi[j];
+        for (i = 0; i < l->n; ++i) {
+            v += qp->hess[i + j * DDYN_QP_NV];
+        }
+    }
+    for (j = 0; j < l->ns; ++j) {
+        v += qp->soft_lo[j] + qp->soft_hi[j];
+        for (i = 0; i < soft_len(j); ++i) {
+            v += qp->soft_row[j * DDYN_QP_NV + i];
+        }
+    }
+    return isfinite(v); /* any NaN or inf makes the sum non-finite (overflow of finite data is not expected) */
+}
+
+ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
+{
+    layout l;
+    double scale, hdiag = 0.0, dnorm, fnorm, mu = 0.0, res = 0.0;
+    double rc[DDYN_QP_NCON], D[DDYN_QP_NCON];
+    int i, it, n;
+    if (qp == NULL || qp->horizon < 1 || qp->horizon > DDYN_MPC_MAX_HORIZON || max_iterations < 1 || !(tol > 0.0) ||
+        !(qp->rho2 > 0.0) || !(qp->rho1 >= 0.0) || !(qp->dt > 0.0)) {
+        if (qp != NULL) {
+            memset(qp->z, 0, sizeof qp->z);
+            memset(qp->slack, 0, sizeof qp->slack);
+        }
+        return DDYN_ERR_ARGUMENT;
+    }
+    l = make_layout(qp->horizon);
+    n = l.n;
+    memset(qp->z, 0, sizeof qp->z);
+    memset(qp->slack, 0, sizeof qp->slack);
+    qp->iterations = 0;
+    qp->converged = 0;
+    qp->residual = INFINITY;
+    if (!problem_finite(qp, &l)) {
+        return DDYN_ERR_NONFINITE_INPUT;
+    }
+    for (i = 0; i < n; ++i) {
+        hdiag += qp->hess[i + i * DDYN_QP_NV];
+    }
+    /* objective scaling: unit mean Hessian diagonal, so that the start t = lam = 1 is well balanced */
+    scale = hdiag > 0.0 ? (double)n / hdiag : 1.0;
+    for (i = 0; i < n; ++i) {
+        qp->d[i] = qp->ub[i];
+        qp->d[l.o_lb + i] = -qp->lb[i];
+        qp->d[l.o_hup + i] = qp->hard_hi[i];
+        qp->d[l.o_hlo + i] = -qp->hard_lo[i];
+    }
+    for (i = 0; i < l.ns; ++i) {
+        qp->d[l.o_sup + i] = qp->soft_hi[i];
+        qp->d[l.o_slo + i] = -qp->soft_lo[i];
+        qp->d[l.o_sg + i] = 0.0;
+    }
+    dnorm = inf_norm(qp->d, l.m);
+    fnorm = scale * fmax(inf_norm(qp->grad, n), qp->rho1);
+    /* infeasible start: z = 0, s = 0, constraint slacks t = max(d, 1), multipliers 1 except those of
+     * s >= 0, which start at the slack price rho1 (the dual equation of s at s = 0) */
+    for (i = 0; i < l.m; ++i) {
+        qp->t[i] = fmax(qp->d[i], 1.0);
+        qp->lam[i] = 1.0;
+    }
+    for (i = 0; i < l.ns; ++i) {
+        qp->lam[l.o_sg + i] = fmax(1.0, scale * qp->rho1);
+    }
+    for (it = 0; it < max_iterations; ++it) {
+        double a_aff, a, mu_aff = 0.0, sigma;
+        res = residuals(qp, &l, scale, dnorm, fnorm, &mu);
+        if (res <= tol) {
+            qp->converged = 1;
+            break;
+        }
+        for (i = 0; i < l.m; ++i) {
+            D[i] = qp->lam[i] / qp->t[i];
+        }
+        form_and_factor(qp, &l, D, scale);
+        /* predictor (affine scaling direction) */
+        for (i = 0; i < l.m; ++i) {
+            rc[i] = qp->t[i] * qp->lam[i];
+        }
+        newton(qp, &l, D, rc, scale, qp->dz, qp->dl_aff, qp->dt_aff);
+        a_aff = fmin(max_step(qp->t, qp->dt_aff, l.m), max_step(qp->lam, qp->dl_aff, l.m));
+        for (i = 0; i < l.m; ++i) {
+            mu_aff += (qp->t[i] + a_aff * qp->dt_aff[i]) * (qp->lam[i] + a_aff * qp->dl_aff[i]);
+        }
+        mu_aff /= l.m;
+        sigma = mu > 0.0 ? pow(mu_aff / mu, 3.0) : 0.0;
+        if (sigma > 1.0) {
+            sigma = 1.0;
+        }
+        /* corrector: second-order term and centring, same factorisation */
+        for (i = 0; i < l.m; ++i) {
+            rc[i] = qp->t[i] * qp->lam[i] + qp->dt_aff[i] * qp->dl_aff[i] - sigma * mu;
+        }
+        newton(qp, &l, D, rc, scale, qp->dz, qp->dl_aff, qp->dt_aff);
+        a = STEP_FRACTION * fmin(max_step(qp->t, qp->dt_aff, l.m), max_step(qp->lam, qp->dl_aff, l.m));
+        if (a > 1.0) {
+            a = 1.0;
+        }
+        for (i = 0; i < n; ++i) {
+            qp->z[i] += a * qp->dz[i];
+        }
+        for (i = 0; i < l.ns; ++i) {
+            qp->slack[i] += a * qp->dz[n + i];
+        }
+        for (i = 0; i < l.m; ++i) {
+            qp->t[i] += a * qp->dt_aff[i];
+            qp->lam[i] += a * qp->dl_aff[i];
+            /* keep strictly positive against round-off */
+            if (!(qp->t[i] > 1e-300)) {
+                qp->t[i] = 1e-300;
+            }
+            if (!(qp->lam[i] > 1e-300)) {
+                qp->lam[i] = 1e-300;
+            }
+        }
+        qp->iterations = it + 1;
+    }
+    if (!qp->converged) {
+        res = residuals(qp, &l, scale, dnorm, fnorm, &mu);
+        qp->converged = res <= tol;
+    }
+    qp->residual = res;
+    for (i = 0; i < n; ++i) {
+        if (!isfinite(qp->z[i])) {
+            memset(qp->z, 0, sizeof qp->z);
+            memset(qp->slack, 0, sizeof qp->slack);
+            qp->converged = 0;
+            break;
+        }
+    }
+    return qp->converged ? DDYN_OK : DDYN_ERR_QP_NOT_CONVERGED;
+}
