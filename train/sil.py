@@ -45,9 +45,9 @@ from .vehicle import Vehicle, load as load_vehicle
 # Plant-side effects (firmware_sim/include/fsim/plant.hpp); the other effects of train/effects.py
 # change the tyre or gravity terms inside the model and are not offered by the plant.
 PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "yaw_rate_bias")
-# The car's footprint (length, width), m. The 1:43 ORCA car (Kyosho dNaNo body) is about 10 cm by 5 cm;
-# the Dallara AV-21 4.9 m by 1.9 m (its published dimensions).
-FOOTPRINT = {"orca_1_43": (0.10, 0.05), "av21": (4.9, 1.9)}
+# The car's footprint (length, width), m: the MPC's (train/mpc_setup.py).
+from .mpc_setup import FOOTPRINT  # noqa: E402
+
 # Sensor rates: the DBC's cycle times (GNSS 20 ms, IMU/wheel speeds/steering 10 ms).
 SENSOR_RATES = {"gnss_position": 50.0, "heading": 50.0, "yaw_rate": 100.0, "acceleration": 100.0,
                 "wheel_speed": 100.0, "steering": 100.0}
@@ -60,6 +60,10 @@ SENSOR_ORDER = ("gnss_position", "heading", "yaw_rate", "acceleration", "wheel_s
 # rarely trips it (three GNSS frames in a row: about 1e-4 per period).
 FRAME_STALE_PERIODS = {"command": 0, "steering": 1, "status": 1, "wheel_speeds": 1, "imu": 1,
                        "gnss_position": 2, "gnss_heading": 2}
+FILTER_ACCEL_STD = 1.0
+# the filter's process noise per period (x, y, yaw, vx, vy, omega, throttle, steering), as
+# train/controller_bench.py: the velocities' stands for the error of a step with estimated coefficients
+FILTER_PROCESS_NOISE = (1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-2, 1e-10, 1e-10)
 FAULT_KEYS = ("drop", "delay", "corrupt", "silent", "silent_at", "kill_controller", "restart_plant")
 SENSOR_OF_FRAME = {"imu": ("yaw_rate", "acceleration"), "gnss": ("gnss_position", "heading"),
                    "gnss_position": ("gnss_position",), "gnss_heading": ("heading",),
@@ -109,28 +113,16 @@ def parse_faults(text: str | None) -> dict:
 
 # ---------------------------------------------------------------------------------------------- track
 
-def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float = 1.0, min_speed: float | None = None,
-                   margin: float = 0.0) -> np.ndarray:
-    """Rows x, y, speed, width_left, width_right of the raceline the MPC tracks.
+def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float = 1.0, margin: float = 0.02) -> np.ndarray:
+    """Rows x, y, speed, room_left, room_right of the raceline the MPC tracks.
 
-    The room to the bounds is measured along the track's lateral direction from each raceline
-    point and reduced by half the car's width and `margin`; a raceline point's speed is the
-    data file's speed times speed_scale, at least min_speed (the data's first point is 0 m/s).
+    The MPC's own table (train/mpc_setup.py, what ddyn mpc-lap tunes with): the raceline's first lap,
+    closed, resampled every 2.5 cm, its speed profile times speed_scale floored at 0.5 m/s, the room
+    to the bounds less half the car's width and `margin`.
     """
-    rl = track.raceline
-    if rl is None:
-        raise DdynError(f"track {track.name!r} has no raceline in the shared data")
-    x, y = np.asarray(rl.x, float), np.asarray(rl.y, float)
-    if np.hypot(x[-1] - x[0], y[-1] - y[0]) < 1e-9:
-        x, y = x[:-1], y[:-1]
-    speed = np.asarray(rl.speed, float)[: len(x)] * speed_scale
-    if min_speed is None:
-        min_speed = 0.25 * float(np.max(speed))
-    speed = np.maximum(speed, min_speed)
-    s, lat = track.project(x, y)
-    wl, wr = track.half_widths(s)
-    half = 0.5 * FOOTPRINT.get(vehicle.name, (0.0, 0.0))[1]
-    return np.column_stack([x, y, speed, wl - lat - half - margin, wr + lat - half - margin])
+    from .mpc_setup import MpcSettings, raceline_table as mpc_table
+    t = mpc_table(track, vehicle.name, MpcSettings(speed_scale=speed_scale, margin=margin))
+    return np.column_stack([t["x"], t["y"], t["speed"], t["room_left"], t["room_right"]])
 
 
 def start_state(track: Track, vx0: float) -> list[float]:
@@ -174,7 +166,7 @@ class SilSpec:
     faults: dict = field(default_factory=dict)
     noise_scale: float = 1.0
     speed_scale: float = 1.0
-    margin: float = 0.0
+    margin: float = 0.02
     realtime: float = 0.0
     max_time: float | None = None
     seed: int = 1
@@ -227,8 +219,12 @@ def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
         "nominal " + " ".join(repr(float(c)) for c in spec.nominal),
         "coeffs " + " ".join(repr(float(c)) for c in coeffs),
         "x0 " + " ".join(repr(float(c)) for c in start_state(spec.track, spec.vx0)),
-        # the filter's measurement noise: the sensors' own (a floor keeps it positive definite)
-        "r_std " + " ".join(repr(max(float(s), 1e-4)) for k in SENSOR_ORDER for s in noise[k]),
+        # the noise the filter assumes: twice the sensors' own (model error), 1 m/s^2 for the
+        # accelerometer (its model goes through the estimated coefficients), as the controller's
+        # closed-loop benchmark (train/controller_bench.py); a floor keeps R positive definite
+        "r_std " + " ".join(repr(max(FILTER_ACCEL_STD if k == "acceleration" else 2.0 * float(s), 1e-4))
+                            for k in SENSOR_ORDER for s in noise[k]),
+        "q " + " ".join(repr(q) for q in FILTER_PROCESS_NOISE),
         "stale " + " ".join(str(FRAME_STALE_PERIODS[k]) for k in FRAME_STALE_PERIODS),
         "max_steps 200000", "idle_exit 3.0", f"die_at_step {die}",
         f"metrics {out_dir}/controller_metrics.json", f"log {out_dir}/controller_log.csv",
@@ -628,7 +624,8 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vx0", type=float, default=0.1, help="initial speed, m/s (default: %(default)s)")
     p.add_argument("--noise", type=float, default=1.0, help="sensor noise scale (default: %(default)s)")
     p.add_argument("--speed-scale", type=float, default=1.0, help="raceline speed scale (default: %(default)s)")
-    p.add_argument("--margin", type=float, default=0.0, help="extra margin to the bounds for the MPC, m")
+    p.add_argument("--margin", type=float, default=0.02,
+                   help="room the MPC keeps between the car's side and the bounds, m (default: %(default)s)")
     p.add_argument("--realtime", type=float, default=0.0,
                    help="pace the plant at this multiple of real time (default 0: lock-step with the controller)")
     p.add_argument("--max-time", type=float, default=None, help="simulated seconds before giving up")

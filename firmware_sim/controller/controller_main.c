@@ -17,7 +17,8 @@
  *
  * SETUP (text, keywords in this order, numbers whitespace-separated):
  *   vehicle NAME  period SEC  fixed 0|1  nominal 17  coeffs 17  x0 8  r_std 12 (sensor kind order,
- *   2 components each)  stale 7 (periods per ddyn_dbw_frame; 0 = not monitored)  max_steps N
+ *   2 components each: the noise the filter assumes)  q 8 (the filter's process noise variance per
+ *   period; 0 = the controller's default)  stale 7 (periods per ddyn_dbw_frame; 0 = not monitored)  max_steps N
  *   idle_exit SEC  die_at_step N (fault scenario: the process kills itself with SIGKILL at
  *   period N, as if killed from outside; -1 = never)  metrics PATH  log PATH  track N  then N rows: x y speed width_left width_right
  * fixed 1: the MPC and EKF use `coeffs` throughout (the network is bypassed: its history is
@@ -59,7 +60,7 @@ typedef struct {
     char vehicle[64];
     double period;
     int fixed;
-    double nominal[DDYN_NC], coeffs[DDYN_NC], x0[DDYN_NX], r_std[DDYN_MEAS_COUNT][2];
+    double nominal[DDYN_NC], coeffs[DDYN_NC], x0[DDYN_NX], r_std[DDYN_MEAS_COUNT][2], q[DDYN_NX];
     int stale[DDYN_DBW_FRAME_COUNT];
     long max_steps;
     double idle_exit;
@@ -121,7 +122,8 @@ static int read_setup(const char *path, setup_t *s)
          fscanf(in, "%lf", &s->period) == 1 && s->period > 0.0 && expect(in, "fixed") &&
          fscanf(in, "%d", &s->fixed) == 1 && expect(in, "nominal") && read_n(in, s->nominal, DDYN_NC) &&
          expect(in, "coeffs") && read_n(in, s->coeffs, DDYN_NC) && expect(in, "x0") && read_n(in, s->x0, DDYN_NX) &&
-         expect(in, "r_std") && read_n(in, r, 2 * DDYN_MEAS_COUNT) && expect(in, "stale") &&
+         expect(in, "r_std") && read_n(in, r, 2 * DDYN_MEAS_COUNT) && expect(in, "q") && read_n(in, s->q, DDYN_NX) &&
+         expect(in, "stale") &&
          read_n(in, st, DDYN_DBW_FRAME_COUNT) && expect(in, "max_steps") && fscanf(in, "%ld", &s->max_steps) == 1 &&
          s->max_steps > 0 && s->max_steps <= MAX_STEPS && expect(in, "idle_exit") &&
          fscanf(in, "%lf", &s->idle_exit) == 1 && expect(in, "die_at_step") &&
@@ -210,6 +212,11 @@ int main(int argc, char **argv)
     }
     ddyn_ctrl_default_config(model, &cfg);
     memcpy(cfg.c_nominal, s.fixed ? s.coeffs : s.nominal, sizeof cfg.c_nominal);
+    for (k = 0; k < DDYN_NX; ++k) {
+        if (s.q[k] > 0.0) {
+            cfg.q_diag[k] = s.q[k];
+        }
+    }
     if (s.fixed) {
         cfg.range_sigmas = 1e-300; /* every history "out of range": the network is never used */
     }

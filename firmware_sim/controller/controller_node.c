@@ -26,6 +26,8 @@ ddyn_status ddyn_sil_node_init(ddyn_sil_node *node, const ddyn_vehicle_model *mo
     node->state_lo[1] = cfg->mpc.state_lo[1];
     node->state_hi[0] = cfg->mpc.state_hi[0];
     node->state_hi[1] = cfg->mpc.state_hi[1];
+    node->setpoint[0] = x0[6];
+    node->setpoint[1] = x0[7];
     for (k = 0; k < DDYN_DBW_FRAME_COUNT; ++k) {
         node->stale[k] = stale[k];
         node->last_counter[k] = -1;
@@ -133,9 +135,15 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
         u[0] = p->out.u[0];
         u[1] = p->out.u[1];
     }
-    /* the rates over the next period become the set-points at its end */
-    p->throttle = clampd(p->out.x_est[6] + u[0] * node->period, node->state_lo[0], node->state_hi[0]);
-    p->steering = clampd(p->out.x_est[7] + u[1] * node->period, node->state_lo[1], node->state_hi[1]);
+    /* The rates over the next period become the set-points at its end. They integrate the commanded
+     * rates (not estimate + rate): the actuators reach each set-point within the period, so the
+     * actual throttle and steering move by exactly u * period, as the filter's model predicts; a
+     * set-point built on the estimate would also "correct" the estimate's error behind the filter's
+     * back. */
+    p->throttle = clampd(node->setpoint[0] + u[0] * node->period, node->state_lo[0], node->state_hi[0]);
+    p->steering = clampd(node->setpoint[1] + u[1] * node->period, node->state_lo[1], node->state_hi[1]);
+    node->setpoint[0] = p->throttle;
+    node->setpoint[1] = p->steering;
     memset(&cmd, 0, sizeof cmd);
     cmd.command.throttle = p->throttle > 0.0 ? p->throttle : 0.0;
     cmd.command.brake = p->throttle < 0.0 ? -p->throttle : 0.0;

@@ -32,6 +32,7 @@ typedef struct {
     ddyn_dbw_signals sig;      /* last decoded values */
     double period;             /* s */
     double state_lo[2], state_hi[2]; /* throttle, steering set-point bounds */
+    double setpoint[2];        /* the throttle and steering commanded last (integrated rates) */
     int stale[DDYN_DBW_FRAME_COUNT];  /* periods a monitored frame may be missing; 0 = unmonitored */
     long last_rx_step[DDYN_DBW_FRAME_COUNT];
     int last_counter[DDYN_DBW_FRAME_COUNT];

@@ -55,15 +55,19 @@ def test_effects_and_faults_parse_and_refuse():
 def test_raceline_table_room_matches_the_track(orca, mobil):
     table = sil.raceline_table(mobil, orca)
     assert table.shape[1] == 5 and 100 < len(table) <= 1024
-    assert np.all(table[:, 2] > 0.0)  # the data's first point has speed 0: the MPC needs > 0
-    # room left + right + the car's width is the track's width at that point
+    assert np.all(table[:, 2] >= 0.5)  # the data's first point has speed 0: the reference is floored
+    # room left + right + the car's width + both margins is the track's width at that point
     s, _ = mobil.project(table[:, 0], table[:, 1])
     wl, wr = mobil.half_widths(s)
-    np.testing.assert_allclose(table[:, 3] + table[:, 4] + 0.05, wl + wr, atol=1e-9)
-    # the raceline lies on the track: positive room on both sides almost everywhere
-    assert np.mean((table[:, 3] > 0) & (table[:, 4] > 0)) > 0.95
-    with_margin = sil.raceline_table(mobil, orca, margin=0.01)
-    np.testing.assert_allclose(with_margin[:, 3], table[:, 3] - 0.01)
+    np.testing.assert_allclose(table[:, 3] + table[:, 4] + 0.05 + 2 * 0.02, wl + wr, atol=1e-9)
+    # the time-optimal raceline runs closer to the bounds than half the car plus margin in places
+    # (about 13 % of its points): the MPC's soft bounds handle that; elsewhere there is room
+    assert np.mean((table[:, 3] > 0) & (table[:, 4] > 0)) > 0.8
+    # one lap, closed: no long closing segment across the infield
+    step = np.hypot(*np.diff(np.vstack([table[:, :2], table[:1, :2]]), axis=0).T)
+    assert step.max() < 0.1
+    wider = sil.raceline_table(mobil, orca, margin=0.0)
+    np.testing.assert_allclose(wider[:, 3], table[:, 3] + 0.02)
 
 
 def test_plant_config_and_controller_setup(orca, mobil, tmp_path):
