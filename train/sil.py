@@ -226,7 +226,7 @@ def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
                             for k in SENSOR_ORDER for s in noise[k]),
         "q " + " ".join(repr(q) for q in FILTER_PROCESS_NOISE),
         "stale " + " ".join(str(FRAME_STALE_PERIODS[k]) for k in FRAME_STALE_PERIODS),
-        "max_steps 200000", "idle_exit 3.0", f"die_at_step {die}",
+        "max_steps 200000", "idle_exit 3.0", f"lockstep {int(spec.realtime <= 0.0)}", f"die_at_step {die}",
         f"metrics {out_dir}/controller_metrics.json", f"log {out_dir}/controller_log.csv",
         f"track {len(table)}",
     ]

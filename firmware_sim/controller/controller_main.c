@@ -19,7 +19,11 @@
  *   vehicle NAME  period SEC  fixed 0|1  nominal 17  coeffs 17  x0 8  r_std 12 (sensor kind order,
  *   2 components each: the noise the filter assumes)  q 8 (the filter's process noise variance per
  *   period; 0 = the controller's default)  stale 7 (periods per ddyn_dbw_frame; 0 = not monitored)  max_steps N
- *   idle_exit SEC  die_at_step N (fault scenario: the process kills itself with SIGKILL at
+ *   idle_exit SEC  lockstep 0|1 (the plant waits for each command: the timer runs a period only
+ *   when no frame at all has come for 1.5 periods, since a slow plant that still sends is not a
+ *   silent one, and an extra period runs the filter ahead of the plant; on a badly overloaded
+ *   machine a few still happen, counted as timer_steps)
+ *   die_at_step N (fault scenario: the process kills itself with SIGKILL at
  *   period N, as if killed from outside; -1 = never)  metrics PATH  log PATH  track N  then N rows: x y speed width_left width_right
  * fixed 1: the MPC and EKF use `coeffs` throughout (the network is bypassed: its history is
  * declared out of range, so the controller's nominal coefficients, set to `coeffs`, are used).
@@ -64,6 +68,7 @@ typedef struct {
     int stale[DDYN_DBW_FRAME_COUNT];
     long max_steps;
     double idle_exit;
+    int lockstep;
     long die_at_step;
     char metrics[PATH_LEN], log[PATH_LEN];
     int n_track;
@@ -126,7 +131,8 @@ static int read_setup(const char *path, setup_t *s)
          expect(in, "stale") &&
          read_n(in, st, DDYN_DBW_FRAME_COUNT) && expect(in, "max_steps") && fscanf(in, "%ld", &s->max_steps) == 1 &&
          s->max_steps > 0 && s->max_steps <= MAX_STEPS && expect(in, "idle_exit") &&
-         fscanf(in, "%lf", &s->idle_exit) == 1 && expect(in, "die_at_step") &&
+         fscanf(in, "%lf", &s->idle_exit) == 1 && expect(in, "lockstep") &&
+         fscanf(in, "%d", &s->lockstep) == 1 && expect(in, "die_at_step") &&
          fscanf(in, "%ld", &s->die_at_step) == 1 && expect(in, "metrics") && fscanf(in, "%511s", s->metrics) == 1 &&
          expect(in, "log") && fscanf(in, "%511s", s->log) == 1 && expect(in, "track") &&
          fscanf(in, "%d", &s->n_track) == 1 && s->n_track >= 4 && s->n_track <= DDYN_MPC_MAX_TRACK_POINTS;
@@ -268,7 +274,7 @@ int main(int argc, char **argv)
             }
         }
         now = now_s();
-        if (!trigger && now - last_step_wall >= timeout) {
+        if (!trigger && now - last_step_wall >= timeout && (!s.lockstep || now - last_any_rx >= timeout)) {
             trigger = 2; /* the controller's own timer */
         }
         if (now - last_any_rx > s.idle_exit) {
