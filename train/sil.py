@@ -243,7 +243,8 @@ def build_binaries(export_dir: Path | None, build_root: Path | None = None, quie
     build = (build_root or REPO / "build-sil") / key
     cmd = ["cmake", "-S", str(REPO), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release", "-DDDYN_BUILD_TESTS=OFF",
            f"-DDDYN_NET_EXPORT_DIR={Path(net).resolve()}"]
-    for c in (cmd, ["cmake", "--build", str(build), "-j2", "--target", "ddyn_sil_plant", "ddyn_sil_controller"]):
+    for c in (cmd, ["cmake", "--build", str(build), "-j2", "--target", "ddyn_sil_plant", "ddyn_sil_controller",
+                    "ddyn_sil_inprocess"]):
         r = subprocess.run(c, capture_output=True, text=True)
         if r.returncode != 0:
             raise DdynError(f"building the SIL binaries failed: {' '.join(c)}\n{(r.stdout + r.stderr)[-3000:]}")
@@ -288,6 +289,19 @@ def run_host(bins: Path, work: Path, restart: bool) -> dict:
         ctl.kill()
     return {"where": "host vcan0", "plant_exit": rc, "controller_exit": ctl.returncode,
             "wall_time": time.monotonic() - t0}
+
+
+def run_inprocess(bins: Path, work: Path) -> dict:
+    """Plant and controller node in one process, frames through memory (not the SIL path: for
+    development and host-native controller timings)."""
+    t0 = time.monotonic()
+    with open(work / "plant.stdout", "w") as out:
+        rc = subprocess.call([str(bins / "ddyn_sil_inprocess"), str(work / "plant.json"), str(work / "controller.txt")],
+                             stdout=out, stderr=subprocess.STDOUT)
+    if rc != 0:
+        raise DdynError(f"ddyn_sil_inprocess failed ({rc}): {(work / 'plant.stdout').read_text()[-2000:]}")
+    return {"where": "in-process on the host (one process, frames through memory; not vcan)", "plant_exit": rc,
+            "controller_exit": rc, "wall_time": time.monotonic() - t0}
 
 
 GUEST_INIT = """#!/bin/busybox sh
@@ -562,7 +576,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
         raise DdynError(f"raceline of {len(table)} points; the MPC holds at most 1024")
     bins = build_binaries(export_dir)
     track_dir = shared_data_dir() / "tracks"
-    use_host = where == "host" or (where == "auto" and host_has_vcan())
+    use_host = where in ("host", "inprocess") or (where == "auto" and host_has_vcan())
     inside = "/out" if not use_host else str(out.resolve())
     pc = plant_config(spec, "/sil/tracks" if not use_host else str(track_dir), inside)
     (out / "plant.json").write_text(json.dumps(pc, indent=1) + "\n")
@@ -570,7 +584,9 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     if "restart_plant" in spec.faults:
         (out / "plant_resume.json").write_text(json.dumps(dict(pc, resume=f"{inside}/snapshot.json"), indent=1))
     (out / "controller.txt").write_text(controller_setup(spec, table, inside))
-    if use_host:
+    if where == "inprocess":
+        run = run_inprocess(bins, out)
+    elif use_host:
         run = run_host(bins, out, "restart_plant" in spec.faults)
     else:
         if kvm is None:  # as scripts/vcan_guest: software emulation unless asked (KVM is not everywhere)
@@ -630,8 +646,9 @@ def add_common(p: argparse.ArgumentParser) -> None:
                    help="pace the plant at this multiple of real time (default 0: lock-step with the controller)")
     p.add_argument("--max-time", type=float, default=None, help="simulated seconds before giving up")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--where", choices=("auto", "host", "guest"), default="auto",
-                   help="host vcan0, qemu guest, or auto (host if it has vcan)")
+    p.add_argument("--where", choices=("auto", "host", "guest", "inprocess"), default="auto",
+                   help="host vcan0, qemu guest, auto (host if it has vcan), or inprocess (one process, "
+                        "frames through memory: not the SIL path; host-native timings)")
     p.add_argument("--kvm", action=argparse.BooleanOptionalAction, default=None,
                    help="qemu with KVM (default: DDYN_VCAN_KVM=1, else software emulation)")
     p.add_argument("--timeout", type=float, default=900.0, help="wall seconds for the guest run")

@@ -48,8 +48,9 @@
 #include <unistd.h>
 
 #include "controller_node.h"
+#include "controller_setup.h"
 
-#define MAX_STEPS 200000
+#define MAX_STEPS DDYN_SIL_MAX_STEPS
 #define PATH_LEN 512
 
 extern const ddyn_net_tables ddyn_net_weights;
@@ -57,22 +58,8 @@ extern const ddyn_net_tables ddyn_net_weights;
 static ddyn_sil_node node; /* large: static storage, not the stack */
 static double loop_us[MAX_STEPS];
 static double sorted_us[MAX_STEPS];
-static double track[5][DDYN_MPC_MAX_TRACK_POINTS];
 static volatile sig_atomic_t stop_requested = 0;
 
-typedef struct {
-    char vehicle[64];
-    double period;
-    int fixed;
-    double nominal[DDYN_NC], coeffs[DDYN_NC], x0[DDYN_NX], r_std[DDYN_MEAS_COUNT][2], q[DDYN_NX];
-    int stale[DDYN_DBW_FRAME_COUNT];
-    long max_steps;
-    double idle_exit;
-    int lockstep;
-    long die_at_step;
-    char metrics[PATH_LEN], log[PATH_LEN];
-    int n_track;
-} setup_t;
 
 static void on_signal(int sig)
 {
@@ -91,71 +78,6 @@ static int cmp_double(const void *a, const void *b)
 {
     double x = *(const double *)a, y = *(const double *)b;
     return (x > y) - (x < y);
-}
-
-static int expect(FILE *in, const char *key)
-{
-    char word[64];
-    if (fscanf(in, "%63s", word) != 1 || strcmp(word, key) != 0) {
-        fprintf(stderr, "ddyn_sil_controller: setup: expected '%s'\n", key);
-        return 0;
-    }
-    return 1;
-}
-
-static int read_n(FILE *in, double *v, int n)
-{
-    int i;
-    for (i = 0; i < n; ++i) {
-        if (fscanf(in, "%lf", &v[i]) != 1 || !isfinite(v[i])) {
-            return 0;
-        }
-    }
-    return 1;
-}
-
-static int read_setup(const char *path, setup_t *s)
-{
-    FILE *in = fopen(path, "r");
-    double r[2 * DDYN_MEAS_COUNT], st[DDYN_DBW_FRAME_COUNT];
-    int ok, i, k;
-    if (in == NULL) {
-        fprintf(stderr, "ddyn_sil_controller: cannot read setup %s: %s\n", path, strerror(errno));
-        return 0;
-    }
-    ok = expect(in, "vehicle") && fscanf(in, "%63s", s->vehicle) == 1 && expect(in, "period") &&
-         fscanf(in, "%lf", &s->period) == 1 && s->period > 0.0 && expect(in, "fixed") &&
-         fscanf(in, "%d", &s->fixed) == 1 && expect(in, "nominal") && read_n(in, s->nominal, DDYN_NC) &&
-         expect(in, "coeffs") && read_n(in, s->coeffs, DDYN_NC) && expect(in, "x0") && read_n(in, s->x0, DDYN_NX) &&
-         expect(in, "r_std") && read_n(in, r, 2 * DDYN_MEAS_COUNT) && expect(in, "q") && read_n(in, s->q, DDYN_NX) &&
-         expect(in, "stale") &&
-         read_n(in, st, DDYN_DBW_FRAME_COUNT) && expect(in, "max_steps") && fscanf(in, "%ld", &s->max_steps) == 1 &&
-         s->max_steps > 0 && s->max_steps <= MAX_STEPS && expect(in, "idle_exit") &&
-         fscanf(in, "%lf", &s->idle_exit) == 1 && expect(in, "lockstep") &&
-         fscanf(in, "%d", &s->lockstep) == 1 && expect(in, "die_at_step") &&
-         fscanf(in, "%ld", &s->die_at_step) == 1 && expect(in, "metrics") && fscanf(in, "%511s", s->metrics) == 1 &&
-         expect(in, "log") && fscanf(in, "%511s", s->log) == 1 && expect(in, "track") &&
-         fscanf(in, "%d", &s->n_track) == 1 && s->n_track >= 4 && s->n_track <= DDYN_MPC_MAX_TRACK_POINTS;
-    for (i = 0; ok && i < s->n_track; ++i) {
-        double row[5];
-        ok = read_n(in, row, 5);
-        for (k = 0; ok && k < 5; ++k) {
-            track[k][i] = row[k];
-        }
-    }
-    fclose(in);
-    if (!ok) {
-        fprintf(stderr, "ddyn_sil_controller: setup %s is malformed (see the header comment)\n", path);
-        return 0;
-    }
-    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
-        s->r_std[k][0] = r[2 * k];
-        s->r_std[k][1] = r[2 * k + 1];
-    }
-    for (k = 0; k < DDYN_DBW_FRAME_COUNT; ++k) {
-        s->stale[k] = (int)st[k];
-    }
-    return 1;
 }
 
 static int open_can(const char *ifname)
@@ -187,11 +109,9 @@ static int open_can(const char *ifname)
 
 int main(int argc, char **argv)
 {
-    static setup_t s;
+    static ddyn_sil_setup s;
     static const char *const meas_names[DDYN_MEAS_COUNT] = DDYN_MEAS_NAMES;
     const char *iface = "vcan0";
-    const ddyn_vehicle_model *model;
-    ddyn_ctrl_config cfg;
     struct sigaction sa;
     long steps = 0, misses = 0, timer_steps = 0, send_failed = 0, status_count[DDYN_CTRL_STATUS_BITS] = {0};
     int fd, i, k;
@@ -208,33 +128,10 @@ int main(int argc, char **argv)
             iface = argv[i + 1];
         }
     }
-    if (!read_setup(argv[1], &s)) {
+    if (!ddyn_sil_read_setup(argv[1], &s)) {
         return 2;
     }
-    model = ddyn_model_find(s.vehicle);
-    if (model == NULL) {
-        fprintf(stderr, "ddyn_sil_controller: no generated model '%s'\n", s.vehicle);
-        return 2;
-    }
-    ddyn_ctrl_default_config(model, &cfg);
-    memcpy(cfg.c_nominal, s.fixed ? s.coeffs : s.nominal, sizeof cfg.c_nominal);
-    for (k = 0; k < DDYN_NX; ++k) {
-        if (s.q[k] > 0.0) {
-            cfg.q_diag[k] = s.q[k];
-        }
-    }
-    if (s.fixed) {
-        cfg.range_sigmas = 1e-300; /* every history "out of range": the network is never used */
-    }
-    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
-        for (i = 0; i < DDYN_MEAS_MAX_DIM; ++i) {
-            double sd = s.r_std[k][i];
-            cfg.r_diag[k][i] = sd > 0.0 ? sd * sd : 1e-8;
-        }
-    }
-    if (ddyn_sil_node_init(&node, model, &ddyn_net_weights, &cfg, s.x0, s.period, s.stale) != DDYN_OK ||
-        ddyn_ctrl_set_track(&node.ctl, s.n_track, track[0], track[1], track[2], track[3], track[4]) != DDYN_OK) {
-        fprintf(stderr, "ddyn_sil_controller: the controller refused the setup (network built for another export?)\n");
+    if (ddyn_sil_node_from_setup(&node, &s, &ddyn_net_weights) != DDYN_OK) {
         return 2;
     }
     fd = open_can(iface);
@@ -274,7 +171,9 @@ int main(int argc, char **argv)
             }
         }
         now = now_s();
-        if (!trigger && now - last_step_wall >= timeout && (!s.lockstep || now - last_any_rx >= timeout)) {
+        /* no timer before the first position frame: the plant may not be up yet */
+        if (!trigger && last_gnss_wall >= 0.0 && now - last_step_wall >= timeout &&
+            (!s.lockstep || now - last_any_rx >= timeout)) {
             trigger = 2; /* the controller's own timer */
         }
         if (now - last_any_rx > s.idle_exit) {

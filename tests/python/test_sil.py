@@ -147,3 +147,18 @@ def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_pat
     from train.importers import load_any
     ds = load_any(tmp_path / "controller.lcm")
     assert len(ds) == m["controller"]["periods"]
+
+
+def test_a_lap_with_the_true_coefficients_in_process(orca, mobil, tmp_path, sil_bins):
+    """Plant and controller node in one process (frames through memory, host CPU): one lap of ETHZMobil
+    from 0.1 m/s at 90 % of the raceline's speed completes inside the bounds."""
+    spec = spec_for(orca, mobil, speed_scale=0.9, max_time=15.0)
+    m = sil.run_sil(spec, tmp_path, None, where="inprocess")
+    assert m["lap_completed"], m["end_reason"]
+    assert m["violations"] == 0
+    assert 4.5 < m["lap_times"][0] < 7.5
+    assert m["tracking_error"]["mean"] < 0.1
+    ctl = m["controller"]
+    assert ctl["safe_periods"] == 0 and ctl["frames"]["checksum"] == 0
+    assert abs(ctl["periods"] - m["plant"]["sim_time"] / orca.sample_time) <= 2
+    assert (tmp_path / "controller.lcm").stat().st_size > 0
