@@ -19,10 +19,9 @@
  *   vehicle NAME  period SEC  fixed 0|1  nominal 17  coeffs 17  x0 8  r_std 12 (sensor kind order,
  *   2 components each: the noise the filter assumes)  q 8 (the filter's process noise variance per
  *   period; 0 = the controller's default)  stale 7 (periods per ddyn_dbw_frame; 0 = not monitored)  max_steps N
- *   idle_exit SEC  lockstep 0|1 (the plant waits for each command: the timer runs a period only
- *   when no frame at all has come for 1.5 periods, since a slow plant that still sends is not a
- *   silent one, and an extra period runs the filter ahead of the plant; on a badly overloaded
- *   machine a few still happen, counted as timer_steps)
+ *   idle_exit SEC  lockstep SEC (0: real time; > 0: the plant waits for each command, and the timer
+ *   runs a period only when no frame at all has come for SEC of wall time: a slow plant is not a
+ *   silent one, and an extra period runs the filter ahead of the plant)
  *   die_at_step N (fault scenario: the process kills itself with SIGKILL at
  *   period N, as if killed from outside; -1 = never)  metrics PATH  log PATH  track N  then N rows: x y speed width_left width_right
  * fixed 1: the MPC and EKF use `coeffs` throughout (the network is bypassed: its history is
@@ -173,7 +172,7 @@ int main(int argc, char **argv)
         now = now_s();
         /* no timer before the first position frame: the plant may not be up yet */
         if (!trigger && last_gnss_wall >= 0.0 && now - last_step_wall >= timeout &&
-            (!s.lockstep || now - last_any_rx >= timeout)) {
+            (s.lockstep <= 0.0 || now - last_any_rx >= s.lockstep)) {
             trigger = 2; /* the controller's own timer */
         }
         if (now - last_any_rx > s.idle_exit) {

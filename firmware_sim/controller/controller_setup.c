@@ -43,7 +43,7 @@ int ddyn_sil_read_setup(const char *path, ddyn_sil_setup *s)
          expect(in, "stale") && read_n(in, st, DDYN_DBW_FRAME_COUNT) && expect(in, "max_steps") &&
          fscanf(in, "%ld", &s->max_steps) == 1 && s->max_steps > 0 && s->max_steps <= DDYN_SIL_MAX_STEPS &&
          expect(in, "idle_exit") && fscanf(in, "%lf", &s->idle_exit) == 1 && expect(in, "lockstep") &&
-         fscanf(in, "%d", &s->lockstep) == 1 && expect(in, "die_at_step") &&
+         fscanf(in, "%lf", &s->lockstep) == 1 && s->lockstep >= 0.0 && expect(in, "die_at_step") &&
          fscanf(in, "%ld", &s->die_at_step) == 1 && expect(in, "metrics") && fscanf(in, "%511s", s->metrics) == 1 &&
          expect(in, "log") && fscanf(in, "%511s", s->log) == 1 && expect(in, "track") &&
          fscanf(in, "%d", &s->n_track) == 1 && s->n_track >= 4 && s->n_track <= DDYN_MPC_MAX_TRACK_POINTS;

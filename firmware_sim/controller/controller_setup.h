@@ -22,7 +22,7 @@ typedef struct {
     int stale[DDYN_DBW_FRAME_COUNT];
     long max_steps;
     double idle_exit;
-    int lockstep;
+    double lockstep; /* 0: real time; > 0: wall seconds of total silence before a timer period */
     long die_at_step;
     char metrics[DDYN_SIL_PATH_LEN], log[DDYN_SIL_PATH_LEN];
     int n_track;

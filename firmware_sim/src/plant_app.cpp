@@ -143,7 +143,7 @@ PlantApp::PlantApp(const PlantAppConfig& cfg, Bus& bus)
   wall_start_ = wall_now();
 }
 
-bool PlantApp::faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dropped, long& corrupted) {
+bool PlantApp::faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dropped, long& corrupted, bool* damaged) {
   // the same draws whatever the fault settings, so a run's noise does not depend on them
   const double u_drop = uni_(fault_rng_), u_corrupt = uni_(fault_rng_), u_delay = uni_(fault_rng_);
   if (u_drop < cfg_.faults.drop) {
@@ -153,6 +153,7 @@ bool PlantApp::faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dro
   if (u_corrupt < cfg_.faults.corrupt) {
     f.data[7] ^= 0x5A;
     ++corrupted;
+    if (damaged) *damaged = true;
   }
   const double delay = cfg_.faults.delay_max * u_delay;
   if (delay > 0.0) {
@@ -220,10 +221,12 @@ void PlantApp::emit(double t_prev, double t) {
   // the position frame goes last: the controller's step follows it
   if (gnss) out.push_back(encoder_.gnss_position(gnss->value[0], gnss->value[1]));
   for (auto& f : out) {
-    if (faulty(f, tx_held_, t, tx_dropped_, tx_corrupted_)) {
+    bool damaged = false;
+    if (faulty(f, tx_held_, t, tx_dropped_, tx_corrupted_, &damaged)) {
       bus_.send(f);
       ++frames_sent_;
-      if (f.id == DDYN_CAN_GNSS_POSITION_FRAME_ID) gnss_sent_ = true;
+      // a damaged position frame gets no answer: no lock-step wait for it
+      if (f.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && !damaged) gnss_sent_ = true;
     }
   }
 }
@@ -236,6 +239,7 @@ bool PlantApp::step() {
   CanFrame f;
   while (bus_.receive(f, 0)) {
     ++frames_received_;
+    if (f.id == DDYN_CAN_DBW_COMMAND_FRAME_ID) controller_quiet_ = false;
     if (faulty(f, rx_held_, t, rx_dropped_, rx_corrupted_)) handle_command(f, t);
   }
   for (size_t i = 0; i < rx_held_.size();) {
@@ -265,7 +269,8 @@ bool PlantApp::step() {
     if (tx_held_[i].release <= t1) {
       bus_.send(tx_held_[i].frame);
       ++frames_sent_;
-      if (tx_held_[i].frame.id == DDYN_CAN_GNSS_POSITION_FRAME_ID) gnss_sent_ = true;
+      const CanFrame& h = tx_held_[i].frame;
+      if (h.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && dbc_checksum(h.id, h.data.data()) == h.data[7]) gnss_sent_ = true;
       tx_held_.erase(tx_held_.begin() + static_cast<long>(i));
     } else {
       ++i;
@@ -300,7 +305,7 @@ bool PlantApp::step() {
     const double due = wall_start_ + (t1 - t_start_) / cfg_.realtime_factor;
     const double now = wall_now();
     if (due > now) std::this_thread::sleep_for(std::chrono::duration<double>(due - now));
-  } else if (cfg_.realtime_factor == 0.0 && gnss_sent_) {
+  } else if (cfg_.realtime_factor == 0.0 && gnss_sent_ && !controller_quiet_) {
     const double deadline = wall_now() + cfg_.lockstep_timeout;
     bool got = false;
     while (!got) {
@@ -311,7 +316,12 @@ bool PlantApp::step() {
       // handled at the start of the next period, like any frame that arrived during this one
       if (faulty(f, rx_held_, t1, rx_dropped_, rx_corrupted_)) rx_held_.push_back({t1, f});
     }
-    if (!got) ++lockstep_timeouts_;
+    if (!got) {
+      // a controller that does not answer within the timeout is gone or hung: stop waiting for it
+      // (a late answer would pair every later command with the wrong period) until it speaks again
+      ++lockstep_timeouts_;
+      controller_quiet_ = true;
+    }
   }
   wall_elapsed_ = wall_now() - wall_start_;
   return !ended_;

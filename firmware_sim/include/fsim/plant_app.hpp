@@ -39,7 +39,8 @@ struct PlantAppConfig {
   double max_off_track = 0.5; // m: a corner this far outside ends the run
   double realtime_factor = 1.0;    // > 0: paced at this multiple of real time; 0: lock-step;
                                    // < 0: free-running (in-process tests drive both sides)
-  double lockstep_timeout = 0.25;  // s (wall): lock-step wait for a command after a GNSS frame
+  double lockstep_timeout = 3.0;   // s (wall): lock-step wait for a command after a GNSS frame; after
+                                   // one timeout no more waits until a command arrives again
   std::array<SensorConfig, DDYN_MEAS_COUNT> sensors{};
   double status_rate = 100.0;      // Hz: DBW_Status
   unsigned seed = 1;
@@ -79,7 +80,8 @@ class PlantApp {
     double release;
     CanFrame frame;
   };
-  bool faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dropped, long& corrupted);
+  // the bus faults on one frame: false when it is dropped or held back; *damaged when its checksum was hit
+  bool faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dropped, long& corrupted, bool* damaged = nullptr);
   void handle_command(const CanFrame& f, double t);
   void emit(double t_prev, double t);
   void snapshot(double t) const;
@@ -102,7 +104,7 @@ class PlantApp {
   long frames_sent_ = 0, frames_received_ = 0, commands_ok_ = 0, lockstep_timeouts_ = 0;
   long rx_dropped_ = 0, rx_corrupted_ = 0, tx_dropped_ = 0, tx_corrupted_ = 0;
   std::array<long, 7> rejected_{};
-  bool gnss_sent_ = false, ended_ = false;
+  bool gnss_sent_ = false, ended_ = false, controller_quiet_ = false;
   std::string end_reason_;
   double wall_start_ = 0.0, t_start_ = 0.0, last_log_ = -1e9, last_snapshot_ = -1e9, wall_elapsed_ = 0.0;
   double sum_speed_dt_ = 0.0, time_driving_ = 0.0;
