@@ -60,28 +60,30 @@ int main(int argc, char** argv) {
         const fsim::CanFrame f = q.front();
         q.pop_front();
         if (!alive) continue;
-        if (!ddyn_sil_node_on_frame(node.get(), f.id, f.data.data(), f.dlc)) continue;
-        if (node->steps == setup->die_at_step) {
-          alive = false;  // the controller "dies": no more commands
-          continue;
+        const int runs = ddyn_sil_node_on_frame(node.get(), f.id, f.data.data(), f.dlc);
+        for (int r = 0; r < runs && alive; ++r) {
+          if (node->steps == setup->die_at_step) {
+            alive = false;  // the controller "dies": no more commands
+            continue;
+          }
+          ddyn_sil_period per;
+          const double t0 = now_s();
+          ddyn_sil_node_period(node.get(), &per);
+          const double t1 = now_s();
+          loop_us.push_back((t1 - t0) * 1e6);
+          misses += (t1 - t0) > setup->period ? 1 : 0;
+          for (int k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) status_count[k] += (per.out.status >> k) & 1u;
+          std::fprintf(log, "%ld,%.6f,%.2f,%u,1,%d,%d,%.6f,%.6f", node->steps - 1, t1 - wall0, loop_us.back(),
+                       static_cast<unsigned>(per.out.status), per.safe, per.stale, per.throttle, per.steering);
+          for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", per.out.x_est[k]);
+          for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", node->ctl.ekf.P[k * DDYN_NX + k]);
+          std::fputc('\n', log);
+          fsim::CanFrame cmd;
+          cmd.id = per.can_id;
+          cmd.dlc = 8;
+          std::copy(per.data, per.data + 8, cmd.data.begin());
+          link.b_to_a.push_back(cmd);
         }
-        ddyn_sil_period per;
-        const double t0 = now_s();
-        ddyn_sil_node_period(node.get(), &per);
-        const double t1 = now_s();
-        loop_us.push_back((t1 - t0) * 1e6);
-        misses += (t1 - t0) > setup->period ? 1 : 0;
-        for (int k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) status_count[k] += (per.out.status >> k) & 1u;
-        std::fprintf(log, "%ld,%.6f,%.2f,%u,1,%d,%d,%.6f,%.6f", node->steps - 1, t1 - wall0, loop_us.back(),
-                     static_cast<unsigned>(per.out.status), per.safe, per.stale, per.throttle, per.steering);
-        for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", per.out.x_est[k]);
-        for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", node->ctl.ekf.P[k * DDYN_NX + k]);
-        std::fputc('\n', log);
-        fsim::CanFrame cmd;
-        cmd.id = per.can_id;
-        cmd.dlc = 8;
-        std::copy(per.data, per.data + 8, cmd.data.begin());
-        link.b_to_a.push_back(cmd);
       }
     }
     std::fclose(log);

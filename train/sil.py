@@ -62,8 +62,11 @@ FRAME_STALE_PERIODS = {"command": 0, "steering": 1, "status": 1, "wheel_speeds":
                        "gnss_position": 2, "gnss_heading": 2}
 FILTER_ACCEL_STD = 1.0
 # the filter's process noise per period (x, y, yaw, vx, vy, omega, throttle, steering), as
-# train/controller_bench.py: the velocities' stands for the error of a step with estimated coefficients
-FILTER_PROCESS_NOISE = (1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-2, 1e-10, 1e-10)
+# train/controller_bench.py (the velocities' stands for the error of a step with estimated
+# coefficients), except throttle and steering: 1e-5 (std 3 mrad per period) instead of 1e-10, so
+# that the filter follows the steering sensor when a command frame is lost on the bus and the
+# actuator lags its commanded rate by a period (with 1e-10 it refuses the sensor instead)
+FILTER_PROCESS_NOISE = (1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-2, 1e-5, 1e-5)
 FAULT_KEYS = ("drop", "delay", "corrupt", "silent", "silent_at", "kill_controller", "restart_plant")
 SENSOR_OF_FRAME = {"imu": ("yaw_rate", "acceleration"), "gnss": ("gnss_position", "heading"),
                    "gnss_position": ("gnss_position",), "gnss_heading": ("heading",),

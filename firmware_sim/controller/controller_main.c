@@ -154,7 +154,7 @@ int main(int argc, char **argv)
         /* 1.5 periods of grace for the next position frame, then the nominal period on the timer */
         double timeout = (timer_mode ? 1.0 : 1.5) * s.period;
         double now = now_s(), wait = timeout - (now - last_step_wall);
-        int trigger = 0;
+        int trigger = 0, runs = 0, r;
         struct pollfd p;
         p.fd = fd;
         p.events = POLLIN;
@@ -163,7 +163,8 @@ int main(int argc, char **argv)
             struct can_frame cf;
             if (read(fd, &cf, sizeof cf) == (ssize_t)sizeof cf) {
                 last_any_rx = now_s();
-                if (ddyn_sil_node_on_frame(&node, cf.can_id & CAN_EFF_MASK, cf.data, cf.can_dlc)) {
+                runs = ddyn_sil_node_on_frame(&node, cf.can_id & CAN_EFF_MASK, cf.data, cf.can_dlc);
+                if (runs > 0) {
                     trigger = 1;
                     last_gnss_wall = last_any_rx;
                 }
@@ -174,15 +175,16 @@ int main(int argc, char **argv)
         if (!trigger && last_gnss_wall >= 0.0 && now - last_step_wall >= timeout &&
             (s.lockstep <= 0.0 || now - last_any_rx >= s.lockstep)) {
             trigger = 2; /* the controller's own timer */
+            runs = 1;
         }
         if (now - last_any_rx > s.idle_exit) {
             break; /* the plant is gone for good */
         }
-        if (trigger && steps == s.die_at_step) {
+        if (trigger && s.die_at_step >= 0 && steps >= s.die_at_step) {
             fflush(log);
             raise(SIGKILL); /* the fault scenario: gone without a word, files left as they are */
         }
-        if (trigger) {
+        for (r = 0; r < runs && steps < s.max_steps; ++r) {
             ddyn_sil_period per;
             struct can_frame cf;
             double t0 = now_s(), t1;

@@ -73,6 +73,7 @@ int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *
 {
     ddyn_dbw_frame f;
     uint8_t counter;
+    unsigned lost = 0u;
     ddyn_dbw_decode_result r = ddyn_dbw_decode(can_id, data, len, &node->sig, &f, &counter);
     switch (r) {
     case DDYN_DBW_DECODE_OK:
@@ -108,12 +109,17 @@ int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *
             return 0;
         }
         node->frames_lost += (long)(step - 1u);
+        lost = step - 1u;
     }
     node->last_counter[f] = counter;
     node->last_rx_step[f] = node->steps;
     node->frames_ok += 1;
     take_reading(f, &node->sig, &node->in);
-    return f == DDYN_DBW_FRAME_GNSS_POSITION;
+    if (f != DDYN_DBW_FRAME_GNSS_POSITION) {
+        return 0;
+    }
+    node->catch_up = (int)(lost < (unsigned)DDYN_SIL_MAX_CATCH_UP ? lost : (unsigned)DDYN_SIL_MAX_CATCH_UP);
+    return 1 + node->catch_up;
 }
 
 void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
@@ -127,7 +133,21 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
             p->stale = 1;
         }
     }
-    ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
+    if (node->catch_up > 0) {
+        /* a period whose position frame was lost: run it with the other readings, keep this
+         * period's position and heading for the period they belong to */
+        ddyn_ctrl_input held = node->in;
+        node->in.reading[DDYN_MEAS_GNSS_POSITION].valid = 0;
+        node->in.reading[DDYN_MEAS_HEADING].valid = 0;
+        ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
+        memset(&node->in, 0, sizeof node->in);
+        node->in.reading[DDYN_MEAS_GNSS_POSITION] = held.reading[DDYN_MEAS_GNSS_POSITION];
+        node->in.reading[DDYN_MEAS_HEADING] = held.reading[DDYN_MEAS_HEADING];
+        node->catch_up -= 1;
+    } else {
+        ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
+        memset(&node->in, 0, sizeof node->in);
+    }
     p->safe = p->stale || (p->out.status & DDYN_CTRL_SAFE_COMMAND) != 0;
     if (p->stale) {
         ddyn_ctrl_safe_command(&node->ctl, p->out.x_est, u);
@@ -154,6 +174,5 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
     (void)ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &cmd, node->tx_counter, p->data); /* in range by the clamps */
     node->tx_counter = (uint8_t)((node->tx_counter + 1u) % DDYN_DBW_COUNTER_MODULO);
     node->safe_steps += p->safe ? 1 : 0;
-    memset(&node->in, 0, sizeof node->in);
     node->steps += 1;
 }

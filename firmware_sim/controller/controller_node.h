@@ -37,6 +37,7 @@ typedef struct {
     long last_rx_step[DDYN_DBW_FRAME_COUNT];
     int last_counter[DDYN_DBW_FRAME_COUNT];
     long steps;
+    int catch_up;              /* periods still to run before the one of the last position frame */
     uint8_t tx_counter;
     /* counts */
     long frames_ok, frames_lost, repeated_counter, late, checksum, bad_length, range, unknown_id, safe_steps;
@@ -57,7 +58,10 @@ ddyn_status ddyn_sil_node_init(ddyn_sil_node *node, const ddyn_vehicle_model *mo
                                const ddyn_ctrl_config *cfg, const double x0[DDYN_NX], double period,
                                const int stale[DDYN_DBW_FRAME_COUNT]);
 
-/* One received frame. Returns 1 when it is a good GNSS_Position frame (the period's trigger). */
+/* One received frame. Returns the number of control periods to run now: 0 for most frames; for a
+ * good GNSS_Position frame (the period's trigger) 1 plus the position frames lost just before it
+ * (at most DDYN_SIL_MAX_CATCH_UP), so that the filter's clock keeps pace with the plant's. */
+#define DDYN_SIL_MAX_CATCH_UP 3
 int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len);
 
 /* One control period with the readings received since the last one; the command frame is

@@ -91,7 +91,8 @@ struct SilLoop {
       const fsim::CanFrame f = q.front();
       q.pop_front();
       if (!controller_alive) continue;
-      if (ddyn_sil_node_on_frame(node.get(), f.id, f.data.data(), f.dlc)) {
+      const int runs = ddyn_sil_node_on_frame(node.get(), f.id, f.data.data(), f.dlc);
+      for (int r = 0; r < runs; ++r) {
         ddyn_sil_period per;
         ddyn_sil_node_period(node.get(), &per);
         ++periods;
