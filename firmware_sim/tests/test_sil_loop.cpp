@@ -80,3 +80,26 @@ TEST(SilLoop, DelayedFramesArriveLateAndAreNotApplied) {
   EXPECT_GT(m["dbw"]["commands_ok"].get<long>(), 50);
   EXPECT_EQ(m["dbw"]["trips"].get<int>(), 0);  // 80 ms deadline: a 40 ms delay never trips it
 }
+
+// A lost position frame still gets its control period: the node asks for one period more, runs it
+// without the position reading, and fuses the reading in the period it belongs to.
+TEST(SilLoop, LostPositionFramesAreCaughtUp) {
+  FSIM_REQUIRE_TRACKS();
+  fsim_test::SilLoop loop(fsim_test::orca_sil_config());
+  fsim::FeedbackEncoder enc;
+  ddyn_sil_node* node = loop.node.get();
+  fsim::CanFrame f = enc.gnss_position(1.2, 0.9);
+  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 1);
+  ddyn_sil_period per;
+  ddyn_sil_node_period(node, &per);
+  enc.gnss_position(1.21, 0.9);  // lost on the bus: its counter is used up
+  f = enc.gnss_position(1.22, 0.9);
+  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 2);
+  EXPECT_EQ(node->frames_lost, 1);
+  ddyn_sil_node_period(node, &per);  // the lost frame's period: no position reading
+  EXPECT_EQ(node->catch_up, 0);
+  EXPECT_EQ(node->in.reading[DDYN_MEAS_GNSS_POSITION].valid, 1);  // kept for the next one
+  ddyn_sil_node_period(node, &per);
+  EXPECT_EQ(node->in.reading[DDYN_MEAS_GNSS_POSITION].valid, 0);
+  EXPECT_EQ(node->steps, 3);
+}
