@@ -646,7 +646,9 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--track", default="ethzMobil", help="track (default: %(default)s)")
     p.add_argument("--vx0", type=float, default=0.1, help="initial speed, m/s (default: %(default)s)")
     p.add_argument("--noise", type=float, default=1.0, help="sensor noise scale (default: %(default)s)")
-    p.add_argument("--speed-scale", type=float, default=1.0, help="raceline speed scale (default: %(default)s)")
+    p.add_argument("--speed-scale", type=float, default=0.9,
+                   help="reference speed = raceline speed x this (default %(default)s: at 1.0 the MPC overshoots "
+                        "ETHZMobil's last corner)")
     p.add_argument("--margin", type=float, default=0.02,
                    help="room the MPC keeps between the car's side and the bounds, m (default: %(default)s)")
     p.add_argument("--realtime", type=float, default=0.0,
