@@ -47,11 +47,11 @@ struct SilLoop {
   long periods = 0;
 
   explicit SilLoop(fsim::PlantAppConfig cfg) {
-    const fsim::Track& dummy = *std::make_unique<fsim::Track>(fsim::Track::load(cfg.track_dir, cfg.track)).release();
+    const fsim::Track track = fsim::Track::load(cfg.track_dir, cfg.track);
     // start on the centre line's first point, heading along it, at 0.1 m/s
-    const fsim::Vec2 p = dummy.position(0.0);
+    const fsim::Vec2 p = track.position(0.0);
     cfg.start = fsim::State::Zero();
-    cfg.start << p.x(), p.y(), dummy.heading_at(0.0), 0.1, 0, 0, 0, 0;
+    cfg.start << p.x(), p.y(), track.heading_at(0.0), 0.1, 0, 0, 0, 0;
     app = std::make_unique<fsim::PlantApp>(cfg, plant_end);
     ddyn_ctrl_config cc;
     const ddyn_vehicle_model* model = ddyn_model_find("orca_1_43");
@@ -69,13 +69,13 @@ struct SilLoop {
     if (ddyn_sil_node_init(node.get(), model, &ddyn_net_weights, &cc, x0, 0.02, stale) != DDYN_OK)
       throw std::runtime_error("node init failed");
     // the centre line as the raceline: 1 m/s, the room to the bounds less half the car's width
-    const auto& pts = dummy.center().points();
+    const auto& pts = track.center().points();
     const int n = std::min<int>(static_cast<int>(pts.size()), DDYN_MPC_MAX_TRACK_POINTS);
     std::vector<double> x(n), y(n), v(n, 1.0), wl(n), wr(n);
     for (int i = 0; i < n; ++i) {
       x[i] = pts[i].x();
       y[i] = pts[i].y();
-      const auto pr = dummy.project(pts[i]);
+      const auto pr = track.project(pts[i]);
       wl[i] = pr.half_width_left - 0.025;
       wr[i] = pr.half_width_right - 0.025;
     }
