@@ -73,28 +73,16 @@ SENSOR_SETUP = {"gnss_position": (5, "x", None), "heading": (5, "yaw", None), "y
 PROCESS_NOISE = (1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-2, 1e-10, 1e-10)
 
 
-def raceline_table(track_name: str, speed_scale: float, margin: float, min_speed: float = 0.5) -> np.ndarray:
-    """(n, 5) rows x, y, speed, room left, room right of the track's racing line for the MPC.
-
-    The room to each bound is the centre line's half width at the raceline point's projection,
-    shifted by its lateral offset, less `margin` (the car's half width and a safety distance).
-    """
+def raceline_table(track_name: str, speed_scale: float, vehicle: str = "orca_1_43") -> np.ndarray:
+    """(n, 5) rows x, y, speed, room left, room right: the MPC's raceline table (train/mpc_setup.py)."""
+    from .mpc_setup import MpcSettings, raceline_table as mpc_table
     from .tracks import load_track
 
-    t = load_track(track_name)
-    if t.raceline is None:
-        raise DdynError(f"track {track_name} has no racing line")
-    r = t.raceline
-    x, y, speed = r.x.copy(), r.y.copy(), r.speed.copy()
-    if np.hypot(x[-1] - x[0], y[-1] - y[0]) < 1e-9:  # closed by a repeated point
-        x, y, speed = x[:-1], y[:-1], speed[:-1]
-    s, lat = t.project(x, y)
-    wl, wr = t.half_widths(s)
-    return np.column_stack([x, y, np.maximum(speed * speed_scale, min_speed), wl - lat - margin, wr + lat - margin])
+    t = mpc_table(load_track(track_name), vehicle, MpcSettings(speed_scale=speed_scale))
+    return np.column_stack([t["x"], t["y"], t["speed"], t["room_left"], t["room_right"]])
 
 
-def controller_setup(vehicle: str = "orca_1_43", track: str = "ethz", speed_scale: float = 0.8,
-                     margin: float = 0.03) -> str:
+def controller_setup(vehicle: str = "orca_1_43", track: str = "ethz", speed_scale: float = 1.0) -> str:
     """The stdin text of ddyn_controller_bench (format in the tool's header comment)."""
     from .model import COEFF_NAMES
 
@@ -102,7 +90,7 @@ def controller_setup(vehicle: str = "orca_1_43", track: str = "ethz", speed_scal
     if v.true_coefficients is None:
         raise DdynError(f"vehicle {vehicle} has no true coefficients for the plant")
     c = [v.true_coefficients[k] for k in COEFF_NAMES]
-    table = raceline_table(track, speed_scale, margin)
+    table = raceline_table(track, speed_scale, vehicle)
     x0, y0, sp0 = table[0, :3]
     heading = float(np.arctan2(table[1, 1] - y0, table[1, 0] - x0))
     vx = max(float(sp0), 1.0)
@@ -122,7 +110,7 @@ def controller_setup(vehicle: str = "orca_1_43", track: str = "ethz", speed_scal
 
 
 def run_controller(tool: str | Path = DEFAULT_CONTROLLER_TOOL, steps: int = 20000, seed: int = 1,
-                   vehicle: str = "orca_1_43", track: str = "ethz", speed_scale: float = 0.8) -> dict:
+                   vehicle: str = "orca_1_43", track: str = "ethz", speed_scale: float = 1.0) -> dict:
     """Run the C closed-loop controller benchmark and parse its "NAME n median p99 max" lines."""
     tool = Path(tool)
     if not tool.is_file():
@@ -148,8 +136,10 @@ def format_controller(r: dict) -> str:
     s = r["controller_step"]
     bits = {k.removeprefix("steps_DDYN_CTRL_").lower(): int(v) for k, v in r.items()
             if k.startswith("steps_DDYN_CTRL_") and v > 0}
+    m = r.get("mpc_solve")
+    mpc = f"; of it the MPC solve {m['median_us']:.2f} / {m['p99_us']:.2f} / {m['max_us']:.1f}" if m else ""
     return (f"| controller_step (closed loop) | {s['median_us']:.2f} / {s['p99_us']:.2f} / {s['max_us']:.1f} "
-            f"(n={s['n']}) | laps {r.get('laps', 0.0):.2f}, max raceline offset {r.get('max_raceline_offset_m', 0.0):.3f} m"
+            f"(n={s['n']}){mpc} | laps {r.get('laps', 0.0):.2f}, max raceline offset {r.get('max_raceline_offset_m', 0.0):.3f} m"
             f" | periods with status bits: {bits or 'none'}; load average {r['loadavg_1min'][0]:.1f} -> "
             f"{r['loadavg_1min'][1]:.1f} on {r['cpus']} CPUs |")
 

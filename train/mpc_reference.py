@@ -14,11 +14,13 @@ Gauss-Newton SQP step per period (real-time iteration) with a capped interior-po
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
 from . import backends, vehicle as vehicle_mod
+from .errors import DdynError
 from .mpc_setup import MpcSettings, TableGeometry, raceline_table
 from .model import N_COEFF, N_INPUT, N_STATE
 from .tracks import Track
@@ -114,10 +116,8 @@ class ReferenceMPC:
         lo = np.minimum(self.state_lo, x0[6:8] + k * dt * self.rate_hi)
         hi = np.maximum(self.state_hi, x0[6:8] + k * dt * self.rate_lo)
         p = np.concatenate([x0, self.c, refs[1:].ravel(), planes[1:].ravel(), np.hstack([lo, hi]).ravel()])
-        if self.z is None:
-            z0 = np.concatenate([x_lin.ravel(), u_lin.ravel(), np.zeros(H)])
-        else:
-            z0 = np.concatenate([x_lin.ravel(), u_lin.ravel(), np.zeros(H)])
+        # warm start: the shifted previous plan (as the C MPC's linearisation point)
+        z0 = np.concatenate([x_lin.ravel(), u_lin.ravel(), np.zeros(H)])
         t0 = time.perf_counter()
         sol = self.solver(x0=z0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg, ubg=self.ubg)
         elapsed = time.perf_counter() - t0
@@ -125,20 +125,57 @@ class ReferenceMPC:
         self.z = z
         U = z[self.nx:self.nx + 2 * H].reshape(H, 2)
         self.u_plan = np.clip(U, self.rate_lo, self.rate_hi)
-        stats = self.solver.stats()
+        try:
+            stats = self.solver.stats()
+        except RuntimeError:  # a generated (external) solver keeps no statistics
+            stats = {}
         return self.u_plan[0].copy(), {"solve_s": elapsed, "success": bool(stats.get("success", False)),
                                        "iterations": int(stats.get("iter_count", -1)),
                                        "plan_x": z[:self.nx].reshape(H + 1, N_STATE)}
 
 
+def generate_solver(mpc: ReferenceMPC, cache_dir: Path) -> ca.Function:
+    """CasADi's code generation of the whole sqpmethod + qrqp solver, compiled and loaded.
+
+    The generated C (several MB) is compiled once per distinct text (cached under cache_dir by its
+    hash; -O1 keeps the compile near a minute) and loaded with casadi.external.
+    """
+    import hashlib
+    import subprocess
+    import tempfile
+
+    cache_dir = Path(cache_dir)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        cg = ca.CodeGenerator("mpc_sqp.c", {"with_header": False})
+        cg.add(mpc.solver)
+        cg.generate(tmp + "/")
+        text = (Path(tmp) / "mpc_sqp.c").read_bytes()
+    lib = cache_dir / f"mpc_sqp_{hashlib.sha256(text).hexdigest()[:16]}.so"
+    if not lib.is_file():
+        src = lib.with_suffix(".c")
+        src.write_bytes(text)
+        proc = subprocess.run(["cc", "-O1", "-shared", "-fPIC", str(src), "-o", str(lib), "-lm"],
+                              capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise DdynError(f"compiling the generated sqpmethod failed: {proc.stderr[-400:]}")
+    return ca.external("mpc", str(lib))
+
+
 def closed_loop(vehicle_name: str, track: Track, settings: MpcSettings, steps: int, solver: str = "ipopt",
-                x0: np.ndarray | None = None) -> dict:
-    """Drive the plant (RK4 model step, true coefficients) with the reference MPC."""
+                x0: np.ndarray | None = None, generated_dir: Path | None = None) -> dict:
+    """Drive the plant (RK4 model step, true coefficients) with the reference MPC.
+
+    solver "ipopt" or "sqpmethod"; with generated_dir, the sqpmethod solver is code-generated,
+    compiled and loaded (generate_solver) instead of run by CasADi's virtual machine.
+    """
     from .mpc_lap import start_state
 
     v = vehicle_mod.load(vehicle_name)
     table = raceline_table(track, vehicle_name, settings)
     mpc = ReferenceMPC(vehicle_name, table, settings, solver)
+    if generated_dir is not None:
+        mpc.solver = generate_solver(mpc, generated_dir)
     plant = backends.casadi_step_function(v.known, v.sample_time, "rk4", v.rk4_substeps)
     c = v.true_vector()
     x = start_state(table) if x0 is None else np.asarray(x0, float)

@@ -19,7 +19,7 @@ from .tracks import Track, resample_closed
 # The 1:43 car's body (not in the vehicle file, which holds only what the model needs): about
 # 10 cm by 5 cm, centred on the centre of gravity. Chosen here from the ORCA car's size class.
 FOOTPRINT = {"orca_1_43": (0.10, 0.05), "av21": (4.9, 1.9)}
-LOCAL_WINDOW = 40  # as in mpc.c
+LOCAL_WINDOW, STAGE_WINDOW = 40, 10  # as in mpc.c
 
 
 @dataclass(frozen=True)
@@ -92,11 +92,11 @@ class TableGeometry:
         self.len = np.hypot(self.dx, self.dy)
         self.s = np.concatenate(([0.0], np.cumsum(self.len)[:-1]))
 
-    def project(self, px: float, py: float, hint: int) -> tuple[int, float]:
+    def project(self, px: float, py: float, hint: int, window: int = LOCAL_WINDOW) -> tuple[int, float]:
         if hint < 0:
             idx = np.arange(self.n)
         else:
-            count = min(2 * LOCAL_WINDOW + 1, self.n)
+            count = min(2 * window + 1, self.n)
             idx = (hint - (count - 1) // 2 + np.arange(count)) % self.n
         rx, ry = px - self.x[idx], py - self.y[idx]
         u = np.clip((rx * self.dx[idx] + ry * self.dy[idx]) / self.len[idx] ** 2, 0.0, 1.0)
@@ -130,7 +130,7 @@ class TableGeometry:
             p = self.at(i, u)
             refs.append((p["x"], p["y"]))
             i, u = self.advance(i, u, p["speed"] * dt)
-            ic, uc = self.project(predicted_xy[k, 0], predicted_xy[k, 1], ic)
+            ic, uc = self.project(predicted_xy[k, 0], predicted_xy[k, 1], ic, LOCAL_WINDOW if k == 0 else STAGE_WINDOW)
             c = self.at(ic, uc)
             planes.append((c["x"], c["y"], -c["ty"], c["tx"], c["wl"], c["wr"]))
         return i0, np.array(refs), np.array(planes)

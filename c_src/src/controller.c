@@ -190,14 +190,17 @@ static void push_history_row(ddyn_ctrl *ctl)
     }
 }
 
-/* Is every feature of the (full) history within range_sigmas standard deviations of the
- * network's training mean? */
+/* Is every state feature (vx, vy, omega, throttle, steering) of the full history within
+ * range_sigmas standard deviations of the network's training mean? The two input-rate features are
+ * not judged: they are this controller's own commands, bounded by the MPC's rate bounds, and an
+ * MPC sits on those bounds more often than the training data's driver did without the car being
+ * anywhere unusual. */
 static int history_in_range(const ddyn_ctrl *ctl)
 {
     const ddyn_net_tables *t = ctl->net.tables;
     int row, f;
     for (row = 0; row < TAU; ++row) {
-        for (f = 0; f < NFEAT; ++f) {
+        for (f = 0; f < NFEAT - NU; ++f) {
             double dev = fabs(ctl->history[row][f] - (double)t->mean[f]);
             if (!(dev <= ctl->cfg.range_sigmas * (double)t->std[f])) {
                 return 0;

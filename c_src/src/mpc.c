@@ -170,7 +170,8 @@ void ddyn_mpc_reset(ddyn_mpc *mpc)
 
 /* ---- raceline geometry ------------------------------------------------------------------ */
 
-#define LOCAL_WINDOW 40 /* raceline segments searched either side of the previous projection */
+#define LOCAL_WINDOW 40 /* raceline segments searched either side of the previous projection of x0 */
+#define STAGE_WINDOW 10 /* ... and of the previous stage's predicted position (stages move < 0.1 m) */
 
 /* nearest point of segment i to (px, py): squared distance, parameter in [0, 1] */
 static double segment_distance(const ddyn_mpc_track *t, int i, double px, double py, double *param)
@@ -187,11 +188,11 @@ static double segment_distance(const ddyn_mpc_track *t, int i, double px, double
     return ex * ex + ey * ey;
 }
 
-/* Projection of (px, py) on the raceline: segment index and parameter. Searches +-LOCAL_WINDOW
+/* Projection of (px, py) on the raceline: segment index and parameter. Searches +-window
  * segments around hint, or every segment when hint < 0. */
-static int project(const ddyn_mpc_track *t, double px, double py, int hint, double *param)
+static int project(const ddyn_mpc_track *t, double px, double py, int hint, int window, double *param)
 {
-    int best = 0, k, count = hint < 0 ? t->n : (2 * LOCAL_WINDOW + 1 < t->n ? 2 * LOCAL_WINDOW + 1 : t->n);
+    int best = 0, k, count = hint < 0 ? t->n : (2 * window + 1 < t->n ? 2 * window + 1 : t->n);
     int start = hint < 0 ? 0 : hint - (count - 1) / 2;
     double best_d = INFINITY, best_u = 0.0;
     for (k = 0; k < count; ++k) {
@@ -357,7 +358,7 @@ static void references(ddyn_mpc *mpc, int i0, double u0)
         r[0] = p.x;
         r[1] = p.y;
         advance(t, &i, &u, p.speed * dt);
-        ic = project(t, mpc->x_lin[k * DDYN_NX], mpc->x_lin[k * DDYN_NX + 1], ic, &uc);
+        ic = project(t, mpc->x_lin[k * DDYN_NX], mpc->x_lin[k * DDYN_NX + 1], ic, k == 0 ? LOCAL_WINDOW : STAGE_WINDOW, &uc);
         c = track_at(t, ic, uc);
         r[2] = c.x;
         r[3] = c.y;
@@ -484,7 +485,7 @@ ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDY
         return DDYN_ERR_NOT_READY;
     }
     h = mpc->cfg.horizon;
-    i0 = project(&mpc->track, x0[0], x0[1], mpc->last_index, &u0);
+    i0 = project(&mpc->track, x0[0], x0[1], mpc->last_index, LOCAL_WINDOW, &u0);
     info->track_index = i0;
     info->progress = track_at(&mpc->track, i0, u0).s;
     st = linearise(mpc, x0);

@@ -14,8 +14,10 @@
  *   per sensor kind (ddyn_meas_kind order): period in control periods (0 = never), noise std of
  *   the simulated reading, std the filter assumes (its R: noise plus model error)
  *   n, then n raceline rows: x y speed width_left width_right
- * Output: "controller_step n median_us p99_us max_us", then "# key value" lines: steps with
- * each status bit, laps driven, largest distance of the true position from the raceline.
+ * Output: "controller_step n median_us p99_us max_us", the same for "mpc_solve" (the step's MPC
+ * solve repeated alone on a copy of the MPC context: the MPC's share of the step), then
+ * "# key value" lines: steps with each status bit, rejected readings per sensor, laps driven,
+ * largest distance of the true position from the raceline.
  */
 #define _POSIX_C_SOURCE 199309L
 #include <math.h>
@@ -32,7 +34,9 @@
 extern const ddyn_net_tables ddyn_net_weights;
 
 static double samples[MAX_STEPS];
+static double mpc_samples[MAX_STEPS];
 static ddyn_ctrl ctl;
+static ddyn_mpc mpc_replay; /* the step's MPC solve once more, timed alone */
 static double track[5][DDYN_MPC_MAX_TRACK_POINTS];
 
 static double now_us(void)
@@ -46,6 +50,18 @@ static int cmp(const void *a, const void *b)
 {
     double x = *(const double *)a, y = *(const double *)b;
     return (x > y) - (x < y);
+}
+
+static void report(const char *name, double *v, int n)
+{
+    double sum = 0.0;
+    int i;
+    for (i = 0; i < n; ++i) {
+        sum += v[i];
+    }
+    qsort(v, (size_t)n, sizeof v[0], cmp);
+    printf("%s %d %.3f %.3f %.3f\n", name, n, v[n / 2], v[(int)(0.99 * (n - 1))], v[n - 1]);
+    printf("# %s_mean_us %.3f\n", name, sum / n);
 }
 
 /* xorshift64* and Box-Muller: reproducible noise without libc's rand state */
@@ -155,9 +171,19 @@ int main(int argc, char **argv)
                 }
             }
         }
+        memcpy(&mpc_replay, &ctl.mpc, sizeof mpc_replay); /* the MPC as the step will find it */
         t0 = now_us();
         ddyn_ctrl_step(&ctl, &in, &out);
         samples[i] = now_us() - t0;
+        {
+            /* the same solve (same warm start, coefficients, state) timed on its own: the share
+             * of the step that is the MPC's */
+            double u_replay[DDYN_NU];
+            ddyn_mpc_set_coefficients(&mpc_replay, out.coeffs);
+            t0 = now_us();
+            ddyn_mpc_solve(&mpc_replay, out.x_est, u_replay, NULL);
+            mpc_samples[i] = now_us() - t0;
+        }
         for (b = 0; b < DDYN_CTRL_STATUS_BITS; ++b) {
             bit_count[b] += (out.status >> b) & 1u;
         }
@@ -177,16 +203,8 @@ int main(int argc, char **argv)
         memcpy(x, x_next, sizeof x);
         max_offset = fmax(max_offset, raceline_distance(n_track, x[0], x[1]));
     }
-    {
-        double sum = 0.0;
-        for (i = 0; i < steps; ++i) {
-            sum += samples[i];
-        }
-        qsort(samples, (size_t)steps, sizeof samples[0], cmp);
-        printf("controller_step %d %.3f %.3f %.3f\n", steps, samples[steps / 2], samples[(int)(0.99 * (steps - 1))],
-               samples[steps - 1]);
-        printf("# mean_us %.3f\n", sum / steps);
-    }
+    report("controller_step", samples, steps);
+    report("mpc_solve", mpc_samples, steps);
     for (b = 0; b < DDYN_CTRL_STATUS_BITS; ++b) {
         printf("# steps_%s %ld\n", ddyn_ctrl_status_name((ddyn_ctrl_status)1u << b), bit_count[b]);
     }

@@ -7,8 +7,8 @@
  *      network's history of DDYN_NET_TAU rows, exactly the rows the network was trained on
  *      (train/windows.py: row k = state at k and the input applied from k to k+1);
  *   2. coefficients: the guard network reads the history (the 17 coefficients of the step that
- *      led to now); while the history fills, or when the history lies outside the network's
- *      training range or the network's output is not finite, the last good coefficients (for a
+ *      led to now); while the history fills, or when the history's states lie outside the
+ *      network's training range or the network's output is not finite, the last good coefficients (for a
  *      bounded number of periods) or the vehicle's nominal ones are used instead;
  *   3. EKF predict over the period with the previous command and those coefficients, then an
  *      update for every reading marked valid this period (sensors arrive at their own rates);
@@ -87,8 +87,9 @@ typedef struct {
     double nis_gate;
     /* the vehicle's nominal coefficients (COEFF_NAMES order): the fallback of last resort */
     double c_nominal[DDYN_NC];
-    /* a history feature is out of range when |f - mean| > range_sigmas * std of the network's
-     * input normalisation (the training data's statistics, exported with the weights) */
+    /* a history state feature (vx, vy, omega, throttle, steering) is out of range when
+     * |f - mean| > range_sigmas * std of the network's input normalisation (the training data's
+     * statistics, exported with the weights) */
     double range_sigmas;
     double safe_stop_speed; /* m/s: below it the safe command holds the car instead of braking */
     int max_coeff_age;      /* periods the last good coefficients stay usable, then nominal */

@@ -25,7 +25,7 @@
  * the condensed Hessian, soft-constraint slacks eliminated in closed form) with an iteration cap.
  *
  * Embedded rules: C99, no allocation, no recursion, no VLAs, every loop bounded by the
- * compile-time sizes below. Everything lives in the caller-owned ddyn_mpc (about 130 kB with the
+ * compile-time sizes below. Everything lives in the caller-owned ddyn_mpc (about 140 kB with the
  * defaults: lower DDYN_MPC_MAX_TRACK_POINTS / DDYN_MPC_MAX_HORIZON at compile time to shrink it).
  * Not thread-safe per context; contexts are independent.
  */
@@ -48,7 +48,6 @@ extern "C" {
 #endif
 #define DDYN_MPC_DEFAULT_HORIZON 20
 #define DDYN_MPC_NV (DDYN_MPC_MAX_HORIZON * DDYN_NU)       /* QP variables: input rates */
-#define DDYN_MPC_NROWS (DDYN_MPC_MAX_HORIZON * 3)          /* two-sided rows: throttle, steering, track */
 #define DDYN_MPC_MAX_QP_ITERATIONS 50
 
 /* The prediction model's discretisation. */

@@ -1,0 +1,380 @@
+/*
+ * MPC contract (c_src/src/mpc.c, mpc_qp.c): configuration from the vehicle file, refusals with a
+ * defined zero command, the QP solver against closed-form answers (box clipping, exact penalty),
+ * the iteration cap's status and finite command, the generated prediction step's Jacobians, and a
+ * short closed loop on a circular track that must stay inside it. The lap on ethzMobil against the
+ * IPOPT reference is tests/python/test_mpc.py.
+ */
+#include <math.h>
+#include <setjmp.h>
+#include <stdarg.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <string.h>
+
+#include <cmocka.h>
+
+#include "ddyn/mpc.h"
+#include "ddyn_models.h"
+#include "ddyn_mpc_limits.h"
+
+#define PI 3.14159265358979323846
+#define RING 200
+#define RADIUS 1.0
+
+static ddyn_mpc mpc;
+static ddyn_mpc_qp qp;
+static const double C[DDYN_NC] = {5.579, 1.2, 0.192, -0.083, -0.0013, 0.00043, 5.3852, 1.2691, 0.1737,
+                                  -0.019, -0.00376, 0.00091, 0.287, 0.0545, 0.0518, 0.00035, 2.78e-5};
+
+/* a counter-clockwise circle of radius 1 m, 1.2 m/s reference, 0.15 m of room either side */
+static void ring_mpc(int qp_iterations)
+{
+    static double x[RING], y[RING], v[RING], wl[RING], wr[RING];
+    ddyn_mpc_config cfg;
+    int i;
+    for (i = 0; i < RING; ++i) {
+        double a = 2.0 * PI * i / RING;
+        x[i] = RADIUS * cos(a);
+        y[i] = RADIUS * sin(a);
+        v[i] = 1.2;
+        wl[i] = 0.15;
+        wr[i] = 0.15;
+    }
+    assert_int_equal(ddyn_mpc_default_config(&ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    cfg.qp_max_iterations = qp_iterations;
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    assert_int_equal(ddyn_mpc_set_track(&mpc, RING, x, y, v, wl, wr), DDYN_OK);
+    assert_int_equal(ddyn_mpc_set_coefficients(&mpc, C), DDYN_OK);
+}
+
+static void ring_start(double x0[DDYN_NX])
+{
+    const double s[DDYN_NX] = {RADIUS, 0.0, PI / 2.0, 1.0, 0.0, 1.0, 0.2, 0.05};
+    memcpy(x0, s, sizeof s);
+}
+
+static void test_default_config_takes_the_vehicle_files_limits(void **state)
+{
+    ddyn_mpc_config cfg;
+    (void)state;
+    assert_int_equal(ddyn_mpc_default_config(&ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    /* train/vehicles/orca_1_43.json input_limits */
+    assert_true(cfg.rate_lo[0] == -10.0 && cfg.rate_hi[0] == 10.0);
+    assert_true(cfg.rate_lo[1] == -5.0 && cfg.rate_hi[1] == 5.0);
+    assert_true(cfg.state_lo[0] == -0.1 && cfg.state_hi[0] == 1.0);
+    assert_true(cfg.state_lo[1] == -0.35 && cfg.state_hi[1] == 0.35);
+    assert_int_equal(cfg.horizon, 20);
+    assert_int_equal(ddyn_mpc_default_config(&ddyn_model_av21, &cfg), DDYN_OK);
+    assert_true(cfg.state_lo[1] == -0.25 && cfg.rate_hi[1] == 0.6);
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_av21, &cfg), DDYN_OK);
+}
+
+static void test_init_refuses_bad_configs(void **state)
+{
+    ddyn_mpc_config cfg, bad;
+    (void)state;
+    assert_int_equal(ddyn_mpc_default_config(&ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    bad = cfg;
+    bad.horizon = DDYN_MPC_MAX_HORIZON + 1;
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &bad), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.horizon = 0;
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &bad), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.r_rate[1] = 0.0; /* the condensed Hessian needs R > 0 */
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &bad), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.q_pos[0] = NAN;
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &bad), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.state_lo[0] = bad.state_hi[0];
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &bad), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.qp_max_iterations = DDYN_MPC_MAX_QP_ITERATIONS + 1;
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &bad), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_init(NULL, &ddyn_model_orca_1_43, &cfg), DDYN_ERR_ARGUMENT);
+}
+
+static void test_refusals_give_zero_command_and_keep_the_plan(void **state)
+{
+    ddyn_mpc_config cfg;
+    double x0[DDYN_NX], u[DDYN_NU] = {7.0, 7.0}, c_bad[DDYN_NC];
+    ddyn_mpc before;
+    ddyn_mpc_info info;
+    (void)state;
+    assert_int_equal(ddyn_mpc_default_config(&ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    ring_start(x0);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_ERR_NOT_READY); /* no track, no coefficients */
+    assert_true(u[0] == 0.0 && u[1] == 0.0);
+
+    ring_mpc(30);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_OK);
+    before = mpc;
+    x0[4] = NAN;
+    u[0] = u[1] = 7.0;
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_ERR_NONFINITE_INPUT);
+    assert_true(u[0] == 0.0 && u[1] == 0.0);
+    assert_memory_equal(before.u_plan, mpc.u_plan, sizeof mpc.u_plan);
+    x0[4] = INFINITY;
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_ERR_NONFINITE_INPUT);
+
+    memcpy(c_bad, C, sizeof c_bad);
+    c_bad[16] = NAN;
+    assert_int_equal(ddyn_mpc_set_coefficients(&mpc, c_bad), DDYN_ERR_NONFINITE_INPUT);
+    assert_memory_equal(mpc.c, C, sizeof C); /* the previous coefficients stay */
+
+    /* finite coefficients that make the model non-finite (Iz = 0): a status, never a NaN command */
+    c_bad[16] = 0.0;
+    assert_int_equal(ddyn_mpc_set_coefficients(&mpc, c_bad), DDYN_OK);
+    ring_start(x0);
+    u[0] = u[1] = 7.0;
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_ERR_NONFINITE_OUTPUT);
+    assert_true(u[0] == 0.0 && u[1] == 0.0);
+    assert_int_equal(ddyn_mpc_solve(NULL, x0, u, &info), DDYN_ERR_ARGUMENT);
+}
+
+static void test_track_table_is_checked(void **state)
+{
+    double x[4] = {0, 1, 1, 0}, y[4] = {0, 0, 1, 1}, v[4] = {1, 1, 1, 1}, w[4] = {0.1, 0.1, 0.1, 0.1};
+    double v0[4] = {1, 0, 1, 1}, xn[4] = {0, 1, NAN, 0}, xd[4] = {0, 0, 1, 0};
+    ddyn_mpc_config cfg;
+    (void)state;
+    assert_int_equal(ddyn_mpc_default_config(&ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    assert_int_equal(ddyn_mpc_set_track(&mpc, 4, x, y, v, w, w), DDYN_OK);
+    assert_true(fabs(mpc.track.length - 4.0) < 1e-12);
+    assert_int_equal(ddyn_mpc_set_track(&mpc, 3, x, y, v, w, w), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_set_track(&mpc, 4, x, y, v0, w, w), DDYN_ERR_ARGUMENT);  /* zero speed */
+    assert_int_equal(ddyn_mpc_set_track(&mpc, 4, xd, xd, v, w, w), DDYN_ERR_ARGUMENT); /* repeated point */
+    assert_int_equal(ddyn_mpc_set_track(&mpc, 4, xn, y, v, w, w), DDYN_ERR_NONFINITE_INPUT);
+    assert_int_equal(ddyn_mpc_set_track(&mpc, DDYN_MPC_MAX_TRACK_POINTS + 1, x, y, v, w, w), DDYN_ERR_ARGUMENT);
+}
+
+static void qp_clear(int horizon)
+{
+    memset(&qp, 0, sizeof qp);
+    qp.horizon = horizon;
+    qp.dt = 0.02;
+    qp.rho1 = 10.0;
+    qp.rho2 = 1.0;
+}
+
+static void open_bounds(int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        qp.lb[i] = -100.0;
+        qp.ub[i] = 100.0;
+        qp.hard_lo[i] = -100.0;
+        qp.hard_hi[i] = 100.0;
+    }
+    for (i = 0; i < n / 2; ++i) {
+        qp.soft_lo[i] = -100.0;
+        qp.soft_hi[i] = 100.0;
+    }
+}
+
+static void test_qp_box_solution_is_the_clipped_minimiser(void **state)
+{
+    /* diagonal Hessian, box only: z_i = clip(-f_i / h_i, lb_i, ub_i) */
+    const int h = 10, n = 2 * h;
+    int i;
+    (void)state;
+    qp_clear(h);
+    open_bounds(n);
+    for (i = 0; i < n; ++i) {
+        qp.hess[i + i * DDYN_QP_NV] = 1.0 + 0.1 * i;
+        qp.grad[i] = (i % 3 == 0 ? -5.0 : (i % 3 == 1 ? 4.0 : 0.3)) * qp.hess[i + i * DDYN_QP_NV];
+        qp.lb[i] = -1.0;
+        qp.ub[i] = 2.0;
+    }
+    assert_int_equal(ddyn_mpc_qp_solve(&qp, 30, 1e-9), DDYN_OK);
+    for (i = 0; i < n; ++i) {
+        double want = i % 3 == 0 ? 2.0 : (i % 3 == 1 ? -1.0 : -0.3);
+        assert_true(fabs(qp.z[i] - want) < 1e-6);
+    }
+    assert_true(qp.converged && qp.iterations <= 30);
+}
+
+static void test_qp_soft_row_penalty_is_exact(void **state)
+{
+    /* min 1/2 (z0 - 2)^2 + 1/2 z1^2 + ... with soft row z0 <= 0.5 (+ s): the multiplier 1.5 is below
+     * rho1 = 10, so the exact penalty gives s = 0 and z0 = 0.5; with rho1 = 1 the row gives way:
+     * z0 - 2 + rho1 + 2 rho2 s = 0 with z0 = 0.5 + s -> s = (1.5 - rho1) / (1 + 2 rho2) */
+    const int h = 1;
+    (void)state;
+    qp_clear(h);
+    open_bounds(2);
+    qp.hess[0] = 1.0;
+    qp.hess[1 + DDYN_QP_NV] = 1.0;
+    qp.grad[0] = -2.0;
+    qp.soft_row[0] = 1.0;
+    qp.soft_hi[0] = 0.5;
+    qp.soft_lo[0] = -1.0;
+    assert_int_equal(ddyn_mpc_qp_solve(&qp, 30, 1e-10), DDYN_OK);
+    assert_true(fabs(qp.z[0] - 0.5) < 1e-6);
+    assert_true(fabs(qp.slack[0]) < 1e-6);
+    qp.rho1 = 1.0;
+    qp.rho2 = 0.5;
+    assert_int_equal(ddyn_mpc_qp_solve(&qp, 30, 1e-10), DDYN_OK);
+    assert_true(fabs(qp.slack[0] - 0.25) < 1e-6);
+    assert_true(fabs(qp.z[0] - 0.75) < 1e-6);
+}
+
+static void test_qp_integrator_rows_bound_the_prefix_sums(void **state)
+{
+    /* pull every z to +50; the throttle row caps dt * sum_{j<k} z[2j] at 0.1 for all k */
+    const int h = 5, n = 2 * h;
+    int i, k;
+    double acc = 0.0;
+    (void)state;
+    qp_clear(h);
+    open_bounds(n);
+    for (i = 0; i < n; ++i) {
+        qp.hess[i + i * DDYN_QP_NV] = 1.0;
+        qp.grad[i] = -50.0;
+    }
+    for (k = 0; k < h; ++k) {
+        qp.hard_hi[2 * k] = 0.1;
+    }
+    assert_int_equal(ddyn_mpc_qp_solve(&qp, 40, 1e-9), DDYN_OK);
+    for (k = 0; k < h; ++k) {
+        acc += qp.z[2 * k];
+        assert_true(qp.dt * acc <= 0.1 + 1e-6);
+        assert_true(fabs(qp.z[2 * k + 1] - 50.0) < 1e-5); /* the steering channel is free */
+    }
+    assert_true(fabs(qp.dt * acc - 0.1) < 1e-6);
+}
+
+static void test_qp_refuses_nonfinite_data(void **state)
+{
+    (void)state;
+    qp_clear(2);
+    open_bounds(4);
+    qp.hess[0] = 1.0;
+    qp.hess[1 + DDYN_QP_NV] = 1.0;
+    qp.hess[2 + 2 * DDYN_QP_NV] = 1.0;
+    qp.hess[3 + 3 * DDYN_QP_NV] = 1.0;
+    qp.grad[2] = NAN;
+    assert_int_equal(ddyn_mpc_qp_solve(&qp, 30, 1e-9), DDYN_ERR_NONFINITE_INPUT);
+    assert_true(qp.z[0] == 0.0 && qp.z[2] == 0.0);
+    qp.grad[2] = 0.0;
+    qp.horizon = 0;
+    assert_int_equal(ddyn_mpc_qp_solve(&qp, 30, 1e-9), DDYN_ERR_ARGUMENT);
+}
+
+static void test_iteration_cap_reports_and_commands_within_bounds(void **state)
+{
+    double x0[DDYN_NX], u[DDYN_NU];
+    ddyn_mpc_info info;
+    (void)state;
+    ring_mpc(1);
+    ring_start(x0);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_int_equal(info.converged, 0);
+    assert_int_equal(info.qp_iterations, 1);
+    assert_true(isfinite(u[0]) && isfinite(u[1]));
+    assert_true(u[0] >= mpc.cfg.rate_lo[0] && u[0] <= mpc.cfg.rate_hi[0]);
+    assert_true(u[1] >= mpc.cfg.rate_lo[1] && u[1] <= mpc.cfg.rate_hi[1]);
+    assert_true(info.kkt_residual > mpc.cfg.qp_tolerance);
+}
+
+static void test_generated_prediction_step_jacobians_and_integrators(void **state)
+{
+    /* the MPC's step: A, B against central differences; throttle, steering are exact integrators
+     * (the QP's prefix-sum rows rely on it) */
+    const ddyn_casadi_fn step = ddyn_mpc_limits[1].step;
+    double x[DDYN_NX] = {0.3, -0.2, 0.4, 1.7, 0.1, 1.2, 0.4, 0.1}, u[DDYN_NU] = {0.5, -0.8};
+    double out[DDYN_NX * 11], xp[DDYN_NX], xm[DDYN_NX], scratch[DDYN_NX * 10];
+    static ddyn_model_work work;
+    const double *arg[3];
+    double *res[3];
+    int i, j;
+    (void)state;
+    assert_string_equal(ddyn_mpc_limits[1].name, "orca_1_43");
+    arg[0] = x;
+    arg[1] = u;
+    arg[2] = C;
+    res[0] = out;
+    res[1] = out + DDYN_NX;
+    res[2] = out + DDYN_NX * 9;
+    assert_int_equal(step(arg, res, work.iw, work.w, 0), 0);
+    for (j = 0; j < DDYN_NX + DDYN_NU; ++j) {
+        double xx[DDYN_NX], uu[DDYN_NU], h = 1e-6;
+        double *r2[3];
+        memcpy(xx, x, sizeof xx);
+        memcpy(uu, u, sizeof uu);
+        arg[0] = xx;
+        arg[1] = uu;
+        r2[0] = xp;
+        r2[1] = scratch;
+        r2[2] = scratch + 64;
+        if (j < DDYN_NX) xx[j] += h; else uu[j - DDYN_NX] += h;
+        step(arg, r2, work.iw, work.w, 0);
+        r2[0] = xm;
+        if (j < DDYN_NX) xx[j] -= 2 * h; else uu[j - DDYN_NX] -= 2 * h;
+        step(arg, r2, work.iw, work.w, 0);
+        for (i = 0; i < DDYN_NX; ++i) {
+            double fd = (xp[i] - xm[i]) / (2 * h);
+            double an = j < DDYN_NX ? out[DDYN_NX + i + j * DDYN_NX] : out[DDYN_NX * 9 + i + (j - DDYN_NX) * DDYN_NX];
+            assert_true(fabs(fd - an) < 1e-5 * (1.0 + fabs(an)));
+        }
+    }
+    for (i = 6; i < 8; ++i) {
+        for (j = 0; j < DDYN_NX; ++j) {
+            assert_true(out[DDYN_NX + i + j * DDYN_NX] == (i == j ? 1.0 : 0.0));
+        }
+        for (j = 0; j < DDYN_NU; ++j) {
+            assert_true(fabs(out[DDYN_NX * 9 + i + j * DDYN_NX] - (i - 6 == j ? 0.02 : 0.0)) < 1e-15);
+        }
+    }
+}
+
+static void test_closed_loop_stays_on_the_ring(void **state)
+{
+    /* 2 s on the ring with the true coefficients: inside the room (0.15 m) all the way, every solve
+     * converged, commands within the rate bounds, throttle and steering within theirs */
+    static ddyn_model_work work;
+    double x[DDYN_NX], u[DDYN_NU], xn[DDYN_NX], xp[(DDYN_MPC_MAX_HORIZON + 1) * DDYN_NX], last_x0[DDYN_NX];
+    ddyn_mpc_info info;
+    int k;
+    (void)state;
+    ring_mpc(30);
+    ring_start(x);
+    for (k = 0; k < 100; ++k) {
+        memcpy(last_x0, x, sizeof x);
+        assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+        assert_true(info.converged && info.qp_iterations >= 1 && info.qp_iterations <= 30);
+        assert_true(u[0] >= -10.0 && u[0] <= 10.0 && u[1] >= -5.0 && u[1] <= 5.0);
+        assert_int_equal(ddyn_model_step(&ddyn_model_orca_1_43, DDYN_DISC_RK4, x, u, C, xn, &work), DDYN_OK);
+        memcpy(x, xn, sizeof x);
+        assert_true(fabs(hypot(x[0], x[1]) - RADIUS) < 0.15);
+        assert_true(x[6] >= -0.1 - 1e-9 && x[6] <= 1.0 + 1e-9 && fabs(x[7]) <= 0.35 + 1e-9);
+    }
+    assert_true(atan2(x[1], x[0]) > 0.5); /* it went round (about 2.4 m at 1.2 m/s), not stood still */
+    assert_int_equal(ddyn_mpc_plan(&mpc, xp, NULL), 20);
+    assert_memory_equal(xp, last_x0, sizeof last_x0); /* the plan starts at the last solve's x0 ... */
+    assert_true(fabs(xp[DDYN_NX] - x[0]) < 1e-3 && fabs(xp[DDYN_NX + 1] - x[1]) < 1e-3); /* ... and predicts the plant */
+    ddyn_mpc_reset(&mpc);
+    assert_int_equal(ddyn_mpc_plan(&mpc, xp, NULL), 0);
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_default_config_takes_the_vehicle_files_limits),
+        cmocka_unit_test(test_init_refuses_bad_configs),
+        cmocka_unit_test(test_refusals_give_zero_command_and_keep_the_plan),
+        cmocka_unit_test(test_track_table_is_checked),
+        cmocka_unit_test(test_qp_box_solution_is_the_clipped_minimiser),
+        cmocka_unit_test(test_qp_soft_row_penalty_is_exact),
+        cmocka_unit_test(test_qp_integrator_rows_bound_the_prefix_sums),
+        cmocka_unit_test(test_qp_refuses_nonfinite_data),
+        cmocka_unit_test(test_iteration_cap_reports_and_commands_within_bounds),
+        cmocka_unit_test(test_generated_prediction_step_jacobians_and_integrators),
+        cmocka_unit_test(test_closed_loop_stays_on_the_ring),
+    };
+    return cmocka_run_group_tests(tests, NULL, NULL);
+}
