@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Every test (the README's second command): Python tests with pytest, the C tests with
-# ctest in a normal build and in an AddressSanitizer + UBSan build, and the cross-build
-# of the runtime for a Cortex-M7. Runs all even when one fails; exits non-zero if any failed.
+# ctest in a normal build (including the virtual-CAN tests in a qemu guest) and in an
+# AddressSanitizer + UBSan build, a bounded libFuzzer run of the CAN input path, and the
+# cross-build of the runtime for a Cortex-M7. Runs all even when one fails; exits non-zero if any failed.
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$ROOT/scripts/setup.sh" || exit 1
@@ -20,6 +21,9 @@ ctest --test-dir "$ROOT/build" --output-on-failure || status=1
 echo "== C tests (ctest, AddressSanitizer + UndefinedBehaviorSanitizer build)"
 { bash scripts/build.sh "$ROOT/build-asan" -DDDYN_SANITIZE=ON -DCMAKE_BUILD_TYPE=Debug \
     && ctest --test-dir "$ROOT/build-asan" --output-on-failure; } || status=1
+
+echo "== fuzz: CAN frame decoder and the controller's CAN input path (libFuzzer + ASan/UBSan, ${DDYN_FUZZ_SECONDS:-30} s)"
+bash scripts/fuzz_can.sh || status=1
 
 echo "== C runtime cross-build for a Cortex-M7 (arm-none-eabi-gcc, -Werror)"
 { rm -rf "$ROOT/build-m7" \

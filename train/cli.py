@@ -34,6 +34,8 @@ SUBCOMMAND_MODULES = (
     "train.sil",
     "train.sil_table",
     "train.mpc_lap",
+    "train.can_log",
+    "train.can_bench",
 )
 
 

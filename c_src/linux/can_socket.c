@@ -74,12 +74,11 @@ int ddyn_can_open(ddyn_can_socket *s, const char *ifname, const struct can_filte
     }
     s->ifindex = ifr.ifr_ifindex;
     strncpy(s->ifname, ifname, sizeof(s->ifname) - 1u);
-    /* filters before bind, so that no unfiltered frame is ever queued */
-    if (setsockopt(s->fd, SOL_CAN_RAW, CAN_RAW_FILTER, filters, (socklen_t)(n_filters * sizeof(*filters))) != 0 &&
-        n_filters > 0) {
-        return fail_close(s, errno);
-    }
-    if (n_filters == 0 && setsockopt(s->fd, SOL_CAN_RAW, CAN_RAW_FILTER, NULL, 0) != 0) {
+    /* filters before bind, so that no unfiltered frame is ever queued; without filters the
+     * socket keeps the kernel's default, which receives everything (an empty filter list would
+     * receive nothing) */
+    if (n_filters > 0 &&
+        setsockopt(s->fd, SOL_CAN_RAW, CAN_RAW_FILTER, filters, (socklen_t)(n_filters * sizeof(*filters))) != 0) {
         return fail_close(s, errno);
     }
     if (join && setsockopt(s->fd, SOL_CAN_RAW, CAN_RAW_JOIN_FILTERS, &on, sizeof(on)) != 0) {

@@ -10,7 +10,7 @@
            module's .modinfo), in dependency order, decompressed (.ko.xz/.ko.zst/.ko.gz) here so
            the guest's busybox insmod needs no decompressor.
   initramfs busybox-static, the modules, the test binaries (statically linked: the guest has no
-           libc) and an /init that loads the modules, creates vcan0, runs the tests and prints
+           libc) and an /init that loads the modules, creates vcan0 (MTU 72: CAN FD capable), runs the tests and prints
            "DDYN_GUEST_EXIT: <status>" on the serial console.
 
 The kernel and modules are cached in the cache directory (default build/vcan-guest, outside
@@ -232,11 +232,12 @@ for m in {modules}; do
   insmod /lib/modules/$m.ko || {{ echo "DDYN_GUEST: insmod $m failed"; status=1; }}
 done
 if [ $status -eq 0 ]; then
-  ip link add dev vcan0 type vcan && ip link set up vcan0 || {{ echo "DDYN_GUEST: cannot create vcan0"; status=1; }}
+  # MTU 72 (CANFD_MTU): vcan then carries CAN FD frames as well as classic ones
+  ip link add dev vcan0 type vcan && ip link set vcan0 mtu 72 && ip link set up vcan0 || {{ echo "DDYN_GUEST: cannot create vcan0"; status=1; }}
 fi
 if [ $status -eq 0 ]; then
   for t in {tests}; do
-    echo "DDYN_GUEST: running $t"
+    echo "DDYN_GUEST: up $(cut -d' ' -f1 /proc/uptime) s, running $t"
     /tests/$t vcan0 || status=1
   done
 fi
@@ -291,8 +292,8 @@ def build_initramfs(cache: Path, meta: dict, tests: list[Path], out: Path) -> No
         c.file(f"tests/{t.name}", t.read_bytes())
     c.file("init", INIT.format(modules=" ".join(meta["modules"]), tests=" ".join(t.name for t in tests)).encode())
     out.parent.mkdir(parents=True, exist_ok=True)
-    # mtime 0: the same inputs give the same bytes
-    with open(out, "wb") as f, gzip.GzipFile(fileobj=f, mode="wb", compresslevel=1, mtime=0) as gz:
+    # mtime 0 and no file name in the gzip header: the same inputs give the same bytes
+    with open(out, "wb") as f, gzip.GzipFile(filename="", fileobj=f, mode="wb", compresslevel=1, mtime=0) as gz:
         gz.write(c.finish())
 
 

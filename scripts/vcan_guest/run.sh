@@ -5,7 +5,10 @@
 # DDYN_VCAN_MODE: auto (default: the host's vcan0 if it exists or can be created, else the
 # guest), host, or guest. The guest: build_guest.py (kernel cached in build/vcan-guest) and
 # qemu-system-x86_64 in software emulation (DDYN_VCAN_KVM=1 adds -enable-kvm; never by
-# default). A missing qemu, kernel or module is a FAILURE, never a skip.
+# default) with a virtual clock driven by the instruction count (-icount shift=4,sleep=off: a
+# loaded host slows the guest down but cannot stretch its time between two frames; idle time is
+# skipped; DDYN_VCAN_QEMU_CLOCK="" uses the host clock instead). A missing qemu, kernel or
+# module is a FAILURE, never a skip.
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
 CACHE="${DDYN_VCAN_GUEST_DIR:-$ROOT/build/vcan-guest}"
@@ -15,7 +18,7 @@ TIMEOUT="${DDYN_VCAN_TIMEOUT:-300}"
 
 host_has_vcan() {
   [ -e /sys/class/net/vcan0 ] && { ip link set up vcan0 2>/dev/null || true; return 0; }
-  ip link add dev vcan0 type vcan 2>/dev/null && ip link set up vcan0 2>/dev/null
+  ip link add dev vcan0 type vcan 2>/dev/null && ip link set vcan0 mtu 72 && ip link set up vcan0 2>/dev/null
 }
 
 if [ "$MODE" = host ] || { [ "$MODE" = auto ] && host_has_vcan; }; then
@@ -36,7 +39,7 @@ accel=()
 log="$CACHE/last-run.log"
 echo "vcan: booting $(basename "$kernel") in qemu (software emulation) with $# test binary(ies)"
 start=$(date +%s.%N)
-timeout "$TIMEOUT" qemu-system-x86_64 "${accel[@]}" -m 256M -smp 2 -nodefaults -no-reboot \
+timeout "$TIMEOUT" qemu-system-x86_64 "${accel[@]}" -m 256M -smp 1 ${DDYN_VCAN_QEMU_CLOCK:--icount shift=4,sleep=off} -nodefaults -no-reboot \
   -display none -serial stdio -monitor none \
   -kernel "$kernel" -initrd "$initramfs" \
   -append "console=ttyS0 quiet loglevel=3 panic=-1 rdinit=/init" </dev/null >"$log" 2>&1

@@ -30,12 +30,14 @@
 #include "dbw_socketcan.h"
 
 #define PERIOD_US 10000u
-#define PERIODS 70
+#define PERIODS 100
 #define INJECT_PERIOD 25
-#define STALE_GAP_PERIODS 15 /* 150 ms without IMU frames */
-/* deadlines of 100 ms rather than the DBC's 3 cycles: a software-emulated guest on a shared host
- * has scheduling jitter of tens of ms; the stale case still opens a gap of 150 ms */
-#define TEST_DEADLINE_US 100000u
+#define STALE_GAP_PERIODS 15 /* 150 ms without IMU frames: five times its 30 ms deadline */
+/* Both ends use the DBC's deadlines (ddyn_dbw_default_config: 3 cycle times). The guest runs
+ * with a virtual clock driven by the instruction count (scripts/vcan_guest/run.sh), so a loaded
+ * host slows the test down but does not stretch the guest's time between frames. On a real host
+ * with vcan (no such clock) scheduling stalls could still exceed 30 ms, hence the retry: */
+#define ATTEMPTS 2
 
 typedef enum {
     INJ_NONE = 0,
@@ -73,12 +75,13 @@ typedef struct {
 
 static const char *iface = "vcan0";
 static int failures;
+static const char *fail_label = "FAIL";
 
 static void fail(const char *scenario, const char *fmt, ...)
 {
     va_list ap;
     va_start(ap, fmt);
-    printf("FAIL %s: ", scenario);
+    printf("%s %s: ", fail_label, scenario);
     vprintf(fmt, ap);
     printf("\n");
     va_end(ap);
@@ -159,7 +162,6 @@ static void emulator(injection inj, uint64_t t0, int out_fd)
     rep.first_safe_period = -1;
     rep.last_autonomous_period = -1;
     ddyn_dbw_default_config(&cfg, DDYN_DBW_MONITOR_DBW_UNIT);
-    cfg.deadline_us[DDYN_DBW_FRAME_COMMAND] = TEST_DEADLINE_US;
     if (ddyn_dbw_init(&unit, &cfg) != 0 || ddyn_dbw_socketcan_open(&sock, iface, DDYN_DBW_ROLE_DBW_UNIT) != 0) {
         rep.setup_error = 1;
         (void)!write(out_fd, &rep, sizeof(rep));
@@ -240,7 +242,8 @@ static void emulator(injection inj, uint64_t t0, int out_fd)
             unsigned i;
             for (i = 0; i < 64u; ++i) {
                 ddyn_can_rx rx;
-                int r = ddyn_can_receive(&sock, &rx, start + PERIOD_US - 1000u);
+                /* the last period waits 50 ms more: the controller's last command may be late */
+                int r = ddyn_can_receive(&sock, &rx, start + PERIOD_US - 1000u + (p == PERIODS - 1 ? 50000u : 0u));
                 if (r == 0) {
                     break;
                 }
@@ -337,17 +340,11 @@ static void receive_timed(ctl_run *c, uint64_t deadline)
 static int controller(ctl_run *c, injection inj, uint64_t t0)
 {
     ddyn_dbw_config cfg;
-    unsigned f;
     int p;
     memset(c, 0, sizeof(*c));
     c->detect_period = -1;
     c->stamps_monotone = true;
     ddyn_dbw_default_config(&cfg, DDYN_DBW_MONITOR_CONTROLLER);
-    for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
-        if (cfg.deadline_us[f] != 0u) {
-            cfg.deadline_us[f] = TEST_DEADLINE_US;
-        }
-    }
     if (ddyn_dbw_init(&c->dbw, &cfg) != 0) {
         return -1;
     }
@@ -371,7 +368,7 @@ static int controller(ctl_run *c, injection inj, uint64_t t0)
         if (c->detect_period < 0 && total_failures(&c->dbw) > 0u) {
             c->detect_period = p;
             c->stale_lateness_us = (int64_t)c->dbw.last_failure_us -
-                                   (int64_t)(c->dbw.rx[DDYN_DBW_FRAME_IMU].last_rx_us + TEST_DEADLINE_US);
+                                   (int64_t)(c->dbw.rx[DDYN_DBW_FRAME_IMU].last_rx_us + cfg.deadline_us[DDYN_DBW_FRAME_IMU]);
             c->safe_at_detect = sent.mode == DDYN_DBW_MODE_SAFE_STOP && sent.throttle == 0.0 &&
                                 sent.brake == cfg.safe_brake && fabs(sent.steering - 0.05) < 1e-12;
         }
@@ -413,6 +410,7 @@ static void judge(injection inj, ctl_run *c, const emu_report *e)
     }
     if (inj == INJ_NONE) {
         uint64_t lat_med, lat_max, per[PERIODS], per_med;
+        double per_mean;
         uint32_t i;
         if (c->enables != 1) {
             fail(name, "%d enables, expected 1", c->enables);
@@ -439,17 +437,21 @@ static void judge(injection inj, ctl_run *c, const emu_report *e)
         }
         qsort(per, c->n_imu - 1, sizeof(uint64_t), cmp_u64);
         per_med = per[(c->n_imu - 1) / 2];
-        if (per_med < 7000u || per_med > 13000u) {
-            fail(name, "IMU inter-arrival median %llu us, expected 10000 +- 3000", (unsigned long long)per_med);
+        /* the mean period is robust to an emulator that falls behind and catches up (it sleeps
+         * to absolute times): bursts shorten some intervals and lengthen others */
+        per_mean = (double)(c->imu_t[c->n_imu - 1] - c->imu_t[0]) / (double)(c->n_imu - 1);
+        if (per_mean < 9000.0 || per_mean > 11000.0) {
+            fail(name, "IMU mean period %.0f us, expected 10000 +- 1000", per_mean);
         }
         if (lat_med > 5000u) {
             fail(name, "kernel-to-user delay median %llu us > 5 ms", (unsigned long long)lat_med);
         }
         if (failures == before) {
             printf("ok %s: %u frames through the filters (foreign, extended and command frames dropped), "
-                   "%u commands decoded; kernel-to-user delay median %llu us, max %llu us; IMU period median %llu us\n",
+                   "%u commands decoded; kernel-to-user delay median %llu us, max %llu us; IMU period mean %.0f us, "
+                   "median %llu us\n",
                    name, c->sock.rx_frames, e->commands_good, (unsigned long long)lat_med,
-                   (unsigned long long)lat_max, (unsigned long long)per_med);
+                   (unsigned long long)lat_max, per_mean, (unsigned long long)per_med);
         }
         return;
     }
@@ -488,13 +490,13 @@ static void judge(injection inj, ctl_run *c, const emu_report *e)
                name, c->dbw.failures[kind], c->detect_period, e->first_safe_period, c->dbw.config.recovery_good_frames);
         if (inj == INJ_STALE) {
             printf("; detected %lld us after the %u us deadline expired", (long long)c->stale_lateness_us,
-                   TEST_DEADLINE_US);
+                   c->dbw.config.deadline_us[DDYN_DBW_FRAME_IMU]);
         }
         printf("\n");
     }
 }
 
-static void run_scenario(injection inj)
+static void run_scenario_once(injection inj)
 {
     static ctl_run c;
     emu_report e;
@@ -532,6 +534,58 @@ static void run_scenario(injection inj)
     judge(inj, &c, &e);
 }
 
+static void run_scenario(injection inj)
+{
+    int attempt;
+    for (attempt = 1; attempt <= ATTEMPTS; ++attempt) {
+        int before = failures;
+        fail_label = attempt < ATTEMPTS ? "attempt failed (will retry)" : "FAIL";
+        run_scenario_once(inj);
+        if (failures == before) {
+            break;
+        }
+        if (attempt < ATTEMPTS) {
+            failures = before; /* the retry decides */
+        }
+    }
+    fail_label = "FAIL";
+}
+
+/* CAN FD (optional in the protocol, supported by the transport): a 64-byte FD frame reaches an
+ * FD-enabled socket with its length and FD flag, and is withheld from a classic socket. The
+ * guest's init sets vcan0's MTU to 72 (CANFD_MTU) so that vcan carries FD frames. */
+static void check_can_fd(void)
+{
+    ddyn_can_socket tx, rx_fd, rx_classic;
+    ddyn_can_rx r;
+    uint8_t payload[64];
+    int i, got;
+    for (i = 0; i < 64; ++i) {
+        payload[i] = (uint8_t)(i * 7 + 1);
+    }
+    if (ddyn_can_open(&tx, iface, NULL, 0, false, true) != 0 || ddyn_can_open(&rx_fd, iface, NULL, 0, false, true) != 0 ||
+        ddyn_can_open(&rx_classic, iface, NULL, 0, false, false) != 0) {
+        fail("can_fd", "cannot open FD sockets on %s: %s", iface, strerror(errno));
+        return;
+    }
+    if (ddyn_can_send(&tx, 0x123u, false, payload, 64) != 0) {
+        fail("can_fd", "sending a 64-byte FD frame failed: %s (is the MTU 72?)", strerror(errno));
+    } else {
+        got = ddyn_can_receive(&rx_fd, &r, ddyn_can_mono_us() + 200000u);
+        if (got != 1 || !r.fd || r.len != 64 || r.id != 0x123u || memcmp(r.data, payload, 64) != 0) {
+            fail("can_fd", "the FD socket did not receive the 64-byte frame intact (got %d, fd %d, len %u)", got,
+                 got == 1 && r.fd, got == 1 ? r.len : 0u);
+        } else if (ddyn_can_receive(&rx_classic, &r, ddyn_can_mono_us() + 50000u) != 0) {
+            fail("can_fd", "a classic socket received an FD frame");
+        } else {
+            printf("ok can_fd: a 64-byte FD frame received intact by an FD socket, withheld from a classic one\n");
+        }
+    }
+    ddyn_can_close(&tx);
+    ddyn_can_close(&rx_fd);
+    ddyn_can_close(&rx_classic);
+}
+
 int main(int argc, char **argv)
 {
     int i;
@@ -544,6 +598,7 @@ int main(int argc, char **argv)
     for (i = 0; i < (int)INJ_COUNT; ++i) {
         run_scenario((injection)i);
     }
+    check_can_fd();
     printf("DDYN_VCAN_RESULT: %s (%d failed checks)\n", failures == 0 ? "PASS" : "FAIL", failures);
     return failures == 0 ? 0 : 1;
 }
