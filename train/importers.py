@@ -533,10 +533,10 @@ def load_any(path: str | Path, vehicle: str | None = None, fmt: str = "auto", **
 
     fmt: "auto" (detect from the first bytes) or one of FORMATS. options: state_key
     (ddm_npz), min_vx and brake_full_scale_kpa (racecar_csv), min_vx and channel_prefix
-    (lcm_log); options of the other
-    formats and None values are ignored, so one call serves any file. vehicle: for
-    the imported formats, the vehicle the data belongs to (default: the reader's);
-    for a canonical file it must agree with the vehicle the file names, if any.
+    (lcm_log); options of the other formats and None values are ignored, so one call
+    serves any file. vehicle: for the imported formats, the vehicle the data belongs
+    to (default: the reader's); for a canonical file it must agree with the vehicle
+    the file names, if any.
     """
     unknown = sorted(set(options) - {o for opts in _READER_OPTIONS.values() for o in opts})
     if unknown:

@@ -11,6 +11,7 @@ without a controller:
     PLAN    the dataset's own next `horizon` rows (within the segment) as the plan,
             status 0 "replay", no QP iterations, cost 0: a replay has no optimiser
     FAULTS  none active
+    TIMING  the replay loop's own: the wall time each kind took to parse and publish (tool option -m)
 
 step = round((time - time[0]) / Ts), so gaps between segments stay gaps; utime is the
 row's time in microseconds. Rates per message kind are the tool's (-r KIND=HZ).
@@ -76,7 +77,7 @@ def replay(ds: Dataset, url: str, tool: Path = DEFAULT_TOOL, rates: dict[str, fl
     tool = Path(tool)
     if not tool.is_file():
         raise DdynError(f"{tool} not found: build the C side (scripts/build.sh) with DDYN_WITH_LCM=ON")
-    cmd = [str(tool), "-u", url, "-c", repr(1.0 / ds.sample_time)]
+    cmd = [str(tool), "-u", url, "-c", repr(1.0 / ds.sample_time), "-m"]
     if prefix:
         cmd += ["-p", prefix]
     if speed > 0:

@@ -3,11 +3,15 @@
  * the telemetry module (ddyn/telemetry.h), so the whole path C -> LCM -> log -> `ddyn import`
  * runs without the controller. `ddyn lcm-replay` feeds it a dataset.
  *
- * usage: ddyn_telemetry_replay [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... [-s SPEED] < stream
+ * usage: ddyn_telemetry_replay [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... [-s SPEED] [-m] < stream
  *   URL: LCM provider (default: LCM's default), e.g. "file:///tmp/run.lcm?mode=w"
  *   KIND: state, coeffs, plan, timing, faults (default rates: ddyn_telemetry_default_config)
  *   SPEED: pace the messages by their utime at SPEED times real time (default 0: as fast as
  *          possible, which can overrun a UDP receiver's buffer)
+ *   -m: publish this loop's own timing (no T lines then): per step, the wall time each
+ *       message kind took to parse from its line and publish (stages state, coeffs, plan,
+ *       faults), their total, the
+ *       period of the utime clock and a deadline of one control period
  * Input lines (numbers separated by spaces; utime in microseconds, step an integer):
  *   B lo[17] hi[17] margin                        guard bounds (only as the first line)
  *   S utime step x[8] cov_diag[8]                 state estimate
@@ -103,6 +107,45 @@ static void pace(int64_t utime, double speed)
     }
 }
 
+/* -m: the replay loop's own timing, one step (the lines sharing a step number) at a time */
+typedef struct {
+    int open;               /* a step is being timed */
+    int64_t utime, step, prev_utime;
+    int have_prev;
+    double stage_s[4];      /* state, coeffs, plan, faults */
+} self_timing;
+
+static const char *const self_stage_names[4] = {"state", "coeffs", "plan", "faults"};
+
+static ddyn_tm_status finish_step(ddyn_telemetry *tm, self_timing *st, double control_hz)
+{
+    ddyn_tm_timing t;
+    int k;
+    if (!st->open) {
+        return DDYN_TM_SKIPPED;
+    }
+    memset(&t, 0, sizeof t);
+    t.utime = st->utime;
+    t.step = st->step;
+    t.period_s = st->have_prev ? 1e-6 * (double)(st->utime - st->prev_utime) : 0.0;
+    t.deadline_s = 1.0 / control_hz;
+    t.n_stages = 4;
+    for (k = 0; k < 4; ++k) {
+        t.stage_names[k] = self_stage_names[k];
+        t.stage_s[k] = st->stage_s[k];
+        t.total_s += st->stage_s[k];
+    }
+    st->prev_utime = st->utime;
+    st->have_prev = 1;
+    st->open = 0;
+    return ddyn_telemetry_publish_timing(tm, &t);
+}
+
+static int stage_of(char kind)
+{
+    return kind == 'S' ? 0 : kind == 'C' ? 1 : kind == 'P' ? 2 : kind == 'F' ? 3 : -1;
+}
+
 static int parse_rate(const char *arg, ddyn_telemetry_config *cfg)
 {
     int k;
@@ -126,7 +169,7 @@ static int parse_rate(const char *arg, ddyn_telemetry_config *cfg)
 }
 
 /* publish the line's record; *ok = 0 when the line is malformed */
-static ddyn_tm_status publish_line(ddyn_telemetry *tm, char *line, double speed, int *ok)
+static ddyn_tm_status publish_line(ddyn_telemetry *tm, char *line, int *ok)
 {
     static double v[(DDYN_TM_PLAN_MAX_HORIZON + 1) * DDYN_NX + DDYN_TM_PLAN_MAX_HORIZON * DDYN_NU];
     static char names[DDYN_TM_MAX_STAGES][NAME_MAX_CHARS];
@@ -137,9 +180,6 @@ static ddyn_tm_status publish_line(ddyn_telemetry *tm, char *line, double speed,
     *ok = 0;
     if (!read_int64(&p, &utime) || !read_int64(&p, &step)) {
         return DDYN_TM_ERR_ARGUMENT;
-    }
-    if (speed > 0.0) {
-        pace(utime, speed);
     }
     if (kind == 'S' && read_numbers(&p, v, 2 * DDYN_NX)) {
         ddyn_tm_state m;
@@ -225,7 +265,8 @@ int main(int argc, char **argv)
     static double bounds[2 * DDYN_NC + 1];
     ddyn_telemetry_config cfg;
     double control_hz = 50.0, speed = 0.0;
-    int i, k, opened = 0, status = 0;
+    self_timing st;
+    int i, k, opened = 0, status = 0, measure_self = 0;
     long line_no = 0;
     ddyn_telemetry_default_config(&cfg, control_hz);
     for (i = 1; i < argc; ++i) { /* -c first fixes the defaults the -r options then change */
@@ -243,16 +284,23 @@ int main(int argc, char **argv)
             ++i;
         } else if (strcmp(argv[i], "-s") == 0 && i + 1 < argc) {
             speed = strtod(argv[++i], NULL);
+        } else if (strcmp(argv[i], "-m") == 0) {
+            measure_self = 1;
         } else if (strcmp(argv[i], "-r") == 0 && i + 1 < argc && parse_rate(argv[i + 1], &cfg)) {
             ++i;
         } else {
-            fprintf(stderr, "usage: %s [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... [-s SPEED] < stream\n", argv[0]);
+            fprintf(stderr, "usage: %s [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... [-s SPEED] [-m] < stream\n",
+                    argv[0]);
             return 2;
         }
     }
+    memset(&st, 0, sizeof st);
     while (fgets(line, sizeof line, stdin) != NULL) {
         ddyn_tm_status s;
-        int ok;
+        int64_t utime = 0, step = 0;
+        char *head = line + 1;
+        double t0;
+        int ok, stage = stage_of(line[0]);
         ++line_no;
         if (line[0] == 'B' && line_no == 1) {
             char *p = line + 1;
@@ -274,7 +322,32 @@ int main(int argc, char **argv)
             }
             opened = 1;
         }
-        s = publish_line(&tm, line, speed, &ok);
+        if (!read_int64(&head, &utime) || !read_int64(&head, &step) || (measure_self && line[0] == 'T')) {
+            fprintf(stderr, "ddyn_telemetry_replay: line %ld: expected S, C, P, T or F with utime and step%s\n",
+                    line_no, measure_self ? " (no T lines with -m)" : "");
+            status = 1;
+            break;
+        }
+        if (!st.open || step != st.step) { /* a new step: the previous one is complete */
+            s = finish_step(&tm, &st, control_hz);
+            if (measure_self && s != DDYN_TM_PUBLISHED && s != DDYN_TM_SKIPPED) {
+                fprintf(stderr, "ddyn_telemetry_replay: line %ld: timing: %s\n", line_no, ddyn_tm_status_name(s));
+                status = 1;
+                break;
+            }
+            if (speed > 0.0) {
+                pace(utime, speed);
+            }
+            memset(st.stage_s, 0, sizeof st.stage_s);
+            st.open = measure_self;
+            st.utime = utime;
+            st.step = step;
+        }
+        t0 = now_s();
+        s = publish_line(&tm, line, &ok);
+        if (st.open && stage >= 0) {
+            st.stage_s[stage] += now_s() - t0;
+        }
         if (!ok) {
             fprintf(stderr, "ddyn_telemetry_replay: line %ld: expected S, C, P, T or F with its fields\n", line_no);
             status = 1;
@@ -285,6 +358,10 @@ int main(int argc, char **argv)
             status = 1;
             break;
         }
+    }
+    if (status == 0 && finish_step(&tm, &st, control_hz) > DDYN_TM_SKIPPED) {
+        fprintf(stderr, "ddyn_telemetry_replay: timing of the last step could not be published\n");
+        status = 1;
     }
     for (k = 0; k < DDYN_TM_KIND_COUNT; ++k) {
         printf("%s published %llu skipped %llu errors %llu\n", ddyn_tm_kind_name((ddyn_tm_kind)k),

@@ -87,7 +87,15 @@ def test_published_values_come_back_from_the_log(tmp_path, sim, tool):
     assert np.all(back.extras["sat_hi_mask"].astype(int) & (1 << COEFF_NAMES.index("Cd")))
     assert np.all(back.extras["mpc_status"] == 0) and np.all(back.extras["mpc_cost"] == 0)
     np.testing.assert_allclose(back.extras["clock_s"], back.time, atol=1e-6)
-    assert np.all(back.extras["faults_active"] == 0) and "loop_total_s" not in back.extras   # the replay sends no timing
+    assert np.all(back.extras["faults_active"] == 0)
+    assert "loop_total_s" not in back.extras   # timing at a fifth of the control rate by default
+
+
+def test_replay_publishes_its_own_loop_timing(tmp_path, sim, tool):
+    back = load_any(_log(tmp_path, sim, tool, rates={"timing": 50.0}))
+    assert np.all(back.extras["loop_total_s"] > 0) and np.all(back.extras["loop_total_s"] < 1.0)
+    np.testing.assert_allclose(back.extras["loop_period_s"][1:], sim.sample_time, rtol=1e-9)
+    assert back.extras["loop_period_s"][0] == 0.0
 
 
 def test_decimated_channels_are_noted_not_columns(tmp_path, sim, tool):
