@@ -313,12 +313,12 @@ static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX])
     return DDYN_OK;
 }
 
-/* d(x, y)_k / du_j for j < k by forward propagation of the columns of B_j through A_{j+1..k-1}. */
+/* d(x, y)_k / du_j for j < k by forward propagation of the columns of B_j through A_{j+1..k-1}. Only
+ * the entries j < k of each row are written: build_qp reads no others. */
 static void sensitivities(ddyn_mpc *mpc)
 {
     const int h = mpc->cfg.horizon, n = 2 * h;
     int j, k, ch, a, b;
-    memset(mpc->sens, 0, sizeof mpc->sens);
     for (j = 0; j < h; ++j) {
         for (ch = 0; ch < DDYN_NU; ++ch) {
             double v[DDYN_NX], w[DDYN_NX];

@@ -95,7 +95,7 @@ static void mul_ct(const ddyn_mpc_qp *qp, const layout *l, const double *v, doub
 }
 
 /* dot product of two contiguous vectors, four partial sums (the compiler may not reorder one sum) */
-static double dot(const double *a, const double *b, int n)
+static double dot(const double *restrict a, const double *restrict b, int n)
 {
     double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
     int k = 0;
@@ -111,88 +111,120 @@ static double dot(const double *a, const double *b, int n)
     return (s0 + s1) + (s2 + s3);
 }
 
-/* kkt = H + C'DC reduced onto z (lower triangle, ROW-major: element (i, j), j <= i, at [i*n + j], so
- * that the Cholesky's dot products run over contiguous memory), then its Cholesky factor in place.
- * Returns the number of regularised pivots. */
-static int form_and_factor(ddyn_mpc_qp *qp, const layout *l, const double *D, double scale)
+/* y += a x over contiguous memory: no reduction, so the compiler vectorises it without reassociating */
+static void axpy(double *restrict y, const double *restrict x, double a, int n)
+{
+    int k;
+    for (k = 0; k < n; ++k) {
+        y[k] += a * x[k];
+    }
+}
+
+/* y -= a0 r0 + a1 r1 + a2 r2 + a3 r3 over contiguous memory: four rows per pass over y, so y is loaded
+ * and stored once per four multiply-adds (the factorisation's inner kernel) */
+static void sub4(double *restrict y, const double *restrict r0, const double *restrict r1, const double *restrict r2,
+                 const double *restrict r3, double a0, double a1, double a2, double a3, int n)
+{
+    int k;
+    for (k = 0; k < n; ++k) {
+        y[k] -= (a0 * r0[k] + a1 * r1[k]) + (a2 * r2[k] + a3 * r3[k]);
+    }
+}
+
+int ddyn_mpc_qp_newton_factor(ddyn_mpc_qp *qp, const double *D, double scale)
 {
     double *K = qp->kkt;
-    double suffix[DDYN_QP_NV];
+    double suffix[2][DDYN_MPC_MAX_HORIZON], wsoft[DDYN_QP_NS];
+    const layout lay = make_layout(qp->horizon);
+    const layout *l = &lay;
     int n = l->n, i, j, k, q, ch, regularised = 0;
-    for (i = 0; i < n; ++i) {
-        for (j = 0; j <= i; ++j) {
-            K[i * n + j] = qp->hess[i + j * DDYN_QP_NV] * scale;
-        }
-        K[i * n + i] += D[i] + D[l->o_lb + i];
-    }
     /* integrator rows of channel ch: entry (2a+ch, 2b+ch) gets dt^2 * sum_{k > max(a, b)} W_k */
     for (ch = 0; ch < 2; ++ch) {
         double acc = 0.0;
         for (k = l->h; k >= 1; --k) {
             int r = 2 * (k - 1) + ch;
             acc += D[l->o_hup + r] + D[l->o_hlo + r];
-            suffix[k - 1] = qp->dt * qp->dt * acc;
-        }
-        for (i = 0; i < l->h; ++i) {
-            for (j = 0; j <= i; ++j) {
-                K[(2 * i + ch) * n + (2 * j + ch)] += suffix[i];
-            }
+            suffix[ch][k - 1] = qp->dt * qp->dt * acc;
         }
     }
-    /* soft rows, slack eliminated: weight Da + Db - (Db - Da)^2 / (2 rho2 + Da + Db + Dc) */
+    /* soft rows, slack eliminated: rank-one terms with weight Da + Db - (Db - Da)^2 / (2 rho2 + Da + Db + Dc) */
     for (q = 0; q < l->ns; ++q) {
-        const double *g = qp->soft_row + q * DDYN_QP_NV;
         double da = D[l->o_sup + q], db = D[l->o_slo + q], dc = D[l->o_sg + q];
         double mq = 2.0 * qp->rho2 * scale + da + db + dc;
-        double w = da + db - (db - da) * (db - da) / mq;
-        int len = soft_len(q);
-        for (i = 0; i < len; ++i) {
-            double gi = w * g[i];
-            for (j = 0; j <= i; ++j) {
-                K[i * n + j] += gi * g[j];
-            }
-        }
+        wsoft[q] = da + db - (db - da) * (db - da) / mq;
     }
-    /* Cholesky (row-oriented Crout), lower, row-major */
+    /* Row by row (upper triangle, ROW-major: element (i, j), j >= i, at [i*n + j]): form row i of K,
+     * then eliminate it against the finished rows of U (left-looking Cholesky, K = U'U). Every inner
+     * loop is a contiguous multi-row axpy the compiler vectorises without reassociating a sum. */
     for (i = 0; i < n; ++i) {
-        for (j = 0; j < i; ++j) {
-            K[i * n + j] = (K[i * n + j] - dot(K + i * n, K + j * n, j)) / K[j * n + j];
+        const double *restrict hcol = qp->hess + i * DDYN_QP_NV; /* H symmetric: column i is row i */
+        double *restrict y = K + i * n;
+        double pivot, ref, d, inv;
+        int a = i / 2, len = n - i;
+        for (j = i; j < n; ++j) {
+            y[j] = hcol[j] * scale;
         }
-        {
-            double ref = K[i * n + i];
-            double pivot = ref - dot(K + i * n, K + i * n, i);
-            if (!(pivot > REG_PIVOT * (fabs(ref) + 1.0))) {
-                pivot = REG_PIVOT * (fabs(ref) + 1.0);
-                ++regularised;
-            }
-            K[i * n + i] = sqrt(pivot);
+        y[i] += D[i] + D[l->o_lb + i];
+        for (j = a; j < l->h; ++j) {
+            y[2 * j + (i & 1)] += suffix[i & 1][j];
+        }
+        /* soft row q reaches column i when 2(q + 1) > i, i.e. q >= i / 2; its entries from 2(q + 1) on are
+         * zero, so four rows q..q+3 together need the columns below 2(q + 4) */
+        for (q = a; q + 4 <= l->ns; q += 4) {
+            const double *g = qp->soft_row + q * DDYN_QP_NV + i;
+            sub4(y + i, g, g + DDYN_QP_NV, g + 2 * DDYN_QP_NV, g + 3 * DDYN_QP_NV, -wsoft[q] * g[0],
+                 -wsoft[q + 1] * g[DDYN_QP_NV], -wsoft[q + 2] * g[2 * DDYN_QP_NV], -wsoft[q + 3] * g[3 * DDYN_QP_NV],
+                 soft_len(q + 3) - i);
+        }
+        for (; q < l->ns; ++q) {
+            const double *g = qp->soft_row + q * DDYN_QP_NV + i;
+            axpy(y + i, g, wsoft[q] * g[0], soft_len(q) - i);
+        }
+        ref = y[i];
+        for (k = 0; k + 4 <= i; k += 4) {
+            const double *u0 = K + k * n, *u1 = u0 + n, *u2 = u1 + n, *u3 = u2 + n;
+            sub4(y + i, u0 + i, u1 + i, u2 + i, u3 + i, u0[i], u1[i], u2[i], u3[i], len);
+        }
+        for (; k < i; ++k) {
+            axpy(y + i, K + k * n + i, -K[k * n + i], len);
+        }
+        pivot = y[i];
+        if (!(pivot > REG_PIVOT * (fabs(ref) + 1.0))) {
+            pivot = REG_PIVOT * (fabs(ref) + 1.0);
+            ++regularised;
+        }
+        d = sqrt(pivot);
+        inv = 1.0 / d;
+        y[i] = d;
+        for (j = i + 1; j < n; ++j) {
+            y[j] *= inv;
         }
     }
     return regularised;
 }
 
-static void chol_solve(const double *L, int n, double *b)
+void ddyn_mpc_qp_newton_solve(const ddyn_mpc_qp *qp, double *b)
 {
-    int i, k;
-    for (i = 0; i < n; ++i) {
-        b[i] = (b[i] - dot(L + i * n, b, i)) / L[i * n + i];
+    const double *U = qp->kkt;
+    int n = 2 * qp->horizon, i;
+    for (i = 0; i < n; ++i) { /* U' y = b, by columns of U' (rows of U): axpy */
+        b[i] /= U[i * n + i];
+        axpy(b + i + 1, U + i * n + i + 1, -b[i], n - i - 1);
     }
-    for (i = n - 1; i >= 0; --i) {
-        b[i] /= L[i * n + i];
-        for (k = 0; k < i; ++k) {
-            b[k] -= L[i * n + k] * b[i];
-        }
+    for (i = n - 1; i >= 0; --i) { /* U x = y, by rows of U: dot */
+        b[i] = (b[i] - dot(U + i * n + i + 1, b + i + 1, n - i - 1)) / U[i * n + i];
     }
 }
 
-/* Newton direction for complementarity target rc (t .* lam - rc = 0): dz (z and s parts), dlam, dt. */
-static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const double *rc, double scale, double *dz,
+/* Newton direction for complementarity target rc (t .* lam - rc = 0), given as rcl = rc ./ lam (one
+ * division per row, done once by the caller): dz (z and s parts), dlam, dt. */
+static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const double *rcl, double scale, double *dz,
                    double *dlam, double *dt)
 {
     double vz[DDYN_QP_NV], vs[DDYN_QP_NS], mq[DDYN_QP_NS], beta[DDYN_QP_NS];
     int i, q, n = l->n;
     for (i = 0; i < l->m; ++i) {
-        qp->w[i] = D[i] * (qp->rp[i] - rc[i] / qp->lam[i]);
+        qp->w[i] = D[i] * (qp->rp[i] - rcl[i]);
     }
     mul_ct(qp, l, qp->w, vz, vs);
     for (i = 0; i < n; ++i) {
@@ -205,11 +237,9 @@ static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const doub
         mq[q] = 2.0 * qp->rho2 * scale + da + db + dc;
         beta[q] = db - da;
         dz[n + q] = -qp->rd[n + q] - vs[q];
-        for (i = 0; i < len; ++i) {
-            dz[i] -= g[i] * beta[q] * dz[n + q] / mq[q];
-        }
+        axpy(dz, g, -beta[q] * dz[n + q] / mq[q], len);
     }
-    chol_solve(qp->kkt, n, dz);
+    ddyn_mpc_qp_newton_solve(qp, dz);
     for (q = 0; q < l->ns; ++q) {
         const double *g = qp->soft_row + q * DDYN_QP_NV;
         double gz = 0.0;
@@ -221,7 +251,7 @@ static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const doub
     }
     mul_c(qp, l, dz, dz + n, qp->cz);
     for (i = 0; i < l->m; ++i) {
-        dlam[i] = D[i] * (qp->cz[i] + qp->rp[i] - rc[i] / qp->lam[i]);
+        dlam[i] = D[i] * (qp->cz[i] + qp->rp[i] - rcl[i]);
         dt[i] = -qp->rp[i] - qp->cz[i];
     }
 }
@@ -257,7 +287,7 @@ static double inf_norm(const double *v, int n)
 static double residuals(ddyn_mpc_qp *qp, const layout *l, double scale, double dnorm, double fnorm, double *mu)
 {
     int i, j, q, n = l->n;
-    double gap = 0.0, rp, rd;
+    double gap = 0.0, rp, rd, hz[DDYN_QP_NV];
     mul_c(qp, l, qp->z, qp->slack, qp->cz);
     for (i = 0; i < l->m; ++i) {
         qp->rp[i] = qp->cz[i] + qp->t[i] - qp->d[i];
@@ -265,11 +295,13 @@ static double residuals(ddyn_mpc_qp *qp, const layout *l, double scale, double d
     }
     mul_ct(qp, l, qp->lam, qp->rd, qp->rd + n);
     for (i = 0; i < n; ++i) {
-        double hz = 0.0;
-        for (j = 0; j < n; ++j) {
-            hz += qp->hess[i + j * DDYN_QP_NV] * qp->z[j];
-        }
-        qp->rd[i] += scale * (hz + qp->grad[i]);
+        hz[i] = qp->grad[i];
+    }
+    for (j = 0; j < n; ++j) { /* H z + f by columns of H: axpy */
+        axpy(hz, qp->hess + j * DDYN_QP_NV, qp->z[j], n);
+    }
+    for (i = 0; i < n; ++i) {
+        qp->rd[i] += scale * hz[i];
     }
     for (q = 0; q < l->ns; ++q) {
         qp->rd[n + q] += scale * (2.0 * qp->rho2 * qp->slack[q] + qp->rho1);
@@ -324,6 +356,9 @@ ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
     if (!problem_finite(qp, &l)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
+    for (i = 0; i < l.ns; ++i) { /* the factorisation runs the soft rows to the end: make their zeros explicit */
+        memset(qp->soft_row + i * DDYN_QP_NV + soft_len(i), 0, (size_t)(DDYN_QP_NV - soft_len(i)) * sizeof(double));
+    }
     for (i = 0; i < n; ++i) {
         hdiag += qp->hess[i + i * DDYN_QP_NV];
     }
@@ -366,10 +401,10 @@ ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
         for (i = 0; i < l.m; ++i) {
             D[i] = qp->lam[i] / qp->t[i];
         }
-        form_and_factor(qp, &l, D, scale);
-        /* predictor (affine scaling direction) */
+        ddyn_mpc_qp_newton_factor(qp, D, scale);
+        /* predictor (affine scaling direction): target t .* lam = 0, i.e. rc ./ lam = t */
         for (i = 0; i < l.m; ++i) {
-            rc[i] = qp->t[i] * qp->lam[i];
+            rc[i] = qp->t[i];
         }
         newton(qp, &l, D, rc, scale, qp->dz, qp->dl_aff, qp->dt_aff);
         a_aff = fmin(max_step(qp->t, qp->dt_aff, l.m), max_step(qp->lam, qp->dl_aff, l.m));
@@ -383,7 +418,7 @@ ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
         }
         /* corrector: second-order term and centring, same factorisation */
         for (i = 0; i < l.m; ++i) {
-            rc[i] = qp->t[i] * qp->lam[i] + qp->dt_aff[i] * qp->dl_aff[i] - sigma * mu;
+            rc[i] = qp->t[i] + (qp->dt_aff[i] * qp->dl_aff[i] - sigma * mu) / qp->lam[i];
         }
         newton(qp, &l, D, rc, scale, qp->dz, qp->dl_aff, qp->dt_aff);
         a = STEP_FRACTION * fmin(max_step(qp->t, qp->dt_aff, l.m), max_step(qp->lam, qp->dl_aff, l.m));

@@ -15,6 +15,7 @@
 #include <cmocka.h>
 
 #include "ddyn/mpc.h"
+#include "ddyn/mpc_qp.h"
 #include "ddyn_models.h"
 #include "ddyn_mpc_limits.h"
 
@@ -248,6 +249,116 @@ static void test_qp_integrator_rows_bound_the_prefix_sums(void **state)
     assert_true(fabs(qp.dt * acc - 0.1) < 1e-6);
 }
 
+/* deterministic pseudo-random numbers in [0, 1) for the dense reference test (LCG, no libc state) */
+static double lcg(uint32_t *state)
+{
+    *state = *state * 1664525u + 1013904223u;
+    return (double)(*state >> 8) / 16777216.0;
+}
+
+/* The structured Newton matrix (integrator rows by suffix sums, slacks eliminated, left-looking
+ * blocked Cholesky) against the dense formula: every inequality row of C = [C_z C_s] written out,
+ * K = scale H + C_z'D C_z - B M^-1 B' with M = 2 rho2 scale I + C_s'D C_s (diagonal) and
+ * B = C_z'D C_s; the solve must satisfy K x = b, for horizons 20 and 7 (odd, blocks of four cut). */
+static void test_qp_newton_matrix_matches_the_dense_formula(void **state)
+{
+    static double cz[DDYN_QP_NCON][DDYN_QP_NV], cs[DDYN_QP_NCON][DDYN_QP_NS], kref[DDYN_QP_NV][DDYN_QP_NV];
+    double D[DDYN_QP_NCON], b[DDYN_QP_NV], x[DDYN_QP_NV], m[DDYN_QP_NS], scale = 0.37;
+    const int horizons[2] = {DDYN_MPC_MAX_HORIZON, 7};
+    uint32_t seed = 12345u;
+    int hi;
+    (void)state;
+    for (hi = 0; hi < 2; ++hi) {
+        const int h = horizons[hi], n = 2 * h, ns = h, mrows = 4 * n + 3 * ns;
+        int i, j, k, q, r;
+        double knorm = 0.0, xnorm = 0.0, err = 0.0;
+        qp_clear(h);
+        qp.rho2 = 1e5;
+        for (i = 0; i < n; ++i) { /* H = R'R + I, symmetric positive definite */
+            for (j = 0; j <= i; ++j) {
+                double v = 0.0;
+                for (k = 0; k < n; ++k) {
+                    v += (lcg(&seed) - 0.5) * (lcg(&seed) - 0.5);
+                }
+                qp.hess[i + j * DDYN_QP_NV] = v + (i == j ? 1.0 : 0.0);
+                qp.hess[j + i * DDYN_QP_NV] = qp.hess[i + j * DDYN_QP_NV];
+            }
+        }
+        for (q = 0; q < ns; ++q) {
+            for (j = 0; j < 2 * (q + 1); ++j) {
+                qp.soft_row[q * DDYN_QP_NV + j] = 2.0 * lcg(&seed) - 1.0;
+            }
+        }
+        for (r = 0; r < mrows; ++r) { /* barrier weights over twelve decades, as near convergence */
+            D[r] = pow(10.0, 12.0 * lcg(&seed) - 6.0);
+        }
+        memset(cz, 0, sizeof cz);
+        memset(cs, 0, sizeof cs);
+        for (i = 0; i < n; ++i) {
+            cz[i][i] = 1.0;
+            cz[n + i][i] = -1.0;
+        }
+        for (k = 1; k <= h; ++k) {
+            int ch;
+            for (ch = 0; ch < 2; ++ch) {
+                for (j = 0; j < k; ++j) {
+                    cz[2 * n + 2 * (k - 1) + ch][2 * j + ch] = qp.dt;
+                    cz[3 * n + 2 * (k - 1) + ch][2 * j + ch] = -qp.dt;
+                }
+            }
+        }
+        for (q = 0; q < ns; ++q) {
+            for (j = 0; j < n; ++j) {
+                cz[4 * n + q][j] = qp.soft_row[q * DDYN_QP_NV + j];
+                cz[4 * n + ns + q][j] = -qp.soft_row[q * DDYN_QP_NV + j];
+            }
+            cs[4 * n + q][q] = -1.0;
+            cs[4 * n + ns + q][q] = -1.0;
+            cs[4 * n + 2 * ns + q][q] = -1.0;
+        }
+        for (q = 0; q < ns; ++q) {
+            m[q] = 2.0 * qp.rho2 * scale;
+            for (r = 0; r < mrows; ++r) {
+                m[q] += cs[r][q] * D[r] * cs[r][q];
+            }
+        }
+        for (i = 0; i < n; ++i) {
+            for (j = 0; j < n; ++j) {
+                double v = scale * qp.hess[i + j * DDYN_QP_NV];
+                for (r = 0; r < mrows; ++r) {
+                    v += cz[r][i] * D[r] * cz[r][j];
+                }
+                for (q = 0; q < ns; ++q) {
+                    double bi = 0.0, bj = 0.0;
+                    for (r = 0; r < mrows; ++r) {
+                        bi += cz[r][i] * D[r] * cs[r][q];
+                        bj += cz[r][j] * D[r] * cs[r][q];
+                    }
+                    v -= bi * bj / m[q];
+                }
+                kref[i][j] = v;
+                knorm = fmax(knorm, fabs(v));
+            }
+            b[i] = 2.0 * lcg(&seed) - 1.0;
+            x[i] = b[i];
+        }
+        assert_int_equal(ddyn_mpc_qp_newton_factor(&qp, D, scale), 0);
+        ddyn_mpc_qp_newton_solve(&qp, x);
+        for (i = 0; i < n; ++i) {
+            xnorm = fmax(xnorm, fabs(x[i]));
+        }
+        for (i = 0; i < n; ++i) {
+            double v = -b[i];
+            for (j = 0; j < n; ++j) {
+                v += kref[i][j] * x[j];
+            }
+            err = fmax(err, fabs(v));
+        }
+        assert_true(xnorm > 0.0 && isfinite(xnorm));
+        assert_true(err <= 1e-9 * knorm * xnorm); /* backward error of a stable Cholesky, with margin */
+    }
+}
+
 static void test_qp_refuses_nonfinite_data(void **state)
 {
     (void)state;
@@ -371,6 +482,7 @@ int main(void)
         cmocka_unit_test(test_qp_box_solution_is_the_clipped_minimiser),
         cmocka_unit_test(test_qp_soft_row_penalty_is_exact),
         cmocka_unit_test(test_qp_integrator_rows_bound_the_prefix_sums),
+        cmocka_unit_test(test_qp_newton_matrix_matches_the_dense_formula),
         cmocka_unit_test(test_qp_refuses_nonfinite_data),
         cmocka_unit_test(test_iteration_cap_reports_and_commands_within_bounds),
         cmocka_unit_test(test_generated_prediction_step_jacobians_and_integrators),

@@ -8,6 +8,7 @@
  *                                                              (throttle, steering: integrators)
  *        soft_lo[q] - s_q <= g_q' z <= soft_hi[q] + s_q,  s_q >= 0,   q = 0..H-1, g_q has its
  *                                                              nonzeros in the first 2(q+1) entries
+ *                                                              (the solver sets the rest of its row to 0)
  *
  * Primal-dual interior point (Mehrotra predictor-corrector) with an infeasible start: each
  * iteration forms the n x n reduced Newton matrix from the structure above (the integrator rows
@@ -51,13 +52,20 @@ typedef struct {
     double t[DDYN_QP_NCON], lam[DDYN_QP_NCON], d[DDYN_QP_NCON], w[DDYN_QP_NCON];
     double dt_aff[DDYN_QP_NCON], dl_aff[DDYN_QP_NCON], cz[DDYN_QP_NCON], rp[DDYN_QP_NCON];
     double rd[DDYN_QP_NV + DDYN_QP_NS], dz[DDYN_QP_NV + DDYN_QP_NS];
-    double kkt[DDYN_QP_NV * DDYN_QP_NV];
+    double kkt[DDYN_QP_NV * DDYN_QP_NV]; /* Cholesky factor U (K = U'U), upper triangle row-major, 2H x 2H */
 } ddyn_mpc_qp;
 
 /* Solve with at most max_iterations iterations, stopping at tolerance tol. Returns DDYN_OK,
  * DDYN_ERR_QP_NOT_CONVERGED (z, slack hold the last iterate, finite) or DDYN_ERR_ARGUMENT /
  * DDYN_ERR_NONFINITE_INPUT for a malformed problem (z, slack are then zero). */
 ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol);
+
+/* The solver's linear algebra, exposed for the tests: with D (length DDYN_QP_NCON, the barrier
+ * weights lambda / t of the inequalities in the order of mpc_qp.c) and the objective scale, forms the
+ * reduced Newton matrix K = scale H + C_z'D C_z - (slack elimination) in qp->kkt and factors it,
+ * K = U'U (returns the number of regularised pivots); the solve overwrites b (length 2H) by K^-1 b. */
+int ddyn_mpc_qp_newton_factor(ddyn_mpc_qp *qp, const double *D, double scale);
+void ddyn_mpc_qp_newton_solve(const ddyn_mpc_qp *qp, double *b);
 
 #ifdef __cplusplus
 }
