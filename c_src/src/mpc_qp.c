@@ -256,13 +256,20 @@ static void newton(ddyn_mpc_qp *qp, const layout *l, const double *D, const doub
     }
 }
 
-static double max_step(const double *v, const double *dv, int m)
+/* largest step in (0, 1] keeping t + a dt >= 0 and lam + a dlam >= 0 (both in one pass) */
+static double max_step(const double *t, const double *dt, const double *lam, const double *dlam, int m)
 {
     double a = 1.0;
     int i;
     for (i = 0; i < m; ++i) {
-        if (dv[i] < 0.0) {
-            double ai = -v[i] / dv[i];
+        if (dt[i] < 0.0) {
+            double ai = -t[i] / dt[i];
+            if (ai < a) {
+                a = ai;
+            }
+        }
+        if (dlam[i] < 0.0) {
+            double ai = -lam[i] / dlam[i];
             if (ai < a) {
                 a = ai;
             }
@@ -403,11 +410,8 @@ ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
         }
         ddyn_mpc_qp_newton_factor(qp, D, scale);
         /* predictor (affine scaling direction): target t .* lam = 0, i.e. rc ./ lam = t */
-        for (i = 0; i < l.m; ++i) {
-            rc[i] = qp->t[i];
-        }
-        newton(qp, &l, D, rc, scale, qp->dz, qp->dl_aff, qp->dt_aff);
-        a_aff = fmin(max_step(qp->t, qp->dt_aff, l.m), max_step(qp->lam, qp->dl_aff, l.m));
+        newton(qp, &l, D, qp->t, scale, qp->dz, qp->dl_aff, qp->dt_aff);
+        a_aff = max_step(qp->t, qp->dt_aff, qp->lam, qp->dl_aff, l.m);
         for (i = 0; i < l.m; ++i) {
             mu_aff += (qp->t[i] + a_aff * qp->dt_aff[i]) * (qp->lam[i] + a_aff * qp->dl_aff[i]);
         }
@@ -421,7 +425,7 @@ ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
             rc[i] = qp->t[i] + (qp->dt_aff[i] * qp->dl_aff[i] - sigma * mu) / qp->lam[i];
         }
         newton(qp, &l, D, rc, scale, qp->dz, qp->dl_aff, qp->dt_aff);
-        a = STEP_FRACTION * fmin(max_step(qp->t, qp->dt_aff, l.m), max_step(qp->lam, qp->dl_aff, l.m));
+        a = STEP_FRACTION * max_step(qp->t, qp->dt_aff, qp->lam, qp->dl_aff, l.m);
         if (a > 1.0) {
             a = 1.0;
         }
