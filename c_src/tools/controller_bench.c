@@ -55,10 +55,12 @@ static int cmp(const void *a, const void *b)
 static void report(const char *name, double *v, int n)
 {
     double sum = 0.0;
-    int i;
+    int i, over = 0;
     for (i = 0; i < n; ++i) {
         sum += v[i];
+        over += v[i] > 1000.0;
     }
+    printf("# %s_over_1ms %d\n", name, over);
     qsort(v, (size_t)n, sizeof v[0], cmp);
     printf("%s %d %.3f %.3f %.3f\n", name, n, v[n / 2], v[(int)(0.99 * (n - 1))], v[n - 1]);
     printf("# %s_mean_us %.3f\n", name, sum / n);

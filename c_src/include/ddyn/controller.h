@@ -120,7 +120,7 @@ typedef struct {
     ddyn_mpc_info mpc_info;
 } ddyn_ctrl_output;
 
-/* The caller-owned controller context (large: it holds the MPC, ~120 kB by default). */
+/* The caller-owned controller context (large: it holds the MPC; ~155 kB with the defaults). */
 typedef struct {
     ddyn_ctrl_config cfg;
     const ddyn_vehicle_model *model;
