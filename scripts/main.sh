@@ -47,6 +47,9 @@ ddyn crosscheck --data "$OUT/orca_ethzMobil_rk4_noisy.csv" --method rk4
 ddyn crosscheck --data "$OUT/dyn_pp_ethz.csv" --coeffs reference_dataset
 ddyn crosscheck --data "$OUT/putnam.csv" --method rk4
 
+step "sil: one lap of ETHZMobil, the plant and the controller (the DDM above) as two processes over vcan"
+ddyn sil --track ethzMobil --vehicle orca_1_43 --model "$OUT/ddm_orca.ckpt" --laps 1 --out "$OUT/sil"
+
 step "diagnose: a noisy log with one unmodelled effect, diagnosed blind (where, which effect, how far)"
 # the simulator records its effects in the log's metadata; the diagnosis does not read them (it only echoes
 # them under data.effects_in_metadata), so the verdict below is found, not told

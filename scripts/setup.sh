@@ -13,6 +13,9 @@ command -v make >/dev/null || missing+=(make)
 command -v pkg-config >/dev/null || missing+=(pkg-config)
 dpkg -s libcmocka-dev >/dev/null 2>&1 || missing+=(libcmocka-dev)
 dpkg -s libeigen3-dev >/dev/null 2>&1 || missing+=(libeigen3-dev)
+# the SIL simulator (firmware_sim/): C++ tests and its JSON metrics/config
+dpkg -s libgtest-dev >/dev/null 2>&1 || missing+=(libgtest-dev)
+dpkg -s nlohmann-json3-dev >/dev/null 2>&1 || missing+=(nlohmann-json3-dev)
 # GLib: liblcm (from the pinned `lcm` wheel) links against it
 dpkg -s libglib2.0-0 >/dev/null 2>&1 || missing+=(libglib2.0-0)
 # the Cortex-M7 cross-build of the runtime (scripts/test.sh)

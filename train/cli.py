@@ -31,11 +31,13 @@ SUBCOMMAND_MODULES = (
     "train.denoise_study",
     "train.tune",
     "codegen.can",
+    "train.sil",
+    "train.sil_table",
+    "train.mpc_lap",
     "train.can_log",
     "train.can_bench",
     "train.diagnose",
     "train.gap_benchmark",
-    "train.mpc_lap",
 )
 
 

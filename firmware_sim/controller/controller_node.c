@@ -1,0 +1,178 @@
+#include "controller_node.h"
+
+#include <string.h>
+
+static double clampd(double v, double lo, double hi)
+{
+    return v < lo ? lo : (v > hi ? hi : v);
+}
+
+ddyn_status ddyn_sil_node_init(ddyn_sil_node *node, const ddyn_vehicle_model *model, const ddyn_net_tables *tables,
+                               const ddyn_ctrl_config *cfg, const double x0[DDYN_NX], double period,
+                               const int stale[DDYN_DBW_FRAME_COUNT])
+{
+    ddyn_status st;
+    int k;
+    if (node == NULL || cfg == NULL || stale == NULL || !(period > 0.0)) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    memset(node, 0, sizeof *node);
+    st = ddyn_ctrl_init(&node->ctl, model, tables, cfg, x0);
+    if (st != DDYN_OK) {
+        return st;
+    }
+    node->period = period;
+    node->state_lo[0] = cfg->mpc.state_lo[0];
+    node->state_lo[1] = cfg->mpc.state_lo[1];
+    node->state_hi[0] = cfg->mpc.state_hi[0];
+    node->state_hi[1] = cfg->mpc.state_hi[1];
+    node->setpoint[0] = x0[6];
+    node->setpoint[1] = x0[7];
+    for (k = 0; k < DDYN_DBW_FRAME_COUNT; ++k) {
+        node->stale[k] = stale[k];
+        node->last_counter[k] = -1;
+    }
+    return DDYN_OK;
+}
+
+/* which sensor readings a frame carries */
+static void take_reading(ddyn_dbw_frame f, const ddyn_dbw_signals *s, ddyn_ctrl_input *in)
+{
+    switch (f) {
+    case DDYN_DBW_FRAME_STEERING:
+        in->reading[DDYN_MEAS_STEERING].valid = 1;
+        in->reading[DDYN_MEAS_STEERING].z[0] = s->feedback.steering;
+        break;
+    case DDYN_DBW_FRAME_WHEEL_SPEEDS:
+        in->reading[DDYN_MEAS_WHEEL_SPEED].valid = 1;
+        in->reading[DDYN_MEAS_WHEEL_SPEED].z[0] = s->feedback.wheel_speed_front;
+        in->reading[DDYN_MEAS_WHEEL_SPEED].z[1] = s->feedback.wheel_speed_rear;
+        break;
+    case DDYN_DBW_FRAME_IMU:
+        in->reading[DDYN_MEAS_YAW_RATE].valid = 1;
+        in->reading[DDYN_MEAS_YAW_RATE].z[0] = s->sensors.yaw_rate;
+        in->reading[DDYN_MEAS_ACCELERATION].valid = 1;
+        in->reading[DDYN_MEAS_ACCELERATION].z[0] = s->sensors.accel_x;
+        in->reading[DDYN_MEAS_ACCELERATION].z[1] = s->sensors.accel_y;
+        break;
+    case DDYN_DBW_FRAME_GNSS_POSITION:
+        in->reading[DDYN_MEAS_GNSS_POSITION].valid = 1;
+        in->reading[DDYN_MEAS_GNSS_POSITION].z[0] = s->sensors.gnss_x;
+        in->reading[DDYN_MEAS_GNSS_POSITION].z[1] = s->sensors.gnss_y;
+        break;
+    case DDYN_DBW_FRAME_GNSS_HEADING:
+        in->reading[DDYN_MEAS_HEADING].valid = 1;
+        in->reading[DDYN_MEAS_HEADING].z[0] = s->sensors.heading;
+        break;
+    default:
+        break;
+    }
+}
+
+int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len)
+{
+    ddyn_dbw_frame f;
+    uint8_t counter;
+    unsigned lost = 0u;
+    ddyn_dbw_decode_result r = ddyn_dbw_decode(can_id, data, len, &node->sig, &f, &counter);
+    switch (r) {
+    case DDYN_DBW_DECODE_OK:
+        break;
+    case DDYN_DBW_DECODE_CHECKSUM:
+        node->checksum += 1;
+        return 0;
+    case DDYN_DBW_DECODE_BAD_LENGTH:
+        node->bad_length += 1;
+        return 0;
+    case DDYN_DBW_DECODE_RANGE:
+        node->range += 1;
+        return 0;
+    case DDYN_DBW_DECODE_UNKNOWN_ID:
+        node->unknown_id += 1;
+        return 0;
+    default:
+        return 0; /* foreign identifiers: not ours */
+    }
+    if (f == DDYN_DBW_FRAME_COMMAND) {
+        return 0; /* our own kind of frame (another controller's): not for us */
+    }
+    if (node->last_counter[f] >= 0) {
+        /* forward by 1..8 (mod 16): new, a skip means lost frames; 0: a stuck sender; 9..15: an
+         * older frame arriving late. Neither of the last two may overwrite newer data. */
+        unsigned step = (counter + DDYN_DBW_COUNTER_MODULO - (unsigned)node->last_counter[f]) % DDYN_DBW_COUNTER_MODULO;
+        if (step == 0u) {
+            node->repeated_counter += 1;
+            return 0;
+        }
+        if (step > DDYN_DBW_COUNTER_MODULO / 2u) {
+            node->late += 1;
+            return 0;
+        }
+        node->frames_lost += (long)(step - 1u);
+        lost = step - 1u;
+    }
+    node->last_counter[f] = counter;
+    node->last_rx_step[f] = node->steps;
+    node->frames_ok += 1;
+    take_reading(f, &node->sig, &node->in);
+    if (f != DDYN_DBW_FRAME_GNSS_POSITION) {
+        return 0;
+    }
+    node->catch_up = (int)(lost < (unsigned)DDYN_SIL_MAX_CATCH_UP ? lost : (unsigned)DDYN_SIL_MAX_CATCH_UP);
+    return 1 + node->catch_up;
+}
+
+void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
+{
+    double u[DDYN_NU];
+    ddyn_dbw_signals cmd;
+    int k;
+    memset(p, 0, sizeof *p);
+    for (k = 0; k < DDYN_DBW_FRAME_COUNT; ++k) {
+        if (node->stale[k] > 0 && node->steps - node->last_rx_step[k] > node->stale[k]) {
+            p->stale = 1;
+        }
+    }
+    if (node->catch_up > 0) {
+        /* a period whose position frame was lost: run it with the other readings, keep this
+         * period's position and heading for the period they belong to */
+        ddyn_ctrl_input held = node->in;
+        node->in.reading[DDYN_MEAS_GNSS_POSITION].valid = 0;
+        node->in.reading[DDYN_MEAS_HEADING].valid = 0;
+        ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
+        memset(&node->in, 0, sizeof node->in);
+        node->in.reading[DDYN_MEAS_GNSS_POSITION] = held.reading[DDYN_MEAS_GNSS_POSITION];
+        node->in.reading[DDYN_MEAS_HEADING] = held.reading[DDYN_MEAS_HEADING];
+        node->catch_up -= 1;
+    } else {
+        ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
+        memset(&node->in, 0, sizeof node->in);
+    }
+    p->safe = p->stale || (p->out.status & DDYN_CTRL_SAFE_COMMAND) != 0;
+    if (p->stale) {
+        ddyn_ctrl_safe_command(&node->ctl, p->out.x_est, u);
+    } else {
+        u[0] = p->out.u[0];
+        u[1] = p->out.u[1];
+    }
+    /* The rates over the next period become the set-points at its end. They integrate the commanded
+     * rates (not estimate + rate): the actuators reach each set-point within the period, so the
+     * actual throttle and steering move by exactly u * period, as the filter's model predicts; a
+     * set-point built on the estimate would also "correct" the estimate's error behind the filter's
+     * back. */
+    p->throttle = clampd(node->setpoint[0] + u[0] * node->period, node->state_lo[0], node->state_hi[0]);
+    p->steering = clampd(node->setpoint[1] + u[1] * node->period, node->state_lo[1], node->state_hi[1]);
+    node->setpoint[0] = p->throttle;
+    node->setpoint[1] = p->steering;
+    memset(&cmd, 0, sizeof cmd);
+    cmd.command.throttle = p->throttle > 0.0 ? p->throttle : 0.0;
+    cmd.command.brake = p->throttle < 0.0 ? -p->throttle : 0.0;
+    cmd.command.steering = p->steering;
+    cmd.command.enable = true;
+    cmd.command.mode = DDYN_DBW_MODE_AUTONOMOUS;
+    p->can_id = ddyn_dbw_frame_id(DDYN_DBW_FRAME_COMMAND);
+    (void)ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &cmd, node->tx_counter, p->data); /* in range by the clamps */
+    node->tx_counter = (uint8_t)((node->tx_counter + 1u) % DDYN_DBW_COUNTER_MODULO);
+    node->safe_steps += p->safe ? 1 : 0;
+    node->steps += 1;
+}

@@ -1,0 +1,75 @@
+/*
+ * controller_node.h - the controller's CAN node, without the operating system: frames in, one
+ * control period, the command frame out. The process (controller_main.c) adds the socket, the
+ * clock and the files; the in-process SIL tests drive the same node through memory.
+ *
+ * Frame policy: checksum, length and range (ddyn_dbw_decode), a repeated counter and a counter up
+ * to 8 behind (an older frame arriving late) reject a frame; a counter jump forward means frames
+ * were lost and is counted, the frame itself is used. A monitored
+ * frame missing for more than `stale[f]` periods, or the controller's own safe mode, gives the safe
+ * command (ddyn_ctrl_safe_command: brake, then hold; steering held). (The strict monitor of
+ * ddyn/dbw.h, where every counter jump is a failure that needs an explicit re-enable, would stop
+ * the car at the first lost frame; a lossy bus needs this tolerant policy.)
+ *
+ * C99, no allocation: the caller owns the (large) node.
+ */
+#ifndef DDYN_SIL_CONTROLLER_NODE_H
+#define DDYN_SIL_CONTROLLER_NODE_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "ddyn/controller.h"
+#include "ddyn/dbw.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+typedef struct {
+    ddyn_ctrl ctl;
+    ddyn_ctrl_input in;        /* readings of the current period */
+    ddyn_dbw_signals sig;      /* last decoded values */
+    double period;             /* s */
+    double state_lo[2], state_hi[2]; /* throttle, steering set-point bounds */
+    double setpoint[2];        /* the throttle and steering commanded last (integrated rates) */
+    int stale[DDYN_DBW_FRAME_COUNT];  /* periods a monitored frame may be missing; 0 = unmonitored */
+    long last_rx_step[DDYN_DBW_FRAME_COUNT];
+    int last_counter[DDYN_DBW_FRAME_COUNT];
+    long steps;
+    int catch_up;              /* periods still to run before the one of the last position frame */
+    uint8_t tx_counter;
+    /* counts */
+    long frames_ok, frames_lost, repeated_counter, late, checksum, bad_length, range, unknown_id, safe_steps;
+} ddyn_sil_node;
+
+typedef struct {
+    ddyn_ctrl_output out;      /* what the controller step returned */
+    int safe;                  /* the safe command went out */
+    int stale;                 /* a monitored frame was missing */
+    double throttle, steering; /* the set-points sent */
+    uint8_t data[DDYN_DBW_FRAME_LEN];
+    uint32_t can_id;
+} ddyn_sil_period;
+
+/* Set up the node around an initialised controller configuration. Returns DDYN_OK or the
+ * controller's error. */
+ddyn_status ddyn_sil_node_init(ddyn_sil_node *node, const ddyn_vehicle_model *model, const ddyn_net_tables *tables,
+                               const ddyn_ctrl_config *cfg, const double x0[DDYN_NX], double period,
+                               const int stale[DDYN_DBW_FRAME_COUNT]);
+
+/* One received frame. Returns the number of control periods to run now: 0 for most frames; for a
+ * good GNSS_Position frame (the period's trigger) 1 plus the position frames lost just before it
+ * (at most DDYN_SIL_MAX_CATCH_UP), so that the filter's clock keeps pace with the plant's. */
+#define DDYN_SIL_MAX_CATCH_UP 3
+int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len);
+
+/* One control period with the readings received since the last one; the command frame is
+ * encoded into p->data (identifier p->can_id). */
+void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif

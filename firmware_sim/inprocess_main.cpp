@@ -1,0 +1,126 @@
+// ddyn_sil_inprocess: the same plant and controller node in ONE process, frames through memory.
+// usage: ddyn_sil_inprocess PLANT.json CONTROLLER_SETUP
+//
+// Not the SIL path (that is two processes over vcan): a development and measurement aid. It runs
+// at the host's native speed with no emulator in between, so its controller loop times are those
+// of this machine's CPU, and it needs no vcan. Lock-step by construction: one controller period per
+// position frame. Writes the same files as the two processes (plant_metrics.json, trajectory.csv,
+// controller_metrics.json, controller_log.csv). A restarting plant is not supported here.
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <memory>
+#include <vector>
+
+#include "controller_setup.h"
+#include "fsim/plant_app.hpp"
+
+extern "C" const ddyn_net_tables ddyn_net_weights;
+
+namespace {
+
+double now_s() {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc != 3) {
+    std::fprintf(stderr, "usage: %s PLANT.json CONTROLLER_SETUP\n", argv[0]);
+    return 2;
+  }
+  try {
+    std::ifstream in(argv[1]);
+    if (!in) throw std::runtime_error(std::string("cannot read config ") + argv[1]);
+    auto cfg = fsim::PlantAppConfig::from_json(nlohmann::json::parse(in));
+    if (cfg.crash_at >= 0.0) throw std::runtime_error("a restarting plant needs the two-process run");
+    cfg.realtime_factor = -1.0;  // free-running: this loop drives both sides
+    auto setup = std::make_unique<ddyn_sil_setup>();
+    if (!ddyn_sil_read_setup(argv[2], setup.get())) return 2;
+    auto node = std::make_unique<ddyn_sil_node>();
+    if (ddyn_sil_node_from_setup(node.get(), setup.get(), &ddyn_net_weights) != DDYN_OK) return 2;
+
+    fsim::MemoryLink link;
+    fsim::MemoryBus plant_end(link, true);
+    fsim::PlantApp app(cfg, plant_end);
+    std::FILE* log = std::fopen(setup->log, "w");
+    if (log == nullptr) throw std::runtime_error(std::string("cannot write ") + setup->log);
+    std::fprintf(log, "step,wall,loop_us,status,trigger,safe,stale,throttle_cmd,steering_cmd,"
+                      "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7\n");
+    std::vector<double> loop_us;
+    std::array<long, DDYN_CTRL_STATUS_BITS> status_count{};
+    long misses = 0;
+    bool alive = true;
+    const double wall0 = now_s();
+    while (app.step()) {
+      auto& q = link.a_to_b;
+      while (!q.empty()) {
+        const fsim::CanFrame f = q.front();
+        q.pop_front();
+        if (!alive) continue;
+        const int runs = ddyn_sil_node_on_frame(node.get(), f.id, f.data.data(), f.dlc);
+        for (int r = 0; r < runs && alive; ++r) {
+          if (node->steps == setup->die_at_step) {
+            alive = false;  // the controller "dies": no more commands
+            continue;
+          }
+          ddyn_sil_period per;
+          const double t0 = now_s();
+          ddyn_sil_node_period(node.get(), &per);
+          const double t1 = now_s();
+          loop_us.push_back((t1 - t0) * 1e6);
+          misses += (t1 - t0) > setup->period ? 1 : 0;
+          for (int k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) status_count[k] += (per.out.status >> k) & 1u;
+          std::fprintf(log, "%ld,%.6f,%.2f,%u,1,%d,%d,%.6f,%.6f", node->steps - 1, t1 - wall0, loop_us.back(),
+                       static_cast<unsigned>(per.out.status), per.safe, per.stale, per.throttle, per.steering);
+          for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", per.out.x_est[k]);
+          for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", node->ctl.ekf.P[k * DDYN_NX + k]);
+          std::fputc('\n', log);
+          fsim::CanFrame cmd;
+          cmd.id = per.can_id;
+          cmd.dlc = 8;
+          std::copy(per.data, per.data + 8, cmd.data.begin());
+          link.b_to_a.push_back(cmd);
+        }
+      }
+    }
+    std::fclose(log);
+    app.run();  // already ended: writes the plant's files
+    std::vector<double> sorted = loop_us;
+    std::sort(sorted.begin(), sorted.end());
+    const size_t n = sorted.size();
+    nlohmann::json m;
+    m["steps"] = node->steps;
+    m["period"] = setup->period;
+    m["loop_us"] = {{"median", n ? sorted[n / 2] : 0.0},
+                    {"p99", n ? sorted[static_cast<size_t>(0.99 * static_cast<double>(n - 1))] : 0.0},
+                    {"max", n ? sorted[n - 1] : 0.0}};
+    m["deadline_misses"] = misses;
+    m["safe_steps"] = node->safe_steps;
+    m["timer_steps"] = 0;
+    m["first_safe_latency"] = -1.0;
+    m["first_stale_latency"] = -1.0;
+    m["frames"] = {{"ok", node->frames_ok}, {"lost", node->frames_lost}, {"repeated_counter", node->repeated_counter},
+                   {"late", node->late}, {"unknown_id", node->unknown_id}, {"bad_length", node->bad_length},
+                   {"checksum", node->checksum}, {"range", node->range}, {"send_failed", 0}};
+    nlohmann::json counts;
+    for (int k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) counts[ddyn_ctrl_status_name(1u << k)] = status_count[k];
+    m["status_counts"] = counts;
+    static const char* const names[DDYN_MEAS_COUNT] = DDYN_MEAS_NAMES;
+    for (int k = 0; k < DDYN_MEAS_COUNT; ++k) {
+      m["sensor_rejected"][names[k]] = node->ctl.rejected_count[k];
+      m["sensor_nonfinite"][names[k]] = node->ctl.nonfinite_count[k];
+    }
+    m["fixed_coefficients"] = setup->fixed != 0;
+    m["where"] = "in-process (host CPU, frames through memory)";
+    if (alive) std::ofstream(setup->metrics) << m.dump(2) << "\n";  // a dead controller writes nothing
+    std::printf("in-process: %s, %zu controller periods, loop median %.0f us\n", app.end_reason().c_str(), n,
+                n ? sorted[n / 2] : 0.0);
+    return 0;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "ddyn_sil_inprocess: error: %s\n", e.what());
+    return 2;
+  }
+}

@@ -1,0 +1,193 @@
+"""`ddyn sil-table` and `ddyn sil-faults`: the closed-loop table and the fault scenarios in SIL.
+
+sil-table reproduces the Deep Dynamics paper's closed-loop comparison on ETHZMobil from vx = 0.1 m/s,
+one lap each, with the controller's coefficients from: the DDM (its guard network, on the car),
+DPM checkpoints (Iz at ground truth, +20 %, -20 %), and the true coefficients. The paper's DPM
+estimates Frx directly instead of a drivetrain law and drove the throttle with a PID; the C MPC here
+needs the drivetrain law, so a DPM run uses the DPM's tyre coefficients (median over the windows
+of --data; G = K = 0 as in the DPM) and Iz, with the drivetrain coefficients at their true values.
+
+sil-faults runs each fault scenario of the issue once and reports whether the lap completed,
+the violations, and the time to the safe state where one was required.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .errors import DdynError
+from .model import COEFF_NAMES
+from .sil import SilSpec, add_common, coefficients_from, export_network, run_sil
+from .tracks import load_track
+from .vehicle import load as load_vehicle
+
+PAPER_TABLE = [
+    {"run": "DDM", "lap_time": 5.38, "average_speed": 2.010, "violations": "0"},
+    {"run": "DPM, Iz truth", "lap_time": 5.94, "average_speed": None, "violations": "2-3"},
+    {"run": "DPM, Iz +20 %", "lap_time": 6.16, "average_speed": None, "violations": "2-3"},
+    {"run": "DPM, Iz -20 %", "lap_time": 6.16, "average_speed": None, "violations": "2-3"},
+]
+PAPER_NOTE = ("paper (Deep Dynamics, closed loop on ETHZMobil): DDM 5.38 s, 2.010 m/s, 0 violations; "
+              "DPM 5.94-6.16 s with 2-3 violations")
+
+FAULT_SCENARIOS = [
+    ("none", {}),
+    ("5 % of frames dropped", {"drop": 0.05}),
+    ("frames delayed up to 2 periods", {"delay": 0.04}),
+    ("corrupted checksums (5 %)", {"corrupt": 0.05}),
+    ("IMU silent from 2 s", {"silent": "imu", "silent_at": 2.0}),
+    ("controller killed at 2 s", {"kill_controller": 2.0}),
+    ("plant restarting at 2 s", {"restart_plant": 2.0}),
+]
+
+
+def dpm_fixed_coefficients(ckpt_path: Path, data: Path, vehicle) -> tuple[np.ndarray, dict]:
+    """The DPM's tyre coefficients (median over the dataset's windows) on the true drivetrain, its Iz."""
+    import torch
+    from . import checkpoint
+    from .evaluate import _dtype
+    from .importers import load_any
+    from .networks import DPM_OUTPUTS
+    from .windows import make_windows
+    model, ckpt = checkpoint.load(ckpt_path)
+    if ckpt["kind"] != "dpm":
+        raise DdynError(f"{ckpt_path} is a {ckpt['kind']} checkpoint, not a DPM")
+    ds = load_any(data, vehicle=vehicle.name)
+    w = make_windows(ds, ckpt["architecture"]["tau"])
+    with torch.no_grad():
+        c = model.coefficients(torch.as_tensor(w.history, dtype=_dtype(model))).numpy()
+    med = np.median(c, axis=0)
+    out = vehicle.true_vector().copy()
+    for name, value in zip(DPM_OUTPUTS, med):
+        if name in COEFF_NAMES:
+            out[COEFF_NAMES.index(name)] = float(value)
+    for name in ("Gf", "Kf", "Gr", "Kr"):
+        out[COEFF_NAMES.index(name)] = 0.0
+    out[COEFF_NAMES.index("Iz")] = float(model.iz)
+    return out, {n: float(v) for n, v in zip(DPM_OUTPUTS, med)}
+
+
+def _row(label: str, m: dict) -> dict:
+    laps = m["lap_times"]
+    ctl = m["controller"] or {}
+    return {"run": label, "lap_completed": m["lap_completed"], "lap_time": laps[0] if laps else None,
+            "average_speed": m["average_speed"][0] if laps else None, "violations": m["violations"],
+            "tracking_error_mean": m["tracking_error"]["mean"], "end_reason": m["end_reason"],
+            "loop_us": ctl.get("loop_us"), "deadline_misses": ctl.get("deadline_misses")}
+
+
+def _fmt(v, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def _run_table(args: argparse.Namespace) -> int:
+    vehicle = load_vehicle(args.vehicle)
+    track = load_track(args.track)
+    out = Path(args.out)
+    runs: list[tuple[str, np.ndarray | None, Path | None]] = []
+    if args.ddm:
+        runs.append(("DDM", None, export_network(Path(args.ddm), out / "ddm_export")))
+    labels = {1.0: "DPM, Iz truth", 1.2: "DPM, Iz +20 %", 0.8: "DPM, Iz -20 %"}
+    extracted = {}
+    for p in args.dpm or []:
+        if not args.data:
+            raise DdynError("--dpm needs --data (the dataset the DPM's tyre coefficients are read on)")
+        c, tyres = dpm_fixed_coefficients(Path(p), Path(args.data), vehicle)
+        scale = c[COEFF_NAMES.index("Iz")] / vehicle.true_coefficients["Iz"]
+        label = labels.get(round(scale, 2), f"DPM, Iz x{scale:.2f}")
+        extracted[label] = {"checkpoint": str(p), "tyres": tyres, "Iz": c[COEFF_NAMES.index("Iz")]}
+        runs.append((label, c, None))
+    runs.append(("true coefficients", coefficients_from("true", vehicle), None))
+    rows = []
+    for label, fixed, export_dir in runs:
+        spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
+                       nominal=vehicle.true_vector(), laps=1, vx0=args.vx0, noise_scale=args.noise,
+                       speed_scale=args.speed_scale, margin=args.margin, realtime=args.realtime,
+                       max_time=args.max_time, seed=args.seed)
+        d = out / label.lower().replace(",", "").replace(" ", "_").replace("%", "pct").replace("+", "plus")
+        m = run_sil(spec, d, export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout,
+                    title=f"SIL {label}: ETHZMobil from vx = {args.vx0} m/s")
+        rows.append(_row(label, m))
+        print(f"sil-table: {label}: lap {_fmt(rows[-1]['lap_time'], '.2f')} s, "
+              f"{_fmt(rows[-1]['average_speed'], '.3f')} m/s, {rows[-1]['violations']} violation(s), "
+              f"{rows[-1]['end_reason']}")
+    lines = [f"SIL closed loop on {track.name} (one lap from vx = {args.vx0} m/s, two processes over vcan; "
+             f"{PAPER_NOTE})", "",
+             "| run | lap time (s) | average speed (m/s) | violations | mean distance to raceline (m) | "
+             "controller loop median / p99 / max (us) | paper: lap time, violations |",
+             "|---|---|---|---|---|---|---|"]
+    paper = {r["run"]: r for r in PAPER_TABLE}
+    for r in rows:
+        lu = r["loop_us"] or {}
+        p = paper.get(r["run"])
+        lap = _fmt(r["lap_time"], ".2f") if r["lap_completed"] else f"not completed ({r['end_reason']})"
+        lines.append(f"| {r['run']} | {lap} | {_fmt(r['average_speed'], '.3f')} | {r['violations']} | "
+                     f"{_fmt(r['tracking_error_mean'], '.3f')} | {_fmt(lu.get('median'), '.0f')} / "
+                     f"{_fmt(lu.get('p99'), '.0f')} / {_fmt(lu.get('max'), '.0f')} | "
+                     f"{(str(p['lap_time']) + ' s, ' + p['violations']) if p else '-'} |")
+    text = "\n".join(lines) + "\n"
+    (out / "sil_table.md").write_text(text)
+    (out / "sil_table.json").write_text(json.dumps({"rows": rows, "paper": PAPER_TABLE, "dpm": extracted}, indent=1))
+    print(text)
+    return 0
+
+
+def _run_faults(args: argparse.Namespace) -> int:
+    vehicle = load_vehicle(args.vehicle)
+    track = load_track(args.track)
+    out = Path(args.out)
+    export_dir = export_network(Path(args.model), out / "export") if args.model else None
+    fixed = None if args.model else coefficients_from(args.coeffs, vehicle)
+    rows = []
+    for label, faults in FAULT_SCENARIOS:
+        spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
+                       nominal=vehicle.true_vector(), laps=1, vx0=args.vx0, faults=faults, noise_scale=args.noise,
+                       speed_scale=args.speed_scale, margin=args.margin, realtime=args.realtime,
+                       max_time=args.max_time, seed=args.seed)
+        d = out / (label.split(" ")[0] + "_" + "_".join(f"{k}" for k in faults) if faults else "none")
+        m = run_sil(spec, d, export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout, title=f"SIL: {label}")
+        safe = m.get("safe_state", {})
+        t_safe = (safe.get("dbw_watchdog_latency") if "kill_controller" in faults else
+                  safe.get("controller_stale_latency_wall") if "restart_plant" in faults else
+                  safe.get("controller_safe_after_silence") if "silent" in faults else None)
+        row = _row(label, m)
+        row.update(faults=faults, time_to_safe_state=t_safe, safe_state=safe,
+                   dbw_rejected=m["plant"]["dbw"]["rejected"], bus=m["plant"]["bus"],
+                   frames=(m["controller"] or {}).get("frames"))
+        rows.append(row)
+        print(f"sil-faults: {label}: lap {'completed' if row['lap_completed'] else 'not completed'} "
+              f"({row['end_reason']}), {row['violations']} violation(s), time to safe state "
+              f"{_fmt(t_safe, '.3f')} s")
+    lines = ["| scenario | lap completed | end | violations | time to safe state (s) | frames refused / lost |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        fr = r["frames"] or {}
+        refused = sum(r["dbw_rejected"].values()) + fr.get("checksum", 0) + fr.get("repeated_counter", 0)
+        lines.append(f"| {r['run']} | {'yes' if r['lap_completed'] else 'no'} | {r['end_reason']} | "
+                     f"{r['violations']} | {_fmt(r['time_to_safe_state'], '.3f')} | {refused} / "
+                     f"{fr.get('lost', '-')} |")
+    text = "\n".join(lines) + "\n"
+    (out / "sil_faults.md").write_text(text)
+    (out / "sil_faults.json").write_text(json.dumps(rows, indent=1))
+    print(text)
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("sil-table", help="the paper's closed-loop table (DDM, DPM, truth) in SIL")
+    p.add_argument("--ddm", help="DDM checkpoint (its guard network runs in the controller)")
+    p.add_argument("--dpm", nargs="*", help="DPM checkpoints (Iz truth, +20 %%, -20 %%)")
+    p.add_argument("--data", help="dataset the DPMs' tyre coefficients are read on (median over its windows)")
+    p.add_argument("--out", default="out/sil_table")
+    add_common(p)
+    p.set_defaults(func=_run_table, track="ethzMobil")
+    q = subparsers.add_parser("sil-faults", help="the SIL fault scenarios, one lap each, as a table")
+    who = q.add_mutually_exclusive_group()
+    who.add_argument("--model", help="DDM checkpoint")
+    who.add_argument("--coeffs", default="true", help="fixed coefficients: true, reference_dataset or a JSON file")
+    q.add_argument("--out", default="out/sil_faults")
+    add_common(q)
+    q.set_defaults(func=_run_faults)
