@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,43 @@ def start_state(table: dict[str, np.ndarray], speed: float = 0.1) -> np.ndarray:
     """Near standstill at the raceline's first point, heading along it."""
     yaw = np.arctan2(table["y"][1] - table["y"][0], table["x"][1] - table["x"][0])
     return np.array([table["x"][0], table["y"][0], yaw, speed, 0.0, 0.0, 0.0, 0.0])
+
+
+def perturbed_start(table: dict[str, np.ndarray], speed: float, lateral: float = 0.0,
+                    heading: float = 0.0) -> np.ndarray:
+    """start_state moved `lateral` m to the left of the raceline and turned by `heading` rad."""
+    x0 = start_state(table, speed)
+    yaw = x0[2]
+    x0[0] -= np.sin(yaw) * lateral
+    x0[1] += np.cos(yaw) * lateral
+    x0[2] += heading
+    return x0
+
+
+SWEEP_SPEEDS = (0.1, 0.2, 0.3, 0.5, 1.0)  # m/s at the start
+SWEEP_OFFSETS = ((0.0, 0.0), (0.03, 0.0), (-0.03, 0.0), (0.0, 0.15), (0.0, -0.15))  # (lateral m, heading rad)
+
+
+def sweep(vehicle_name: str = "orca_1_43", track_name: str = "ethzMobil", steps: int = 10000,
+          settings: MpcSettings | None = None, speeds=SWEEP_SPEEDS, offsets=SWEEP_OFFSETS,
+          tool: Path = DEFAULT_TOOL) -> list[dict]:
+    """Robustness: the long closed loop from every start speed x start perturbation, scored each."""
+    settings = settings or MpcSettings()
+    track = load_track(track_name)
+    table = raceline_table(track, vehicle_name, settings)
+    rows = []
+    for v0 in speeds:
+        for lateral, heading in offsets:
+            run = run_c(vehicle_name, track, settings, steps, tool=tool,
+                        x0=perturbed_start(table, v0, lateral, heading))
+            m = _summary(run, track, vehicle_name)
+            rows.append({"start_speed": v0, "lateral_m": lateral, "heading_rad": heading,
+                         "violation_steps": m["violation_steps"],
+                         "min_boundary_distance_m": m["min_boundary_distance_m"],
+                         "lap_time_s": m["lap_time_s"], "laps": m["progress_m"] / track.length,
+                         "qp_iterations_max": m["qp_iterations_max"], "status_counts": m["status_counts"],
+                         "max_slack_m": m["max_slack_m"]})
+    return rows
 
 
 def setup_text(vehicle_name: str, table: dict, settings: MpcSettings, coeffs: np.ndarray, plant_coeffs: np.ndarray,
@@ -166,8 +204,31 @@ def lap(vehicle_name: str = "orca_1_43", track_name: str = "ethzMobil", seconds:
     return result
 
 
+def _run_sweep(args, settings: MpcSettings) -> int:
+    rows = sweep(args.vehicle, args.track, args.sweep_steps, settings, tool=Path(args.tool))
+    print("| start speed (m/s) | lateral (m) | heading (rad) | violation steps | closest corner (mm) "
+          "| first lap (s) | laps | QP iterations max | status |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        lap_s = f"{r['lap_time_s']:.3f}" if r["lap_time_s"] else "-"
+        print(f"| {r['start_speed']} | {r['lateral_m']:+.2f} | {r['heading_rad']:+.2f} | {r['violation_steps']} "
+              f"| {r['min_boundary_distance_m'] * 1000:.1f} | {lap_s} | {r['laps']:.1f} "
+              f"| {r['qp_iterations_max']} | {r['status_counts']} |")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "mpc_sweep.json").write_text(json.dumps({"steps": args.sweep_steps, "settings": settings.as_dict(),
+                                                    "runs": rows}, indent=2))
+    bad = sum(r["violation_steps"] > 0 for r in rows)
+    print(f"{len(rows) - bad} of {len(rows)} runs without a footprint violation; wrote {out}/mpc_sweep.json")
+    return 0 if bad == 0 else 1
+
+
 def _run(args) -> int:
     settings = MpcSettings(horizon=args.horizon, disc=args.disc)
+    if args.speed_scale is not None:
+        settings = replace(settings, speed_scale=args.speed_scale)
+    if args.sweep:
+        return _run_sweep(args, settings)
     r = lap(args.vehicle, args.track, args.seconds, settings, not args.no_reference, Path(args.out), Path(args.tool))
     c = r["c_mpc"]
     print(f"C MPC: lap {c['lap_time_s']} s, violations {c['violation_steps']} steps "
@@ -193,4 +254,10 @@ def register(subparsers) -> None:
     p.add_argument("--no-reference", action="store_true", help="skip the CasADi + IPOPT reference lap")
     p.add_argument("--out", default="out/mpc_lap", help="directory for mpc_lap.json and mpc_lap.png")
     p.add_argument("--tool", default=str(DEFAULT_TOOL), help="ddyn_mpc_lap binary (default: %(default)s)")
+    p.add_argument("--speed-scale", type=float, default=None,
+                   help="reference speed = raceline speed * this (default: MpcSettings, %s)" % MpcSettings().speed_scale)
+    p.add_argument("--sweep", action="store_true",
+                   help="robustness sweep instead of the lap: start speeds x start perturbations, --sweep-steps "
+                        "each, C MPC only; exit 1 if any run has a footprint violation")
+    p.add_argument("--sweep-steps", type=int, default=10000, help="steps per sweep run (default %(default)s)")
     p.set_defaults(func=_run)

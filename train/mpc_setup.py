@@ -39,7 +39,7 @@ class MpcSettings:
     qp_tolerance: float = 1e-6
     margin: float = 0.02        # m, kept between the footprint's half width and the bounds
     speed_floor: float = 0.5    # m/s, lowest reference speed
-    speed_scale: float = 1.0    # reference speed = raceline speed * this
+    speed_scale: float = 0.93   # reference speed = raceline speed * this: a grip margin (docs/mpc.md, robustness)
     spacing: float = 0.025      # m, raceline table spacing
 
     def as_dict(self) -> dict:

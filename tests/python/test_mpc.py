@@ -97,3 +97,30 @@ def test_generated_limits_table_matches_the_vehicle_files():
         nums = [float(x) for x in re.findall(r"-?\d+\.\d+(?:e-?\d+)?", row)]
         want = [v for k in ("dthrottle", "dsteering", "throttle", "steering") for v in lim[k]]
         assert nums == want
+
+
+@pytest.mark.parametrize("start_speed, lateral, heading", [
+    (0.2, 0.0, 0.0),    # with the raceline's full speed profile: 26 violation steps (a spin at s = 12.3 m)
+    (0.3, 0.0, 0.15),   # full speed profile: 105
+    (0.1, -0.03, 0.0),  # full speed profile: 254
+])
+def test_long_closed_loop_keeps_the_footprint_inside_from_perturbed_starts(track, start_speed, lateral, heading):
+    """The robustness property (short version of `ddyn mpc-lap --sweep`): 10,000 steps, 34 laps, every
+    footprint corner inside the bounds at every step, every solve converged."""
+    if not mpc_lap.DEFAULT_TOOL.is_file():
+        pytest.fail(f"{mpc_lap.DEFAULT_TOOL} missing: build the C side first (scripts/test.sh does)")
+    rows = mpc_lap.sweep(steps=10000, speeds=(start_speed,), offsets=((lateral, heading),))
+    r = rows[0]
+    assert r["violation_steps"] == 0, r
+    assert r["min_boundary_distance_m"] > 0.005, r
+    assert r["laps"] > 30, r
+    assert r["status_counts"] == {"ok": 10000}, r
+
+
+def test_perturbed_start_moves_left_and_turns(track):
+    t = raceline_table(track, "orca_1_43", MpcSettings())
+    a, b = mpc_lap.start_state(t, 0.2), mpc_lap.perturbed_start(t, 0.2, 0.03, -0.1)
+    d = b[:2] - a[:2]
+    assert abs(np.hypot(*d) - 0.03) < 1e-12
+    assert np.cos(a[2]) * d[1] - np.sin(a[2]) * d[0] > 0  # to the left of the heading
+    assert abs(b[2] - a[2] + 0.1) < 1e-12 and b[3] == 0.2
