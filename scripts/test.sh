@@ -30,7 +30,8 @@ echo "== C runtime cross-build for a Cortex-M7 (arm-none-eabi-gcc, -Werror)"
     && cmake -S "$ROOT" -B "$ROOT/build-m7" -DCMAKE_TOOLCHAIN_FILE="$ROOT/cmake/arm-none-eabi-cortex-m7.cmake" \
          -DCMAKE_BUILD_TYPE=Release >/dev/null \
     && cmake --build "$ROOT/build-m7" -j "$(nproc)" >/dev/null \
-    && arm-none-eabi-size -t "$ROOT/build-m7/c_src/libddyn_runtime.a" | tail -1 \
+    && for lib in "$ROOT"/build-m7/c_src/libddyn_*.a; do \
+         printf '%-28s text data bss: %s\n' "$(basename "$lib")" "$(arm-none-eabi-size -t "$lib" | tail -1 | awk '{print $1, $2, $3}')"; done \
     && echo "Cortex-M7 build: ok"; } || { echo "Cortex-M7 build: FAILED"; status=1; }
 
 if [ "$status" -eq 0 ]; then echo "== all tests passed"; else echo "== SOME TESTS FAILED"; fi
