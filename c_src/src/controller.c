@@ -21,17 +21,6 @@
 /* the model's coefficient order (ddyn/model.h, train/model.py COEFF_NAMES) */
 #define COEFF_ORDER "Bf,Cf,Df,Ef,Gf,Kf,Br,Cr,Dr,Er,Gr,Kr,Cm1,Cm2,Cr0,Cd,Iz"
 
-static int finite_all(const double *v, int n)
-{
-    int i;
-    for (i = 0; i < n; ++i) {
-        if (!isfinite(v[i])) {
-            return 0;
-        }
-    }
-    return 1;
-}
-
 static double clamp(double v, double lo, double hi)
 {
     return v < lo ? lo : (v > hi ? hi : v);
@@ -82,7 +71,7 @@ ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_
 static int config_ok(const ddyn_ctrl_config *cfg)
 {
     int i, k;
-    if ((unsigned)cfg->ekf_disc >= (unsigned)DDYN_DISC_COUNT || !finite_all(cfg->c_nominal, NC) ||
+    if ((unsigned)cfg->ekf_disc >= (unsigned)DDYN_DISC_COUNT || !ddyn_all_finite(cfg->c_nominal, NC) ||
         !(cfg->range_sigmas > 0.0) || !(cfg->nis_gate > 0.0) || !(cfg->safe_stop_speed >= 0.0) ||
         !(cfg->c_nominal[CM1] > 0.0) ||
         cfg->max_coeff_age < 0 || cfg->max_sensor_faults < 1 ||
@@ -223,7 +212,7 @@ static ddyn_ctrl_status choose_coefficients(ddyn_ctrl *ctl)
     } else if (!history_in_range(ctl)) {
         st |= DDYN_CTRL_OUT_OF_RANGE;
     } else if (ddyn_guard_net_infer(&ctl->net, (const double(*)[NFEAT])ctl->history, c) != DDYN_NET_OK ||
-               !finite_all(c, NC)) {
+               !ddyn_all_finite(c, NC)) {
         st |= DDYN_CTRL_NET_FAULT;
     } else {
         memcpy(ctl->coeffs, c, sizeof c);
@@ -296,7 +285,7 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
         if (!r->valid) {
             continue; /* no new reading of this sensor: its fault count stands */
         }
-        if (!finite_all(r->z, m)) {
+        if (!ddyn_all_finite(r->z, m)) {
             st |= DDYN_CTRL_MEAS_NONFINITE;
             ctl->nonfinite_count[k] = saturating_increment(ctl->nonfinite_count[k]);
             (void)count_fault(ctl, k);
@@ -324,10 +313,10 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
     if (ctl->blind_steps > ctl->cfg.max_blind_steps) {
         st |= DDYN_CTRL_NO_MEASUREMENTS;
     }
-    if (diverged || !covariance_ok(ctl) || !finite_all(ctl->ekf.x, NX)) {
+    if (diverged || !covariance_ok(ctl) || !ddyn_all_finite(ctl->ekf.x, NX)) {
         /* restart the filter at its last finite estimate with the initial covariance: the
          * readings of the next periods pull it in again, while safe mode holds the car */
-        const double *x = finite_all(ctl->ekf.x, NX) ? ctl->ekf.x : ctl->x_prev;
+        const double *x = ddyn_all_finite(ctl->ekf.x, NX) ? ctl->ekf.x : ctl->x_prev;
         double x_restart[NX];
         memcpy(x_restart, x, sizeof x_restart);
         (void)ddyn_ekf_init(&ctl->ekf, ctl->model, ctl->cfg.ekf_disc, x_restart, ctl->cfg.p0_diag,
@@ -350,7 +339,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_ca
     if (ctl->plan_horizon > 0 && ctl->plan_age < ctl->plan_horizon) {
         ctl->plan_age += 1;
     }
-    if (s == DDYN_OK && finite_all(u, NU)) {
+    if (s == DDYN_OK && ddyn_all_finite(u, NU)) {
         int h = ddyn_mpc_plan(&ctl->mpc, NULL, ctl->plan_u);
         ctl->plan_horizon = h > 0 && h <= DDYN_MPC_MAX_HORIZON ? h : 0;
         ctl->plan_age = 0;
@@ -409,7 +398,7 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
         ddyn_ctrl_safe_command(ctl, ctl->ekf.x, out->u);
         st |= DDYN_CTRL_SAFE_COMMAND;
     }
-    if (!finite_all(out->u, NU)) { /* cannot happen by the checks above; never hand out garbage */
+    if (!ddyn_all_finite(out->u, NU)) { /* cannot happen by the checks above; never hand out garbage */
         ddyn_ctrl_safe_command(ctl, ctl->ekf.x, out->u);
         st |= DDYN_CTRL_SAFE_COMMAND;
     }

@@ -11,17 +11,6 @@
 
 static const double PI = 3.14159265358979323846;
 
-static int finite_all(const double *v, int n)
-{
-    int i;
-    for (i = 0; i < n; ++i) {
-        if (!isfinite(v[i])) {
-            return 0;
-        }
-    }
-    return 1;
-}
-
 static void symmetrise(double *P)
 {
     int r, c;
@@ -84,7 +73,7 @@ ddyn_status ddyn_ekf_init(ddyn_ekf *ekf, const ddyn_vehicle_model *model, ddyn_d
         (unsigned)disc >= (unsigned)DDYN_DISC_COUNT) {
         return DDYN_ERR_ARGUMENT;
     }
-    if (!finite_all(x0, N) || !finite_all(p0_diag, N) || !finite_all(q_diag, N)) {
+    if (!ddyn_all_finite(x0, N) || !ddyn_all_finite(p0_diag, N) || !ddyn_all_finite(q_diag, N)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
     for (i = 0; i < N; ++i) {
@@ -138,7 +127,7 @@ ddyn_status ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const doubl
             AT(Pn, r, col, N) = v + (r == col ? ekf->q[r] : 0.0);
         }
     }
-    if (!finite_all(Pn, N * N)) {
+    if (!ddyn_all_finite(Pn, N * N)) {
         return DDYN_ERR_NONFINITE_OUTPUT;
     }
     memcpy(ekf->x, xn, sizeof xn);
@@ -160,7 +149,7 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
     if (ekf == NULL || ekf->model == NULL || z == NULL || r_diag == NULL || m == 0) {
         return DDYN_ERR_ARGUMENT;
     }
-    if (!finite_all(z, m) || !finite_all(r_diag, m)) {
+    if (!ddyn_all_finite(z, m) || !ddyn_all_finite(r_diag, m)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
     for (i = 0; i < m; ++i) {
@@ -256,7 +245,7 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
             AT(Pn, r, col, N) = v;
         }
     }
-    if (!finite_all(xn, N) || !finite_all(Pn, N * N)) {
+    if (!ddyn_all_finite(xn, N) || !ddyn_all_finite(Pn, N * N)) {
         return DDYN_ERR_NONFINITE_OUTPUT;
     }
     memcpy(ekf->x, xn, sizeof xn);

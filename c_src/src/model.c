@@ -6,7 +6,8 @@
 #include <stddef.h>
 #include <string.h>
 
-static int all_finite(const double *v, int n)
+/* 1 when every one of v[0..n) is finite (the runtime modules' shared NaN/inf guard). */
+int ddyn_all_finite(const double *v, int n)
 {
     int i;
     for (i = 0; i < n; ++i) {
@@ -23,7 +24,7 @@ static ddyn_status check_args(const ddyn_vehicle_model *model, const double *x, 
     if (model == NULL || x == NULL || u == NULL || c == NULL || work == NULL) {
         return DDYN_ERR_ARGUMENT;
     }
-    if (!all_finite(x, DDYN_NX) || !all_finite(u, DDYN_NU) || !all_finite(c, DDYN_NC)) {
+    if (!ddyn_all_finite(x, DDYN_NX) || !ddyn_all_finite(u, DDYN_NU) || !ddyn_all_finite(c, DDYN_NC)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
     return DDYN_OK;
@@ -49,7 +50,7 @@ static ddyn_status evaluate(ddyn_casadi_fn fn, const double *x, const double *u,
     if (fn(arg, res, work->iw, work->w, 0) != 0) {
         return DDYN_ERR_EVALUATION;
     }
-    if (!all_finite(scratch, offset)) {
+    if (!ddyn_all_finite(scratch, offset)) {
         return DDYN_ERR_NONFINITE_OUTPUT;
     }
     offset = 0;

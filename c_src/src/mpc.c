@@ -10,17 +10,6 @@
 /* the generated MPC step runs in the model's work memory */
 typedef char mpc_step_work_fits[(DDYN_MPC_STEP_SZ_W <= DDYN_MODEL_MAX_SZ_W && DDYN_MPC_STEP_SZ_IW <= DDYN_MODEL_MAX_SZ_IW) ? 1 : -1];
 
-static int all_finite(const double *v, int n)
-{
-    int i;
-    for (i = 0; i < n; ++i) {
-        if (!isfinite(v[i])) {
-            return 0;
-        }
-    }
-    return 1;
-}
-
 ddyn_status ddyn_mpc_default_config(const ddyn_vehicle_model *model, ddyn_mpc_config *cfg)
 {
     int i, j;
@@ -65,7 +54,7 @@ static int config_valid(const ddyn_mpc_config *cfg)
         cfg->qp_max_iterations < 1 || cfg->qp_max_iterations > DDYN_MPC_MAX_QP_ITERATIONS) {
         return 0;
     }
-    if (!all_finite(cfg->q_pos, 2) || !all_finite(cfg->r_rate, DDYN_NU) || !isfinite(cfg->q_terminal_scale) ||
+    if (!ddyn_all_finite(cfg->q_pos, 2) || !ddyn_all_finite(cfg->r_rate, DDYN_NU) || !isfinite(cfg->q_terminal_scale) ||
         !isfinite(cfg->slack_l1) || !isfinite(cfg->slack_l2) || !isfinite(cfg->qp_tolerance)) {
         return 0;
     }
@@ -113,7 +102,7 @@ ddyn_status ddyn_mpc_set_coefficients(ddyn_mpc *mpc, const double c[DDYN_NC])
     if (mpc == NULL || c == NULL) {
         return DDYN_ERR_ARGUMENT;
     }
-    if (!all_finite(c, DDYN_NC)) {
+    if (!ddyn_all_finite(c, DDYN_NC)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
     memcpy(mpc->c, c, sizeof mpc->c);
@@ -131,8 +120,8 @@ ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const doub
         n < 4 || n > DDYN_MPC_MAX_TRACK_POINTS) {
         return DDYN_ERR_ARGUMENT;
     }
-    if (!all_finite(x, n) || !all_finite(y, n) || !all_finite(speed, n) || !all_finite(width_left, n) ||
-        !all_finite(width_right, n)) {
+    if (!ddyn_all_finite(x, n) || !ddyn_all_finite(y, n) || !ddyn_all_finite(speed, n) || !ddyn_all_finite(width_left, n) ||
+        !ddyn_all_finite(width_right, n)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
     for (i = 0; i < n; ++i) {
@@ -268,7 +257,7 @@ static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, doub
         if (mpc->mpc_step(arg, res, mpc->model_work.iw, mpc->model_work.w, 0) != 0) {
             return DDYN_ERR_EVALUATION;
         }
-        if (!all_finite(out, DDYN_NX * (1 + DDYN_NX + DDYN_NU))) {
+        if (!ddyn_all_finite(out, DDYN_NX * (1 + DDYN_NX + DDYN_NU))) {
             return DDYN_ERR_NONFINITE_OUTPUT;
         }
         memcpy(x_next, out, DDYN_NX * sizeof(double));
@@ -478,7 +467,7 @@ ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDY
     if (mpc == NULL || x0 == NULL || u == NULL || mpc->model == NULL) {
         return DDYN_ERR_ARGUMENT;
     }
-    if (!all_finite(x0, DDYN_NX)) {
+    if (!ddyn_all_finite(x0, DDYN_NX)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
     if (mpc->track.n < 4 || !mpc->have_coefficients) {

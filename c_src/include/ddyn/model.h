@@ -75,6 +75,9 @@ ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_disc
                                       ddyn_model_work *work);
 
 /* Continuous-time derivative xdot = f(x, u, c). */
+/* 1 when v[0..n) holds no NaN or inf: the NaN/inf guard every runtime module uses on its inputs. */
+int ddyn_all_finite(const double *v, int n);
+
 ddyn_status ddyn_model_derivatives(const ddyn_vehicle_model *model, const double x[DDYN_NX],
                                    const double u[DDYN_NU], const double c[DDYN_NC], double xdot[DDYN_NX],
                                    ddyn_model_work *work);
