@@ -34,6 +34,7 @@ SUBCOMMAND_MODULES = (
     "train.sil",
     "train.sil_table",
     "train.mpc_lap",
+    "train.raceline",
     "train.can_log",
     "train.can_bench",
     "train.diagnose",

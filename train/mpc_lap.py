@@ -21,6 +21,7 @@ from . import vehicle as vehicle_mod
 from .errors import DdynError
 from .mpc_setup import FOOTPRINT, MpcSettings, raceline_table
 from .paths import REPO
+from .raceline import line_for
 from .tracks import Track, load_track
 
 DEFAULT_TOOL = REPO / "build" / "c_src" / "ddyn_mpc_lap"
@@ -158,7 +159,7 @@ def plot_lap(track: Track, runs: dict[str, np.ndarray], path: Path, vehicle_name
     for b in (track.inner, track.outer):
         loop = np.vstack([b, b[:1]])
         ax.plot(loop[:, 0], loop[:, 1], "k-", lw=1)
-    rl = track.raceline
+    rl = line_for(track, vehicle_name)
     ax.plot(rl.x, rl.y, "--", color="0.6", lw=1, label="raceline")
     for name, x in runs.items():
         ax.plot(x[:, 0], x[:, 1], lw=1.2, label=name)

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .errors import DdynError
+from .raceline import line_for
 from .tracks import Track, resample_closed
 
 # The 1:43 car's body (not in the vehicle file, which holds only what the model needs): about
@@ -30,16 +31,16 @@ class MpcSettings:
     disc: str = "rk4_single"   # prediction: rk4_single (generated for the MPC), euler, rk4 (the plant)
     q_x: float = 1000.0
     q_y: float = 1000.0
-    q_terminal: float = 1.0
+    q_terminal: float = 10.0
     r_dthrottle: float = 1e-3
-    r_dsteering: float = 10.0
+    r_dsteering: float = 0.1
     slack_l1: float = 1e4
     slack_l2: float = 1e5
     qp_max_iterations: int = 30
     qp_tolerance: float = 1e-6
     margin: float = 0.02        # m, kept between the footprint's half width and the bounds
     speed_floor: float = 0.5    # m/s, lowest reference speed
-    speed_scale: float = 0.93   # reference speed = raceline speed * this: a grip margin (docs/mpc.md, robustness)
+    speed_scale: float = 1.0    # reference speed = raceline speed * this (docs/mpc.md, tuning)
     spacing: float = 0.025      # m, raceline table spacing
 
     def as_dict(self) -> dict:
@@ -52,17 +53,17 @@ def raceline_table(track: Track, vehicle_name: str, settings: MpcSettings) -> di
     The speed profile is the raceline's own (a standing-start lap: low at the start line, floored
     at settings.speed_floor), so later laps slow down through the start area as the first did.
     """
-    rl = track.raceline
-    if rl is None:
-        raise DdynError(f"track {track.name!r} has no raceline")
+    rl = line_for(track, vehicle_name)
     pts = np.column_stack([rl.x, rl.y])
     speed_rl = np.asarray(rl.speed, float)
     # The raceline files run on past one lap (ethzMobil's "long" line: a standing-start lap plus
     # 1.8 m). The table is its first lap, closed by the short segment back to the start.
+    # Progress is unwrapped, so a line starting just behind the start line (a computed one) is not cut.
     s_c, _ = track.project(pts[:, 0], pts[:, 1])
-    wraps = np.nonzero(np.diff(s_c) < -0.5 * track.length)[0]
-    if len(wraps):
-        pts, speed_rl = pts[: wraps[0] + 1], speed_rl[: wraps[0] + 1]
+    ds_c = (np.diff(s_c) + 0.5 * track.length) % track.length - 0.5 * track.length
+    past = np.nonzero(np.cumsum(ds_c) >= track.length - 1e-9)[0]
+    if len(past):
+        pts, speed_rl = pts[: past[0] + 1], speed_rl[: past[0] + 1]
     seg = np.hypot(*np.diff(np.vstack([pts, pts[:1]]), axis=0).T)
     s_pts = np.concatenate(([0.0], np.cumsum(seg)))
     total = s_pts[-1]

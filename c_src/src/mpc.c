@@ -33,13 +33,14 @@ ddyn_status ddyn_mpc_default_config(const ddyn_vehicle_model *model, ddyn_mpc_co
         cfg->state_lo[j] = ddyn_mpc_limits[i].lo_hi[2 + j][0];
         cfg->state_hi[j] = ddyn_mpc_limits[i].lo_hi[2 + j][1];
     }
-    /* weights tuned on the 1:43 car's closed-loop lap (docs/mpc.md): steering rate costly enough
-     * to keep the car out of oversteer at the grip limit, throttle rate nearly free */
+    /* weights tuned on the 1:43 car's closed-loop lap along its own time-optimal line (docs/mpc.md,
+     * tuning): a light steering-rate cost lets it follow the line at the grip limit, the terminal
+     * stage's position weight 10x the others pulls the plan onto the line, throttle rate nearly free */
     cfg->q_pos[0] = 1000.0;
     cfg->q_pos[1] = 1000.0;
-    cfg->q_terminal_scale = 1.0;
+    cfg->q_terminal_scale = 10.0;
     cfg->r_rate[0] = 1e-3;
-    cfg->r_rate[1] = 10.0;
+    cfg->r_rate[1] = 0.1;
     cfg->slack_l1 = 1e4;
     cfg->slack_l2 = 1e5;
     cfg->qp_max_iterations = 30;
