@@ -224,10 +224,52 @@ def _run_sweep(args, settings: MpcSettings) -> int:
     return 0 if bad == 0 else 1
 
 
+def _parse_assignments(items: list[str], multi: bool) -> dict:
+    """KEY=VALUE (or KEY=V1,V2,... when multi) for float fields of MpcSettings."""
+    fields = {k for k, v in MpcSettings().as_dict().items() if isinstance(v, float)}
+    out = {}
+    for item in items or []:
+        key, _, value = item.partition("=")
+        if key not in fields or not value:
+            raise DdynError(f"--set/--grid {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(fields))}")
+        values = [float(v) for v in value.split(",")]
+        if not multi and len(values) != 1:
+            raise DdynError(f"--set {item!r}: one value")
+        out[key] = values if multi else values[0]
+    return out
+
+
+def _run_grid(args, settings: MpcSettings) -> int:
+    """First lap (C MPC, --seconds) at every combination of the --grid values: how the defaults were chosen."""
+    import itertools
+    grid = _parse_assignments(args.grid, multi=True)
+    track = load_track(args.track)
+    steps = int(round(args.seconds / vehicle_mod.load(args.vehicle).sample_time))
+    keys = list(grid)
+    print("| " + " | ".join(keys) + " | lap (s) | violation steps | closest corner (mm) | QP iterations max |")
+    print("|" + "---|" * (len(keys) + 4))
+    rows = []
+    for values in itertools.product(*(grid[k] for k in keys)):
+        st = replace(settings, **dict(zip(keys, values)))
+        m = _summary(run_c(args.vehicle, track, st, steps, tool=Path(args.tool)), track, args.vehicle)
+        rows.append({**dict(zip(keys, values)), **m})
+        lap_s = f"{m['lap_time_s']:.3f}" if m["lap_time_s"] else "-"
+        print("| " + " | ".join(f"{v:g}" for v in values) + f" | {lap_s} | {m['violation_steps']} | "
+              f"{m['min_boundary_distance_m'] * 1000:.1f} | {m['qp_iterations_max']} |")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "mpc_grid.json").write_text(json.dumps({"settings": settings.as_dict(), "grid": grid, "runs": rows},
+                                                  indent=2))
+    return 0
+
+
 def _run(args) -> int:
     settings = MpcSettings(horizon=args.horizon, disc=args.disc)
     if args.speed_scale is not None:
         settings = replace(settings, speed_scale=args.speed_scale)
+    settings = replace(settings, **_parse_assignments(args.set, multi=False))
+    if args.grid:
+        return _run_grid(args, settings)
     if args.sweep:
         return _run_sweep(args, settings)
     r = lap(args.vehicle, args.track, args.seconds, settings, not args.no_reference, Path(args.out), Path(args.tool))
@@ -261,4 +303,9 @@ def register(subparsers) -> None:
                    help="robustness sweep instead of the lap: start speeds x start perturbations, --sweep-steps "
                         "each, C MPC only; exit 1 if any run has a footprint violation")
     p.add_argument("--sweep-steps", type=int, default=10000, help="steps per sweep run (default %(default)s)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override an MpcSettings weight or limit, e.g. --set r_dsteering=0.1 (repeatable)")
+    p.add_argument("--grid", action="append", metavar="KEY=V1,V2,...",
+                   help="first-lap table (C MPC) over every combination of these values (repeatable), "
+                        "written to OUT/mpc_grid.json")
     p.set_defaults(func=_run)
