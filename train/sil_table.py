@@ -202,9 +202,22 @@ def speed_error(traj: dict, table: np.ndarray) -> dict:
 
 
 def sweep_choice(rows: list[dict]) -> dict | None:
-    """The gains to choose: among the runs that completed the lap without a violation, the smallest
-    rms speed error (the PID's job is the speed); ties broken by the lap time."""
-    ok = [r for r in rows if r["lap_completed"] and r["violations"] == 0 and r["speed_error_rms"] is not None]
+    """The gains to choose: a run that completed the lap without a violation and whose neighbours on the
+    grid (the next kp and the next ki either way, where swept) did too (a margin: the DPM rows drive with
+    model error, so the gains should not sit next to failing ones); among those, the smallest rms speed
+    error (the PID's job is the speed), ties broken by the lap time."""
+    def clean(r: dict) -> bool:
+        return bool(r["lap_completed"]) and r["violations"] == 0 and r["speed_error_rms"] is not None
+    kps, kis = sorted({r["kp"] for r in rows}), sorted({r["ki"] for r in rows})
+    at = {(r["kp"], r["ki"]): r for r in rows}
+
+    def neighbours(r: dict) -> list[dict]:
+        i, j = kps.index(r["kp"]), kis.index(r["ki"])
+        cells = [(i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)]
+        return [at[(kps[a], kis[b])] for a, b in cells
+                if 0 <= a < len(kps) and 0 <= b < len(kis) and (kps[a], kis[b]) in at]
+
+    ok = [r for r in rows if clean(r) and all(clean(n) for n in neighbours(r))]
     return min(ok, key=lambda r: (round(r["speed_error_rms"], 4), r["lap_time"])) if ok else None
 
 
@@ -236,8 +249,9 @@ def _run_pid_sweep(args: argparse.Namespace) -> int:
                   f"{_fmt(row['speed_error_max'], '.3f')} m/s, {row['end_reason']}")
     best = sweep_choice(rows)
     lines = [f"PID gain sweep: true coefficients, throttle by PID, one lap of {track.name} from vx = {args.vx0} m/s "
-             f"(speed scale {args.speed_scale}); chosen: the lap completed without a violation with the smallest "
-             "rms speed error (true vx against the table's reference speed at the nearest table point)", "",
+             f"(speed scale {args.speed_scale}); chosen: among the laps completed without a violation whose grid "
+             "neighbours (next kp, next ki) were too, the smallest rms speed error (true vx against the table's "
+             "reference speed at the nearest table point)", "",
              "| kp | ki | kd | lap time (s) | violations | speed error rms (m/s) | speed error max (m/s) | "
              "periods PID saturated | mean distance to raceline (m) |", "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:

@@ -20,9 +20,9 @@
 #define CR0 14
 /* the model's coefficient order (ddyn/model.h, train/model.py COEFF_NAMES) */
 #define COEFF_ORDER "Bf,Cf,Df,Ef,Gf,Kf,Br,Cr,Dr,Er,Gr,Kr,Cm1,Cm2,Cr0,Cd,Iz"
-/* default throttle PID gains (provisional, before the SIL sweep of docs/sil.md) */
-#define PID_DEFAULT_KP 1.0
-#define PID_DEFAULT_KI 1.0
+/* default throttle PID gains: `ddyn sil-pid-sweep` on the true-coefficient SIL lap (docs/sil.md) */
+#define PID_DEFAULT_KP 2.0
+#define PID_DEFAULT_KI 2.0
 #define PID_DEFAULT_KD 0.0
 
 static double clamp(double v, double lo, double hi)
@@ -71,7 +71,7 @@ ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_
     cfg->recovery_steps = 10;
     cfg->coeff_source = DDYN_CTRL_SOURCE_NETWORK;
     cfg->throttle_mode = DDYN_CTRL_THROTTLE_MPC;
-    /* throttle PID gains: chosen by the sweep on the true-coefficient SIL lap (docs/sil.md) */
+    /* throttle PID gains (PID_DEFAULT_*: see their definition) */
     cfg->pid.kp = PID_DEFAULT_KP;
     cfg->pid.ki = PID_DEFAULT_KI;
     cfg->pid.kd = PID_DEFAULT_KD;
