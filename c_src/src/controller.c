@@ -373,6 +373,12 @@ static ddyn_ctrl_status throttle_pid(ddyn_ctrl *ctl, double v_ref, ddyn_ctrl_out
     double tol = 1e-9 * (1.0 + fabs(raw));
     int short_up = raw > applied + tol, short_down = raw < applied - tol;
     ddyn_ctrl_status st = (short_up || short_down) ? DDYN_CTRL_PID_SATURATED : DDYN_CTRL_OK;
+    if (!isfinite(raw) || !isfinite(applied)) {
+        /* cannot happen (estimate() keeps the filter finite, v_ref comes from a checked table); never
+         * let a NaN into the integral: hold the throttle, leave the PID's state as it was */
+        *dthrottle = 0.0;
+        return DDYN_CTRL_PID_SATURATED;
+    }
     if (!((short_up && e > 0.0) || (short_down && e < 0.0))) {
         ctl->pid_integral = clamp(ctl->pid_integral + g->ki * e * dt, m->state_lo[0], m->state_hi[0]);
     }
