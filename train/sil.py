@@ -175,6 +175,8 @@ class SilSpec:
     max_time: float | None = None
     seed: int = 1
     deadline: float = 0.08
+    throttle: str = "mpc"                      # "mpc" (the MPC plans it) or "pid" (PID on the speed error)
+    pid_gains: tuple | None = None             # (kp, ki, kd); None: the controller's defaults
 
 
 def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
@@ -212,6 +214,11 @@ def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
 
 def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
     v = spec.vehicle
+    if spec.throttle not in ("mpc", "pid"):
+        raise DdynError(f"throttle {spec.throttle!r}: expected mpc or pid")
+    if spec.pid_gains is not None and (len(spec.pid_gains) != 3 or
+                                       not all(math.isfinite(g) and g >= 0.0 for g in spec.pid_gains)):
+        raise DdynError(f"PID gains {spec.pid_gains!r}: expected three finite numbers >= 0 (kp, ki, kd)")
     noise = sensor_noise(v, spec.noise_scale)
     fixed = spec.coeffs_controller is not None
     coeffs = spec.coeffs_controller if fixed else spec.nominal
@@ -226,6 +233,8 @@ def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
         f"vehicle {v.name}", f"period {v.sample_time!r}", f"fixed {int(fixed)}",
         "nominal " + " ".join(repr(float(c)) for c in spec.nominal),
         "coeffs " + " ".join(repr(float(c)) for c in coeffs),
+        f"throttle {spec.throttle}",
+        "pid_gains " + ("default" if spec.pid_gains is None else " ".join(repr(float(g)) for g in spec.pid_gains)),
         "x0 " + " ".join(repr(float(c)) for c in start_state(spec.track, spec.vx0, spec.vehicle.name)),
         # the noise the filter assumes: twice the sensors' own (model error), 1 m/s^2 for the
         # accelerometer (its model goes through the estimated coefficients), as the controller's
@@ -472,6 +481,7 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "controller": None, "plant": pm, "run": run,
         "effects": spec.effects, "faults": spec.faults,
         "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
+        "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
     }
     if cm is not None:
         out["controller"] = {"loop_us": cm["loop_us"], "deadline_misses": cm["deadline_misses"],
@@ -644,7 +654,8 @@ def _run(args: argparse.Namespace) -> int:
                    nominal=vehicle.true_vector(), laps=args.laps, vx0=args.vx0,
                    effects=parse_effects(args.effects), faults=parse_faults(args.faults),
                    noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin,
-                   realtime=args.realtime, max_time=args.max_time, seed=args.seed)
+                   realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
+                   pid_gains=args.pid_gains)
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
     ctl = m["controller"] or {}
@@ -691,5 +702,21 @@ def register(subparsers) -> None:
                                     "silent=imu|gnss|gnss_position|gnss_heading|wheel_speeds|steering silent_at=S "
                                     "kill_controller=S restart_plant=S")
     p.add_argument("--out", default="out/sil", help="output directory (default: %(default)s)")
+    p.add_argument("--throttle", choices=("mpc", "pid"), default="mpc",
+                   help="who sets the throttle: the MPC (default) or a PID on the speed error, the MPC then "
+                        "planning only the steering (docs/controller.md)")
+    p.add_argument("--pid-gains", type=parse_gains, default=None, metavar="KP,KI,KD",
+                   help="PID gains for --throttle pid (default: the controller's, docs/sil.md)")
     add_common(p)
     p.set_defaults(func=_run)
+
+
+def parse_gains(text: str) -> tuple[float, float, float]:
+    """`KP,KI,KD` (three numbers >= 0) for --pid-gains."""
+    try:
+        g = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected KP,KI,KD") from None
+    if len(g) != 3 or not all(math.isfinite(v) and v >= 0.0 for v in g):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected three finite numbers >= 0 (KP,KI,KD)")
+    return g

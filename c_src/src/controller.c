@@ -20,6 +20,10 @@
 #define CR0 14
 /* the model's coefficient order (ddyn/model.h, train/model.py COEFF_NAMES) */
 #define COEFF_ORDER "Bf,Cf,Df,Ef,Gf,Kf,Br,Cr,Dr,Er,Gr,Kr,Cm1,Cm2,Cr0,Cd,Iz"
+/* default throttle PID gains: `ddyn sil-pid-sweep` on the true-coefficient SIL lap (docs/sil.md) */
+#define PID_DEFAULT_KP 2.0
+#define PID_DEFAULT_KI 2.0
+#define PID_DEFAULT_KD 0.0
 
 static double clamp(double v, double lo, double hi)
 {
@@ -65,12 +69,32 @@ ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_
     cfg->max_blind_steps = 25;
     cfg->max_plan_shift = 3;
     cfg->recovery_steps = 10;
+    cfg->coeff_source = DDYN_CTRL_SOURCE_NETWORK;
+    cfg->throttle_mode = DDYN_CTRL_THROTTLE_MPC;
+    /* throttle PID gains (PID_DEFAULT_*: see their definition) */
+    cfg->pid.kp = PID_DEFAULT_KP;
+    cfg->pid.ki = PID_DEFAULT_KI;
+    cfg->pid.kd = PID_DEFAULT_KD;
     return DDYN_OK;
+}
+
+/* coefficients the model can step with: finite, a positive drive (Cm1) and inertia (Iz = 0 would not) */
+static int coefficients_usable(const double c[NC])
+{
+    return ddyn_all_finite(c, NC) && c[CM1] > 0.0 && c[NC - 1] > 0.0;
 }
 
 static int config_ok(const ddyn_ctrl_config *cfg)
 {
+    const ddyn_ctrl_pid_config *g = &cfg->pid;
     int i, k;
+    if ((unsigned)cfg->coeff_source >= (unsigned)DDYN_CTRL_SOURCE_COUNT ||
+        (unsigned)cfg->throttle_mode >= (unsigned)DDYN_CTRL_THROTTLE_MODE_COUNT ||
+        (cfg->coeff_source == DDYN_CTRL_SOURCE_FIXED && !coefficients_usable(cfg->c_fixed)) ||
+        !(g->kp >= 0.0) || !(g->ki >= 0.0) || !(g->kd >= 0.0) || !isfinite(g->kp) || !isfinite(g->ki) ||
+        !isfinite(g->kd)) {
+        return 0;
+    }
     if ((unsigned)cfg->ekf_disc >= (unsigned)DDYN_DISC_COUNT || !ddyn_all_finite(cfg->c_nominal, NC) ||
         !(cfg->range_sigmas > 0.0) || !(cfg->nis_gate > 0.0) || !(cfg->safe_stop_speed >= 0.0) ||
         !(cfg->c_nominal[CM1] > 0.0) ||
@@ -92,25 +116,25 @@ static int config_ok(const ddyn_ctrl_config *cfg)
         }
     }
     /* the nominal coefficients must at least make a finite model step (Iz = 0 would not) */
-    return cfg->c_nominal[NC - 1] > 0.0;
+    return coefficients_usable(cfg->c_nominal);
 }
 
 ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, const ddyn_net_tables *tables,
                            const ddyn_ctrl_config *cfg, const double x0[DDYN_NX])
 {
     ddyn_status s;
-    if (ctl == NULL || model == NULL || tables == NULL || cfg == NULL || x0 == NULL) {
+    if (ctl == NULL || model == NULL || cfg == NULL || x0 == NULL) {
         return DDYN_ERR_ARGUMENT;
     }
     memset(ctl, 0, sizeof *ctl);
-    if (!config_ok(cfg)) {
+    if (!config_ok(cfg) || (tables == NULL && cfg->coeff_source != DDYN_CTRL_SOURCE_FIXED)) {
         return DDYN_ERR_ARGUMENT;
     }
     /* the network's outputs feed the model directly: their order must be the model's */
     if (strcmp(DDYN_NET_OUTPUT_NAMES, COEFF_ORDER) != 0) {
         return DDYN_ERR_ARGUMENT;
     }
-    if (ddyn_guard_net_init(&ctl->net, tables) != DDYN_NET_OK) {
+    if (tables != NULL && ddyn_guard_net_init(&ctl->net, tables) != DDYN_NET_OK) {
         return DDYN_ERR_ARGUMENT;
     }
     s = ddyn_ekf_init(&ctl->ekf, model, cfg->ekf_disc, x0, cfg->p0_diag, cfg->q_diag);
@@ -123,7 +147,8 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     }
     ctl->cfg = *cfg;
     ctl->model = model;
-    memcpy(ctl->coeffs, cfg->c_nominal, sizeof ctl->coeffs);
+    memcpy(ctl->coeffs, cfg->coeff_source == DDYN_CTRL_SOURCE_FIXED ? cfg->c_fixed : cfg->c_nominal,
+           sizeof ctl->coeffs);
     ctl->last_good_age = -1;
     memcpy(ctl->x_prev, x0, sizeof ctl->x_prev);
     ctl->initialised = 1;
@@ -204,6 +229,10 @@ static ddyn_ctrl_status choose_coefficients(ddyn_ctrl *ctl)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
     double c[NC];
+    if (ctl->cfg.coeff_source == DDYN_CTRL_SOURCE_FIXED) {
+        memcpy(ctl->coeffs, ctl->cfg.c_fixed, sizeof ctl->coeffs); /* no network, no fallback needed */
+        return DDYN_CTRL_COEFF_FIXED;
+    }
     if (ctl->last_good_age >= 0 && ctl->last_good_age < ctl->cfg.max_coeff_age + 1) {
         ctl->last_good_age += 1; /* ages by one period whatever happens next */
     }
@@ -326,13 +355,56 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
     return st;
 }
 
+/* The throttle PID of one period (throttle_mode PID; the law is in ddyn/controller.h): the
+ * throttle rate to command now, and the integral updated with conditional integration.
+ * DDYN_CTRL_PID_SATURATED when the throttle's range or rate bound cut the PID's output. */
+static ddyn_ctrl_status throttle_pid(ddyn_ctrl *ctl, double v_ref, ddyn_ctrl_output *out, double *dthrottle)
+{
+    const ddyn_ctrl_pid_config *g = &ctl->cfg.pid;
+    const ddyn_mpc_config *m = &ctl->cfg.mpc;
+    const double dt = ctl->model->sample_time, vx = ctl->ekf.x[VX], thr = ctl->ekf.x[THROTTLE];
+    const double e = v_ref - vx;
+    double dvx = ctl->pid_started ? (vx - ctl->pid_vx_prev) / dt : 0.0;
+    double raw = g->kp * e + ctl->pid_integral - g->kd * dvx;
+    double target = clamp(raw, m->state_lo[0], m->state_hi[0]);
+    double rate = clamp((target - thr) / dt, m->rate_lo[0], m->rate_hi[0]);
+    double applied = thr + dt * rate; /* the throttle this command reaches at the end of the period */
+    /* tolerance for the rounding of thr + dt * (target - thr) / dt */
+    double tol = 1e-9 * (1.0 + fabs(raw));
+    int short_up = raw > applied + tol, short_down = raw < applied - tol;
+    ddyn_ctrl_status st = (short_up || short_down) ? DDYN_CTRL_PID_SATURATED : DDYN_CTRL_OK;
+    if (!isfinite(raw) || !isfinite(applied)) {
+        /* cannot happen (estimate() keeps the filter finite, v_ref comes from a checked table); never
+         * let a NaN into the integral: hold the throttle, leave the PID's state as it was */
+        *dthrottle = 0.0;
+        return DDYN_CTRL_PID_SATURATED;
+    }
+    if (!((short_up && e > 0.0) || (short_down && e < 0.0))) {
+        ctl->pid_integral = clamp(ctl->pid_integral + g->ki * e * dt, m->state_lo[0], m->state_hi[0]);
+    }
+    ctl->pid_vx_prev = vx;
+    ctl->pid_started = 1;
+    out->pid_ref_speed = v_ref;
+    out->pid_throttle = target;
+    out->pid_integral = ctl->pid_integral;
+    *dthrottle = rate;
+    return st;
+}
+
 /* Steps 4-5: solve the MPC and pick the command; *safe_cause set when the plan is exhausted. */
 static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_cause)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
-    double u[NU];
+    double u[NU], dthrottle = 0.0, v_ref = 0.0;
+    const int pid = ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID;
     ddyn_status s = ddyn_mpc_set_coefficients(&ctl->mpc, ctl->coeffs);
-    if (s == DDYN_OK) {
+    if (s == DDYN_OK && pid) {
+        s = ddyn_mpc_reference_speed(&ctl->mpc, ctl->ekf.x, &v_ref);
+        if (s == DDYN_OK) {
+            st |= throttle_pid(ctl, v_ref, out, &dthrottle);
+            s = ddyn_mpc_solve_held_throttle(&ctl->mpc, ctl->ekf.x, dthrottle, u, &out->mpc_info);
+        }
+    } else if (s == DDYN_OK) {
         s = ddyn_mpc_solve(&ctl->mpc, ctl->ekf.x, u, &out->mpc_info);
     }
     out->mpc_status = s;
@@ -350,7 +422,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_ca
     if (s != DDYN_ERR_NOT_READY && s != DDYN_ERR_ARGUMENT && ctl->plan_horizon > 0 &&
         ctl->plan_age <= ctl->cfg.max_plan_shift && ctl->plan_age < ctl->plan_horizon) {
         /* the plan computed plan_age periods ago, at the stage that is now */
-        out->u[0] = ctl->plan_u[ctl->plan_age * NU + 0];
+        out->u[0] = pid ? dthrottle : ctl->plan_u[ctl->plan_age * NU + 0]; /* PID: its throttle, always */
         out->u[1] = ctl->plan_u[ctl->plan_age * NU + 1];
         st |= DDYN_CTRL_PLAN_SHIFTED;
     } else {
@@ -391,6 +463,8 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
             ctl->healthy_steps = 0;
             ctl->plan_age = ctl->plan_horizon; /* no shifted plan from before the fault */
             ddyn_mpc_reset(&ctl->mpc);
+            ctl->pid_integral = 0.0; /* nor an integral of the speed error while the car was braked */
+            ctl->pid_started = 0;
             st |= DDYN_CTRL_RECOVERED;
         }
     }
@@ -419,7 +493,7 @@ const char *ddyn_ctrl_status_name(ddyn_ctrl_status bit)
         "DDYN_CTRL_OUT_OF_RANGE",    "DDYN_CTRL_NET_FAULT",         "DDYN_CTRL_COEFF_LAST_GOOD",
         "DDYN_CTRL_COEFF_NOMINAL",   "DDYN_CTRL_EKF_DIVERGED",      "DDYN_CTRL_MPC_NOT_CONVERGED",
         "DDYN_CTRL_MPC_FAILED",      "DDYN_CTRL_PLAN_SHIFTED",      "DDYN_CTRL_SAFE_COMMAND",
-        "DDYN_CTRL_RECOVERED"};
+        "DDYN_CTRL_RECOVERED",       "DDYN_CTRL_COEFF_FIXED",       "DDYN_CTRL_PID_SATURATED"};
     int i;
     if (bit == DDYN_CTRL_OK) {
         return "DDYN_CTRL_OK";

@@ -279,8 +279,9 @@ static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, doub
 }
 
 /* Linearisation trajectory: x0 and the shifted previous plan (zeros without warm start), clipped
- * to the rate bounds, simulated by the model; A, B along it. */
-static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX])
+ * to the rate bounds, simulated by the model; A, B along it. With the throttle held (hold != 0)
+ * the throttle rates are the fixed ones instead: dthrottle0 at stage 0, then 0. */
+static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, double dthrottle0)
 {
     const int h = mpc->cfg.horizon;
     int k, j;
@@ -289,6 +290,9 @@ static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX])
         int src = mpc->have_warm_start ? (k + 1 < h ? k + 1 : h - 1) : -1;
         for (j = 0; j < DDYN_NU; ++j) {
             double v = src >= 0 ? mpc->u_plan[src * DDYN_NU + j] : 0.0;
+            if (hold && j == 0) {
+                v = k == 0 ? dthrottle0 : 0.0;
+            }
             mpc->u_lin[k * DDYN_NU + j] = clip(v, mpc->cfg.rate_lo[j], mpc->cfg.rate_hi[j]);
         }
     }
@@ -359,8 +363,41 @@ static void references(ddyn_mpc *mpc, int i0, double u0)
     }
 }
 
+/* Throttle held: take the throttle columns (even z indices) out of the QP built by build_qp (lower
+ * triangle only, before mirroring). They keep only their own diagonal weight, no gradient (the fixed
+ * throttle's cost is a constant), no entry in the track rows, a box and integrator rows relaxed to
+ * the symmetric range of twice the bounds' width around 0. The QP then separates into the steering
+ * problem (exactly the one of a steering-only MPC) and a throttle block whose optimum is z = 0,
+ * strictly inside its relaxed rows; the caller uses the fixed throttle rates, not z. */
+static void hold_throttle_columns(ddyn_mpc *mpc)
+{
+    const ddyn_mpc_config *cfg = &mpc->cfg;
+    const int h = cfg->horizon, n = 2 * h;
+    ddyn_mpc_qp *qp = &mpc->qp;
+    const double rate_w = cfg->rate_hi[0] - cfg->rate_lo[0], state_w = cfg->state_hi[0] - cfg->state_lo[0];
+    int i, j, q;
+    for (j = 0; j < n; j += 2) {
+        for (i = 0; i < n; ++i) {
+            if (i > j) {
+                qp->hess[i + j * DDYN_QP_NV] = 0.0; /* column j below the diagonal */
+            } else if (i < j) {
+                qp->hess[j + i * DDYN_QP_NV] = 0.0; /* row j left of the diagonal */
+            }
+        }
+        qp->hess[j + j * DDYN_QP_NV] = 2.0 * cfg->r_rate[0];
+        qp->grad[j] = 0.0;
+        qp->lb[j] = -rate_w;
+        qp->ub[j] = rate_w;
+        qp->hard_lo[j] = -state_w; /* row 2(k-1): the throttle after stage k */
+        qp->hard_hi[j] = state_w;
+        for (q = 0; q < h; ++q) {
+            qp->soft_row[q * DDYN_QP_NV + j] = 0.0;
+        }
+    }
+}
+
 /* condensed QP in the deviations z = u - u_lin */
-static void build_qp(ddyn_mpc *mpc, const double x0[DDYN_NX])
+static void build_qp(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold)
 {
     const ddyn_mpc_config *cfg = &mpc->cfg;
     const int h = cfg->horizon, n = 2 * h;
@@ -413,6 +450,9 @@ static void build_qp(ddyn_mpc *mpc, const double x0[DDYN_NX])
             qp->hard_hi[2 * (k - 1) + ch] = hi - xk[6 + ch];
         }
     }
+    if (hold) {
+        hold_throttle_columns(mpc);
+    }
     for (j = 0; j < n; ++j) { /* mirror the lower triangle */
         for (i = j + 1; i < n; ++i) {
             qp->hess[j + i * DDYN_QP_NV] = qp->hess[i + j * DDYN_QP_NV];
@@ -451,7 +491,8 @@ static void plan_info(const ddyn_mpc *mpc, ddyn_mpc_info *info)
     info->kkt_residual = qp->residual;
 }
 
-ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)
+static ddyn_status solve(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, double dthrottle0, double u[DDYN_NU],
+                         ddyn_mpc_info *info)
 {
     ddyn_mpc_info local;
     ddyn_status st, qst;
@@ -478,13 +519,13 @@ ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDY
     i0 = project(&mpc->track, x0[0], x0[1], mpc->last_index, LOCAL_WINDOW, &u0);
     info->track_index = i0;
     info->progress = track_at(&mpc->track, i0, u0).s;
-    st = linearise(mpc, x0);
+    st = linearise(mpc, x0, hold, dthrottle0);
     if (st != DDYN_OK) {
         return st;
     }
     sensitivities(mpc);
     references(mpc, i0, u0);
-    build_qp(mpc, x0);
+    build_qp(mpc, x0, hold);
     qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
     if (qst != DDYN_OK && qst != DDYN_ERR_QP_NOT_CONVERGED) {
         return qst; /* malformed QP (non-finite sensitivities): keep the old plan */
@@ -493,7 +534,8 @@ ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDY
     for (k = 0; k < h; ++k) {
         for (j = 0; j < DDYN_NU; ++j) {
             int idx = k * DDYN_NU + j;
-            mpc->u_plan[idx] = clip(mpc->u_lin[idx] + mpc->qp.z[idx], mpc->cfg.rate_lo[j], mpc->cfg.rate_hi[j]);
+            double z = hold && j == 0 ? 0.0 : mpc->qp.z[idx]; /* held throttle: the fixed rates */
+            mpc->u_plan[idx] = clip(mpc->u_lin[idx] + z, mpc->cfg.rate_lo[j], mpc->cfg.rate_hi[j]);
         }
     }
     memcpy(mpc->x_plan, x0, DDYN_NX * sizeof(double));
@@ -502,6 +544,48 @@ ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDY
     u[0] = mpc->u_plan[0];
     u[1] = mpc->u_plan[1];
     return qst;
+}
+
+ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)
+{
+    return solve(mpc, x0, 0, 0.0, u, info);
+}
+
+ddyn_status ddyn_mpc_solve_held_throttle(ddyn_mpc *mpc, const double x0[DDYN_NX], double dthrottle0,
+                                         double u[DDYN_NU], ddyn_mpc_info *info)
+{
+    if (!isfinite(dthrottle0)) {
+        if (info != NULL) {
+            memset(info, 0, sizeof *info);
+        }
+        if (u != NULL) {
+            u[0] = 0.0;
+            u[1] = 0.0;
+        }
+        return mpc == NULL || x0 == NULL || u == NULL ? DDYN_ERR_ARGUMENT : DDYN_ERR_NONFINITE_INPUT;
+    }
+    return solve(mpc, x0, 1, dthrottle0, u, info);
+}
+
+ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_NX], double *speed)
+{
+    double u0;
+    int i0;
+    if (speed != NULL) {
+        *speed = 0.0;
+    }
+    if (mpc == NULL || x0 == NULL || speed == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    if (mpc->track.n < 4) {
+        return DDYN_ERR_NOT_READY;
+    }
+    if (!isfinite(x0[0]) || !isfinite(x0[1])) {
+        return DDYN_ERR_NONFINITE_INPUT;
+    }
+    i0 = project(&mpc->track, x0[0], x0[1], mpc->last_index, LOCAL_WINDOW, &u0);
+    *speed = track_at(&mpc->track, i0, u0).speed;
+    return DDYN_OK;
 }
 
 int ddyn_mpc_plan(ddyn_mpc *mpc, double *x_plan, double *u_plan)

@@ -16,7 +16,8 @@
  * Frame policy and the command: controller_node.h.
  *
  * SETUP (text, keywords in this order, numbers whitespace-separated):
- *   vehicle NAME  period SEC  fixed 0|1  nominal 17  coeffs 17  x0 8  r_std 12 (sensor kind order,
+ *   vehicle NAME  period SEC  fixed 0|1  nominal 17  coeffs 17  throttle mpc|pid  pid_gains default|KP KI KD
+ *   x0 8  r_std 12 (sensor kind order,
  *   2 components each: the noise the filter assumes)  q 8 (the filter's process noise variance per
  *   period; 0 = the controller's default)  stale 7 (periods per ddyn_dbw_frame; 0 = not monitored)  max_steps N
  *   idle_exit SEC  lockstep SEC (0: real time; > 0: the plant waits for each command, and the timer
@@ -24,8 +25,10 @@
  *   silent one, and an extra period runs the filter ahead of the plant)
  *   die_at_step N (fault scenario: the process kills itself with SIGKILL at
  *   period N, as if killed from outside; -1 = never)  metrics PATH  log PATH  track N  then N rows: x y speed width_left width_right
- * fixed 1: the MPC and EKF use `coeffs` throughout (the network is bypassed: its history is
- * declared out of range, so the controller's nominal coefficients, set to `coeffs`, are used).
+ * fixed 1: the MPC and EKF use `coeffs` throughout, the network is never run (DDYN_CTRL_SOURCE_FIXED);
+ * `nominal` stays the fallback/safe-command coefficients. throttle pid: a PID on the speed error
+ * sets the throttle and the MPC plans the steering (DDYN_CTRL_THROTTLE_PID), with the controller's
+ * default gains or the three given.
  *
  * Writes the metrics (JSON: loop time median/p99/max, deadline misses, status counts, frame
  * counts, safe-state timing) and a per-period CSV log. Exit 0 after a clean end (SIGTERM/SIGINT,

@@ -3,6 +3,7 @@
 #include <errno.h>
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 
 static int expect(FILE *in, const char *key)
@@ -26,6 +27,33 @@ static int read_n(FILE *in, double *v, int n)
     return 1;
 }
 
+/* "throttle mpc|pid  pid_gains default|KP KI KD" */
+static int read_throttle(FILE *in, ddyn_sil_setup *s)
+{
+    char word[64], *end;
+    if (!expect(in, "throttle") || fscanf(in, "%63s", word) != 1) {
+        return 0;
+    }
+    if (strcmp(word, "pid") == 0) {
+        s->throttle_pid = 1;
+    } else if (strcmp(word, "mpc") == 0) {
+        s->throttle_pid = 0;
+    } else {
+        fprintf(stderr, "ddyn_sil_controller: setup: throttle is 'mpc' or 'pid', not '%s'\n", word);
+        return 0;
+    }
+    if (!expect(in, "pid_gains") || fscanf(in, "%63s", word) != 1) {
+        return 0;
+    }
+    if (strcmp(word, "default") == 0) {
+        s->pid_default = 1;
+        return 1;
+    }
+    s->pid_default = 0;
+    s->pid[0] = strtod(word, &end);
+    return end != word && *end == '\0' && isfinite(s->pid[0]) && read_n(in, s->pid + 1, 2);
+}
+
 int ddyn_sil_read_setup(const char *path, ddyn_sil_setup *s)
 {
     FILE *in = fopen(path, "r");
@@ -38,7 +66,8 @@ int ddyn_sil_read_setup(const char *path, ddyn_sil_setup *s)
     ok = expect(in, "vehicle") && fscanf(in, "%63s", s->vehicle) == 1 && expect(in, "period") &&
          fscanf(in, "%lf", &s->period) == 1 && s->period > 0.0 && expect(in, "fixed") &&
          fscanf(in, "%d", &s->fixed) == 1 && expect(in, "nominal") && read_n(in, s->nominal, DDYN_NC) &&
-         expect(in, "coeffs") && read_n(in, s->coeffs, DDYN_NC) && expect(in, "x0") && read_n(in, s->x0, DDYN_NX) &&
+         expect(in, "coeffs") && read_n(in, s->coeffs, DDYN_NC) && read_throttle(in, s) && expect(in, "x0") &&
+         read_n(in, s->x0, DDYN_NX) &&
          expect(in, "r_std") && read_n(in, r, 2 * DDYN_MEAS_COUNT) && expect(in, "q") && read_n(in, s->q, DDYN_NX) &&
          expect(in, "stale") && read_n(in, st, DDYN_DBW_FRAME_COUNT) && expect(in, "max_steps") &&
          fscanf(in, "%ld", &s->max_steps) == 1 && s->max_steps > 0 && s->max_steps <= DDYN_SIL_MAX_STEPS &&
@@ -80,14 +109,23 @@ ddyn_status ddyn_sil_node_from_setup(ddyn_sil_node *node, const ddyn_sil_setup *
         return DDYN_ERR_ARGUMENT;
     }
     ddyn_ctrl_default_config(model, &cfg);
-    memcpy(cfg.c_nominal, s->fixed ? s->coeffs : s->nominal, sizeof cfg.c_nominal);
+    memcpy(cfg.c_nominal, s->nominal, sizeof cfg.c_nominal);
+    if (s->fixed) {
+        cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED; /* the network is never run */
+        memcpy(cfg.c_fixed, s->coeffs, sizeof cfg.c_fixed);
+    }
+    if (s->throttle_pid) {
+        cfg.throttle_mode = DDYN_CTRL_THROTTLE_PID;
+        if (!s->pid_default) {
+            cfg.pid.kp = s->pid[0];
+            cfg.pid.ki = s->pid[1];
+            cfg.pid.kd = s->pid[2];
+        }
+    }
     for (k = 0; k < DDYN_NX; ++k) {
         if (s->q[k] > 0.0) {
             cfg.q_diag[k] = s->q[k];
         }
-    }
-    if (s->fixed) {
-        cfg.range_sigmas = 1e-300; /* every history "out of range": the network is never used */
     }
     for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
         for (i = 0; i < DDYN_MEAS_MAX_DIM; ++i) {

@@ -19,6 +19,9 @@ typedef struct {
     double period;
     int fixed;
     double nominal[DDYN_NC], coeffs[DDYN_NC], x0[DDYN_NX], r_std[DDYN_MEAS_COUNT][2], q[DDYN_NX];
+    int throttle_pid;   /* 1: throttle by PID (DDYN_CTRL_THROTTLE_PID), 0: by the MPC */
+    int pid_default;    /* 1: the controller's default gains, 0: pid[] */
+    double pid[3];      /* kp, ki, kd */
     int stale[DDYN_DBW_FRAME_COUNT];
     long max_steps;
     double idle_exit;
@@ -33,8 +36,9 @@ typedef struct {
 int ddyn_sil_read_setup(const char *path, ddyn_sil_setup *s);
 
 /* The controller configuration of a setup (defaults of ddyn_ctrl_default_config, then the
- * setup's coefficients, filter noise and, for fixed coefficients, the bypassed network), the node
- * initialised with it and the raceline set. Prints the reason and returns the error on failure. */
+ * setup's coefficients: fixed ones as DDYN_CTRL_SOURCE_FIXED; filter noise; throttle mode and PID
+ * gains), the node initialised with it and the raceline set. Prints the reason and returns the
+ * error on failure. */
 ddyn_status ddyn_sil_node_from_setup(ddyn_sil_node *node, const ddyn_sil_setup *s, const ddyn_net_tables *tables);
 
 #ifdef __cplusplus

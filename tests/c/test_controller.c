@@ -26,14 +26,25 @@ extern const ddyn_net_tables ddyn_net_weights;
 static const double C_TRUE[DDYN_NC] = {5.579, 1.2, 0.192, -0.083, -0.0013, 0.00043, 5.3852, 1.2691, 0.1737,
                                        -0.019, -0.00376, 0.00091, 0.287, 0.0545, 0.0518, 0.00035, 2.78e-5};
 
+/* the closed-loop PID test's bounds on the speed error over its last 2 s (m/s) */
+#define PID_WORST_ERROR 0.02
+#define PID_MEAN_ERROR 0.005
+
 static ddyn_ctrl ctl;
 static ddyn_ctrl_config cfg;
 static double plant[DDYN_NX];
+static double plant_c[DDYN_NC]; /* the plant's coefficients: C_TRUE unless a test says otherwise */
 static ddyn_model_work plant_work;
 static const ddyn_vehicle_model *model = &ddyn_model_orca_1_43;
 
-/* a circle driven counter-clockwise at SPEED: the car starts on it, tangent, at that speed */
-static void start_on_circle(const ddyn_net_tables *tables)
+static double clamp_d(double v, double lo, double hi)
+{
+    return v < lo ? lo : (v > hi ? hi : v);
+}
+
+/* a circle driven counter-clockwise at SPEED: the car starts on it, tangent, at vx0 (with the
+ * throttle that holds SPEED) */
+static void start_on_circle_at(const ddyn_net_tables *tables, double vx0)
 {
     static double x[TRACK_N], y[TRACK_N], speed[TRACK_N], wl[TRACK_N], wr[TRACK_N];
     const double pi = 3.14159265358979323846;
@@ -49,13 +60,18 @@ static void start_on_circle(const ddyn_net_tables *tables)
     plant[0] = RADIUS;
     plant[1] = 0.0;
     plant[2] = pi / 2.0;
-    plant[3] = SPEED;
+    plant[3] = vx0;
     plant[4] = 0.0;
-    plant[5] = SPEED / RADIUS;
+    plant[5] = vx0 / RADIUS;
     plant[6] = (C_TRUE[14] + C_TRUE[15] * SPEED * SPEED) / (C_TRUE[12] - C_TRUE[13] * SPEED);
     plant[7] = atan((0.029 + 0.033) / RADIUS);
     assert_int_equal(ddyn_ctrl_init(&ctl, model, tables, &cfg, plant), DDYN_OK);
     assert_int_equal(ddyn_ctrl_set_track(&ctl, TRACK_N, x, y, speed, wl, wr), DDYN_OK);
+}
+
+static void start_on_circle(const ddyn_net_tables *tables)
+{
+    start_on_circle_at(tables, SPEED);
 }
 
 static int setup(void **state)
@@ -63,6 +79,7 @@ static int setup(void **state)
     (void)state;
     assert_int_equal(ddyn_ctrl_default_config(model, &cfg), DDYN_OK);
     memcpy(cfg.c_nominal, C_TRUE, sizeof C_TRUE);
+    memcpy(plant_c, C_TRUE, sizeof C_TRUE);
     start_on_circle(&ddyn_net_weights);
     return 0;
 }
@@ -81,7 +98,7 @@ static void readings(ddyn_ctrl_input *in, int period)
             k == DDYN_MEAS_ACCELERATION) {
             continue;
         }
-        assert_int_equal(ddyn_model_measure(model, (ddyn_meas_kind)k, plant, C_TRUE, h, H, &plant_work), DDYN_OK);
+        assert_int_equal(ddyn_model_measure(model, (ddyn_meas_kind)k, plant, plant_c, h, H, &plant_work), DDYN_OK);
         in->reading[k].valid = 1;
         in->reading[k].z[0] = h[0];
         in->reading[k].z[1] = h[1];
@@ -95,7 +112,7 @@ static ddyn_ctrl_status run(const ddyn_ctrl_input *in, ddyn_ctrl_output *out)
     ddyn_ctrl_status st = ddyn_ctrl_step(&ctl, in, out);
     assert_int_equal(st, out->status);
     assert_true(isfinite(out->u[0]) && isfinite(out->u[1]));
-    assert_int_equal(ddyn_model_step(model, DDYN_DISC_RK4, plant, out->u, C_TRUE, next, &plant_work), DDYN_OK);
+    assert_int_equal(ddyn_model_step(model, DDYN_DISC_RK4, plant, out->u, plant_c, next, &plant_work), DDYN_OK);
     memcpy(plant, next, sizeof next);
     return st;
 }
@@ -130,6 +147,27 @@ static void test_bad_arguments_and_configurations(void **state)
     assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
     bad = cfg;
     bad.r_diag[DDYN_MEAS_WHEEL_SPEED][1] = NAN;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    /* coefficient source and throttle mode */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, NULL, &cfg, plant), DDYN_ERR_ARGUMENT); /* network needs tables */
+    bad = cfg;
+    bad.coeff_source = DDYN_CTRL_SOURCE_FIXED; /* c_fixed left at 0: Iz = 0, no drive */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, NULL, &bad, plant), DDYN_ERR_ARGUMENT);
+    memcpy(bad.c_fixed, C_TRUE, sizeof C_TRUE);
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, NULL, &bad, plant), DDYN_OK); /* fixed: no tables needed */
+    bad.c_fixed[DDYN_NC - 1] = NAN;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, NULL, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.coeff_source = DDYN_CTRL_SOURCE_COUNT;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.throttle_mode = DDYN_CTRL_THROTTLE_MODE_COUNT;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.pid.ki = -1.0;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.pid.kd = INFINITY;
     assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
 }
 
@@ -487,6 +525,180 @@ static void test_qp_not_converged_shifts_the_plan_then_safe(void **state)
     drive_healthy(20);
 }
 
+
+/* ---- fixed coefficients and the throttle PID ------------------------------------------------ */
+
+/* the controller on the circle with fixed coefficients c (no network tables at all), throttle by
+ * PID with the given gains, the car (plant) starting on the circle at vx0 with the throttle it had */
+static void start_pid_on_circle(const double c[DDYN_NC], double vx0, double kp, double ki, double kd)
+{
+    cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED;
+    memcpy(cfg.c_fixed, c, sizeof cfg.c_fixed);
+    cfg.throttle_mode = DDYN_CTRL_THROTTLE_PID;
+    cfg.pid.kp = kp;
+    cfg.pid.ki = ki;
+    cfg.pid.kd = kd;
+    start_on_circle_at(NULL, vx0);
+}
+
+static void test_fixed_coefficients_bypass_the_network(void **state)
+{
+    ddyn_ctrl_output out;
+    double c[DDYN_NC];
+    int k;
+    (void)state;
+    memcpy(c, C_TRUE, sizeof c);
+    c[DDYN_NC - 1] *= 1.2; /* Iz + 20 %: not the nominal ones */
+    cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED;
+    memcpy(cfg.c_fixed, c, sizeof c);
+    start_on_circle(&ddyn_net_weights); /* tables given: validated, never run */
+    for (k = 0; k < 3 * DDYN_NET_TAU + 5; ++k) {
+        ddyn_ctrl_status st = run_exact(k, &out);
+        /* every period, from the first: no history filling, no range check, no fallback */
+        assert_true(st & DDYN_CTRL_COEFF_FIXED);
+        assert_false(st & (DDYN_CTRL_HISTORY_FILLING | DDYN_CTRL_OUT_OF_RANGE | DDYN_CTRL_NET_FAULT |
+                           DDYN_CTRL_COEFF_LAST_GOOD | DDYN_CTRL_COEFF_NOMINAL | DDYN_CTRL_SAFE_COMMAND));
+        assert_memory_equal(out.coeffs, c, sizeof c);
+        assert_memory_equal(ctl.mpc.c, c, sizeof c); /* the MPC predicts with them */
+    }
+    assert_int_equal(ctl.last_good_age, -1); /* the network never ran */
+    /* a range check of a millionth of a standard deviation (what the SIL used to bypass the network
+     * with) changes nothing here */
+    ctl.cfg.range_sigmas = 1e-6;
+    assert_false(run_exact(0, &out) & DDYN_CTRL_OUT_OF_RANGE);
+    /* the network mode's default is unchanged: it does not report fixed coefficients */
+    cfg.coeff_source = DDYN_CTRL_SOURCE_NETWORK;
+    start_on_circle(&ddyn_net_weights);
+    assert_false(run_exact(0, &out) & DDYN_CTRL_COEFF_FIXED);
+}
+
+static void test_pid_throttle_follows_the_law_and_the_plan_holds_it(void **state)
+{
+    /* the documented law (ddyn/controller.h), computed here from the controller's own estimate, and
+     * the MPC's plan: throttle rate dthrottle at stage 0, then 0, so the throttle stays put */
+    const double kp = 0.8, ki = 2.0, kd = 0.05, dt = model->sample_time;
+    double integral = 0.0, vx_prev = 0.0, xp[(DDYN_MPC_MAX_HORIZON + 1) * DDYN_NX], up[DDYN_MPC_NV];
+    ddyn_ctrl_output out;
+    int k, j, saturated = 0, unsaturated = 0;
+    (void)state;
+    start_pid_on_circle(C_TRUE, 0.2, kp, ki, kd);
+    for (k = 0; k < 100; ++k) {
+        const double *x;
+        double e, raw, target, rate, applied;
+        ddyn_ctrl_status st = run_exact(k, &out);
+        assert_false(st & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_PLAN_SHIFTED | DDYN_CTRL_MPC_FAILED));
+        assert_int_equal(out.mpc_status, DDYN_OK);
+        x = out.x_est; /* the estimate the period acted on */
+        assert_true(out.pid_ref_speed == SPEED); /* the circle's table speed */
+        e = SPEED - x[3];
+        raw = kp * e + integral - (k > 0 ? kd * (x[3] - vx_prev) / dt : 0.0);
+        target = clamp_d(raw, cfg.mpc.state_lo[0], cfg.mpc.state_hi[0]);
+        rate = clamp_d((target - x[6]) / dt, cfg.mpc.rate_lo[0], cfg.mpc.rate_hi[0]);
+        applied = x[6] + dt * rate;
+        assert_float_equal(out.pid_throttle, target, 1e-12);
+        assert_float_equal(out.u[0], rate, 1e-9);
+        if (fabs(raw - applied) > 1e-9) {
+            saturated += 1;
+            assert_true(st & DDYN_CTRL_PID_SATURATED);
+        } else {
+            unsaturated += 1;
+            assert_false(st & DDYN_CTRL_PID_SATURATED);
+        }
+        if (!((raw > applied + 1e-9 && e > 0.0) || (raw < applied - 1e-9 && e < 0.0))) {
+            integral = clamp_d(integral + ki * e * dt, cfg.mpc.state_lo[0], cfg.mpc.state_hi[0]);
+        }
+        assert_float_equal(out.pid_integral, integral, 1e-9);
+        vx_prev = x[3];
+        /* the plan: the PID's rate first, then a held throttle; the steering is planned */
+        assert_int_equal(ddyn_mpc_plan(&ctl.mpc, xp, up), cfg.mpc.horizon);
+        assert_true(up[0] == out.u[0] && up[1] == out.u[1]);
+        for (j = 1; j < cfg.mpc.horizon; ++j) {
+            assert_true(up[j * DDYN_NU] == 0.0);
+            assert_float_equal(xp[(j + 1) * DDYN_NX + 6], xp[DDYN_NX + 6], 1e-12);
+        }
+        assert_float_equal(xp[DDYN_NX + 6], applied, 1e-12);
+    }
+    print_message("pid law: %d periods cut by a bound, %d not\n", saturated, unsaturated);
+    /* the start (0.8 m/s below the reference) drove the throttle into its rate bound, later not */
+    assert_true(saturated > 0 && unsaturated > 10);
+}
+
+static void test_pid_closed_loop_reaches_and_holds_the_speed(void **state)
+{
+    /* true coefficients, default gains: from 0.3 m/s to the circle's 1 m/s, then held */
+    ddyn_ctrl_output out;
+    double worst = 0.0, sum = 0.0;
+    int k;
+    (void)state;
+    start_pid_on_circle(C_TRUE, 0.3, cfg.pid.kp, cfg.pid.ki, cfg.pid.kd);
+    for (k = 0; k < 250; ++k) { /* 5 s */
+        ddyn_ctrl_status st = run_exact(k, &out);
+        assert_false(st & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MPC_FAILED));
+        assert_true(fabs(hypot(plant[0], plant[1]) - RADIUS) < 0.15); /* the steering MPC keeps the track */
+        if (k >= 150) { /* the last 2 s: the true speed */
+            worst = fmax(worst, fabs(plant[3] - SPEED));
+            sum += plant[3] - SPEED;
+        }
+    }
+    print_message("pid closed loop: worst |vx - v_ref| %.4f m/s, mean %.5f m/s over the last 2 s\n", worst,
+                  sum / 100.0);
+    assert_true(worst < PID_WORST_ERROR);
+    assert_true(fabs(sum / 100.0) < PID_MEAN_ERROR);
+}
+
+static void test_pid_anti_windup(void **state)
+{
+    /* a car too weak for the reference: Cm1 at 30 %, top speed ~0.63 m/s against 1 m/s. The throttle
+     * sits at its upper bound; the integral must not grow while it does (a plain integral would gain
+     * ki * 0.4 m/s per second, far past the throttle's range). Then the reference drops below the
+     * car's speed, and the throttle must leave the bound at once, not after unwinding an integral. */
+    static double x[TRACK_N], y[TRACK_N], v[TRACK_N], wl[TRACK_N], wr[TRACK_N];
+    const double pi = 3.14159265358979323846, kp = 0.8, ki = 2.0, dt = model->sample_time;
+    double weak[DDYN_NC], integral = 0.0, plain = 0.0, vx;
+    ddyn_ctrl_output out;
+    int k, saturated = 0;
+    (void)state;
+    memcpy(weak, C_TRUE, sizeof weak);
+    weak[12] *= 0.3;
+    memcpy(plant_c, weak, sizeof weak);
+    start_pid_on_circle(weak, 0.4, kp, ki, 0.0);
+    for (k = 0; k < 150; ++k) { /* 3 s */
+        run_exact(k, &out);
+        plain += ki * (SPEED - out.x_est[3]) * dt;
+        if (out.pid_throttle == cfg.mpc.state_hi[0] && plant[6] == cfg.mpc.state_hi[0]) {
+            saturated += 1; /* the output was cut at full throttle, the speed error positive: */
+            assert_true(out.status & DDYN_CTRL_PID_SATURATED);
+            assert_true(out.pid_integral == integral); /* the integral held */
+        }
+        integral = out.pid_integral;
+        assert_true(fabs(hypot(plant[0], plant[1]) - RADIUS) < 0.15);
+    }
+    print_message("anti-windup: %d of 150 periods at full throttle, integral %.3f (plain integral %.2f), "
+                  "vx %.3f m/s\n", saturated, out.pid_integral, plain, plant[3]);
+    assert_true(saturated > 100);
+    assert_true(plant[3] > 0.5 && plant[3] < 0.7 && plant[6] > 0.999); /* full throttle, below the reference */
+    /* the integral sits where kp e + I just reaches the bound (1 - 0.8 * 0.37 m/s), not at the
+     * throttle's cap of 1 where a plain integral (past 1.5) would sit */
+    assert_true(plain > 1.5 && out.pid_integral < 0.8);
+    /* the reference drops to 0.3 m/s: the very next period's target is kp e + I, off the bound (with a
+     * wound-up integral at its cap of 1 it would still be above 0.7) */
+    for (k = 0; k < TRACK_N; ++k) {
+        double a = 2.0 * pi * k / TRACK_N;
+        x[k] = RADIUS * cos(a);
+        y[k] = RADIUS * sin(a);
+        v[k] = 0.3;
+        wl[k] = 0.15;
+        wr[k] = 0.15;
+    }
+    vx = ctl.ekf.x[3];
+    assert_int_equal(ddyn_ctrl_set_track(&ctl, TRACK_N, x, y, v, wl, wr), DDYN_OK);
+    run_exact(0, &out);
+    print_message("anti-windup: after the drop the target is %.3f\n", out.pid_throttle);
+    assert_true(out.pid_throttle < 0.5);
+    assert_true(fabs(out.pid_throttle - (kp * (0.3 - vx) + integral)) < 0.02); /* vx: the last estimate */
+    assert_true(out.u[0] < 0.0);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -504,6 +716,10 @@ int main(void)
         cmocka_unit_test_setup(test_healthy_closed_loop_follows_the_track, setup),
         cmocka_unit_test_setup(test_recovery_after_a_sensor_fault, setup),
         cmocka_unit_test_setup(test_qp_not_converged_shifts_the_plan_then_safe, setup),
+        cmocka_unit_test_setup(test_fixed_coefficients_bypass_the_network, setup),
+        cmocka_unit_test_setup(test_pid_throttle_follows_the_law_and_the_plan_holds_it, setup),
+        cmocka_unit_test_setup(test_pid_closed_loop_reaches_and_holds_the_speed, setup),
+        cmocka_unit_test_setup(test_pid_anti_windup, setup),
     };
     return cmocka_run_group_tests_name("controller", tests, NULL, NULL);
 }

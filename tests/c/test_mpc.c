@@ -472,6 +472,62 @@ static void test_closed_loop_stays_on_the_ring(void **state)
     assert_int_equal(ddyn_mpc_plan(&mpc, xp, NULL), 0);
 }
 
+static void test_held_throttle_plans_the_steering_alone(void **state)
+{
+    /* 2 s on the ring with the throttle set outside the MPC (a proportional law towards the throttle
+     * that holds 1.2 m/s): the plan's throttle rates are the given one, then 0 (the throttle held over
+     * the horizon); the QP's throttle block stays at zero; the steering keeps the car on the ring */
+    static ddyn_model_work work;
+    const double dt = ddyn_model_orca_1_43.sample_time, v = 1.2;
+    const double t_hold = (C[14] + C[15] * v * v) / (C[12] - C[13] * v);
+    double x[DDYN_NX], u[DDYN_NU], xn[DDYN_NX], xp[(DDYN_MPC_MAX_HORIZON + 1) * DDYN_NX], up[DDYN_MPC_NV];
+    double speed, d0;
+    ddyn_mpc_info info;
+    int k, j;
+    (void)state;
+    ring_mpc(30);
+    ring_start(x);
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, &speed), DDYN_OK);
+    assert_true(speed == 1.2);
+    for (k = 0; k < 100; ++k) {
+        d0 = (t_hold - x[6]) / (2.0 * dt) + (k == 0 ? 30.0 : 0.0); /* the first beyond the rate bound */
+        assert_int_equal(ddyn_mpc_solve_held_throttle(&mpc, x, d0, u, &info), DDYN_OK);
+        assert_true(info.converged);
+        assert_true(u[0] == (d0 > 10.0 ? 10.0 : (d0 < -10.0 ? -10.0 : d0))); /* clipped to the rate bounds */
+        for (j = 0; j < 20; ++j) {
+            assert_true(fabs(mpc.qp.z[2 * j]) < 1e-6); /* white box: the decoupled throttle block */
+        }
+        assert_int_equal(ddyn_mpc_plan(&mpc, xp, up), 20);
+        assert_true(up[0] == u[0] && up[1] == u[1]);
+        for (j = 1; j < 20; ++j) {
+            assert_true(up[2 * j] == 0.0);
+            assert_true(fabs(xp[(j + 1) * DDYN_NX + 6] - (x[6] + dt * u[0])) < 1e-12);
+        }
+        assert_int_equal(ddyn_model_step(&ddyn_model_orca_1_43, DDYN_DISC_RK4, x, u, C, xn, &work), DDYN_OK);
+        memcpy(x, xn, sizeof x);
+        assert_true(fabs(hypot(x[0], x[1]) - RADIUS) < 0.15);
+        assert_true(fabs(x[7]) <= 0.35 + 1e-9);
+    }
+    assert_true(atan2(x[1], x[0]) > 0.5);
+    assert_true(fabs(x[6] - t_hold) < 1e-3); /* the throttle is the one it was given */
+    /* the MPC's own throttle again, from the same warm start */
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+    /* refusals */
+    assert_int_equal(ddyn_mpc_solve_held_throttle(&mpc, x, NAN, u, &info), DDYN_ERR_NONFINITE_INPUT);
+    assert_true(u[0] == 0.0 && u[1] == 0.0);
+    assert_int_equal(ddyn_mpc_solve_held_throttle(NULL, x, 0.0, u, &info), DDYN_ERR_ARGUMENT);
+    x[0] = NAN;
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, &speed), DDYN_ERR_NONFINITE_INPUT);
+    assert_true(speed == 0.0);
+    {
+        ddyn_mpc_config cfg;
+        assert_int_equal(ddyn_mpc_default_config(&ddyn_model_orca_1_43, &cfg), DDYN_OK);
+        assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &cfg), DDYN_OK);
+        ring_start(x);
+        assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, &speed), DDYN_ERR_NOT_READY);
+    }
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -487,6 +543,7 @@ int main(void)
         cmocka_unit_test(test_iteration_cap_reports_and_commands_within_bounds),
         cmocka_unit_test(test_generated_prediction_step_jacobians_and_integrators),
         cmocka_unit_test(test_closed_loop_stays_on_the_ring),
+        cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

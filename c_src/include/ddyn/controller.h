@@ -9,11 +9,16 @@
  *   2. coefficients: the guard network reads the history (the 17 coefficients of the step that
  *      led to now); while the history fills, or when the history's states lie outside the
  *      network's training range or the network's output is not finite, the last good coefficients (for a
- *      bounded number of periods) or the vehicle's nominal ones are used instead;
+ *      bounded number of periods) or the vehicle's nominal ones are used instead. With
+ *      cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED the network is never run: cfg.c_fixed every period;
  *   3. EKF predict over the period with the previous command and those coefficients, then an
  *      update for every reading marked valid this period (sensors arrive at their own rates);
  *      NaN/inf readings are rejected and counted, the filter goes on predicting;
- *   4. MPC: one real-time iteration from the estimate with the coefficients;
+ *   4. MPC: one real-time iteration from the estimate with the coefficients. With
+ *      cfg.throttle_mode = DDYN_CTRL_THROTTLE_PID a PID on the speed error (the raceline table's
+ *      speed at the car's projection minus the estimated vx) sets the throttle, with anti-windup
+ *      and the throttle's range and rate bounds, and the MPC plans the steering alone with the
+ *      throttle held at the PID's value over its horizon (ddyn_mpc_solve_held_throttle);
  *   5. command: the MPC's input, or the shifted previous plan while the QP does not converge
  *      (a bounded number of periods), or the SAFE COMMAND.
  *
@@ -69,9 +74,44 @@ extern "C" {
 #define DDYN_CTRL_PLAN_SHIFTED (1ul << 13)     /* command taken from the last converged plan, shifted */
 #define DDYN_CTRL_SAFE_COMMAND (1ul << 14)     /* the command is the safe command */
 #define DDYN_CTRL_RECOVERED (1ul << 15)        /* safe mode left this period */
-#define DDYN_CTRL_STATUS_BITS 16
+#define DDYN_CTRL_COEFF_FIXED (1ul << 16)      /* coeff_source FIXED: the MPC and EKF use cfg.c_fixed; the
+                                                  network is not run (every period of such a controller) */
+#define DDYN_CTRL_PID_SATURATED (1ul << 17)    /* throttle PID: the throttle's range or rate bound cut the
+                                                  PID's output; the integral is held (anti-windup) */
+#define DDYN_CTRL_STATUS_BITS 18
 
 typedef uint32_t ddyn_ctrl_status;
+
+/* Where the coefficients of each period come from. */
+typedef enum {
+    DDYN_CTRL_SOURCE_NETWORK = 0, /* default: the guard network, with the fallbacks last good / nominal */
+    DDYN_CTRL_SOURCE_FIXED = 1,   /* cfg.c_fixed every period, the network never run (its tables are
+                                     optional at init); status DDYN_CTRL_COEFF_FIXED */
+    DDYN_CTRL_SOURCE_COUNT = 2
+} ddyn_ctrl_coeff_source;
+
+/* Who commands the throttle. */
+typedef enum {
+    DDYN_CTRL_THROTTLE_MPC = 0, /* default: the MPC plans throttle and steering rates */
+    DDYN_CTRL_THROTTLE_PID = 1, /* a PID on the speed error sets the throttle; the MPC plans the steering
+                                   with that throttle held over its horizon (the Deep Dynamics paper's
+                                   set-up for the DPM, whose model has no drivetrain law) */
+    DDYN_CTRL_THROTTLE_MODE_COUNT = 2
+} ddyn_ctrl_throttle_mode;
+
+/* The throttle PID (throttle_mode PID). Each period, e = v_ref - vx with v_ref the raceline table's
+ * speed at the projection of the estimate and vx the estimate:
+ *   T* = clamp(kp e + I - kd dvx/dt, throttle bounds)         (derivative on the estimate, not e)
+ *   dthrottle = clamp((T* - throttle) / dt, rate bounds)       (the command: the input is a rate)
+ *   I += ki e dt  unless the applied throttle (throttle + dt dthrottle) falls short of the
+ *                 unclamped output in the direction e pushes (conditional integration), I kept
+ *                 within the throttle bounds.
+ * I starts at 0, and restarts at 0 when safe mode ends. */
+typedef struct {
+    double kp;  /* throttle per m/s of speed error (>= 0) */
+    double ki;  /* throttle per m/s of speed error and second (>= 0) */
+    double kd;  /* throttle per m/s^2 of the estimated acceleration (>= 0) */
+} ddyn_ctrl_pid_config;
 
 typedef struct {
     ddyn_discretisation ekf_disc; /* the filter's prediction model (default Euler, as the network trains) */
@@ -85,8 +125,13 @@ typedef struct {
     /* innovation gate: a reading whose normalised innovation squared exceeds it is not fused
      * (INFINITY: no gate) */
     double nis_gate;
-    /* the vehicle's nominal coefficients (COEFF_NAMES order): the fallback of last resort */
+    /* the vehicle's nominal coefficients (COEFF_NAMES order): the fallback of last resort, and the
+     * safe command's standstill throttle */
     double c_nominal[DDYN_NC];
+    ddyn_ctrl_coeff_source coeff_source; /* default DDYN_CTRL_SOURCE_NETWORK */
+    double c_fixed[DDYN_NC];             /* the coefficients of DDYN_CTRL_SOURCE_FIXED (ignored otherwise) */
+    ddyn_ctrl_throttle_mode throttle_mode; /* default DDYN_CTRL_THROTTLE_MPC */
+    ddyn_ctrl_pid_config pid;              /* gains of DDYN_CTRL_THROTTLE_PID (defaults: docs/controller.md) */
     /* a history state feature (vx, vy, omega, throttle, steering) is out of range when
      * |f - mean| > range_sigmas * std of the network's input normalisation (the training data's
      * statistics, exported with the weights) */
@@ -118,6 +163,9 @@ typedef struct {
     double coeffs[DDYN_NC];     /* the coefficients used this period */
     ddyn_status mpc_status;     /* what ddyn_mpc_solve returned */
     ddyn_mpc_info mpc_info;
+    /* throttle PID (0 in MPC mode): reference speed v_ref, the PID's throttle target T* (clamped), its
+     * integral term I after this period */
+    double pid_ref_speed, pid_throttle, pid_integral;
 } ddyn_ctrl_output;
 
 /* The caller-owned controller context (large: it holds the MPC; ~155 kB with the defaults). */
@@ -144,6 +192,9 @@ typedef struct {
     int blind_steps;                              /* consecutive periods without a fused reading */
     int safe_mode;
     int healthy_steps;                            /* consecutive periods without a safe-mode cause */
+    double pid_integral;                          /* throttle PID: integral term I (throttle units) */
+    double pid_vx_prev;                           /* estimated vx of the PID's previous period */
+    int pid_started;                              /* 0: no previous period (derivative 0) */
     int initialised;
 } ddyn_ctrl;
 
@@ -153,7 +204,8 @@ typedef struct {
 ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_config *cfg);
 
 /* Check cfg, validate the network tables (ddyn_guard_net_init) and set up the filter at x0.
- * Returns DDYN_ERR_ARGUMENT for a bad configuration or tables the library was not built for. */
+ * Returns DDYN_ERR_ARGUMENT for a bad configuration or tables the library was not built for.
+ * With cfg->coeff_source = DDYN_CTRL_SOURCE_FIXED, tables may be NULL (given, they are still checked). */
 ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, const ddyn_net_tables *tables,
                            const ddyn_ctrl_config *cfg, const double x0[DDYN_NX]);
 

@@ -157,6 +157,23 @@ ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const doub
  * u is never NaN. info may be NULL. */
 ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info);
 
+/* As ddyn_mpc_solve, with the throttle held (a speed controller outside the MPC sets it): the plan's
+ * throttle-rate inputs are fixed, dthrottle0 at stage 0 (clipped to the rate bounds) and 0 after,
+ * so the predicted throttle is x0's + dt * dthrottle0 at every later stage, and the QP optimises
+ * the steering rates alone. The throttle columns are taken out of the QP (no cost, no coupling to
+ * the position costs or the track rows; their own rows relaxed) so that its steering part is
+ * exactly the steering-only problem; the plan's throttle inputs are the fixed ones, and u[0] is
+ * dthrottle0 (clipped). Returns and u as ddyn_mpc_solve (u = {0, 0} on the errors that return it).
+ * ddyn_mpc_solve and this function may alternate; the warm start's steering carries over. */
+ddyn_status ddyn_mpc_solve_held_throttle(ddyn_mpc *mpc, const double x0[DDYN_NX], double dthrottle0,
+                                         double u[DDYN_NU], ddyn_mpc_info *info);
+
+/* The raceline table's reference speed (speed_scale already in the table) at the projection of
+ * x0's position: searched around the last solve's projection, as the next solve will (the whole
+ * raceline before the first solve). DDYN_ERR_NOT_READY without a track, DDYN_ERR_NONFINITE_INPUT
+ * for a non-finite position; *speed is then 0. Does not change the context. */
+ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_NX], double *speed);
+
 /* The plan of the last successful (or not converged) solve: u_plan H*2 and x_plan (H+1)*8, the
  * states predicted by the nonlinear model from that solve's x0 (simulated here, on demand; either
  * may be NULL). Returns the horizon H, 0 if there is no plan yet or the simulation failed. */
