@@ -176,7 +176,7 @@ class SilSpec:
     seed: int = 1
     deadline: float = 0.08
     throttle: str = "mpc"                      # "mpc" (the MPC plans it) or "pid" (PID on the speed error)
-    pid_gains: tuple | None = None             # (kp, ki, kd); None: the controller's defaults
+    pid_gains: tuple | None = None             # (kp, ki, kd, preview s); None: the controller's defaults
 
 
 def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
@@ -216,9 +216,9 @@ def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
     v = spec.vehicle
     if spec.throttle not in ("mpc", "pid"):
         raise DdynError(f"throttle {spec.throttle!r}: expected mpc or pid")
-    if spec.pid_gains is not None and (len(spec.pid_gains) != 3 or
+    if spec.pid_gains is not None and (len(spec.pid_gains) != 4 or
                                        not all(math.isfinite(g) and g >= 0.0 for g in spec.pid_gains)):
-        raise DdynError(f"PID gains {spec.pid_gains!r}: expected three finite numbers >= 0 (kp, ki, kd)")
+        raise DdynError(f"PID gains {spec.pid_gains!r}: expected four finite numbers >= 0 (kp, ki, kd, preview)")
     noise = sensor_noise(v, spec.noise_scale)
     fixed = spec.coeffs_controller is not None
     coeffs = spec.coeffs_controller if fixed else spec.nominal
@@ -705,18 +705,19 @@ def register(subparsers) -> None:
     p.add_argument("--throttle", choices=("mpc", "pid"), default="mpc",
                    help="who sets the throttle: the MPC (default) or a PID on the speed error, the MPC then "
                         "planning only the steering (docs/controller.md)")
-    p.add_argument("--pid-gains", type=parse_gains, default=None, metavar="KP,KI,KD",
-                   help="PID gains for --throttle pid (default: the controller's, docs/sil.md)")
+    p.add_argument("--pid-gains", type=parse_gains, default=None, metavar="KP,KI,KD[,PREVIEW]",
+                   help="PID gains for --throttle pid, and the preview time (s) of its reference speed, 0 if "
+                        "not given (default: the controller's, docs/sil.md)")
     add_common(p)
     p.set_defaults(func=_run)
 
 
-def parse_gains(text: str) -> tuple[float, float, float]:
-    """`KP,KI,KD` (three numbers >= 0) for --pid-gains."""
+def parse_gains(text: str) -> tuple[float, float, float, float]:
+    """`KP,KI,KD[,PREVIEW]` (numbers >= 0; preview 0 when left out) for --pid-gains."""
     try:
         g = tuple(float(v) for v in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected KP,KI,KD") from None
-    if len(g) != 3 or not all(math.isfinite(v) and v >= 0.0 for v in g):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected three finite numbers >= 0 (KP,KI,KD)")
-    return g
+        raise argparse.ArgumentTypeError(f"{text!r}: expected KP,KI,KD[,PREVIEW]") from None
+    if len(g) not in (3, 4) or not all(math.isfinite(v) and v >= 0.0 for v in g):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected three or four finite numbers >= 0 (KP,KI,KD[,PREVIEW])")
+    return g if len(g) == 4 else g + (0.0,)

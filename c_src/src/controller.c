@@ -24,6 +24,7 @@
 #define PID_DEFAULT_KP 2.0
 #define PID_DEFAULT_KI 2.0
 #define PID_DEFAULT_KD 0.0
+#define PID_DEFAULT_PREVIEW 0.0
 
 static double clamp(double v, double lo, double hi)
 {
@@ -75,6 +76,7 @@ ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_
     cfg->pid.kp = PID_DEFAULT_KP;
     cfg->pid.ki = PID_DEFAULT_KI;
     cfg->pid.kd = PID_DEFAULT_KD;
+    cfg->pid.preview = PID_DEFAULT_PREVIEW;
     return DDYN_OK;
 }
 
@@ -92,7 +94,7 @@ static int config_ok(const ddyn_ctrl_config *cfg)
         (unsigned)cfg->throttle_mode >= (unsigned)DDYN_CTRL_THROTTLE_MODE_COUNT ||
         (cfg->coeff_source == DDYN_CTRL_SOURCE_FIXED && !coefficients_usable(cfg->c_fixed)) ||
         !(g->kp >= 0.0) || !(g->ki >= 0.0) || !(g->kd >= 0.0) || !isfinite(g->kp) || !isfinite(g->ki) ||
-        !isfinite(g->kd)) {
+        !isfinite(g->kd) || !(g->preview >= 0.0) || !isfinite(g->preview)) {
         return 0;
     }
     if ((unsigned)cfg->ekf_disc >= (unsigned)DDYN_DISC_COUNT || !ddyn_all_finite(cfg->c_nominal, NC) ||
@@ -399,7 +401,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_ca
     const int pid = ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID;
     ddyn_status s = ddyn_mpc_set_coefficients(&ctl->mpc, ctl->coeffs);
     if (s == DDYN_OK && pid) {
-        s = ddyn_mpc_reference_speed(&ctl->mpc, ctl->ekf.x, &v_ref);
+        s = ddyn_mpc_reference_speed(&ctl->mpc, ctl->ekf.x, ctl->cfg.pid.preview * fabs(ctl->ekf.x[VX]), &v_ref);
         if (s == DDYN_OK) {
             st |= throttle_pid(ctl, v_ref, out, &dthrottle);
             s = ddyn_mpc_solve_held_throttle(&ctl->mpc, ctl->ekf.x, dthrottle, u, &out->mpc_info);

@@ -567,7 +567,7 @@ ddyn_status ddyn_mpc_solve_held_throttle(ddyn_mpc *mpc, const double x0[DDYN_NX]
     return solve(mpc, x0, 1, dthrottle0, u, info);
 }
 
-ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_NX], double *speed)
+ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_NX], double ahead, double *speed)
 {
     double u0;
     int i0;
@@ -580,10 +580,13 @@ ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_N
     if (mpc->track.n < 4) {
         return DDYN_ERR_NOT_READY;
     }
-    if (!isfinite(x0[0]) || !isfinite(x0[1])) {
+    if (!isfinite(x0[0]) || !isfinite(x0[1]) || !isfinite(ahead)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
     i0 = project(&mpc->track, x0[0], x0[1], mpc->last_index, LOCAL_WINDOW, &u0);
+    if (ahead > 0.0) {
+        advance(&mpc->track, &i0, &u0, ahead);
+    }
     *speed = track_at(&mpc->track, i0, u0).speed;
     return DDYN_OK;
 }

@@ -27,7 +27,7 @@ static int read_n(FILE *in, double *v, int n)
     return 1;
 }
 
-/* "throttle mpc|pid  pid_gains default|KP KI KD" */
+/* "throttle mpc|pid  pid_gains default|KP KI KD PREVIEW" */
 static int read_throttle(FILE *in, ddyn_sil_setup *s)
 {
     char word[64], *end;
@@ -51,7 +51,7 @@ static int read_throttle(FILE *in, ddyn_sil_setup *s)
     }
     s->pid_default = 0;
     s->pid[0] = strtod(word, &end);
-    return end != word && *end == '\0' && isfinite(s->pid[0]) && read_n(in, s->pid + 1, 2);
+    return end != word && *end == '\0' && isfinite(s->pid[0]) && read_n(in, s->pid + 1, 3);
 }
 
 int ddyn_sil_read_setup(const char *path, ddyn_sil_setup *s)
@@ -120,6 +120,7 @@ ddyn_status ddyn_sil_node_from_setup(ddyn_sil_node *node, const ddyn_sil_setup *
             cfg.pid.kp = s->pid[0];
             cfg.pid.ki = s->pid[1];
             cfg.pid.kd = s->pid[2];
+            cfg.pid.preview = s->pid[3];
         }
     }
     for (k = 0; k < DDYN_NX; ++k) {

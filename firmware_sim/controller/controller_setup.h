@@ -21,7 +21,7 @@ typedef struct {
     double nominal[DDYN_NC], coeffs[DDYN_NC], x0[DDYN_NX], r_std[DDYN_MEAS_COUNT][2], q[DDYN_NX];
     int throttle_pid;   /* 1: throttle by PID (DDYN_CTRL_THROTTLE_PID), 0: by the MPC */
     int pid_default;    /* 1: the controller's default gains, 0: pid[] */
-    double pid[3];      /* kp, ki, kd */
+    double pid[4];      /* kp, ki, kd, preview (s) */
     int stale[DDYN_DBW_FRAME_COUNT];
     long max_steps;
     double idle_exit;

@@ -55,6 +55,32 @@ static void ring_start(double x0[DDYN_NX])
     memcpy(x0, s, sizeof s);
 }
 
+static void test_reference_speed_reads_ahead_along_the_line(void **state)
+{
+    /* a ring whose table speed grows with the angle: the speed `ahead` metres past the car's
+     * projection is the table's there (the throttle PID's preview) */
+    static double x[RING], y[RING], v[RING], wl[RING], wr[RING];
+    const double seg = 2.0 * RADIUS * sin(PI / RING); /* chord length between table points */
+    double x0[DDYN_NX], speed;
+    int i;
+    (void)state;
+    ring_mpc(30);
+    for (i = 0; i < RING; ++i) {
+        double a = 2.0 * PI * i / RING;
+        x[i] = RADIUS * cos(a);
+        y[i] = RADIUS * sin(a);
+        v[i] = 1.0 + 0.01 * i;
+        wl[i] = wr[i] = 0.15;
+    }
+    assert_int_equal(ddyn_mpc_set_track(&mpc, RING, x, y, v, wl, wr), DDYN_OK);
+    ring_start(x0); /* at table point 0 */
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, 0.0, &speed), DDYN_OK);
+    assert_true(fabs(speed - 1.0) < 1e-9);
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, 10.5 * seg, &speed), DDYN_OK);
+    assert_true(fabs(speed - 1.105) < 1e-9); /* half-way between points 10 and 11 */
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, NAN, &speed), DDYN_ERR_NONFINITE_INPUT);
+}
+
 static void test_default_config_takes_the_vehicle_files_limits(void **state)
 {
     ddyn_mpc_config cfg;
@@ -487,7 +513,7 @@ static void test_held_throttle_plans_the_steering_alone(void **state)
     (void)state;
     ring_mpc(30);
     ring_start(x);
-    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, &speed), DDYN_OK);
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, 0.0, &speed), DDYN_OK);
     assert_true(speed == 1.2);
     for (k = 0; k < 100; ++k) {
         d0 = (t_hold - x[6]) / (2.0 * dt) + (k == 0 ? 30.0 : 0.0); /* the first beyond the rate bound */
@@ -517,14 +543,14 @@ static void test_held_throttle_plans_the_steering_alone(void **state)
     assert_true(u[0] == 0.0 && u[1] == 0.0);
     assert_int_equal(ddyn_mpc_solve_held_throttle(NULL, x, 0.0, u, &info), DDYN_ERR_ARGUMENT);
     x[0] = NAN;
-    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, &speed), DDYN_ERR_NONFINITE_INPUT);
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, 0.0, &speed), DDYN_ERR_NONFINITE_INPUT);
     assert_true(speed == 0.0);
     {
         ddyn_mpc_config cfg;
         assert_int_equal(ddyn_mpc_default_config(&ddyn_model_orca_1_43, &cfg), DDYN_OK);
         assert_int_equal(ddyn_mpc_init(&mpc, &ddyn_model_orca_1_43, &cfg), DDYN_OK);
         ring_start(x);
-        assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, &speed), DDYN_ERR_NOT_READY);
+        assert_int_equal(ddyn_mpc_reference_speed(&mpc, x, 0.0, &speed), DDYN_ERR_NOT_READY);
     }
 }
 
@@ -544,6 +570,7 @@ int main(void)
         cmocka_unit_test(test_generated_prediction_step_jacobians_and_integrators),
         cmocka_unit_test(test_closed_loop_stays_on_the_ring),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
+        cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -101,12 +101,12 @@ def test_controller_setup_carries_the_throttle_mode_and_gains(orca, mobil):
     i = [ln.split()[0] for ln in lines].index("throttle")
     assert lines[i - 1].startswith("coeffs ") and lines[i] == "throttle pid"
     assert lines[i + 1] == "pid_gains default" and lines[i + 2].startswith("x0 ")
-    text = sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(0.5, 2.0, 0.0)), table, "/out")
-    assert "\npid_gains 0.5 2.0 0.0\n" in text
+    text = sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(0.5, 2.0, 0.0, 0.3)), table, "/out")
+    assert "\npid_gains 0.5 2.0 0.0 0.3\n" in text
     with pytest.raises(DdynError, match="mpc or pid"):
         sil.controller_setup(spec_for(orca, mobil, throttle="bangbang"), table, "/out")
-    with pytest.raises(DdynError, match="three finite numbers"):
-        sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, -1.0, 0.0)), table, "/out")
+    with pytest.raises(DdynError, match="four finite numbers"):
+        sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, -1.0, 0.0, 0.0)), table, "/out")
 
 
 def test_sil_command_line_throttle_flags():
@@ -115,7 +115,7 @@ def test_sil_command_line_throttle_flags():
     a = parser.parse_args(["sil"])
     assert a.throttle == "mpc" and a.pid_gains is None
     a = parser.parse_args(["sil", "--throttle", "pid", "--pid-gains", "0.5,1,0"])
-    assert a.throttle == "pid" and a.pid_gains == (0.5, 1.0, 0.0)
+    assert a.throttle == "pid" and a.pid_gains == (0.5, 1.0, 0.0, 0.0)
     for bad in (["sil", "--throttle", "pi"], ["sil", "--pid-gains", "1,2"], ["sil", "--pid-gains", "1,-2,0"]):
         with pytest.raises(SystemExit):
             parser.parse_args(bad)
@@ -140,11 +140,11 @@ def test_the_controller_refuses_a_malformed_setup(sil_bins, tmp_path):
 def test_the_controller_reads_the_throttle_setup(orca, mobil, sil_bins, tmp_path):
     """The controller process parses what controller_setup writes: an unknown throttle mode, gains that
     are not numbers and gains the controller refuses (negative) all stop it with exit 2 before any CAN."""
-    good = sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, 1.0, 0.0)),
+    good = sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, 1.0, 0.0, 0.2)),
                                 sil.raceline_table(mobil, orca), str(tmp_path))
     for old, new, said in (("throttle pid", "throttle fast", "throttle is 'mpc' or 'pid'"),
-                           ("pid_gains 1.0 1.0 0.0", "pid_gains one 1.0 0.0", "malformed"),
-                           ("pid_gains 1.0 1.0 0.0", "pid_gains 1.0 -1.0 0.0", "refused the setup")):
+                           ("pid_gains 1.0 1.0 0.0 0.2", "pid_gains one 1.0 0.0 0.2", "malformed"),
+                           ("pid_gains 1.0 1.0 0.0 0.2", "pid_gains 1.0 1.0 0.0 -0.2", "refused the setup")):
         assert old in good
         bad = tmp_path / "setup.txt"
         bad.write_text(good.replace(old, new))

@@ -100,7 +100,8 @@ typedef enum {
 } ddyn_ctrl_throttle_mode;
 
 /* The throttle PID (throttle_mode PID). Each period, e = v_ref - vx with v_ref the raceline table's
- * speed at the projection of the estimate and vx the estimate:
+ * speed `preview * vx` metres ahead of the projection of the estimate (a PID that reads the speed at
+ * the car brakes only once it is in the corner) and vx the estimate:
  *   T* = clamp(kp e + I - kd dvx/dt, throttle bounds)         (derivative on the estimate, not e)
  *   dthrottle = clamp((T* - throttle) / dt, rate bounds)       (the command: the input is a rate)
  *   I += ki e dt  unless the applied throttle (throttle + dt dthrottle) falls short of the
@@ -111,6 +112,7 @@ typedef struct {
     double kp;  /* throttle per m/s of speed error (>= 0) */
     double ki;  /* throttle per m/s of speed error and second (>= 0) */
     double kd;  /* throttle per m/s^2 of the estimated acceleration (>= 0) */
+    double preview; /* s (>= 0): the reference speed is read this many seconds ahead at the car's speed */
 } ddyn_ctrl_pid_config;
 
 typedef struct {

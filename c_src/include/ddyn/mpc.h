@@ -172,7 +172,7 @@ ddyn_status ddyn_mpc_solve_held_throttle(ddyn_mpc *mpc, const double x0[DDYN_NX]
  * x0's position: searched around the last solve's projection, as the next solve will (the whole
  * raceline before the first solve). DDYN_ERR_NOT_READY without a track, DDYN_ERR_NONFINITE_INPUT
  * for a non-finite position; *speed is then 0. Does not change the context. */
-ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_NX], double *speed);
+ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_NX], double ahead, double *speed);
 
 /* The plan of the last successful (or not converged) solve: u_plan H*2 and x_plan (H+1)*8, the
  * states predicted by the nonlinear model from that solve's x0 (simulated here, on demand; either
