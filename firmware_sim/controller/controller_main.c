@@ -231,7 +231,9 @@ int main(int argc, char **argv)
     long steps = 0, misses = 0, timer_steps = 0, send_failed = 0, status_count[DDYN_CTRL_STATUS_BITS] = {0};
     int fd, i, k;
     double last_step_wall, last_any_rx, last_gnss_wall = -1.0, safe_latency = -1.0, stale_latency = -1.0;
-    double prev_t0 = -1.0;
+#ifdef DDYN_SIL_WITH_LCM
+    double prev_t0 = -1.0; /* wall time the previous period started (the timing message's period_s) */
+#endif
     int was_safe = 0, timer_mode = 0;
     FILE *log;
 
@@ -335,8 +337,8 @@ int main(int argc, char **argv)
                 tm_publish(steps, s.period, prev_t0 >= 0.0 ? t0 - prev_t0 : s.period, t1 - t0, &per);
                 tm_us[steps] = (now_s() - t2) * 1e6;
             }
-#endif
             prev_t0 = t0;
+#endif
             misses += (t1 - t0) > s.period ? 1 : 0;
             for (k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) {
                 status_count[k] += (long)((per.out.status >> k) & 1u);
