@@ -31,6 +31,7 @@ import math
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -285,7 +286,7 @@ def host_has_vcan() -> bool:
 # so that two runs (or the car's own LCM traffic) never share a log.
 LCM_GROUP = "239.255.76.67"
 LCM_GUEST_PORT = 7667
-GUEST_LCM_LOG = "controller.lcm"
+LCM_LOG_NAME = "controller.lcm"
 
 
 def lcm_url(port: int) -> str:
@@ -333,7 +334,7 @@ def start_host_logger(work: Path) -> tuple[subprocess.Popen, str]:
                         f"controller's telemetry could not be logged; add one, e.g. `ip route add {LCM_GROUP}/32 dev lo`")
     port = _free_udp_port()
     url = lcm_url(port)
-    log = work / GUEST_LCM_LOG
+    log = work / LCM_LOG_NAME
     log.unlink(missing_ok=True)
     proc = subprocess.Popen([str(lcm_logger_binary()), "--lcm-url", url, "-f", str(log)],
                             stdout=open(work / "lcm-logger.stdout", "w"), stderr=subprocess.STDOUT)
@@ -355,7 +356,7 @@ def stop_host_logger(proc: subprocess.Popen, url: str) -> int:
     while time.monotonic() < deadline and any(int(f[4].split(":")[1], 16) for f in _udp_sockets(port)):
         time.sleep(0.05)
     time.sleep(0.3)  # its reader thread hands the last datagrams to the writer
-    proc.send_signal(2)
+    proc.send_signal(signal.SIGINT)
     try:
         return proc.wait(timeout=10)
     except subprocess.TimeoutExpired:
@@ -522,7 +523,7 @@ def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, ti
         if (work / name).is_file():
             c.file(f"sil/{name}", (work / name).read_bytes(), 0o644)
     url = lcm_url(LCM_GUEST_PORT)
-    fill = dict(libdir=bg.GUEST_LIB_DIR, group=LCM_GROUP, url=url, log=GUEST_LCM_LOG,
+    fill = dict(libdir=bg.GUEST_LIB_DIR, group=LCM_GROUP, url=url, log=LCM_LOG_NAME,
                 port_hex=f"{LCM_GUEST_PORT:04X}", group_hex="".join(f"{int(b):02X}" for b in reversed(LCM_GROUP.split("."))))
     c.file("init", GUEST_INIT.format(modules=" ".join(meta["modules"]),
                                      lcm_start=GUEST_LCM_START.format(**fill) if lcm else "",
@@ -782,7 +783,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     # the controller publishes its telemetry live over LCM (and lcm-logger records it) wherever it
     # runs as its own process in a build with LCM; otherwise its CSV log is converted (fallback)
     live = where != "inprocess" and controller_has_lcm(bins)
-    (out / GUEST_LCM_LOG).unlink(missing_ok=True)
+    (out / LCM_LOG_NAME).unlink(missing_ok=True)
     if where == "inprocess":
         run = run_inprocess(bins, out)
     elif use_host:
@@ -794,7 +795,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     metrics = summarise(out, spec, table, run)
     cm_path = out / "controller_metrics.json"
     if live:
-        lcm_path = out / GUEST_LCM_LOG
+        lcm_path = out / LCM_LOG_NAME
         if not lcm_path.is_file() or run["lcm"].get("logger_exit") != 0:
             raise DdynError(f"the live LCM log was not recorded (lcm-logger exit {run['lcm'].get('logger_exit')}, "
                             f"{lcm_path} {'exists' if lcm_path.is_file() else 'missing'}); see "
