@@ -6,7 +6,8 @@ the drive-by-wire unit with its watchdog, and the track (progress, lap times, fo
 violations). The controller (`ddyn_sil_controller`) is the c_src runtime built as its own
 executable: EKF -> history -> guard network -> MPC -> DBW command. The two talk ONLY through CAN
 frames (can/ddyn_dbw.dbc) on vcan0: directly on a host that has vcan, otherwise inside a small qemu
-guest (the kernel, modules and busybox of scripts/vcan_guest; both binaries are static).
+guest (the kernel, modules and busybox of scripts/vcan_guest; the plant is static, the controller
+and lcm-logger come with their shared libraries).
 
 The plant runs in lock-step with the controller by default (it waits, in wall time, for the
 command that answers each position frame, so laps run as fast as the controller allows and the
@@ -14,8 +15,10 @@ result does not depend on the machine's load); `--realtime F` paces it at F time
 
 Outputs (in --out): sil_metrics.json (lap times, average speed, violations, tracking error,
 controller loop time median/p99/max, deadline misses, DBW and bus counts, fault timings),
-trajectory.csv, controller_log.csv, controller.lcm (the controller's estimate and timing as an LCM
-log, converted from its log on the host), lap.png, and the exact configs both processes ran with.
+trajectory.csv, controller_log.csv, controller.lcm (the controller's telemetry as it published it
+live over LCM during the run, recorded by lcm-logger; converted from its CSV log only as a
+labelled fallback: --where inprocess, or a build without LCM), lap.png, and the exact configs both
+processes ran with.
 """
 from __future__ import annotations
 
@@ -28,6 +31,7 @@ import math
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -286,26 +290,121 @@ def host_has_vcan() -> bool:
     return subprocess.run(["ip", "link", "set", "up", "vcan0"], capture_output=True).returncode == 0
 
 
-def run_host(bins: Path, work: Path, restart: bool) -> dict:
-    """Both processes on the host's vcan0."""
-    t0 = time.monotonic()
-    ctl = subprocess.Popen([str(bins / "ddyn_sil_controller"), str(work / "controller.txt"), "--can", "vcan0"],
-                           stdout=open(work / "controller.stdout", "w"), stderr=subprocess.STDOUT)
-    with open(work / "plant.stdout", "w") as out:
-        rc = subprocess.call([str(bins / "ddyn_sil_plant"), str(work / "plant.json"), "--can", "vcan0"],
-                             stdout=out, stderr=subprocess.STDOUT)
-        if rc == 3 and restart:
-            time.sleep(0.5)
-            rc = subprocess.call([str(bins / "ddyn_sil_plant"), str(work / "plant_resume.json"), "--can", "vcan0"],
-                                 stdout=out, stderr=subprocess.STDOUT)
-    if ctl.poll() is None:
-        ctl.terminate()
+# LCM telemetry of the SIL controller (docs/lcm.md): LCM's default multicast group, TTL 0 (never
+# leaves the machine). In the guest the port is LCM's default; on a host it is a free one per run,
+# so that two runs (or the car's own LCM traffic) never share a log.
+LCM_GROUP = "239.255.76.67"
+LCM_GUEST_PORT = 7667
+LCM_LOG_NAME = "controller.lcm"
+
+
+def lcm_url(port: int) -> str:
+    return f"udpm://{LCM_GROUP}:{port}?ttl=0"
+
+
+def controller_has_lcm(bins: Path) -> bool:
+    """Whether the build's controller publishes LCM telemetry (configured with DDYN_WITH_LCM)."""
+    cache = bins.parent / "CMakeCache.txt"
+    return cache.is_file() and re.search(r"^DDYN_WITH_LCM:BOOL=(ON|1|TRUE|YES)$", cache.read_text(), re.M) is not None
+
+
+def lcm_logger_binary() -> Path:
+    """The lcm-logger of the pinned `lcm` package: the C binary itself (the venv's bin/lcm-logger is a
+    Python wrapper that SIGKILLs the logger on SIGINT, which can lose the log's tail)."""
+    from .lcm_types import lcm_module
+    exe = Path(lcm_module().LCM_BIN_DIR).resolve() / "lcm-logger"
+    if not exe.is_file():
+        raise DdynError(f"lcm-logger not found at {exe}; reinstall the pinned `lcm` package (scripts/setup.sh)")
+    return exe
+
+
+def _udp_sockets(port: int) -> list[list[str]]:
+    """The /proc/net/udp rows of sockets bound to a local port (fields split)."""
+    rows = []
+    for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+        f = line.split()
+        if len(f) > 4 and f[1].endswith(f":{port:04X}"):
+            rows.append(f)
+    return rows
+
+
+def _free_udp_port() -> int:
+    import socket
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as so:
+        so.bind(("", 0))
+        return so.getsockname()[1]
+
+
+def start_host_logger(work: Path) -> tuple[subprocess.Popen, str]:
+    """lcm-logger on a free port of the multicast group, listening before it returns."""
+    r = subprocess.run(["ip", "route", "get", LCM_GROUP], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise DdynError(f"no route for LCM's multicast group {LCM_GROUP} on this host ({r.stderr.strip()}): the "
+                        f"controller's telemetry could not be logged; add one, e.g. `ip route add {LCM_GROUP}/32 dev lo`")
+    port = _free_udp_port()
+    url = lcm_url(port)
+    log = work / LCM_LOG_NAME
+    log.unlink(missing_ok=True)
+    proc = subprocess.Popen([str(lcm_logger_binary()), "--lcm-url", url, "-f", str(log)],
+                            stdout=open(work / "lcm-logger.stdout", "w"), stderr=subprocess.STDOUT)
+    group_hex = "".join(f"{int(b):02X}" for b in reversed(LCM_GROUP.split(".")))
+    deadline = time.monotonic() + 10.0
+    while not (_udp_sockets(port) and group_hex in Path("/proc/net/igmp").read_text()):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            raise DdynError(f"lcm-logger did not start listening on {url} "
+                            f"({(work / 'lcm-logger.stdout').read_text()[-500:]})")
+        time.sleep(0.05)
+    return proc, url
+
+
+def stop_host_logger(proc: subprocess.Popen, url: str) -> int:
+    """Let the logger drain its socket, then SIGINT (it closes the log cleanly); its exit status."""
+    port = int(url.rsplit(":", 1)[1].split("?")[0])
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and any(int(f[4].split(":")[1], 16) for f in _udp_sockets(port)):
+        time.sleep(0.05)
+    time.sleep(0.3)  # its reader thread hands the last datagrams to the writer
+    proc.send_signal(signal.SIGINT)
     try:
-        ctl.wait(timeout=10)
+        return proc.wait(timeout=10)
     except subprocess.TimeoutExpired:
-        ctl.kill()
-    return {"where": "host vcan0", "plant_exit": rc, "controller_exit": ctl.returncode,
-            "wall_time": time.monotonic() - t0}
+        proc.kill()
+        raise DdynError("lcm-logger did not stop within 10 s of SIGINT") from None
+
+
+def run_host(bins: Path, work: Path, restart: bool, lcm: bool = False) -> dict:
+    """Both processes on the host's vcan0; with lcm, the controller publishes its telemetry over UDP
+    multicast and lcm-logger (started first) records it into controller.lcm."""
+    t0 = time.monotonic()
+    logger, url = start_host_logger(work) if lcm else (None, None)
+    try:
+        ctl = subprocess.Popen([str(bins / "ddyn_sil_controller"), str(work / "controller.txt"), "--can", "vcan0"]
+                               + (["--lcm", url] if url else []),
+                               stdout=open(work / "controller.stdout", "w"), stderr=subprocess.STDOUT)
+        with open(work / "plant.stdout", "w") as out:
+            rc = subprocess.call([str(bins / "ddyn_sil_plant"), str(work / "plant.json"), "--can", "vcan0"],
+                                 stdout=out, stderr=subprocess.STDOUT)
+            if rc == 3 and restart:
+                time.sleep(0.5)
+                rc = subprocess.call([str(bins / "ddyn_sil_plant"), str(work / "plant_resume.json"), "--can",
+                                      "vcan0"], stdout=out, stderr=subprocess.STDOUT)
+        if ctl.poll() is None:
+            ctl.terminate()
+        try:
+            ctl.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            ctl.kill()
+            ctl.wait()
+    except BaseException:
+        if logger is not None:
+            logger.kill()
+        raise
+    out = {"where": "host vcan0", "plant_exit": rc, "controller_exit": ctl.returncode,
+           "wall_time": time.monotonic() - t0}
+    if logger is not None:  # after the controller has exited: its last messages are on the way
+        out["lcm"] = {"url": url, "logger_exit": stop_host_logger(logger, url)}
+    return out
 
 
 def run_inprocess(bins: Path, work: Path) -> dict:
@@ -326,10 +425,11 @@ GUEST_INIT = """#!/bin/busybox sh
 mount -t proc proc /proc
 mount -t sysfs sysfs /sys
 mount -t devtmpfs devtmpfs /dev 2>/dev/null
+echo "DDYN_GUEST_INIT_UPTIME: $(cut -d' ' -f1 /proc/uptime)"
 for m in {modules}; do insmod /lib/modules/$m.ko || echo "DDYN_GUEST: insmod $m failed"; done
 ip link add dev vcan0 type vcan && ip link set up vcan0 || echo "DDYN_GUEST: cannot create vcan0"
 mkdir -p /out
-/sil/ddyn_sil_controller /sil/controller.txt --can vcan0 > /out/controller.stdout 2>&1 &
+{lcm_start}/sil/ddyn_sil_controller /sil/controller.txt --can vcan0{lcm_arg} > /out/controller.stdout 2>&1 &
 cpid=$!
 /sil/ddyn_sil_plant /sil/plant.json --can vcan0 > /out/plant.stdout 2>&1
 rc=$?
@@ -341,6 +441,7 @@ fi
 kill -TERM $cpid 2>/dev/null
 wait $cpid
 crc=$?
+{lcm_stop}echo "DDYN_GUEST_RUN_UPTIME: $(cut -d' ' -f1 /proc/uptime)"
 for f in /out/*; do
   echo "DDYN_FILE_BEGIN $(basename $f)"
   gzip -c $f | base64
@@ -350,6 +451,35 @@ echo "DDYN_GUEST_PLANT_EXIT: $rc"
 echo "DDYN_GUEST_CONTROLLER_EXIT: $crc"
 echo "DDYN_GUEST_EXIT: $rc"
 poweroff -f
+"""
+# LCM in the guest: loopback with multicast and a route for the group, lcm-logger (dynamically
+# linked: its libraries are in the guest's GUEST_LIB_DIR) started first and listening (its socket on
+# the port in /proc/net/udp, the group joined in /proc/net/igmp) before the controller starts; after
+# the controller has exited, the logger drains its socket and is stopped with SIGINT, which closes
+# the log cleanly; the log comes back with the other files of /out.
+GUEST_LCM_START = """export LD_LIBRARY_PATH={libdir}
+ip link set lo up && ip link set lo multicast on && ip route add {group}/32 dev lo || echo "DDYN_GUEST: cannot route {group} on lo"
+/sil/lcm-logger --lcm-url '{url}' -f /out/{log} > /out/lcm-logger.stdout 2>&1 &
+lpid=$!
+n=0
+while ! grep -q ':{port_hex} ' /proc/net/udp || ! grep -q '{group_hex}' /proc/net/igmp; do
+  n=$((n+1))
+  if [ $n -gt 600 ]; then echo "DDYN_GUEST: lcm-logger not listening after 60 s"; break; fi
+  sleep 0.1
+done
+echo "DDYN_GUEST_LOGGER_READY: up $(cut -d' ' -f1 /proc/uptime) s, $n polls"
+"""
+GUEST_LCM_STOP = """n=0
+while [ $n -lt 100 ]; do
+  q=$(awk '$2 ~ /:{port_hex}$/ {{split($5, a, ":"); print a[2]}}' /proc/net/udp | head -n 1)
+  [ "$q" = "00000000" ] && break
+  n=$((n+1))
+  sleep 0.1
+done
+sleep 0.3
+kill -INT $lpid
+wait $lpid
+echo "DDYN_GUEST_LOGGER_EXIT: $?"
 """
 
 
@@ -363,8 +493,11 @@ def _guest_module():
     return mod
 
 
-def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, timeout: float) -> dict:
-    """Both processes inside a qemu guest with vcan (the kernel, modules and busybox of scripts/vcan_guest)."""
+def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, timeout: float,
+              lcm: bool = False) -> dict:
+    """Both processes inside a qemu guest with vcan (the kernel, modules and busybox of scripts/vcan_guest);
+    with lcm, the controller publishes its telemetry over UDP multicast on the guest's loopback and
+    lcm-logger records it into controller.lcm (both dynamically linked, with their libraries)."""
     bg = _guest_module()
     cache = Path(os.environ.get("DDYN_VCAN_GUEST_DIR", REPO / "build" / "vcan-guest"))
     cache.mkdir(parents=True, exist_ok=True)
@@ -382,21 +515,36 @@ def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, ti
     c.file("bin/busybox", bg.BUSYBOX.read_bytes())
     for m in meta["modules"]:
         c.file(f"lib/modules/{m}.ko", (cache / "modules" / f"{m}.ko").read_bytes(), 0o644)
-    for b in ("ddyn_sil_plant", "ddyn_sil_controller"):
-        p = bins / b
-        if not bg.is_static_elf(p):
-            raise DdynError(f"{p} is not statically linked; the guest has no libc")
-        c.file(f"sil/{b}", p.read_bytes())
+    p = bins / "ddyn_sil_plant"
+    if not bg.is_static_elf(p):
+        raise DdynError(f"{p} is not statically linked; the guest has no libc")
+    c.file("sil/ddyn_sil_plant", p.read_bytes())
+    guest_bins = [bins / "ddyn_sil_controller"] + ([lcm_logger_binary()] if lcm else [])
+    if not lcm and not bg.is_static_elf(guest_bins[0]):
+        raise DdynError(f"{guest_bins[0]} is not statically linked and has no LCM; the guest has no libc")
+    try:  # dynamically linked ones (LCM) come with their interpreter and libraries
+        added = bg.add_binaries(c, "sil", guest_bins)
+    except bg.GuestError as e:
+        raise DdynError(f"cannot put the controller into the qemu guest: {e}") from None
     for part in ("center", "inner", "outer"):
         c.file(f"sil/tracks/{track}_{part}.txt", (track_dir / f"{track}_{part}.txt").read_bytes(), 0o644)
     for name in ("plant.json", "plant_resume.json", "controller.txt"):
         if (work / name).is_file():
             c.file(f"sil/{name}", (work / name).read_bytes(), 0o644)
-    c.file("init", GUEST_INIT.format(modules=" ".join(meta["modules"])).encode())
+    url = lcm_url(LCM_GUEST_PORT)
+    fill = dict(libdir=bg.GUEST_LIB_DIR, group=LCM_GROUP, url=url, log=LCM_LOG_NAME,
+                port_hex=f"{LCM_GUEST_PORT:04X}", group_hex="".join(f"{int(b):02X}" for b in reversed(LCM_GROUP.split("."))))
+    c.file("init", GUEST_INIT.format(modules=" ".join(meta["modules"]),
+                                     lcm_start=GUEST_LCM_START.format(**fill) if lcm else "",
+                                     lcm_arg=f" --lcm '{url}'" if lcm else "",
+                                     lcm_stop=GUEST_LCM_STOP.format(**fill) if lcm else "").encode())
     initramfs = work / "guest-initramfs.cpio.gz"
     import gzip
+    cpio = c.finish()
     with open(initramfs, "wb") as f, gzip.GzipFile(fileobj=f, mode="wb", compresslevel=1, mtime=0) as gz:
-        gz.write(c.finish())
+        gz.write(cpio)
+    sizes = {"initramfs_bytes": len(cpio), "initramfs_gz_bytes": initramfs.stat().st_size,
+             "shared_library_bytes": added["bytes"], "dynamic": added["dynamic"]}
     cmd = ["qemu-system-x86_64"] + (["-enable-kvm"] if kvm else []) + [
         "-m", "512M", "-smp", "2", "-nodefaults", "-no-reboot", "-display", "none", "-serial", "stdio",
         "-monitor", "none", "-kernel", str(cache / meta["vmlinux"]), "-initrd", str(initramfs),
@@ -420,8 +568,17 @@ def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, ti
     mc = re.search(r"DDYN_GUEST_CONTROLLER_EXIT: (\d+)", log)
     if m is None:
         raise DdynError(f"the qemu guest did not finish the run (log: {work / 'guest.log'}):\n{log[-2000:]}")
-    return {"where": f"qemu guest vcan0 ({'KVM' if kvm else 'software emulation'})", "plant_exit": int(m.group(1)),
-            "controller_exit": int(mc.group(1)) if mc else None, "wall_time": wall}
+    for key, pat in (("init_uptime_s", "DDYN_GUEST_INIT_UPTIME"), ("run_done_uptime_s", "DDYN_GUEST_RUN_UPTIME")):
+        mu = re.search(pat + r": ([0-9.]+)", log)
+        sizes[key] = float(mu.group(1)) if mu else None
+    out = {"where": f"qemu guest vcan0 ({'KVM' if kvm else 'software emulation'})", "plant_exit": int(m.group(1)),
+           "controller_exit": int(mc.group(1)) if mc else None, "wall_time": wall, "guest": sizes}
+    if lcm:
+        ml = re.search(r"DDYN_GUEST_LOGGER_EXIT: (\d+)", log)
+        mr = re.search(r"DDYN_GUEST_LOGGER_READY: up ([0-9.]+) s, (\d+) polls", log)
+        out["lcm"] = {"url": url, "logger_exit": int(ml.group(1)) if ml else None,
+                      "logger_ready_uptime_s": float(mr.group(1)) if mr else None}
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- results
@@ -514,11 +671,11 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
 
 
 def write_lcm_log(work: Path, period: float) -> Path | None:
-    """The controller's per-period log as an LCM event log (DDYN_STATE, DDYN_TIMING; lcmtypes/).
-
-    The controller in the guest is static and the pinned `lcm` package ships only a shared liblcm,
-    so the process itself does not publish: its log is converted here, on the host, with the same
-    message types (utime = the controller's period count times the period).
+    """FALLBACK ONLY: the controller's per-period CSV log converted to an LCM event log on the host
+    (DDYN_STATE, DDYN_TIMING; lcmtypes/), for runs without a live publisher: `--where inprocess`
+    (one process, no controller executable) or a build without LCM (DDYN_WITH_LCM=OFF). The SIL
+    proper (guest or host vcan) records the controller's live telemetry instead (run_sil).
+    Same message types and utime convention (the controller's period count times the period).
     """
     from .lcm_types import lcm_module, types
     clog = read_csv(work / "controller_log.csv")
@@ -549,6 +706,22 @@ def write_lcm_log(work: Path, period: float) -> Path | None:
         log.write_event(utime, "DDYN_TIMING", tm.encode())
     log.close()
     return path
+
+
+def lcm_log_summary(path: Path) -> dict:
+    """Events per channel of an LCM log, its size, and the logger's receive-time span."""
+    from .lcm_types import lcm_module
+    lcm = lcm_module()
+    counts: dict[str, int] = {}
+    first = last = None
+    log = lcm.EventLog(str(path), "r")
+    for ev in log:
+        counts[ev.channel] = counts.get(ev.channel, 0) + 1
+        first = ev.timestamp if first is None else first
+        last = ev.timestamp
+    log.close()
+    return {"path": str(path), "bytes": path.stat().st_size, "events": dict(sorted(counts.items())),
+            "event_span_s": (last - first) * 1e-6 if first is not None else None}
 
 
 def plot_lap(path: Path, track: Track, table: np.ndarray, work: Path, title: str) -> None:
@@ -617,17 +790,40 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     if "restart_plant" in spec.faults:
         (out / "plant_resume.json").write_text(json.dumps(dict(pc, resume=f"{inside}/snapshot.json"), indent=1))
     (out / "controller.txt").write_text(controller_setup(spec, table, inside))
+    # the controller publishes its telemetry live over LCM (and lcm-logger records it) wherever it
+    # runs as its own process in a build with LCM; otherwise its CSV log is converted (fallback)
+    live = where != "inprocess" and controller_has_lcm(bins)
+    (out / LCM_LOG_NAME).unlink(missing_ok=True)
     if where == "inprocess":
         run = run_inprocess(bins, out)
     elif use_host:
-        run = run_host(bins, out, "restart_plant" in spec.faults)
+        run = run_host(bins, out, "restart_plant" in spec.faults, lcm=live)
     else:
         if kvm is None:  # as scripts/vcan_guest: software emulation unless asked (KVM is not everywhere)
             kvm = os.environ.get("DDYN_VCAN_KVM", "0") == "1"
-        run = run_guest(bins, out, track_dir, spec.track.name, kvm, timeout)
+        run = run_guest(bins, out, track_dir, spec.track.name, kvm, timeout, lcm=live)
     metrics = summarise(out, spec, table, run)
-    lcm_path = write_lcm_log(out, spec.vehicle.sample_time)
-    metrics["lcm_log"] = str(lcm_path) if lcm_path else None
+    cm_path = out / "controller_metrics.json"
+    if live:
+        lcm_path = out / LCM_LOG_NAME
+        if not lcm_path.is_file() or run["lcm"].get("logger_exit") != 0:
+            raise DdynError(f"the live LCM log was not recorded (lcm-logger exit {run['lcm'].get('logger_exit')}, "
+                            f"{lcm_path} {'exists' if lcm_path.is_file() else 'missing'}); see "
+                            f"{out / ('guest.log' if 'guest' in run else 'lcm-logger.stdout')}")
+        metrics["lcm"] = dict(source="live", publisher="ddyn_sil_controller (c_src/linux/telemetry_lcm.c) over "
+                              + run["lcm"]["url"], logger="lcm-logger " + ("in the guest" if "guest" in run else
+                                                                             "on the host"),
+                              **lcm_log_summary(lcm_path))
+        if cm_path.is_file():  # absent when the controller was killed
+            metrics["lcm"]["publisher_counts"] = json.loads(cm_path.read_text()).get("telemetry")
+    else:
+        lcm_path = write_lcm_log(out, spec.vehicle.sample_time)
+        why = ("--where inprocess has no controller process" if where == "inprocess"
+               else "the build has no LCM (DDYN_WITH_LCM=OFF)")
+        metrics["lcm"] = dict(source="converted", publisher=f"FALLBACK: controller_log.csv converted on the host "
+                              f"(train/sil.py write_lcm_log; {why})", logger=None,
+                              **(lcm_log_summary(lcm_path) if lcm_path else {"path": None}))
+    metrics["lcm_log"] = str(lcm_path) if lcm_path and lcm_path.is_file() else None
     (out / "sil_metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     laps = ", ".join(f"{t:.2f} s" for t in metrics["lap_times"]) or "none"
     plot_lap(out / "lap.png", spec.track, table, out,

@@ -4,7 +4,16 @@
  * (ddyn/dbw.h frame checks, can/ddyn_dbw.dbc) on a SocketCAN interface. It talks to the plant
  * ONLY through CAN frames.
  *
- * usage: ddyn_sil_controller SETUP [--can IFACE]     (IFACE default vcan0)
+ * usage: ddyn_sil_controller SETUP [--can IFACE] [--lcm URL]     (IFACE default vcan0)
+ *
+ * --lcm URL: publish the telemetry live over LCM (ddyn/telemetry.h, c_src/linux/telemetry_lcm.c;
+ * e.g. udpm://239.255.76.67:7667?ttl=0), as the car does: every period the state estimate with
+ * its covariance diagonal, the coefficients used with the guard bounds, the fault bits; the MPC
+ * plan and the loop timing at a fifth of the control rate (the module's default rate limiters,
+ * which count periods). Messages carry utime = period number x period (the controller's clock:
+ * it counts periods) and step = the period number of the CSV log. Only in a build with
+ * DDYN_WITH_LCM (then the executable is linked dynamically: liblcm is a shared library); a build
+ * without it refuses --lcm.
  *
  * One control period runs when a GNSS_Position frame arrives (the plant sends it last in a
  * period), or on the controller's own timer when none has come for 1.5 periods (then every period
@@ -52,6 +61,10 @@
 #include "controller_node.h"
 #include "controller_setup.h"
 
+#ifdef DDYN_SIL_WITH_LCM
+#include "ddyn/telemetry.h"
+#endif
+
 #define MAX_STEPS DDYN_SIL_MAX_STEPS
 #define PATH_LEN 512
 
@@ -61,6 +74,108 @@ static ddyn_sil_node node; /* large: static storage, not the stack */
 static double loop_us[MAX_STEPS];
 static double sorted_us[MAX_STEPS];
 static volatile sig_atomic_t stop_requested = 0;
+
+#ifdef DDYN_SIL_WITH_LCM
+/* fault bits of the FAULTS message: bits 0-15 the period's DDYN_CTRL_* status bits, then these */
+#define SIL_FAULT_STALE_FRAMES (1u << 16) /* a monitored frame was missing: safe command */
+#define SIL_FAULT_SAFE_COMMAND (1u << 17) /* the safe command went out (either cause) */
+
+static ddyn_telemetry tm;            /* ~10 kB: static storage */
+static double tm_us[MAX_STEPS];      /* wall time of each period's publish calls */
+static double plan_x[(DDYN_MPC_MAX_HORIZON + 1) * DDYN_NX];
+static double plan_u[DDYN_MPC_MAX_HORIZON * DDYN_NU];
+
+/* Whether the limiter of a kind sends this step's message: the rule of telemetry_lcm.c's
+ * limiter_allows (without counting), so the plan is simulated only for the steps it goes out. */
+static int tm_due(const ddyn_tm_limiter *lim, int64_t step)
+{
+    return lim->every != 0 && (!lim->started || step < lim->last_step || step - lim->last_step >= lim->every);
+}
+
+static int tm_open(const char *url, double period)
+{
+    static double lo[DDYN_NC], hi[DDYN_NC];
+    ddyn_telemetry_config cfg;
+    int k;
+    ddyn_telemetry_default_config(&cfg, 1.0 / period);
+    cfg.url = url;
+    if (ddyn_net_weights.lo != NULL && ddyn_net_weights.hi != NULL) {
+        for (k = 0; k < DDYN_NC; ++k) {
+            lo[k] = (double)ddyn_net_weights.lo[k];
+            hi[k] = (double)ddyn_net_weights.hi[k];
+        }
+        cfg.coeff_lo = lo;
+        cfg.coeff_hi = hi;
+    }
+    if (ddyn_telemetry_open(&tm, &cfg) != DDYN_TM_PUBLISHED) {
+        fprintf(stderr, "ddyn_sil_controller: cannot open LCM at %s\n", url);
+        return 0;
+    }
+    return 1;
+}
+
+/* One period's telemetry; a failed publish is counted (tm.limiter[].errors), never fatal. */
+static void tm_publish(long step, double period, double period_wall, double total, const ddyn_sil_period *per)
+{
+    static const char *const stage_names[1] = {"controller_step"};
+    ddyn_tm_state st;
+    ddyn_tm_coeffs co;
+    ddyn_tm_plan pl;
+    ddyn_tm_timing ti;
+    ddyn_tm_faults fa;
+    int64_t utime = (int64_t)floor((double)step * period * 1e6 + 0.5);
+    int k;
+
+    st.utime = utime;
+    st.step = step;
+    for (k = 0; k < DDYN_NX; ++k) {
+        st.x[k] = per->out.x_est[k];
+        st.cov_diag[k] = node.ctl.ekf.P[k * DDYN_NX + k];
+    }
+    (void)ddyn_telemetry_publish_state(&tm, &st);
+
+    co.utime = utime;
+    co.step = step;
+    memcpy(co.coeffs, per->out.coeffs, sizeof co.coeffs);
+    (void)ddyn_telemetry_publish_coeffs(&tm, &co);
+
+    memset(&pl, 0, sizeof pl);
+    pl.utime = utime;
+    pl.step = step;
+    pl.status = (int)per->out.mpc_status;
+    pl.status_name = ddyn_status_name(per->out.mpc_status);
+    pl.qp_iterations = per->out.mpc_info.qp_iterations;
+    pl.cost = per->out.mpc_info.cost;
+    pl.horizon = 0;
+    pl.states = per->out.x_est; /* no plan (yet): the estimate as the one state */
+    if (tm_due(&tm.limiter[DDYN_TM_PLAN], step)) {
+        int h = ddyn_mpc_plan(&node.ctl.mpc, plan_x, plan_u);
+        if (h > 0 && h <= DDYN_TM_PLAN_MAX_HORIZON) {
+            pl.horizon = h;
+            pl.states = plan_x;
+            pl.inputs = plan_u;
+        }
+    }
+    (void)ddyn_telemetry_publish_plan(&tm, &pl);
+
+    memset(&ti, 0, sizeof ti);
+    ti.utime = utime;
+    ti.step = step;
+    ti.period_s = period_wall;
+    ti.total_s = total;
+    ti.deadline_s = period;
+    ti.n_stages = 1;
+    ti.stage_names[0] = stage_names[0];
+    ti.stage_s[0] = total;
+    (void)ddyn_telemetry_publish_timing(&tm, &ti);
+
+    fa.utime = utime;
+    fa.step = step;
+    fa.active = (uint32_t)per->out.status | (per->stale ? SIL_FAULT_STALE_FRAMES : 0u) |
+                (per->safe ? SIL_FAULT_SAFE_COMMAND : 0u);
+    (void)ddyn_telemetry_publish_faults(&tm, &fa);
+}
+#endif
 
 
 static void on_signal(int sig)
@@ -114,22 +229,34 @@ int main(int argc, char **argv)
     static ddyn_sil_setup s;
     static const char *const meas_names[DDYN_MEAS_COUNT] = DDYN_MEAS_NAMES;
     const char *iface = "vcan0";
+    const char *lcm_url = NULL;
     struct sigaction sa;
     long steps = 0, misses = 0, timer_steps = 0, send_failed = 0, status_count[DDYN_CTRL_STATUS_BITS] = {0};
     int fd, i, k;
     double last_step_wall, last_any_rx, last_gnss_wall = -1.0, safe_latency = -1.0, stale_latency = -1.0;
+#ifdef DDYN_SIL_WITH_LCM
+    double prev_t0 = -1.0; /* wall time the previous period started (the timing message's period_s) */
+#endif
     int was_safe = 0, timer_mode = 0;
     FILE *log;
 
     if (argc < 2) {
-        fprintf(stderr, "usage: %s SETUP [--can IFACE]\n", argv[0]);
+        fprintf(stderr, "usage: %s SETUP [--can IFACE] [--lcm URL]\n", argv[0]);
         return 2;
     }
     for (i = 2; i + 1 < argc; ++i) {
         if (strcmp(argv[i], "--can") == 0) {
             iface = argv[i + 1];
+        } else if (strcmp(argv[i], "--lcm") == 0) {
+            lcm_url = argv[i + 1];
         }
     }
+#ifndef DDYN_SIL_WITH_LCM
+    if (lcm_url != NULL) {
+        fprintf(stderr, "ddyn_sil_controller: --lcm: this build has no LCM telemetry (configured with DDYN_WITH_LCM=OFF)\n");
+        return 2;
+    }
+#endif
     if (!ddyn_sil_read_setup(argv[1], &s)) {
         return 2;
     }
@@ -140,6 +267,11 @@ int main(int argc, char **argv)
     if (fd < 0) {
         return 2;
     }
+#ifdef DDYN_SIL_WITH_LCM
+    if (lcm_url != NULL && !tm_open(lcm_url, s.period)) {
+        return 2;
+    }
+#endif
     log = fopen(s.log, "w");
     if (log == NULL) {
         fprintf(stderr, "ddyn_sil_controller: cannot write %s\n", s.log);
@@ -201,6 +333,15 @@ int main(int argc, char **argv)
                 send_failed += 1;
             }
             loop_us[steps] = (t1 - t0) * 1e6;
+#ifdef DDYN_SIL_WITH_LCM
+            if (lcm_url != NULL) {
+                /* after the command went out: the publish calls are not part of the step's time */
+                double t2 = now_s();
+                tm_publish(steps, s.period, prev_t0 >= 0.0 ? t0 - prev_t0 : s.period, t1 - t0, &per);
+                tm_us[steps] = (now_s() - t2) * 1e6;
+            }
+            prev_t0 = t0;
+#endif
             misses += (t1 - t0) > s.period ? 1 : 0;
             for (k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) {
                 status_count[k] += (long)((per.out.status >> k) & 1u);
@@ -231,6 +372,11 @@ int main(int argc, char **argv)
     }
     fclose(log);
     close(fd);
+#ifdef DDYN_SIL_WITH_LCM
+    if (lcm_url != NULL) {
+        ddyn_telemetry_close(&tm);
+    }
+#endif
 
     {
         FILE *m = fopen(s.metrics, "w");
@@ -268,7 +414,30 @@ int main(int argc, char **argv)
         for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
             fprintf(m, "%s\"%s\": %lu", k ? ", " : "", meas_names[k], (unsigned long)node.ctl.nonfinite_count[k]);
         }
-        fprintf(m, "},\n  \"fixed_coefficients\": %s\n}\n", s.fixed ? "true" : "false");
+        fprintf(m, "},\n");
+#ifdef DDYN_SIL_WITH_LCM
+        if (lcm_url != NULL) {
+            /* the publish calls of each period (outside loop_us) and the limiters' counts */
+            double tmed = 0.0, tp99 = 0.0, tmax = 0.0;
+            if (steps > 0) {
+                memcpy(sorted_us, tm_us, (size_t)steps * sizeof(double));
+                qsort(sorted_us, (size_t)steps, sizeof(double), cmp_double);
+                tmed = sorted_us[steps / 2];
+                tp99 = sorted_us[(long)floor(0.99 * (double)(steps - 1))];
+                tmax = sorted_us[steps - 1];
+            }
+            fprintf(m, "  \"telemetry\": {\"url\": \"%s\", \"publish_us\": {\"median\": %.3f, \"p99\": %.3f, \"max\": %.3f}",
+                    lcm_url, tmed, tp99, tmax);
+            for (k = 0; k < DDYN_TM_KIND_COUNT; ++k) {
+                const ddyn_tm_limiter *lim = &tm.limiter[k];
+                fprintf(m, ", \"%s\": {\"published\": %llu, \"skipped\": %llu, \"errors\": %llu}",
+                        ddyn_tm_kind_name((ddyn_tm_kind)k), (unsigned long long)lim->published,
+                        (unsigned long long)lim->skipped, (unsigned long long)lim->errors);
+            }
+            fprintf(m, "},\n");
+        }
+#endif
+        fprintf(m, "  \"fixed_coefficients\": %s\n}\n", s.fixed ? "true" : "false");
         fclose(m);
     }
     printf("controller: %ld periods, loop median %.1f us, max %.1f us, %ld deadline misses, %ld safe\n", steps,

@@ -12,6 +12,11 @@
   initramfs busybox-static, the modules, the test binaries (statically linked: the guest has no
            libc) and an /init that loads the modules, creates vcan0 (MTU 72: CAN FD capable), runs the tests and prints
            "DDYN_GUEST_EXIT: <status>" on the serial console.
+  dynamic  for other guests (`ddyn sil`'s, whose controller and lcm-logger link liblcm and GLib):
+           add_binaries() copies a dynamically linked executable with its ELF interpreter (at its
+           PT_INTERP path) and the shared-library closure ldd resolves on this host, into
+           GUEST_LIB_DIR (the guest's /init exports LD_LIBRARY_PATH=GUEST_LIB_DIR). A library ldd
+           cannot find is an error naming it.
 
 The kernel and modules are cached in the cache directory (default build/vcan-guest, outside
 git) and fetched only once; the initramfs is rebuilt on each call (it holds the test binaries).
@@ -40,6 +45,7 @@ ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_CACHE = ROOT / "build" / "vcan-guest"
 WANTED_MODULES = ("can", "can-raw", "can-dev", "vcan")
 BUSYBOX = Path("/bin/busybox")
+GUEST_LIB_DIR = "/lib/ddyn"  # shared libraries of dynamically linked guest binaries (LD_LIBRARY_PATH)
 XZ_MAGIC = b"\xfd7zXZ\x00"
 GZIP_MAGIC = b"\x1f\x8b\x08"
 
@@ -222,6 +228,102 @@ def is_static_elf(path: Path) -> bool:
     return True
 
 
+def elf_interpreter(path: Path) -> str | None:
+    """The PT_INTERP path of an ELF executable (None: static)."""
+    data = path.read_bytes()
+    if data[:4] != b"\x7fELF" or data[4] != 2:
+        raise GuestError(f"{path} is not a 64-bit ELF file")
+    endian = "<" if data[5] == 1 else ">"
+    phoff = struct.unpack_from(endian + "Q", data, 0x20)[0]
+    phentsize, phnum = struct.unpack_from(endian + "HH", data, 0x36)
+    for i in range(phnum):
+        off = phoff + i * phentsize
+        if struct.unpack_from(endian + "I", data, off)[0] == 3:  # PT_INTERP
+            p_offset, _, _, p_filesz = struct.unpack_from(endian + "QQQQ", data, off + 8)
+            return data[p_offset:p_offset + p_filesz].split(b"\x00")[0].decode()
+    return None
+
+
+def parse_ldd(binary: Path, text: str) -> dict[str, Path]:
+    """soname -> resolved path from ldd's output; a library ldd cannot find is an error naming it."""
+    libs: dict[str, Path] = {}
+    missing = []
+    for line in text.splitlines():
+        line = line.strip()
+        m = re.match(r"(\S+) => (.+?)(?: \(0x[0-9a-f]+\))?$", line)
+        if m:
+            if m.group(2).strip() == "not found":
+                missing.append(m.group(1))
+            else:
+                libs[m.group(1)] = Path(m.group(2).strip())
+    if missing:
+        raise GuestError(f"{binary} needs {', '.join(missing)}, which ldd cannot find on this host; "
+                         "the guest would not start it (install the library, or fix its RUNPATH)")
+    return libs
+
+
+def shared_closure(binary: Path) -> tuple[str, dict[str, Path]]:
+    """The ELF interpreter and every shared library (soname -> host path) a dynamic executable loads."""
+    interp = elf_interpreter(binary)
+    if interp is None:
+        raise GuestError(f"{binary} is statically linked: it has no shared-library closure")
+    if shutil.which("ldd") is None:
+        raise GuestError("ldd is not installed: cannot resolve the shared libraries of dynamic guest binaries")
+    r = subprocess.run(["ldd", str(binary)], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise GuestError(f"ldd {binary} failed ({r.returncode}): {(r.stdout + r.stderr).strip()[-400:]}")
+    libs = parse_ldd(binary, r.stdout)
+    libs.pop(Path(interp).name, None)
+    for name, path in libs.items():
+        if not path.is_file():
+            raise GuestError(f"{binary}: ldd resolved {name} to {path}, which is not a file")
+    if not Path(interp).is_file():
+        raise GuestError(f"{binary}: its ELF interpreter {interp} does not exist on this host")
+    return interp, libs
+
+
+def add_binaries(cpio: "Cpio", dest: str, binaries: list[Path]) -> dict:
+    """Put executables into the archive under dest/ (which must exist in it); for dynamically linked
+    ones also their interpreter and shared libraries (once each; directories created as needed).
+    Returns what was added: {"dynamic": [names], "interpreters": [...], "libraries": {soname: host path},
+    "bytes": total size of the libraries and interpreters}."""
+    interps: set[str] = set()
+    libs: dict[str, Path] = {}
+    dynamic = []
+    for b in binaries:
+        if not b.is_file():
+            raise GuestError(f"guest binary {b} does not exist")
+        if not is_static_elf(b):
+            interp, closure = shared_closure(b)
+            interps.add(interp)
+            for name, path in closure.items():
+                if name in libs and libs[name].resolve() != path.resolve():
+                    raise GuestError(f"{name}: two different libraries ({libs[name]}, {path}) for one guest")
+                libs[name] = path
+            dynamic.append(b.name)
+        cpio.file(f"{dest}/{b.name}", b.read_bytes())
+    size = 0
+    if libs or interps:
+        made = set(cpio.dirs)
+        for d in [GUEST_LIB_DIR.strip("/")] + [str(Path(i).parent).strip("/") for i in sorted(interps)]:
+            parts = d.split("/")
+            for k in range(1, len(parts) + 1):
+                sub = "/".join(parts[:k])
+                if sub and sub not in made:
+                    cpio.dir(sub)
+                    made.add(sub)
+        for i in sorted(interps):
+            data = Path(i).read_bytes()
+            size += len(data)
+            cpio.file(i.strip("/"), data)
+        for name in sorted(libs):
+            data = libs[name].read_bytes()
+            size += len(data)
+            cpio.file(f"{GUEST_LIB_DIR.strip('/')}/{name}", data)
+    return {"dynamic": dynamic, "interpreters": sorted(interps),
+            "libraries": {k: str(v) for k, v in sorted(libs.items())}, "bytes": size}
+
+
 INIT = """#!/bin/busybox sh
 /bin/busybox --install -s /bin
 mount -t proc proc /proc
@@ -252,6 +354,7 @@ class Cpio:
     def __init__(self) -> None:
         self.buf = io.BytesIO()
         self.ino = 1
+        self.dirs: list[str] = []
 
     def _entry(self, name: str, mode: int, data: bytes = b"", nlink: int = 1) -> None:
         nameb = name.encode() + b"\x00"
@@ -264,6 +367,7 @@ class Cpio:
         self.buf.write(b"\x00" * ((4 - len(data) % 4) % 4))
 
     def dir(self, name: str) -> None:
+        self.dirs.append(name)
         self._entry(name, stat.S_IFDIR | 0o755, nlink=2)
 
     def file(self, name: str, data: bytes, mode: int = 0o755) -> None:

@@ -6,6 +6,7 @@ The two-process runs boot the qemu guest of scripts/vcan_guest when the host has
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 
@@ -197,6 +198,111 @@ def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_pat
     from train.importers import load_any
     ds = load_any(tmp_path / "controller.lcm")
     assert len(ds) == m["controller"]["periods"]
+    check_live_lcm_log(m, tmp_path, orca)
+
+
+CHANNELS = {"DDYN_STATE": "state_estimate_t", "DDYN_COEFFS": "guard_coeffs_t", "DDYN_PLAN": "mpc_plan_t",
+            "DDYN_TIMING": "loop_timing_t", "DDYN_FAULTS": "faults_t"}
+
+
+def check_live_lcm_log(m: dict, work: Path, vehicle) -> None:
+    """controller.lcm of a two-process run is what the controller published live (lcm-logger's
+    recording), complete, and agrees with the controller's own CSV log."""
+    from train.lcm_types import lcm_module, types
+    info = m["lcm"]
+    assert info["source"] == "live", info
+    assert "telemetry_lcm.c" in info["publisher"] and info["logger"].startswith("lcm-logger")
+    lcm, t = lcm_module(), types()
+    msgs: dict[str, list] = {c: [] for c in CHANNELS}
+    stamps = []
+    for ev in lcm.EventLog(str(work / "controller.lcm"), "r"):
+        assert ev.channel in CHANNELS, ev.channel
+        msgs[ev.channel].append(getattr(t, CHANNELS[ev.channel]).decode(ev.data))
+        stamps.append(ev.timestamp)
+    assert {c: len(v) for c, v in msgs.items() if v} == info["events"]
+    assert np.all(np.diff(stamps) >= 0)  # the logger's receive clock
+    periods = m["controller"]["periods"]
+    period = vehicle.sample_time
+    # documented rates (docs/lcm.md): state, coefficients, faults every period; plan and timing every
+    # 5th (steps 0, 5, 10, ...); nothing lost between the publisher and the logger
+    every = {"DDYN_STATE": 1, "DDYN_COEFFS": 1, "DDYN_FAULTS": 1, "DDYN_PLAN": 5, "DDYN_TIMING": 5}
+    for c, k in every.items():
+        assert [x.step for x in msgs[c]] == list(range(0, periods, k)), c
+        utime = np.array([x.utime for x in msgs[c]])
+        assert np.all(np.diff(utime) > 0)
+        np.testing.assert_array_equal(utime, np.rint(np.arange(0, periods, k) * period * 1e6))
+    pub = info["publisher_counts"]
+    assert pub["STATE"] == {"published": periods, "skipped": 0, "errors": 0}
+    assert pub["PLAN"]["published"] == len(msgs["DDYN_PLAN"]) and pub["PLAN"]["errors"] == 0
+    # values against the controller's CSV log (printed with %.6g)
+    clog = sil.read_csv(work / "controller_log.csv")
+    names = ("x", "y", "yaw", "vx", "vy", "omega", "throttle", "steering")
+    x = np.array([[getattr(s, n) for n in names] for s in msgs["DDYN_STATE"]])
+    cov = np.array([s.cov_diag for s in msgs["DDYN_STATE"]])
+    np.testing.assert_allclose(x, np.column_stack([clog[n] for n in names]), rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(cov, np.column_stack([clog[f"P{k}"] for k in range(8)]), rtol=1e-5, atol=1e-12)
+    # fixed coefficients: the vehicle's true ones, every period
+    np.testing.assert_allclose(np.array([c.coeffs for c in msgs["DDYN_COEFFS"]]),
+                               np.tile(vehicle.true_vector(), (periods, 1)), rtol=0, atol=1e-12)
+    # fault bits: the controller's status bits, then missing frames (16) and the safe command (17)
+    active = np.array([f.active for f in msgs["DDYN_FAULTS"]])
+    np.testing.assert_array_equal(active & 0xFFFF, clog["status"].astype(int))
+    np.testing.assert_array_equal((active >> 16) & 1, clog["stale"].astype(int))
+    np.testing.assert_array_equal((active >> 17) & 1, clog["safe"].astype(int))
+    # each plan starts at that period's estimate; timing is the step's time in the CSV (%.2f us)
+    for p in msgs["DDYN_PLAN"]:
+        if p.status == 0:
+            assert p.horizon > 0 and len(p.states) == p.horizon + 1
+            np.testing.assert_allclose(p.states[0], x[p.step], rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose([tm.total_s for tm in msgs["DDYN_TIMING"]],
+                               clog["loop_us"][::5] * 1e-6, rtol=0, atol=1e-8)
+
+
+def test_build_guest_takes_dynamic_binaries_with_their_libraries():
+    """The guest builder copies a dynamic executable's interpreter and ldd closure; a library ldd
+    cannot find is an error naming it (never a guest that fails to start the binary)."""
+    from train.lcm_types import lcm_module
+    bg = sil._guest_module()
+    logger = Path(lcm_module().LCM_BIN_DIR).resolve() / "lcm-logger"
+    c = bg.Cpio()
+    c.dir("sil")
+    added = bg.add_binaries(c, "sil", [logger])
+    assert added["dynamic"] == ["lcm-logger"] and added["interpreters"] == [bg.elf_interpreter(logger)]
+    assert {"libc.so.6", "libglib-2.0.so.0"} <= set(added["libraries"])
+    names = re.findall(rb"070701[0-9A-F]{104}([^\x00]+)\x00", c.finish())
+    assert b"lib/ddyn/libglib-2.0.so.0" in names and b"lib64/ld-linux-x86-64.so.2" in names
+    assert bg.parse_ldd(logger, "\tlibc.so.6 => /lib/x86_64-linux-gnu/libc.so.6 (0x00007f)\n") == {
+        "libc.so.6": Path("/lib/x86_64-linux-gnu/libc.so.6")}
+    with pytest.raises(bg.GuestError, match="libmissing.so.3"):
+        bg.parse_ldd(logger, "\tlibc.so.6 => /lib/x86_64-linux-gnu/libc.so.6 (0x1)\n\tlibmissing.so.3 => not found\n")
+    with pytest.raises(bg.GuestError, match="statically linked"):
+        bg.shared_closure(bg.BUSYBOX)
+
+
+def test_host_lcm_logger_records_a_publisher(tmp_path, shared_data):
+    """The host path's logger lifecycle (--where host; this machine has no vcan for the whole run):
+    lcm-logger listening on a free port before the publisher starts, drained and stopped by SIGINT
+    after it, every message in the log."""
+    from train import simulate
+    from train.lcm_replay import DEFAULT_TOOL, replay
+    if not DEFAULT_TOOL.is_file():
+        pytest.fail(f"{DEFAULT_TOOL} missing: build the C side with DDYN_WITH_LCM=ON first (scripts/test.sh does)")
+    try:
+        proc, url = sil.start_host_logger(tmp_path)
+    except DdynError as e:
+        pytest.skip(f"NO MULTICAST ROUTE on this host, the host logger cannot be tested: {e}")
+    try:
+        ds = simulate.simulate(load_vehicle("orca_1_43"), load_track("ethz", shared_data), duration=1.0, seed=1,
+                               progress=False)
+        replay(ds, url, DEFAULT_TOOL, speed=5.0)
+    finally:
+        rc = sil.stop_host_logger(proc, url)
+    assert rc == 0
+    info = sil.lcm_log_summary(tmp_path / "controller.lcm")
+    # default rates: state, coefficients, faults every row, plan and timing every 5th
+    n = len(ds)
+    assert info["events"] == {"DDYN_STATE": n, "DDYN_COEFFS": n, "DDYN_FAULTS": n,
+                              "DDYN_PLAN": len(range(0, n, 5)), "DDYN_TIMING": len(range(0, n, 5))}
 
 
 def test_a_lap_with_the_true_coefficients_in_process(orca, mobil, tmp_path, sil_bins):
@@ -212,6 +318,9 @@ def test_a_lap_with_the_true_coefficients_in_process(orca, mobil, tmp_path, sil_
     assert ctl["safe_periods"] == 0 and ctl["frames"]["checksum"] == 0
     assert abs(ctl["periods"] - m["plant"]["sim_time"] / orca.sample_time) <= 2
     assert (tmp_path / "controller.lcm").stat().st_size > 0
+    # no controller process here: the log is the labelled host-side conversion of the CSV log
+    assert m["lcm"]["source"] == "converted" and m["lcm"]["publisher"].startswith("FALLBACK")
+    assert m["lcm"]["events"] == {"DDYN_STATE": ctl["periods"], "DDYN_TIMING": ctl["periods"]}
     # fixed coefficients: the network is never run (no more "out of range" to bypass it)
     counts = ctl["status_counts"]
     assert counts["DDYN_CTRL_COEFF_FIXED"] == ctl["periods"]
