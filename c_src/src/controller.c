@@ -22,9 +22,9 @@
 #define COEFF_ORDER "Bf,Cf,Df,Ef,Gf,Kf,Br,Cr,Dr,Er,Gr,Kr,Cm1,Cm2,Cr0,Cd,Iz"
 /* default throttle PID gains: `ddyn sil-pid-sweep` on the true-coefficient SIL lap (docs/sil.md) */
 #define PID_DEFAULT_KP 2.0
-#define PID_DEFAULT_KI 2.0
+#define PID_DEFAULT_KI 0.5
 #define PID_DEFAULT_KD 0.0
-#define PID_DEFAULT_PREVIEW 0.0
+#define PID_DEFAULT_PREVIEW 0.2
 
 static double clamp(double v, double lo, double hi)
 {

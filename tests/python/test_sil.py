@@ -425,3 +425,11 @@ def test_pid_sweep_scores_speed_error_and_chooses_a_clean_lap():
             row(1, 2, 0.41), row(2, 2, 0.39), row(4, 2, 0.34, violations=1)]
     best = sweep_choice(grid)
     assert (best["kp"], best["ki"]) == (2, 1)
+    # with a preview axis: neighbours are taken in the gains at the same preview, and the shortest clean
+    # lap wins (a failing run at another preview does not disqualify a cell)
+    def prow(kp, preview, lap, violations=0):
+        return dict(row(kp, 1, 0.3, violations=violations, lap=lap), preview=preview)
+    grid = [prow(1, 0.2, 5.7), prow(2, 0.2, 5.6), prow(4, 0.2, 5.5, violations=1),
+            prow(1, 0.4, 6.0, violations=3), prow(2, 0.4, 5.4, violations=2), prow(4, 0.4, 5.9)]
+    best = sweep_choice(grid)
+    assert (best["kp"], best["preview"]) == (1, 0.2)  # 2 @ 0.2 is faster but next to kp 4's violation
