@@ -77,8 +77,9 @@ static volatile sig_atomic_t stop_requested = 0;
 
 #ifdef DDYN_SIL_WITH_LCM
 /* fault bits of the FAULTS message: bits 0-15 the period's DDYN_CTRL_* status bits, then these */
-#define SIL_FAULT_STALE_FRAMES (1u << 16) /* a monitored frame was missing: safe command */
-#define SIL_FAULT_SAFE_COMMAND (1u << 17) /* the safe command went out (either cause) */
+/* fault bits of the telemetry: the controller's status bits (0 .. DDYN_CTRL_STATUS_BITS - 1), then: */
+#define SIL_FAULT_STALE_FRAMES (1u << DDYN_CTRL_STATUS_BITS)       /* a monitored frame was missing: safe command */
+#define SIL_FAULT_SAFE_COMMAND (1u << (DDYN_CTRL_STATUS_BITS + 1)) /* the safe command went out (either cause) */
 
 static ddyn_telemetry tm;            /* ~10 kB: static storage */
 static double tm_us[MAX_STEPS];      /* wall time of each period's publish calls */
