@@ -345,10 +345,9 @@ def test_a_lap_with_pid_throttle_in_process(orca, mobil, tmp_path, sil_bins):
     assert ctl["status_counts"]["DDYN_CTRL_COEFF_FIXED"] == ctl["periods"]
     assert ctl["status_counts"]["DDYN_CTRL_PID_SATURATED"] > 0  # the standing start rides the rate bound
     err = speed_error(sil.read_csv(tmp_path / "trajectory.csv"), sil.raceline_table(mobil, orca, 0.9))
-    # the raceline's speed profile is beyond the car's reach in places (up to 4.4 m/s on the straight, the
-    # car reaches ~3.5; a step from 2.0 to 0.5 m/s at the finish line): the MPC's own throttle scores
-    # 0.35 m/s rms by this measure, the default gains 0.40 (docs/sil.md), a PID that did not follow the
-    # reference (e.g. the car crawling) several times that
+    # measured 0.27 m/s rms (max 2.0 m/s where the table's speed steps down to the standing start's at
+    # the finish line; the preview also runs the PID 0.2 s ahead of the speed at the car); a PID that did
+    # not follow the reference (e.g. the car crawling) scores several times that
     assert err["rms"] < 0.5, err
 
 
