@@ -13,6 +13,7 @@
 #include <string.h>
 #include <time.h>
 
+#include "bench_timing.h"
 #include "ddyn/ekf.h"
 #include "ddyn/guard_net.h"
 #include "ddyn_models.h"
@@ -25,23 +26,11 @@ extern const ddyn_net_tables ddyn_net_weights;
 static double samples[MAX_CALLS];
 static double histories[MAX_HISTORIES][DDYN_NET_TAU][DDYN_NET_NFEAT];
 
-static double now_us(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (double)t.tv_sec * 1e6 + (double)t.tv_nsec * 1e-3;
-}
-
-static int cmp(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
 
 static void report(const char *name, int n)
 {
-    qsort(samples, (size_t)n, sizeof samples[0], cmp);
-    printf("%s %d %.3f %.3f %.3f\n", name, n, samples[n / 2], samples[(int)(0.99 * (n - 1))], samples[n - 1]);
+    bench_stats s = bench_stats_of(samples, n);
+    printf("%s %d %.3f %.3f %.3f\n", name, n, s.median, s.p99, s.max);
 }
 
 int main(int argc, char **argv)
@@ -72,9 +61,9 @@ int main(int argc, char **argv)
         return 1;
     }
     for (i = 0; i < n; ++i) {
-        double coeffs[DDYN_NET_NOUT], t0 = now_us();
+        double coeffs[DDYN_NET_NOUT], t0 = bench_now_us();
         ddyn_guard_net_infer(&net, (const double(*)[DDYN_NET_NFEAT])histories[i % n_hist], coeffs);
-        samples[i] = now_us() - t0;
+        samples[i] = bench_now_us() - t0;
         sink += coeffs[0];
     }
     report("guard_net_infer", n);
@@ -82,7 +71,7 @@ int main(int argc, char **argv)
     for (i = 0; i < n; ++i) {
         static const double u[DDYN_NU] = {0.0, 0.01};
         double z1[1] = {0.1}, r1[1] = {2.5e-3}, z2[2] = {0.0, 0.0}, r2[2] = {0.04, 0.04};
-        double t0 = now_us();
+        double t0 = bench_now_us();
         ddyn_ekf_predict(&ekf, u, c);
         ddyn_ekf_update(&ekf, DDYN_MEAS_YAW_RATE, z1, r1, c, NULL);
         z2[0] = ekf.x[3];
@@ -96,7 +85,7 @@ int main(int argc, char **argv)
             z2[1] = ekf.x[1];
             ddyn_ekf_update(&ekf, DDYN_MEAS_GNSS_POSITION, z2, r2, c, NULL);
         }
-        samples[i] = now_us() - t0;
+        samples[i] = bench_now_us() - t0;
         if (i % 500 == 499) { /* keep the filter in its operating range over long runs */
             ddyn_ekf_init(&ekf, &ddyn_model_orca_1_43, DDYN_DISC_EULER, x0, p0, q);
         }

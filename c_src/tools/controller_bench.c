@@ -27,6 +27,7 @@
 #include <string.h>
 #include <time.h>
 
+#include "bench_timing.h"
 #include "ddyn/controller.h"
 
 #define MAX_STEPS 1000000
@@ -39,18 +40,6 @@ static ddyn_ctrl ctl;
 static ddyn_mpc mpc_replay; /* the step's MPC solve once more, timed alone */
 static double track[5][DDYN_MPC_MAX_TRACK_POINTS];
 
-static double now_us(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (double)t.tv_sec * 1e6 + (double)t.tv_nsec * 1e-3;
-}
-
-static int cmp(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
 
 static void report(const char *name, double *v, int n)
 {
@@ -61,8 +50,8 @@ static void report(const char *name, double *v, int n)
         over += v[i] > 1000.0;
     }
     printf("# %s_over_1ms %d\n", name, over);
-    qsort(v, (size_t)n, sizeof v[0], cmp);
-    printf("%s %d %.3f %.3f %.3f\n", name, n, v[n / 2], v[(int)(0.99 * (n - 1))], v[n - 1]);
+    bench_stats s = bench_stats_of(v, n);
+    printf("%s %d %.3f %.3f %.3f\n", name, n, s.median, s.p99, s.max);
     printf("# %s_mean_us %.3f\n", name, sum / n);
 }
 
@@ -174,17 +163,17 @@ int main(int argc, char **argv)
             }
         }
         memcpy(&mpc_replay, &ctl.mpc, sizeof mpc_replay); /* the MPC as the step will find it */
-        t0 = now_us();
+        t0 = bench_now_us();
         ddyn_ctrl_step(&ctl, &in, &out);
-        samples[i] = now_us() - t0;
+        samples[i] = bench_now_us() - t0;
         {
             /* the same solve (same warm start, coefficients, state) timed on its own: the share
              * of the step that is the MPC's */
             double u_replay[DDYN_NU];
             ddyn_mpc_set_coefficients(&mpc_replay, out.coeffs);
-            t0 = now_us();
+            t0 = bench_now_us();
             ddyn_mpc_solve(&mpc_replay, out.x_est, u_replay, NULL);
-            mpc_samples[i] = now_us() - t0;
+            mpc_samples[i] = bench_now_us() - t0;
         }
         for (b = 0; b < DDYN_CTRL_STATUS_BITS; ++b) {
             bit_count[b] += (out.status >> b) & 1u;

@@ -11,29 +11,17 @@
 #include <string.h>
 #include <time.h>
 
+#include "bench_timing.h"
 #include "ddyn/dbw.h"
 
 #define MAX_CALLS 1000000
 
-static long long samples[MAX_CALLS];
-
-static long long now_ns(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (long long)t.tv_sec * 1000000000LL + t.tv_nsec;
-}
-
-static int cmp(const void *a, const void *b)
-{
-    long long x = *(const long long *)a, y = *(const long long *)b;
-    return (x > y) - (x < y);
-}
+static double samples[MAX_CALLS]; /* ns */
 
 static void report(const char *name, int n)
 {
-    qsort(samples, (size_t)n, sizeof(samples[0]), cmp);
-    printf("%s %d %lld %lld %lld\n", name, n, samples[n / 2], samples[(int)((long long)n * 99 / 100)], samples[n - 1]);
+    bench_stats st = bench_stats_of(samples, n);
+    printf("%s %d %.0f %.0f %.0f\n", name, n, st.median, st.p99, st.max);
 }
 
 int main(int argc, char **argv)
@@ -64,9 +52,9 @@ int main(int argc, char **argv)
         }
     }
     for (i = 0; i < n; ++i) {
-        long long t0 = now_ns();
+        double t0 = bench_now_us();
         ddyn_dbw_decode_result r = ddyn_dbw_on_frame(&rx, 0x120u, frames[i % 16], 8, 1000u + (uint64_t)i);
-        samples[i] = now_ns() - t0;
+        samples[i] = (bench_now_us() - t0) * 1e3;
         sink += (unsigned long long)r;
     }
     if (rx.failures[DDYN_DBW_FAIL_COUNTER_JUMP] != 0u || sink != 0u) {
@@ -75,9 +63,9 @@ int main(int argc, char **argv)
     }
     report("dbw_on_frame", n);
     for (i = 0; i < n; ++i) {
-        long long t0 = now_ns();
+        double t0 = bench_now_us();
         (void)ddyn_dbw_command_frame(&rx, 1000u + (uint64_t)i, &desired, &sent, data);
-        samples[i] = now_ns() - t0;
+        samples[i] = (bench_now_us() - t0) * 1e3;
         sink += data[7];
     }
     report("dbw_command_frame", n);

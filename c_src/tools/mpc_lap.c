@@ -15,17 +15,12 @@
 #include <string.h>
 #include <time.h>
 
+#include "bench_timing.h"
 #include "ddyn/mpc.h"
 #include "ddyn_models.h"
 
 #define MAX_STEPS 200000
 
-static double now_us(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (double)t.tv_sec * 1e6 + (double)t.tv_nsec * 1e-3;
-}
 
 static int read_doubles(double *v, int n)
 {
@@ -115,9 +110,9 @@ int main(void)
     for (k = 0; k < steps; ++k) {
         double u[DDYN_NU], xn[DDYN_NX], t0, t1;
         ddyn_mpc_info info;
-        t0 = now_us();
+        t0 = bench_now_us();
         st = ddyn_mpc_solve(&mpc, x, u, &info);
-        t1 = now_us();
+        t1 = bench_now_us();
         if (ddyn_model_step(model, DDYN_DISC_RK4, x, u, pc, xn, &work) != DDYN_OK) {
             fprintf(stderr, "ddyn_mpc_lap: plant step failed at step %d\n", k);
             return 1;

@@ -16,23 +16,12 @@
 #include <string.h>
 #include <time.h>
 
+#include "bench_timing.h"
 #include "ddyn/telemetry.h"
 
 #define MAX_CALLS 200000
 #define PLAN_HORIZON 40
 
-static double now_us(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec * 1e6 + (double)ts.tv_nsec * 1e-3;
-}
-
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
 
 static double states[(PLAN_HORIZON + 1) * DDYN_NX], inputs[PLAN_HORIZON * DDYN_NU];
 static double samples[MAX_CALLS];
@@ -99,6 +88,7 @@ static int measure(const char *url, ddyn_tm_kind kind, double rate, int n, doubl
     static double lo[DDYN_NC], hi[DDYN_NC];
     static ddyn_telemetry tm;
     ddyn_telemetry_config cfg;
+    bench_stats st;
     int i;
     for (i = 0; i < DDYN_NC; ++i) {
         lo[i] = 0.0;
@@ -114,9 +104,9 @@ static int measure(const char *url, ddyn_tm_kind kind, double rate, int n, doubl
         return 0;
     }
     for (i = 0; i < n; ++i) {
-        double t0 = now_us();
+        double t0 = bench_now_us();
         ddyn_tm_status s = call(&tm, kind, i);
-        samples[i] = now_us() - t0;
+        samples[i] = bench_now_us() - t0;
         if (s != DDYN_TM_PUBLISHED && s != DDYN_TM_SKIPPED) {
             fprintf(stderr, "ddyn_telemetry_bench: %s: %s\n", ddyn_tm_kind_name(kind), ddyn_tm_status_name(s));
             ddyn_telemetry_close(&tm);
@@ -124,10 +114,10 @@ static int measure(const char *url, ddyn_tm_kind kind, double rate, int n, doubl
         }
     }
     ddyn_telemetry_close(&tm);
-    qsort(samples, (size_t)n, sizeof samples[0], cmp_double);
-    out[0] = samples[n / 2];
-    out[1] = samples[(int)ceil(0.99 * n) - 1];
-    out[2] = samples[n - 1];
+    st = bench_stats_of(samples, n);
+    out[0] = st.median;
+    out[1] = st.p99;
+    out[2] = st.max;
     return 1;
 }
 
