@@ -1,1 +1,1 @@
-"""Code generation (CasADi) from the one vehicle model in train.model."""
+"""ddyn.codegen: C code generated from the one vehicle model (CasADi) and from the DBC (cantools)."""

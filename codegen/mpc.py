@@ -1,4 +1,4 @@
-"""`ddyn codegen`, MPC part: the MPC's prediction step and each vehicle's input limits.
+"""`ddyn codegen model`, MPC part: the MPC's prediction step and each vehicle's input limits.
 
 c_src/generated/ddyn_mpc_model.c/.h  ddyn_<vehicle>_mpc_step(x, u, c) -> x_next, A, B: one RK4 step
     over the whole sample time (a single sub-step) with its Jacobians wrt x and u, in one function.
@@ -12,14 +12,14 @@ Byte-reproducible, with the banner of the model code (hashes of the model source
 """
 from __future__ import annotations
 
-from pathlib import Path
-
 import tempfile
+from pathlib import Path
 
 import casadi as ca
 
-from train import backends
-from train.vehicle import Vehicle
+from ddyn.codegen.c_text import c_double
+from ddyn.model import backends
+from ddyn.model.vehicle import Vehicle
 
 MPC_RK4_SUBSTEPS = 1
 
@@ -58,8 +58,6 @@ def generate(vehicles: list[Vehicle], out: Path, banner, options: dict) -> list[
 
 
 def generate_limits(vehicles: list[Vehicle], out: Path, banner, funcs: list[ca.Function]) -> list[Path]:
-    from .generate import _c_double
-
     lines = [banner("Input limits of each vehicle (vehicle files' input_limits) for the MPC defaults.", vehicles),
              "#ifndef DDYN_MPC_LIMITS_H", "#define DDYN_MPC_LIMITS_H", "",
              '#include "ddyn/model.h"', '#include "ddyn_mpc_model.h"', "",
@@ -73,7 +71,7 @@ def generate_limits(vehicles: list[Vehicle], out: Path, banner, funcs: list[ca.F
              f"#define DDYN_MPC_LIMITS_COUNT {len(vehicles)}",
              "static const ddyn_mpc_vehicle_limits ddyn_mpc_limits[DDYN_MPC_LIMITS_COUNT] = {"]
     for v in vehicles:
-        rows = ", ".join("{" + f"{_c_double(v.input_limits[k][0])}, {_c_double(v.input_limits[k][1])}" + "}"
+        rows = ", ".join("{" + f"{c_double(v.input_limits[k][0])}, {c_double(v.input_limits[k][1])}" + "}"
                          for k in LIMIT_ORDER)
         lines.append(f'    {{"{v.name}", {{{rows}}}, ddyn_{v.name}_mpc_step}},')
     lines += ["};", "", "#endif", ""]

@@ -28,7 +28,7 @@ ddyn import "$SHARED/reference/DYN-PP-ETHZ.npz" -o "$OUT/dyn_pp_ethz.csv"
 ddyn import "$SHARED/real/Putnam_park2023_run4_2.csv" -o "$OUT/putnam.csv"
 
 step "codegen: C code of the model step and Jacobians (CasADi)"
-ddyn codegen
+ddyn codegen model
 git -C "$ROOT" diff --quiet -- c_src/generated tests/c/generated 2>/dev/null \
   || echo "note: generated code differs from the committed copy (model or vehicle files changed): commit it"
 
@@ -39,16 +39,16 @@ step "build: C runtime with CMake, guard network built for the exported tables"
 bash "$ROOT/scripts/build.sh" "$ROOT/build" -DDDYN_NET_EXPORT_DIR="$OUT/export"
 
 step "bench: C guard-net inference and EKF step against PyTorch / numpy+CasADi (median, p99, max)"
-ddyn bench --model "$OUT/ddm_orca.ckpt" --data "$OUT/orca_ethzMobil_euler.csv" --out "$OUT/bench/bench.json"
+ddyn bench runtime --model "$OUT/ddm_orca.ckpt" --data "$OUT/orca_ethzMobil_euler.csv" --out "$OUT/bench/bench.json"
 
 step "crosscheck: generated C model against the Python model"
-ddyn crosscheck --data "$OUT/orca_ethz_euler.csv" --method euler
-ddyn crosscheck --data "$OUT/orca_ethzMobil_rk4_noisy.csv" --method rk4
-ddyn crosscheck --data "$OUT/dyn_pp_ethz.csv" --coeffs reference_dataset
-ddyn crosscheck --data "$OUT/putnam.csv" --method rk4
+ddyn codegen check --data "$OUT/orca_ethz_euler.csv" --method euler
+ddyn codegen check --data "$OUT/orca_ethzMobil_rk4_noisy.csv" --method rk4
+ddyn codegen check --data "$OUT/dyn_pp_ethz.csv" --coeffs reference_dataset
+ddyn codegen check --data "$OUT/putnam.csv" --method rk4
 
 step "sil: one lap of ETHZMobil, the plant and the controller (the DDM above) as two processes over vcan"
-ddyn sil --track ethzMobil --vehicle orca_1_43 --model "$OUT/ddm_orca.ckpt" --laps 1 --out "$OUT/sil"
+ddyn sil run --track ethzMobil --vehicle orca_1_43 --model "$OUT/ddm_orca.ckpt" --laps 1 --out "$OUT/sil"
 
 step "diagnose: a noisy log with one unmodelled effect, diagnosed blind (where, which effect, how far)"
 # the simulator records its effects in the log's metadata; the diagnosis does not read them (it only echoes

@@ -49,7 +49,8 @@ fi
 stamp="$(cat "$ROOT/requirements.lock" "$ROOT/pyproject.toml" | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$ROOT/.venv/.ddyn-installed" 2>/dev/null)" != "$stamp" ]; then
   echo "setup: installing pinned Python packages (requirements.lock)"
-  "$ROOT/.venv/bin/pip" install -q --disable-pip-version-check -r "$ROOT/requirements.lock" 2> >(grep -v "is ignored: it is neither" >&2)
+  # the full resolved set with the sha256 of every file (scripts/lock.sh writes it from requirements.in)
+  "$ROOT/.venv/bin/pip" install -q --disable-pip-version-check --require-hashes -r "$ROOT/requirements.lock" 2> >(grep -v "is ignored: it is neither" >&2)
   "$ROOT/.venv/bin/pip" install -q --disable-pip-version-check --no-deps -e "$ROOT" 2> >(grep -v "is ignored: it is neither" >&2)
   echo "$stamp" > "$ROOT/.venv/.ddyn-installed"
 fi

@@ -12,15 +12,15 @@
 #define TAU DDYN_NET_TAU
 #define NFEAT DDYN_NET_NFEAT
 
-/* state indices of the history features vx, vy, omega, throttle, steering (train/windows.py) */
+/* state indices of the history features vx, vy, omega, throttle, steering (train/data/windows.py) */
 #define FIRST_FEATURE_STATE 3
 #define VX 3
 #define THROTTLE 6
 #define CM1 12
 #define CR0 14
-/* the model's coefficient order (ddyn/model.h, train/model.py COEFF_NAMES) */
+/* the model's coefficient order (ddyn/model.h, train/model/single_track.py COEFF_NAMES) */
 #define COEFF_ORDER "Bf,Cf,Df,Ef,Gf,Kf,Br,Cr,Dr,Er,Gr,Kr,Cm1,Cm2,Cr0,Cd,Iz"
-/* default throttle PID gains: `ddyn sil-pid-sweep` on the true-coefficient SIL lap (docs/sil.md) */
+/* default throttle PID gains: `ddyn sil pid-sweep` on the true-coefficient SIL lap (docs/sil.md) */
 #define PID_DEFAULT_KP 2.0
 #define PID_DEFAULT_KI 0.5
 #define PID_DEFAULT_KD 0.0

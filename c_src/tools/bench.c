@@ -1,5 +1,5 @@
 /*
- * ddyn_bench: timing of the runtime's real-time functions (host tool; `ddyn bench` drives it).
+ * ddyn_bench: timing of the runtime's real-time functions (host tool; `ddyn bench runtime` drives it).
  *
  * usage: ddyn_bench N < histories     N calls of each function; prints one line per function:
  *        "NAME n median_us p99_us max_us"

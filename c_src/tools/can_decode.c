@@ -3,7 +3,7 @@
  * (ddyn_dbw_decode over the cantools-generated packers), one output line per input frame:
  *   <ID hex> <result> [<frame> <counter> <name>=<value> ...]
  * result: ok, foreign_id, unknown_id, bad_length, checksum, range, unparsed. The Python tools
- * decode the same logs with cantools (train/can_protocol.py); tests/python/test_can_tools.py
+ * decode the same logs with cantools (train/data/can_protocol.py); tests/python/test_can_tools.py
  * compares the two line by line.
  */
 #include <ctype.h>

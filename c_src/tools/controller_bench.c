@@ -1,6 +1,6 @@
 /*
  * ddyn_controller_bench: closed-loop timing of the whole controller step (host tool;
- * train/controller_bench.py writes its input and reads its output).
+ * train/bench/controller.py writes its input and reads its output).
  *
  * usage: ddyn_controller_bench STEPS SEED < setup
  *

@@ -2,7 +2,7 @@
  * ddyn_dbw_bench: per-call timings of the drive-by-wire path (ddyn/dbw.h), each call timed on
  * CLOCK_MONOTONIC: receiving one frame (decode, checksum, range and counter checks, monitor
  * update) and producing one command frame (deadline check, range check, encode, checksum).
- * Prints "<name> <calls> <median_ns> <p99_ns> <max_ns>" per function; `ddyn can-bench` runs it
+ * Prints "<name> <calls> <median_ns> <p99_ns> <max_ns>" per function; `ddyn can bench` runs it
  * beside the Python decoder.   usage: ddyn_dbw_bench [CALLS]   (default 100000)
  */
 #define _POSIX_C_SOURCE 199309L

@@ -5,7 +5,7 @@
  * Each input line holds 27 numbers, x[8] u[2] c[17], separated by spaces; each
  * output line holds x_next[8] with 17 significant digits. A malformed line or a
  * model error stops the tool with a message naming the line, and exit status 1.
- * (`ddyn crosscheck` drives it.)
+ * (`ddyn codegen check` drives it.)
  */
 #include <stdio.h>
 #include <stdlib.h>

@@ -1,6 +1,6 @@
 /*
- * ddyn_mpc_lap: the C MPC driving the simulated car in closed loop (host tool; `ddyn mpc-lap` and
- * `ddyn bench` drive it). The plant is the generated model step (RK4) with its own coefficients.
+ * ddyn_mpc_lap: the C MPC driving the simulated car in closed loop (host tool; `ddyn mpc lap` and
+ * `ddyn bench runtime` drive it). The plant is the generated model step (RK4) with its own coefficients.
  *
  * usage: ddyn_mpc_lap < setup      setup is text, keyword lines then the raceline table:
  *   vehicle NAME | disc rk4_single|euler|rk4 | horizon H | steps N | weights qx qy q_terminal r_dT r_dd l1 l2

@@ -1,7 +1,7 @@
 /*
  * ddyn_telemetry_replay: publish a stream of controller telemetry read from stdin through
  * the telemetry module (ddyn/telemetry.h), so the whole path C -> LCM -> log -> `ddyn import`
- * runs without the controller. `ddyn lcm-replay` feeds it a dataset.
+ * runs without the controller. `ddyn lcm replay` feeds it a dataset.
  *
  * usage: ddyn_telemetry_replay [-u URL] [-p PREFIX] [-c CONTROL_HZ] [-r KIND=HZ]... [-s SPEED] [-m] < stream
  *   URL: LCM provider (default: LCM's default), e.g. "file:///tmp/run.lcm?mode=w"

@@ -1,5 +1,5 @@
 /*
- * controller_setup.h - the controller process's setup file (written by `ddyn sil`, format in
+ * controller_setup.h - the controller process's setup file (written by `ddyn sil run`, format in
  * controller_main.c's header comment) and the node built from it. Host-side (stdio).
  */
 #ifndef DDYN_SIL_CONTROLLER_SETUP_H

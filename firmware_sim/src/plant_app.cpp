@@ -25,7 +25,7 @@ double wall_now() {
 
 const ddyn_vehicle_model* find_model(const std::string& name) {
   const ddyn_vehicle_model* m = ddyn_model_find(name.c_str());
-  if (m == nullptr) throw std::runtime_error("no generated model for vehicle '" + name + "' (run ddyn codegen)");
+  if (m == nullptr) throw std::runtime_error("no generated model for vehicle '" + name + "' (run ddyn codegen model)");
   return m;
 }
 

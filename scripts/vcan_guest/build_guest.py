@@ -12,7 +12,7 @@
   initramfs busybox-static, the modules, the test binaries (statically linked: the guest has no
            libc) and an /init that loads the modules, creates vcan0 (MTU 72: CAN FD capable), runs the tests and prints
            "DDYN_GUEST_EXIT: <status>" on the serial console.
-  dynamic  for other guests (`ddyn sil`'s, whose controller and lcm-logger link liblcm and GLib):
+  dynamic  for other guests (`ddyn sil run`'s, whose controller and lcm-logger link liblcm and GLib):
            add_binaries() copies a dynamically linked executable with its ELF interpreter (at its
            PT_INTERP path) and the shared-library closure ldd resolves on this host, into
            GUEST_LIB_DIR (the guest's /init exports LD_LIBRARY_PATH=GUEST_LIB_DIR). A library ldd

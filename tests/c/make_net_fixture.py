@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from train import checkpoint, vehicle
-from train.export import export
-from train.training import TrainConfig, TrainResult, build_model
+from ddyn.learn import checkpoint
+from ddyn.learn.export import export
+from ddyn.learn.training import TrainConfig, TrainResult, build_model
+from ddyn.model import vehicle
 
 OUT = Path(__file__).resolve().parent / "generated" / "net_fixture"
 TAU, CASES = 3, 16

@@ -1,6 +1,6 @@
 /*
  * The generated C model against the Python model (tests/c/generated/ddyn_model_vectors.h,
- * written by `ddyn codegen`): next states from numpy, Jacobians from torch autograd.
+ * written by `ddyn codegen model`): next states from numpy, Jacobians from torch autograd.
  * Also the wrapper's contract: bad input is refused by name and leaves outputs untouched.
  */
 #include <math.h>

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from train.paths import shared_data_dir
+from ddyn.paths import shared_data_dir
 
 
 @pytest.fixture(scope="session")

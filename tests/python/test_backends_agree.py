@@ -5,9 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from train import backends, fidelity, vehicle
-from train.model import N_STATE
-from train.sampling import random_cases
+from ddyn.analysis import fidelity
+from ddyn.model import backends, vehicle
+from ddyn.model.sampling import random_cases
+from ddyn.model.single_track import N_STATE
 
 N_CASES = 4000
 RTOL = 1e-12

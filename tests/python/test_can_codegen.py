@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import filecmp
 
-from codegen import can as cangen
+from ddyn.codegen import can as cangen
 
 
 def test_can_regeneration_matches_committed_files(tmp_path):
@@ -11,10 +11,10 @@ def test_can_regeneration_matches_committed_files(tmp_path):
     assert sorted(f.name for f in written) == ["ddyn_can.c", "ddyn_can.h"]
     for f in written:
         committed = cangen.DEFAULT_OUT / f.name
-        assert committed.is_file(), f"{committed} is not committed: run `ddyn can-codegen` and commit"
+        assert committed.is_file(), f"{committed} is not committed: run `ddyn can codegen` and commit"
         assert filecmp.cmp(f, committed, shallow=False), (
             f"{committed.name} differs from a fresh generation: the DBC or cantools changed; "
-            "run `ddyn can-codegen` and commit the result")
+            "run `ddyn can codegen` and commit the result")
     assert sorted(p.name for p in cangen.DEFAULT_OUT.iterdir()) == sorted(f.name for f in written)
 
 
@@ -29,4 +29,4 @@ def test_generated_can_files_name_their_recipe():
         head = f.read_text().splitlines()[:6]
         assert head[0] == "/* GENERATED FILE - DO NOT EDIT."
         assert any(cangen.dbc_hash() in line for line in head), f"{f.name} lacks the current DBC hash"
-        assert "ddyn can-codegen" in "\n".join(head)
+        assert "ddyn can codegen" in "\n".join(head)

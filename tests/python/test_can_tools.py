@@ -1,4 +1,4 @@
-"""The Python side of the drive-by-wire protocol (train/can_protocol.py, train/can_log.py) against
+"""The Python side of the drive-by-wire protocol (train/data/can_protocol.py, train/data/can_log.py) against
 the DBC, the measurement models, and the C decoder (ddyn_can_decode, built by CMake)."""
 from __future__ import annotations
 
@@ -6,11 +6,13 @@ import subprocess
 import threading
 from pathlib import Path
 
-import can
 import numpy as np
 import pytest
 
-from train import can_log, can_protocol as proto, mathns, sensors, simulate, tracks, vehicle
+import can
+from ddyn.data import can_log, simulate
+from ddyn.data import can_protocol as proto
+from ddyn.model import mathns, sensors, tracks, vehicle
 
 REPO = Path(__file__).resolve().parents[2]
 TOOL = REPO / "build" / "c_src" / "ddyn_can_decode"
@@ -161,19 +163,19 @@ def test_replay_and_record_through_a_bus(sim_log, tmp_path):
 
 
 def test_cli_export_and_import(sim, tmp_path, capsys):
-    from train.cli import main
-    from train.dataset import write_canonical
+    from ddyn.cli import main
+    from ddyn.data.dataset import write_canonical
 
     ds_path = write_canonical(sim, tmp_path / "sim.csv")
-    assert main(["can-export", str(ds_path), "-o", str(tmp_path / "x.log")]) == 0
-    assert main(["can-import", str(tmp_path / "x.log"), "-o", str(tmp_path / "tab")]) == 0
+    assert main(["can", "export", str(ds_path), "-o", str(tmp_path / "x.log")]) == 0
+    assert main(["can", "import", str(tmp_path / "x.log"), "-o", str(tmp_path / "tab")]) == 0
     assert "issues: none" in capsys.readouterr().out
     assert (tmp_path / "tab" / "GNSS_Heading.csv").is_file()
-    assert main(["can-import", str(tmp_path / "missing.log"), "-o", str(tmp_path / "tab")]) == 2
+    assert main(["can", "import", str(tmp_path / "missing.log"), "-o", str(tmp_path / "tab")]) == 2
 
 
 def test_can_bench_reports_c_and_python_side_by_side():
-    from train import can_bench
+    from ddyn.bench import can as can_bench
 
     tool = REPO / "build" / "c_src" / "ddyn_dbw_bench"
     if not tool.is_file():

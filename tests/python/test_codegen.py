@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import filecmp
 
-from codegen import generate as gen
+from ddyn.codegen import generate as gen
 
 
 def test_regeneration_matches_committed_files(tmp_path):
@@ -12,10 +12,10 @@ def test_regeneration_matches_committed_files(tmp_path):
     assert written, "codegen wrote nothing"
     for f in written:
         committed = (gen.DEFAULT_VECTORS_OUT if f.parent == vec else gen.DEFAULT_OUT) / f.name
-        assert committed.is_file(), f"{committed} is not committed: run `ddyn codegen` and commit"
+        assert committed.is_file(), f"{committed} is not committed: run `ddyn codegen model` and commit"
         assert filecmp.cmp(f, committed, shallow=False), (
             f"{committed.name} differs from a fresh generation: the model, a vehicle file or CasADi changed; "
-            "run `ddyn codegen` and commit the result")
+            "run `ddyn codegen model` and commit the result")
     # nothing stale left behind in the committed folder either
     # (subfolders such as can/ belong to other generators, with their own tests)
     assert sorted(p.name for p in gen.DEFAULT_OUT.iterdir() if p.is_file()) == sorted(p.name for p in out.iterdir())
@@ -32,8 +32,8 @@ def test_generated_jacobians_match_finite_differences():
     """The CasADi Jacobian functions (what the C gets) against central differences of the numpy model."""
     import numpy as np
 
-    from train import backends, vehicle
-    from train.sampling import random_cases
+    from ddyn.model import backends, vehicle
+    from ddyn.model.sampling import random_cases
 
     v = vehicle.load("orca_1_43")
     jac = [f for f in gen.model_functions(v) if f.name().endswith("step_euler_jac")][0]

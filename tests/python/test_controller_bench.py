@@ -1,4 +1,4 @@
-"""The controller benchmark's Python side (train/controller_bench.py) and a short closed-loop run
+"""The controller benchmark's Python side (train/bench/controller.py) and a short closed-loop run
 of the C tool: the parameter count of the large-network recipe, the raceline table the MPC gets,
 and that the tool's report parses with every status bit accounted for."""
 from __future__ import annotations
@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from train import checkpoint
-from train.controller_bench import DEFAULT_CONTROLLER_TOOL, make_net, parameter_count, raceline_table, run_controller
-from train.dataset import write_canonical
-from train.simulate import simulate
+from ddyn.bench.controller import DEFAULT_CONTROLLER_TOOL, raceline_table, run_controller
+from ddyn.bench.large_net import make_net, parameter_count
+from ddyn.data.dataset import write_canonical
+from ddyn.data.simulate import simulate
+from ddyn.learn import checkpoint
 
 
 @pytest.mark.parametrize("tau,hidden,layers,gru", [(5, 137, 2, 1), (5, 210, 3, 0), (3, 12, 2, 1), (1, 8, 1, 2)])

@@ -5,13 +5,15 @@ import numpy as np
 import pytest
 import torch
 
-from train import checkpoint, simulate, tracks, vehicle
-from train.cli import main as cli_main
-from train.dataset import Dataset, write_canonical
-from train.errors import DdynError
-from train.evaluate import evaluate
-from train.training import TrainConfig, build_model, train
-from train.windows import make_windows, split_train_validation
+from ddyn.cli import main as cli_main
+from ddyn.data import simulate
+from ddyn.data.dataset import Dataset, write_canonical
+from ddyn.data.windows import make_windows, split_train_validation
+from ddyn.errors import DdynError
+from ddyn.learn import checkpoint
+from ddyn.learn.evaluate import evaluate
+from ddyn.learn.training import TrainConfig, build_model, train
+from ddyn.model import tracks, vehicle
 
 TINY = dict(epochs=3, lbfgs_iterations=20, hidden=16, batch_size=128)
 
@@ -160,7 +162,7 @@ def test_evaluate_refuses_other_vehicle(lap, tmp_path, shared_data):
 
 def test_evaluate_reads_the_racecar_format_directly(tmp_path, shared_data):
     """A tiny full-scale DDM trained on a piece of the real log evaluates on the raw RACECAR CSV."""
-    from train.importers import load_any
+    from ddyn.data.importers import load_any
 
     putnam = shared_data / "real" / "Putnam_park2023_run4_2.csv"
     piece = write_canonical(load_any(putnam).subset(slice(0, 600)), tmp_path / "piece.csv")

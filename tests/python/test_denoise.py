@@ -1,18 +1,18 @@
 """EKF-FTHD denoiser: guards, filter correctness, the denoise command and the study's smoke run."""
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
 import pytest
 import torch
 
-from train import denoise as dn, denoise_study, ekf_layer as ek
-from train.dataset import Dataset
-from train.importers import load_any
-from train.simulate import simulate
-from train.vehicle import load as load_vehicle
+from ddyn.data.dataset import Dataset
+from ddyn.data.importers import load_any
+from ddyn.data.simulate import simulate
+from ddyn.learn import denoise as dn
+from ddyn.learn import ekf_layer as ek
+from ddyn.model.vehicle import load as load_vehicle
 
 torch.set_num_threads(1)
 
@@ -44,11 +44,9 @@ def _tensors(ds, coeffs):
 
 
 def _parser():
-    p = argparse.ArgumentParser()
-    sub = p.add_subparsers(dest="command", required=True)
-    dn.register(sub)
-    denoise_study.register(sub)
-    return p
+    from ddyn.cli import build_parser, commands_named
+
+    return build_parser(commands_named("denoise", "study"))
 
 
 # ----------------------------------------------------------------------------- guards
@@ -206,8 +204,8 @@ def test_savitzky_golay_works_per_segment_and_never_mixes_segments():
 
 @pytest.fixture(scope="module")
 def tiny_ckpt(tmp_path_factory, orca):
-    from train import checkpoint
-    from train.training import TrainConfig, train
+    from ddyn.learn import checkpoint
+    from ddyn.learn.training import TrainConfig, train
 
     ds = simulate(orca, "ethz", duration=3.0, seed=4, progress=False)
     r = train(ds, orca, TrainConfig(epochs=2, lbfgs_iterations=0), progress=False)
@@ -225,7 +223,7 @@ def _two_segment_log(noisy) -> Dataset:
 
 @pytest.mark.parametrize("method", ["ekf", "savgol"])
 def test_denoise_writes_a_canonical_file_with_raw_extras(tmp_path, noisy, tiny_ckpt, method):
-    from train.dataset import write_canonical
+    from ddyn.data.dataset import write_canonical
 
     src = write_canonical(_two_segment_log(noisy), tmp_path / "in.csv")
     out = tmp_path / "out.csv"
@@ -253,8 +251,8 @@ def test_denoise_writes_a_canonical_file_with_raw_extras(tmp_path, noisy, tiny_c
 
 
 def test_denoise_with_vehicle_coefficients_and_the_errors(tmp_path, noisy):
-    from train.dataset import write_canonical
-    from train.errors import DdynError
+    from ddyn.data.dataset import write_canonical
+    from ddyn.errors import DdynError
 
     src = write_canonical(noisy.subset(slice(0, 60)), tmp_path / "in.csv")
     args = _parser().parse_args(["denoise", str(src), "--vehicle", "orca_1_43", "-o", str(tmp_path / "o.csv"),
@@ -290,7 +288,7 @@ def test_suggested_ranges_rule(orca):
 # ----------------------------------------------------------------------------- the study
 
 def test_denoise_study_quick_sim_runs_end_to_end(tmp_path):
-    args = _parser().parse_args(["denoise-study", "sim", "--quick", "--out", str(tmp_path)])
+    args = _parser().parse_args(["study", "denoise", "sim", "--quick", "--out", str(tmp_path)])
     assert args.func(args) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     labels = [a["label"] for a in res["sim"]["conditions"]["white+coloured"]["arms"]]
@@ -299,7 +297,7 @@ def test_denoise_study_quick_sim_runs_end_to_end(tmp_path):
 
 
 def test_denoise_study_quick_real_runs_end_to_end(tmp_path, shared_data):
-    args = _parser().parse_args(["denoise-study", "real", "--quick", "--out", str(tmp_path)])
+    args = _parser().parse_args(["study", "denoise", "real", "--quick", "--out", str(tmp_path)])
     assert args.func(args) == 0
     res = json.loads((tmp_path / "results.json").read_text())
     assert set(res["real"]["arms"][0]["tests"]) == {"raw", "Savitzky-Golay", "EKF-FTHD"}

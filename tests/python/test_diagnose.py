@@ -7,15 +7,15 @@ import json
 import numpy as np
 import pytest
 
-from train import diagnose as D
-from train import vehicle as vehicles
-from train.dataset import write_canonical
+from ddyn.analysis import diagnose as D
+from ddyn.data.dataset import write_canonical
+from ddyn.model import vehicle as vehicles
 
 ORCA = vehicles.load("orca_1_43")
 
 
 def _sim(effects, seed=21, laps=2.0, noise=1.0):
-    from train.simulate import simulate
+    from ddyn.data.simulate import simulate
 
     return simulate(ORCA, "ethzMobil", laps=laps, seed=seed, noise_scale=noise, progress=False, effects=effects)
 
@@ -135,9 +135,9 @@ def test_reads_the_racecar_csv(shared_data, tmp_path):
 def test_checkpoint_nominal(delay_log, tmp_path):
     import torch
 
-    from train import checkpoint
-    from train.training import TrainConfig, TrainResult, build_model
-    from train.windows import features
+    from ddyn.data.windows import features
+    from ddyn.learn import checkpoint
+    from ddyn.learn.training import TrainConfig, TrainResult, build_model
 
     torch.manual_seed(0)
     f = features(delay_log)
@@ -145,8 +145,8 @@ def test_checkpoint_nominal(delay_log, tmp_path):
     model = build_model(cfg, ORCA, f.mean(axis=0), np.maximum(f.std(axis=0), 1e-9))
     path = checkpoint.save(checkpoint.make(TrainResult(model, cfg, np.ones(3), [], 0.0, 0.0), ORCA, "x", "x", 0),
                            tmp_path / "ddm.ckpt")
-    from train import gap_benchmark as GB
-    from train.errors import DdynError
+    from ddyn.analysis import gap_benchmark as GB
+    from ddyn.errors import DdynError
 
     with pytest.raises(DdynError, match="av21"):          # --real --model wants a model of the Putnam car
         GB.run_real(tmp_path / "real", model=str(path))
@@ -160,8 +160,8 @@ def test_checkpoint_nominal(delay_log, tmp_path):
 # ---------------------------------------------------------------------------------------------- gap benchmark
 
 def test_benchmark_plan_and_scoring():
-    from train import effects as E
-    from train import gap_benchmark as GB
+    from ddyn.analysis import gap_benchmark as GB
+    from ddyn.model import effects as E
 
     cases = GB.plan(390, seed=3)
     assert {c["effect"] for c in cases} == set(E.EFFECT_NAMES) | {"none"}
@@ -221,14 +221,14 @@ def test_benchmark_plan_and_scoring():
 
 def test_benchmark_cli_tiny_run(shared_data, tmp_path):
     """Two cases end to end on the 1:43 car: simulate, identify the nominal, diagnose blind, score, write."""
-    from train import gap_benchmark as GB
+    from ddyn.analysis import gap_benchmark as GB
 
     parser = argparse.ArgumentParser()
     GB.register(parser.add_subparsers())
     out = tmp_path / "gb"
     # the plan's first two slots: steer_delay and throttle_delay at random magnitudes (maybe below detection),
     # so the bookkeeping is checked, not the verdicts
-    args = parser.parse_args(["gap-benchmark", "--cases", "2", "--vehicles", "orca_1_43", "--out", str(out),
+    args = parser.parse_args(["gap", "--cases", "2", "--vehicles", "orca_1_43", "--out", str(out),
                               "--no-progress", "--seed", "5"])
     assert args.func(args) == 0
     doc = json.loads((out / "results.json").read_text())
@@ -241,14 +241,14 @@ def test_benchmark_cli_tiny_run(shared_data, tmp_path):
     assert "top-1" in (out / "results.md").read_text() and (out / "detection.png").stat().st_size > 1000
     # --rescore: the same cases scored again from results.json give the same summary
     (out / "results.md").unlink()
-    args = parser.parse_args(["gap-benchmark", "--rescore", "--out", str(out)])
+    args = parser.parse_args(["gap", "--rescore", "--out", str(out)])
     assert args.func(args) == 0
     again = json.loads((out / "results.json").read_text())
     assert again["summary"] == doc["summary"] and (out / "results.md").is_file()
 
 
 def test_benchmark_case_runs(shared_data):
-    from train import gap_benchmark as GB
+    from ddyn.analysis import gap_benchmark as GB
 
     case = {"case": 0, "vehicle": "orca_1_43", "track": "ethzMobil", "effect": "bank_angle", "magnitude": 0.03,
             "seed": 99}
@@ -267,7 +267,7 @@ def test_estimate_at_a_range_edge_is_flagged():
 
 def test_benchmark_real_log(shared_data, tmp_path):
     """--real: the nominal identified on the first half of the Putnam log, the rest diagnosed; honest caveats."""
-    from train import gap_benchmark as GB
+    from ddyn.analysis import gap_benchmark as GB
 
     if not (shared_data / "real" / "Putnam_park2023_run4_2.csv").is_file():
         pytest.skip("SHARED DATA MISSING: the Putnam log")

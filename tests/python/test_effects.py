@@ -1,4 +1,4 @@
-"""Unmodelled effects (train.effects) and the simulator's --effects hook."""
+"""Unmodelled effects (ddyn.model.effects) and the simulator's --effects hook."""
 from __future__ import annotations
 
 import argparse
@@ -8,11 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from train import effects as E
-from train import mathns, vehicle as vehicles
-from train.errors import DdynError
-from train.importers import read_canonical
-from train.model import derivatives as nominal_derivatives
+from ddyn.data.importers import read_canonical
+from ddyn.errors import DdynError
+from ddyn.model import effects as E
+from ddyn.model import mathns
+from ddyn.model import vehicle as vehicles
+from ddyn.model.single_track import derivatives as nominal_derivatives
 
 ORCA = vehicles.load("orca_1_43")
 P = ORCA.known
@@ -88,7 +89,7 @@ def test_lateral_capacity_effects():
     # friction ellipse: the rear lateral force shrinks under drive force, the front one does not
     cs = _d("combined_slip=0.8")
     assert cs[5] != d0[5] and abs(lateral(cs) - lateral(d0)) > 0
-    f = __import__("train.model", fromlist=["forces"]).forces(mathns.NUMPY, STATE, C, P)
+    f = __import__("ddyn.model.single_track", fromlist=["forces"]).forces(mathns.NUMPY, STATE, C, P)
     x = 0.8 * f.Frx / C[8]
     assert cs[5] - d0[5] == pytest.approx(-f.Fry * (math.sqrt(1 - x * x) - 1) * P.lr / C[16])
 
@@ -142,21 +143,21 @@ def test_relaxation_delays_the_slip_angle():
 
 @pytest.fixture(scope="module")
 def track(shared_data):
-    from train.tracks import load_track
+    from ddyn.model.tracks import load_track
 
     return load_track("ethzMobil", shared_data)
 
 
 @pytest.fixture(scope="module")
 def nominal_run(track):
-    from train.simulate import simulate
+    from ddyn.data.simulate import simulate
 
     return simulate(ORCA, track, duration=1.5, seed=5, noise_scale=1.0, progress=False)
 
 
 @pytest.mark.parametrize("name", E.EFFECT_NAMES)
 def test_zero_effect_simulation_is_bit_identical(name, track, nominal_run):
-    from train.simulate import simulate
+    from ddyn.data.simulate import simulate
 
     ds = simulate(ORCA, track, duration=1.5, seed=5, noise_scale=1.0, progress=False, effects={name: 0.0})
     assert np.array_equal(ds.states, nominal_run.states) and np.array_equal(ds.inputs, nominal_run.inputs)
@@ -167,7 +168,7 @@ def test_zero_effect_simulation_is_bit_identical(name, track, nominal_run):
 @pytest.mark.parametrize("name", E.EFFECT_NAMES)
 def test_log_predictor_reproduces_the_simulator(name, method, track):
     """The same memory rules in the simulator's plant and in the predictor on the recorded log."""
-    from train.simulate import simulate
+    from ddyn.data.simulate import simulate
 
     eff = {name: MAGNITUDE[name]}
     ds = simulate(ORCA, track, duration=1.5, seed=2, method=method, progress=False, effects=eff)
@@ -185,7 +186,7 @@ def test_log_predictor_reproduces_the_simulator(name, method, track):
 
 
 def test_sinusoid_bank_runs_and_differs(track, nominal_run):
-    from train.simulate import simulate
+    from ddyn.data.simulate import simulate
 
     ds = simulate(ORCA, track, duration=1.5, seed=5, noise_scale=1.0, progress=False,
                   effects="bank_angle.profile=sinusoid bank_angle.amplitude=0.1")
@@ -193,7 +194,7 @@ def test_sinusoid_bank_runs_and_differs(track, nominal_run):
 
 
 def test_simulate_cli_records_effects(tmp_path, shared_data):
-    from train.simulate import register
+    from ddyn.data.simulate import register
 
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers())

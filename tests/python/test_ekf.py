@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from train import backends, mathns, simulate, tracks, vehicle
-from train.sensors import MEASUREMENTS, measure
+from ddyn.data import simulate
+from ddyn.model import backends, mathns, tracks, vehicle
+from ddyn.model.sensors import MEASUREMENTS, measure
 
 REPO = Path(__file__).resolve().parents[2]
 TOOL = REPO / "build" / "c_src" / "ddyn_ekf_replay"

@@ -15,11 +15,13 @@ import numpy as np
 import pytest
 import torch
 
-from train import checkpoint, simulate, tracks, vehicle
-from train.export import export
-from train.importers import load_any
-from train.training import TrainConfig, TrainResult, build_model
-from train.windows import make_windows
+from ddyn.data import simulate
+from ddyn.data.importers import load_any
+from ddyn.data.windows import make_windows
+from ddyn.learn import checkpoint
+from ddyn.learn.export import export
+from ddyn.learn.training import TrainConfig, TrainResult, build_model
+from ddyn.model import tracks, vehicle
 
 REPO = Path(__file__).resolve().parents[2]
 N_HISTORIES = 10_000

@@ -8,12 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from train import backends, checkpoint, finetune as ft, fthd_study, simulate, tracks, vehicle
-from train.dataset import write_canonical
-from train.errors import DdynError
-from train.evaluate import evaluate
-from train.model import COEFF_NAMES
-from train.training import TrainConfig, build_model
+from ddyn.data import simulate
+from ddyn.data.dataset import write_canonical
+from ddyn.errors import DdynError
+from ddyn.learn import checkpoint
+from ddyn.learn import finetune as ft
+from ddyn.learn.evaluate import evaluate
+from ddyn.learn.training import TrainConfig, build_model
+from ddyn.model import backends, tracks, vehicle
+from ddyn.model.single_track import COEFF_NAMES
+from ddyn.studies import fthd as fthd_study
 
 TINY_FIT = ft.FitConfig(adam_steps=15, lbfgs_iterations=3, lr=3e-3, batch_size=128, eval_every=5)
 
@@ -68,9 +72,9 @@ def _constant_model(orca, coeffs: np.ndarray):
 
 
 def _cli(monkeypatch, argv):
-    import train.cli as cli
+    import ddyn.cli as cli
 
-    monkeypatch.setattr(cli, "SUBCOMMAND_MODULES", ("train.evaluate", "train.finetune", "train.fthd_study"))
+    monkeypatch.setattr(cli, "COMMANDS", cli.commands_named("evaluate", "finetune", "study"))
     return cli.main(argv)
 
 
@@ -239,7 +243,7 @@ def test_register_adds_both_subcommands():
     sub = parser.add_subparsers(dest="command")
     ft.register(sub)
     fthd_study.register(sub)
-    args = parser.parse_args(["fthd-study", "sim", "--quick"])
+    args = parser.parse_args(["fthd", "sim", "--quick"])
     assert args.which == "sim" and args.quick
     args = parser.parse_args(["finetune", "--base", "b", "--data", "d", "-o", "o"])
     assert (args.lambda1, args.lambda2, args.freeze_fraction, args.fraction) == (0.5, 0.5, 0.5, 1.0)
@@ -250,7 +254,7 @@ def test_register_adds_both_subcommands():
 
 def test_study_quick_runs_end_to_end(monkeypatch, shared_data, tmp_path):
     out = tmp_path / "study"
-    assert _cli(monkeypatch, ["fthd-study", "all", "--quick", "--quiet", "--out", str(out)]) == 0
+    assert _cli(monkeypatch, ["study", "fthd", "all", "--quick", "--quiet", "--out", str(out)]) == 0
     res = json.loads((out / "results.json").read_text())
     assert [r["fraction"] for r in res["sim"]["fractions"]] == list(fthd_study.SIM_FRACTIONS)
     for source in ("sim", "log"):

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import train.cli
-from train.dataset import SAMPLE_TIME_RTOL, Dataset, write_canonical
-from train.errors import DataError, DdynError
-from train.importers import detect_format, load_any, read_canonical, read_ddm_npz, read_racecar_csv
+import ddyn.cli
+from ddyn.data.dataset import SAMPLE_TIME_RTOL, Dataset, write_canonical
+from ddyn.data.importers import detect_format, load_any, read_canonical, read_ddm_npz, read_racecar_csv
+from ddyn.errors import DataError, DdynError
 
 # a numpy overflow warning or an unclosed file is a bug here, not noise
 pytestmark = pytest.mark.filterwarnings("error")
@@ -567,12 +567,11 @@ def test_putnam_loads_fast(putnam_csv):
 
 
 def run_cli(argv: list[str], monkeypatch) -> tuple[int, str]:
-    assert "train.importers" in train.cli.SUBCOMMAND_MODULES
-    # only this module's subcommand: the test must not depend on the other commands' modules
-    monkeypatch.setattr(train.cli, "SUBCOMMAND_MODULES", ("train.importers",))
+    # only this command: the test must not depend on the other commands' modules
+    monkeypatch.setattr(ddyn.cli, "COMMANDS", ddyn.cli.commands_named("import"))
     out = io.StringIO()
     with redirect_stdout(out):
-        code = train.cli.main(argv)
+        code = ddyn.cli.main(argv)
     return code, out.getvalue()
 
 

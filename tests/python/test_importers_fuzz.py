@@ -13,10 +13,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from train.dataset import COLUMNS, Dataset, write_canonical
-from train.errors import DdynError
-from train.importers import load_any, read_canonical, read_ddm_npz, read_racecar_csv
-from train.paths import shared_data_dir
+from ddyn.data.dataset import COLUMNS, Dataset, write_canonical
+from ddyn.data.importers import load_any, read_canonical, read_ddm_npz, read_racecar_csv
+from ddyn.errors import DdynError
+from ddyn.paths import shared_data_dir
 
 FUZZ = settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -19,14 +19,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import train.cli
-from train import lcm_types, simulate, tracks, vehicle
-from train.dataset import write_canonical
-from train.errors import DataError, DdynError
-from train.importers import detect_format, load_any
-from train.lcm_import import read_events
-from train.lcm_replay import DEFAULT_TOOL, replay
-from train.model import COEFF_NAMES, STATE_NAMES
+import ddyn.cli
+from ddyn.data import lcm_types, simulate
+from ddyn.data.dataset import write_canonical
+from ddyn.data.importers import detect_format, load_any
+from ddyn.data.lcm_import import read_events
+from ddyn.data.lcm_replay import DEFAULT_TOOL, replay
+from ddyn.errors import DataError, DdynError
+from ddyn.model import tracks, vehicle
+from ddyn.model.single_track import COEFF_NAMES, STATE_NAMES
 
 lcm = pytest.importorskip("lcm", reason="LCM MISSING: the `lcm` package (requirements.lock) is not installed")
 
@@ -284,14 +285,14 @@ def test_lcm_logger_over_udp_multicast(tmp_path, sim, tool):
 
 
 def run_cli(argv: list[str], monkeypatch) -> int:
-    monkeypatch.setattr(train.cli, "SUBCOMMAND_MODULES", ("train.importers", "train.lcm_replay"))
-    return train.cli.main(argv)
+    monkeypatch.setattr(ddyn.cli, "COMMANDS", ddyn.cli.commands_named("import", "lcm"))
+    return ddyn.cli.main(argv)
 
 
 def test_cli_replay_then_import(tmp_path, monkeypatch, capsys, sim, tool):
     src = write_canonical(sim, tmp_path / "sim.csv")
     log, out = tmp_path / "run.lcm", tmp_path / "back.csv"
-    assert run_cli(["lcm-replay", str(src), "-o", str(log), "--rate", "coeffs=10"], monkeypatch) == 0
+    assert run_cli(["lcm", "replay", str(src), "-o", str(log), "--rate", "coeffs=10"], monkeypatch) == 0
     assert "COEFFS published 30 skipped 120 errors 0" in capsys.readouterr().out
     assert run_cli(["import", str(log), "-o", str(out)], monkeypatch) == 0
     assert "150 rows, 1 segment(s)" in capsys.readouterr().out
@@ -301,7 +302,7 @@ def test_cli_replay_then_import(tmp_path, monkeypatch, capsys, sim, tool):
     log.write_bytes(log.read_bytes()[:-7])
     assert run_cli(["import", str(log), "-o", str(out)], monkeypatch) == 2
     assert re.search(r"run.lcm: event \d+ \(byte offset \d+\): truncated", capsys.readouterr().err)
-    assert run_cli(["lcm-replay", str(src), "-o", str(log), "--rate", "nonsense=1"], monkeypatch) == 2
+    assert run_cli(["lcm", "replay", str(src), "-o", str(log), "--rate", "nonsense=1"], monkeypatch) == 2
 
 
 # ---- fuzzing: whatever the bytes, a DdynError or a sane dataset

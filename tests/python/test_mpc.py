@@ -1,4 +1,4 @@
-"""The MPC in closed loop (short versions of `ddyn mpc-lap`): the C MPC (ddyn_mpc_lap) drives the
+"""The MPC in closed loop (short versions of `ddyn mpc lap`): the C MPC (ddyn_mpc_lap) drives the
 simulated 1:43 car on ethzMobil from near standstill, and the CasADi + IPOPT reference MPC drives
 it over the same stretch; plus the raceline table and the generated limits table."""
 from __future__ import annotations
@@ -8,10 +8,12 @@ import re
 import numpy as np
 import pytest
 
-from codegen import generate as gen
-from train import mpc_lap, mpc_reference, vehicle
-from train.mpc_setup import FOOTPRINT, MpcSettings, TableGeometry, raceline_table
-from train.tracks import load_track
+from ddyn.codegen import generate as gen
+from ddyn.control import mpc_lap, mpc_reference
+from ddyn.control.mpc_setup import MpcSettings, TableGeometry, raceline_table
+from ddyn.model import vehicle
+from ddyn.model.tracks import load_track
+from ddyn.model.vehicle import FOOTPRINT
 
 STEPS = 120  # 2.4 s: the start, the first S-bend and the first hairpin
 
@@ -105,7 +107,7 @@ def test_generated_limits_table_matches_the_vehicle_files():
     (0.1, -0.03, 0.0),  # full speed profile: 254
 ])
 def test_long_closed_loop_keeps_the_footprint_inside_from_perturbed_starts(track, start_speed, lateral, heading):
-    """The robustness property (short version of `ddyn mpc-lap --sweep`): 10,000 steps, 34 laps, every
+    """The robustness property (short version of `ddyn mpc lap --sweep`): 10,000 steps, 34 laps, every
     footprint corner inside the bounds at every step, every solve converged."""
     if not mpc_lap.DEFAULT_TOOL.is_file():
         pytest.fail(f"{mpc_lap.DEFAULT_TOOL} missing: build the C side first (scripts/test.sh does)")

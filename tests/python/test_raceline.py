@@ -1,13 +1,13 @@
-"""The vehicle's own time-optimal line (train/raceline.py) and its use by the MPC table."""
+"""The vehicle's own time-optimal line (train/control/raceline.py) and its use by the MPC table."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from train import raceline as R
-from train.mpc_setup import FOOTPRINT, MpcSettings, raceline_table
-from train.tracks import load_track
-from train.vehicle import load as load_vehicle
+from ddyn.control import raceline as R
+from ddyn.control.mpc_setup import FOOTPRINT, MpcSettings, raceline_table
+from ddyn.model.tracks import load_track
+from ddyn.model.vehicle import load as load_vehicle
 
 
 @pytest.fixture(scope="module")
@@ -22,10 +22,10 @@ def orca():
 
 def test_committed_line_is_the_vehicles_and_stays_inside(mobil, orca):
     path = R.default_path(orca.name, mobil.name)
-    assert path.is_file(), "train/racelines/orca_1_43_ethzMobil.npz is committed (ddyn raceline writes it)"
+    assert path.is_file(), "train/racelines/orca_1_43_ethzMobil.npz is committed (ddyn mpc raceline writes it)"
     meta = R.meta_of(path)
     assert meta["vehicle"] == orca.name and meta["track"] == mobil.name
-    assert meta["vehicle_digest"] == orca.digest, "vehicle file changed: recompute with `ddyn raceline`"
+    assert meta["vehicle_digest"] == orca.digest, "vehicle file changed: recompute with `ddyn mpc raceline`"
     assert meta["ipopt_status"] == "Solve_Succeeded"
     line = R.line_for(mobil, orca.name)
     assert line.path == str(path)

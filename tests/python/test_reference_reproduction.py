@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import pytest
 
-from train import fidelity, vehicle
+from ddyn.analysis import fidelity
+from ddyn.model import vehicle
 
 TOL = 1e-9
 

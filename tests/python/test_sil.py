@@ -1,4 +1,4 @@
-"""ddyn sil: the configuration both processes read, and two-process runs over vcan (host or qemu guest).
+"""ddyn sil run: the configuration both processes read, and two-process runs over vcan (host or qemu guest).
 
 The two-process runs boot the qemu guest of scripts/vcan_guest when the host has no vcan (about
 15 s each in software emulation); a missing qemu, kernel or busybox is a failure, not a skip.
@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from train import sil
-from train.errors import DdynError
-from train.model import COEFF_NAMES
-from train.tracks import load_track
-from train.vehicle import load as load_vehicle
+from ddyn.errors import DdynError
+from ddyn.model.single_track import COEFF_NAMES
+from ddyn.model.tracks import load_track
+from ddyn.model.vehicle import load as load_vehicle
+from ddyn.sil import run as sil
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +42,7 @@ def test_effects_and_faults_parse_and_refuse():
     with pytest.raises(DdynError, match="not_an_effect"):
         sil.parse_effects("not_an_effect=1")
     with pytest.raises(DdynError, match="bank_angle"):
-        sil.parse_effects("bank_angle=0.1")  # an effect of train/effects.py the plant does not offer
+        sil.parse_effects("bank_angle=0.1")  # an effect of train/model/effects.py the plant does not offer
     f = sil.parse_faults("drop=0.05 delay=0.04 silent=imu silent_at=2")
     assert f == {"drop": 0.05, "delay": 0.04, "silent": "imu", "silent_at": 2.0}
     with pytest.raises(DdynError, match="silent_at"):
@@ -111,13 +111,13 @@ def test_controller_setup_carries_the_throttle_mode_and_gains(orca, mobil):
 
 
 def test_sil_command_line_throttle_flags():
-    from train.cli import build_parser
+    from ddyn.cli import build_parser
     parser = build_parser()
-    a = parser.parse_args(["sil"])
+    a = parser.parse_args(["sil", "run"])
     assert a.throttle == "mpc" and a.pid_gains is None
-    a = parser.parse_args(["sil", "--throttle", "pid", "--pid-gains", "0.5,1,0"])
+    a = parser.parse_args(["sil", "run", "--throttle", "pid", "--pid-gains", "0.5,1,0"])
     assert a.throttle == "pid" and a.pid_gains == (0.5, 1.0, 0.0, 0.0)
-    for bad in (["sil", "--throttle", "pi"], ["sil", "--pid-gains", "1,2"], ["sil", "--pid-gains", "1,-2,0"]):
+    for bad in (["sil", "run", "--throttle", "pi"], ["sil", "run", "--pid-gains", "1,2"], ["sil", "run", "--pid-gains", "1,-2,0"]):
         with pytest.raises(SystemExit):
             parser.parse_args(bad)
 
@@ -195,7 +195,7 @@ def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_pat
     assert m["safe_state"]["controller_stale_latency_wall"] == lat
     assert json.loads((tmp_path / "plant_resume.json").read_text())["resume"].endswith("snapshot.json")
     # the controller's LCM log goes straight into ddyn import
-    from train.importers import load_any
+    from ddyn.data.importers import load_any
     ds = load_any(tmp_path / "controller.lcm")
     assert len(ds) == m["controller"]["periods"]
     check_live_lcm_log(m, tmp_path, orca)
@@ -208,7 +208,7 @@ CHANNELS = {"DDYN_STATE": "state_estimate_t", "DDYN_COEFFS": "guard_coeffs_t", "
 def check_live_lcm_log(m: dict, work: Path, vehicle) -> None:
     """controller.lcm of a two-process run is what the controller published live (lcm-logger's
     recording), complete, and agrees with the controller's own CSV log."""
-    from train.lcm_types import lcm_module, types
+    from ddyn.data.lcm_types import lcm_module, types
     info = m["lcm"]
     assert info["source"] == "live", info
     assert "telemetry_lcm.c" in info["publisher"] and info["logger"].startswith("lcm-logger")
@@ -262,7 +262,7 @@ def check_live_lcm_log(m: dict, work: Path, vehicle) -> None:
 def test_build_guest_takes_dynamic_binaries_with_their_libraries():
     """The guest builder copies a dynamic executable's interpreter and ldd closure; a library ldd
     cannot find is an error naming it (never a guest that fails to start the binary)."""
-    from train.lcm_types import lcm_module
+    from ddyn.data.lcm_types import lcm_module
     bg = sil._guest_module()
     logger = Path(lcm_module().LCM_BIN_DIR).resolve() / "lcm-logger"
     c = bg.Cpio()
@@ -284,8 +284,8 @@ def test_host_lcm_logger_records_a_publisher(tmp_path, shared_data):
     """The host path's logger lifecycle (--where host; this machine has no vcan for the whole run):
     lcm-logger listening on a free port before the publisher starts, drained and stopped by SIGINT
     after it, every message in the log."""
-    from train import simulate
-    from train.lcm_replay import DEFAULT_TOOL, replay
+    from ddyn.data import simulate
+    from ddyn.data.lcm_replay import DEFAULT_TOOL, replay
     if not DEFAULT_TOOL.is_file():
         pytest.fail(f"{DEFAULT_TOOL} missing: build the C side with DDYN_WITH_LCM=ON first (scripts/test.sh does)")
     try:
@@ -332,7 +332,7 @@ def test_a_lap_with_the_true_coefficients_in_process(orca, mobil, tmp_path, sil_
 def test_a_lap_with_pid_throttle_in_process(orca, mobil, tmp_path, sil_bins):
     """The DPM rows' set-up with the true coefficients (throttle by the controller's PID, the MPC steering
     only), in one process: the lap completes inside the bounds and the car follows the reference speed."""
-    from train.sil_table import speed_error
+    from ddyn.sil.table import speed_error
     spec = spec_for(orca, mobil, speed_scale=0.9, max_time=15.0, throttle="pid")
     m = sil.run_sil(spec, tmp_path, None, where="inprocess")
     assert m["throttle"] == "pid" and m["pid_gains"] == "default"
@@ -355,8 +355,8 @@ def test_sil_table_drives_the_dpm_rows_with_pid_throttle(orca, mobil, tmp_path, 
     """sil-table's runs without running them: the DDM and the truth with the MPC's throttle, every DPM
     row (fixed coefficients: its tyres and Iz, G = K = 0, the true drivetrain) and the truth once more
     with the PID's throttle, as the paper drove its DPM; the table says which."""
-    from train import sil_table
-    from train.cli import build_parser
+    from ddyn.cli import build_parser
+    from ddyn.sil import table as sil_table
     iz = orca.true_coefficients["Iz"]
     scales = {"a.ckpt": 1.0, "b.ckpt": 1.2, "c.ckpt": 0.8}
 
@@ -380,7 +380,7 @@ def test_sil_table_drives_the_dpm_rows_with_pid_throttle(orca, mobil, tmp_path, 
     monkeypatch.setattr(sil_table, "export_network", lambda ckpt, out: Path("/export"))
     monkeypatch.setattr(sil_table, "run_sil", fake_run)
     monkeypatch.setattr(sil_table, "load_track", lambda name: mobil)
-    args = build_parser().parse_args(["sil-table", "--ddm", "ddm.ckpt", "--dpm", "a.ckpt", "b.ckpt", "c.ckpt",
+    args = build_parser().parse_args(["sil", "table", "--ddm", "ddm.ckpt", "--dpm", "a.ckpt", "b.ckpt", "c.ckpt",
                                       "--data", "train.csv", "--out", str(tmp_path)])
     assert sil_table._run_table(args) == 0
     runs = {}
@@ -407,7 +407,7 @@ def test_sil_table_drives_the_dpm_rows_with_pid_throttle(orca, mobil, tmp_path, 
 
 
 def test_pid_sweep_scores_speed_error_and_chooses_a_clean_lap():
-    from train.sil_table import speed_error, sweep_choice
+    from ddyn.sil.table import speed_error, sweep_choice
     table = np.array([[0.0, 0.0, 1.0, 0, 0], [1.0, 0.0, 2.0, 0, 0], [2.0, 0.0, 3.0, 0, 0]])
     traj = {"x": np.array([0.1, 0.9, 2.2]), "y": np.zeros(3), "vx": np.array([1.0, 1.5, 3.0])}
     e = speed_error(traj, table)

@@ -1,4 +1,4 @@
-"""Tracks and closed-loop simulation (train.tracks, train.simulate)."""
+"""Tracks and closed-loop simulation (ddyn.model.tracks, ddyn.data.simulate)."""
 from __future__ import annotations
 
 import argparse
@@ -8,11 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from train import backends, vehicle as vehicles
-from train.errors import DdynError
-from train.model import STATE_NAMES
-from train.simulate import NOISY_CHANNELS, register, simulate
-from train.tracks import Track, load_track
+from ddyn.data.simulate import NOISY_CHANNELS, register, simulate
+from ddyn.errors import DdynError
+from ddyn.model import backends
+from ddyn.model import vehicle as vehicles
+from ddyn.model.single_track import STATE_NAMES
+from ddyn.model.tracks import Track, load_track
 
 DATA = Path(os.environ.get("DDYN_SHARED_DATA") or Path(__file__).resolve().parents[2].parent / "shared" / "data")
 if not (DATA / "tracks").is_dir():

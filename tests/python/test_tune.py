@@ -24,10 +24,12 @@ import pytest
 
 optuna = pytest.importorskip("optuna")
 
-from train import simulate, tracks, tune, vehicle  # noqa: E402
-from train.dataset import write_canonical  # noqa: E402
-from train.errors import DdynError  # noqa: E402
-from train.paths import shared_data_dir  # noqa: E402
+from ddyn.data import simulate  # noqa: E402
+from ddyn.data.dataset import write_canonical  # noqa: E402
+from ddyn.errors import DdynError  # noqa: E402
+from ddyn.learn import tune
+from ddyn.model import tracks, vehicle
+from ddyn.paths import shared_data_dir  # noqa: E402
 
 TINY = dict(epochs=2, lbfgs_iterations=0, seed=0, worker_id="test", progress=False)
 
@@ -74,7 +76,7 @@ def test_sqlite_study_two_trials(data_file, tmp_path):
 
 
 def test_failing_trial_is_recorded_not_fatal(data_file, tmp_path, monkeypatch):
-    import train.training as training
+    import ddyn.learn.training as training
 
     real, calls = training.train, []
 
@@ -93,7 +95,7 @@ def test_failing_trial_is_recorded_not_fatal(data_file, tmp_path, monkeypatch):
 
 
 def test_cli_reports_best_trial(data_file, tmp_path, capsys):
-    from train.cli import main
+    from ddyn.cli import main
 
     assert main(["tune", "--data", str(data_file), "--trials", "1", "--epochs", "1", "--lbfgs-iterations", "0",
                  "--out", str(tmp_path), "--study-name", "cli", "--quiet"]) == 0
@@ -209,7 +211,7 @@ def test_postgres_two_workers_share_one_study(postgres, data_file, tmp_path):
     workers = []
     for i in range(2):
         log = open(tmp_path / f"worker{i}.log", "w")
-        cmd = [sys.executable, "-m", "train.cli", "tune", "--data", str(data_file), "--storage", url,
+        cmd = [sys.executable, "-m", "ddyn.cli", "tune", "--data", str(data_file), "--storage", url,
                "--study-name", name, "--trials", "2", "--epochs", "2", "--lbfgs-iterations", "0",
                "--out", str(tmp_path / f"out{i}")]
         workers.append((subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path, env=env), log))
@@ -237,7 +239,7 @@ def test_postgres_two_workers_share_one_study(postgres, data_file, tmp_path):
     assert len({json.dumps(t.params, sort_keys=True) for t in complete}) > 1
 
     # the best trial is readable from a fresh process with its own connection
-    code = ("import json, sys; from train.tune import best_trial; t = best_trial(sys.argv[1], sys.argv[2]); "
+    code = ("import json, sys; from ddyn.learn.tune import best_trial; t = best_trial(sys.argv[1], sys.argv[2]); "
             "print(json.dumps({'number': t.number, 'value': t.value, 'params': t.params}))")
     r = subprocess.run([sys.executable, "-c", code, url, name], capture_output=True, text=True, timeout=60, env=env)
     assert r.returncode == 0, r.stderr

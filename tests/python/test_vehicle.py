@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from train import vehicle
-from train.errors import DdynError
-from train.model import COEFF_NAMES
+from ddyn.errors import DdynError
+from ddyn.model import vehicle
+from ddyn.model.single_track import COEFF_NAMES
 
 
 @pytest.mark.parametrize("name", ["orca_1_43", "av21"])

@@ -5,7 +5,7 @@
  *   1. history: the row [vx, vy, omega, throttle, steering, dthrottle, dsteering] of the previous
  *      period (the filter's estimate then and the command applied from it) enters the guard
  *      network's history of DDYN_NET_TAU rows, exactly the rows the network was trained on
- *      (train/windows.py: row k = state at k and the input applied from k to k+1);
+ *      (train/data/windows.py: row k = state at k and the input applied from k to k+1);
  *   2. coefficients: the guard network reads the history (the 17 coefficients of the step that
  *      led to now); while the history fills, or when the history's states lie outside the
  *      network's training range or the network's output is not finite, the last good coefficients (for a

@@ -115,7 +115,7 @@ typedef struct {
     double wheel_speed_rear;  /* m/s, rear axle */
 } ddyn_dbw_feedback;
 
-/* Sensor readings (IMU, GNSS_Position, GNSS_Heading), the units of train/sensors.py. */
+/* Sensor readings (IMU, GNSS_Position, GNSS_Heading), the units of train/model/sensors.py. */
 typedef struct {
     double yaw_rate; /* rad/s */
     double accel_x;  /* m/s^2, body frame */

@@ -2,9 +2,9 @@
  * ddyn/ekf.h - the car's extended Kalman filter over the single-track model.
  *
  * State: the model's 8 states (x, y, yaw, vx, vy, omega, throttle, steering).
- * Prediction: the generated discrete step and its Jacobian A (train/model.py via
- * `ddyn codegen`) with the coefficients the guard network estimates, plus a
- * diagonal process noise. Updates: any sensor of train/sensors.py, each optional
+ * Prediction: the generated discrete step and its Jacobian A (train/model/single_track.py via
+ * `ddyn codegen model`) with the coefficients the guard network estimates, plus a
+ * diagonal process noise. Updates: any sensor of train/model/sensors.py, each optional
  * and at its own rate (call ddyn_ekf_update when a reading arrives), with a
  * diagonal measurement noise; heading innovations are wrapped to [-pi, pi).
  * Joseph-form covariance update; all matrices fixed-size, column-major, in the

@@ -1,7 +1,7 @@
 /*
  * ddyn/guard_net.h - inference of the Deep Dynamics guard network on the car.
  *
- * The network (train/networks.py) maps a history of DDYN_NET_TAU rows of
+ * The network (train/learn/networks.py) maps a history of DDYN_NET_TAU rows of
  * [vx, vy, omega, throttle, steering, dthrottle, dsteering] to DDYN_NET_NOUT
  * coefficients: normalisation, optional GRU layers (PyTorch gate order r, z, n),
  * dense layers with Mish, a linear head and, for a DDM, the Physics Guard

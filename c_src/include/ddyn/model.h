@@ -2,7 +2,7 @@
  * ddyn/model.h - the vehicle model on the car: one discrete step and its Jacobians.
  *
  * The equations are not written here: they are generated from the one Python
- * definition (train/model.py) by `ddyn codegen` into c_src/generated/. This
+ * definition (train/model/single_track.py) by `ddyn codegen model` into c_src/generated/. This
  * module wraps the generated functions behind a small API with input checks and
  * caller-owned, fixed-size work memory (no allocation, C99).
  *

@@ -6,13 +6,13 @@
 // rates. Here the actuators turn set-points into those rates: each actuator moves toward its
 // (clamped) set-point as fast as its rate limit allows.
 //
-// Effects offered (all off by default; definitions as in train/effects.py):
+// Effects offered (all off by default; definitions as in train/model/effects.py):
 //   steer_delay, throttle_delay  the actuator sees the set-point commanded `delay` s ago
 //   steer_lag                    first-order lag (tau) between the set-point and the steering servo's target
 //   mass_offset                  the true mass is m (1 + fraction): the generated accelerations' force
 //                                part is scaled by 1 / (1 + fraction) (Iz, lf, lr unchanged)
 //   yaw_rate_bias                the gyro reads omega + bias (sensor side: see sensors.hpp)
-// The others of train/effects.py (bank, grade, downforce, combined slip, tyre relaxation and wear)
+// The others of train/model/effects.py (bank, grade, downforce, combined slip, tyre relaxation and wear)
 // change the tyre or gravity terms inside the model and would need generated C; not offered.
 #pragma once
 

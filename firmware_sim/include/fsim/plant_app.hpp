@@ -1,7 +1,7 @@
 // fsim/plant_app.hpp - the plant process: plant + sensors + DBW unit + lap monitor on a CAN bus,
 // with fault injection on the bus, real-time pacing or lock-step with the controller, and the
 // run's metrics, trajectory and state snapshots as files. Configured by one JSON document (written
-// by `ddyn sil`, format in docs/sil.md).
+// by `ddyn sil run`, format in docs/sil.md).
 #pragma once
 
 #include <nlohmann/json.hpp>

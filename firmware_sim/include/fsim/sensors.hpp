@@ -1,5 +1,5 @@
 // fsim/sensors.hpp - the car's sensors: what each reads comes from the generated sensor models
-// (train/sensors.py -> c_src/generated, ddyn_model_measure), sampled at its own rate with
+// (train/model/sensors.py -> c_src/generated, ddyn_model_measure), sampled at its own rate with
 // Gaussian noise (seeded), the gyro's bias effect, and a "silent" window for fault scenarios.
 #pragma once
 

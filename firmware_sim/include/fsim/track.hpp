@@ -1,7 +1,7 @@
 // fsim/track.hpp - a closed race track for the SIL plant: centre line, bounds, projection,
 // and the car's footprint against the bounds.
 //
-// Same conventions as train/tracks.py (the Python reference): the centre line is a closed
+// Same conventions as train/model/tracks.py (the Python reference): the centre line is a closed
 // polyline without a repeated end point; arc length s in [0, length); lateral offset positive
 // to the left of the direction of travel; which bound file is the left one is worked out from
 // the data. Files: <dir>/<name>_center.txt, _inner.txt, _outer.txt, two comma-separated rows

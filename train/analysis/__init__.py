@@ -1,0 +1,1 @@
+"""Analysis: evaluation, sim-to-real gap diagnosis and its benchmark, fidelity, crosschecks, plots."""

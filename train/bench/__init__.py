@@ -1,0 +1,1 @@
+"""Benchmarks: the C runtime (inference, EKF, MPC, controller step, CAN path) against Python."""

@@ -1,0 +1,1 @@
+"""Datasets: the canonical format, importers, training windows, simulation, LCM and CAN logs."""

@@ -1,0 +1,1 @@
+"""Learning: DDM/DPM networks, training, checkpoints, FTHD, the EKF layer, denoising, tuning, export."""

@@ -1,0 +1,114 @@
+"""The networks: Deep Dynamics (DDM) with its Physics Guard, and the Deep Pacejka baseline (DPM).
+
+Both read a normalised history (batch, tau, 7), produce coefficients, and take
+one step of the shared single-track model (ddyn.model.single_track via ddyn.model.backends) to
+predict the next state. Only the coefficient heads differ:
+
+* DDM: all 17 coefficients through the Physics Guard,
+      c = lo + (hi - lo) * sigmoid(z),   ranges [lo, hi] from the vehicle file,
+  so every coefficient is physical by construction (a coefficient pinned at a
+  bound is reported by evaluation, not hidden).
+* DPM (Kim et al., 2022): unbounded Pacejka B, C, D, E per axle and the rear
+  longitudinal force Frx estimated directly; Iz given (truth or off by +-20 %);
+  no shifts G, K. Its raw outputs start at the middle of the DDM ranges (and Frx
+  at 0) so training starts from a sane car; nothing bounds them afterwards.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ddyn.model import integrators, mathns
+from ddyn.model.backends import step_torch
+from ddyn.model.single_track import KnownParams, pacejka, rigid_body, slip_angles
+
+DPM_OUTPUTS = ("Bf", "Cf", "Df", "Ef", "Br", "Cr", "Dr", "Er", "Frx")
+
+
+class HistoryEncoder(nn.Module):
+    """Normalise the history, optionally run GRU layers, then Mish-activated dense layers."""
+
+    def __init__(self, tau: int, n_features: int, hidden: int, layers: int, gru_layers: int,
+                 mean: torch.Tensor, std: torch.Tensor):
+        super().__init__()
+        self.register_buffer("mean", mean.clone())
+        self.register_buffer("std", std.clone())
+        self.gru = nn.GRU(n_features, hidden, gru_layers, batch_first=True) if gru_layers > 0 else None
+        width = hidden if gru_layers > 0 else tau * n_features
+        dense: list[nn.Module] = []
+        for _ in range(layers):
+            dense += [nn.Linear(width, hidden), nn.Mish()]
+            width = hidden
+        self.dense = nn.Sequential(*dense)
+        self.out_width = width
+
+    def forward(self, history: torch.Tensor) -> torch.Tensor:
+        h = (history - self.mean) / self.std
+        if self.gru is not None:
+            h, _ = self.gru(h)
+            h = h[:, -1]
+        else:
+            h = h.flatten(1)
+        return self.dense(h)
+
+
+class DeepDynamics(nn.Module):
+    kind = "ddm"
+
+    def __init__(self, tau: int, hidden: int, layers: int, gru_layers: int, mean, std, lo, hi,
+                 known: KnownParams, sample_time: float, method: str = "euler", substeps: int = 1):
+        super().__init__()
+        self.encoder = HistoryEncoder(tau, mean.shape[-1], hidden, layers, gru_layers, mean, std)
+        self.head = nn.Linear(self.encoder.out_width, lo.shape[-1])
+        self.register_buffer("lo", lo.clone())
+        self.register_buffer("hi", hi.clone())
+        self.known, self.sample_time, self.method, self.substeps = known, sample_time, method, substeps
+
+    def coefficients(self, history: torch.Tensor) -> torch.Tensor:
+        """The Physics Guard: every coefficient inside its nominal range."""
+        z = self.head(self.encoder(history))
+        return self.lo + (self.hi - self.lo) * torch.sigmoid(z)
+
+    def step(self, state: torch.Tensor, inputs: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+        return step_torch(state, inputs, coeffs, self.known, self.sample_time, self.method, self.substeps)
+
+    def forward(self, history, state, inputs):
+        c = self.coefficients(history)
+        return self.step(state, inputs, c), c
+
+
+class DeepPacejka(nn.Module):
+    kind = "dpm"
+
+    def __init__(self, tau: int, hidden: int, layers: int, gru_layers: int, mean, std, init: torch.Tensor,
+                 iz: float, known: KnownParams, sample_time: float, method: str = "euler", substeps: int = 1):
+        super().__init__()
+        self.encoder = HistoryEncoder(tau, mean.shape[-1], hidden, layers, gru_layers, mean, std)
+        self.head = nn.Linear(self.encoder.out_width, len(DPM_OUTPUTS))
+        with torch.no_grad():
+            self.head.bias.copy_(init)
+        self.iz = float(iz)
+        self.known, self.sample_time, self.method, self.substeps = known, sample_time, method, substeps
+
+    def coefficients(self, history: torch.Tensor) -> torch.Tensor:
+        return self.head(self.encoder(history))
+
+    def step(self, state: torch.Tensor, inputs: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
+        ns = mathns.get("torch")
+        Bf, Cf, Df, Ef, Br, Cr, Dr, Er, Frx = coeffs.unbind(-1)
+        zero = torch.zeros_like(Bf)
+        u = inputs.unbind(-1)
+
+        def f(s):
+            _, _, _, vx, vy, omega, _, delta = s
+            alpha_f, alpha_r = slip_angles(ns, vx, vy, omega, delta, zero, zero, self.known)
+            Ffy = pacejka(ns, alpha_f, Bf, Cf, Df, Ef, zero)
+            Fry = pacejka(ns, alpha_r, Br, Cr, Dr, Er, zero)
+            return rigid_body(ns, s, u, Ffy, Fry, Frx, self.iz, self.known)
+
+        out = integrators.step(f, state.unbind(-1), self.sample_time, self.method, self.substeps)
+        return torch.stack(out, dim=-1)
+
+    def forward(self, history, state, inputs):
+        c = self.coefficients(history)
+        return self.step(state, inputs, c), c

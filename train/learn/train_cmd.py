@@ -1,0 +1,60 @@
+"""`ddyn train`: train a DDM or DPM on a dataset and write a checkpoint."""
+from __future__ import annotations
+
+import json
+from dataclasses import fields
+
+from ddyn.data.windows import split_train_validation
+from ddyn.errors import DdynError
+from ddyn.learn import checkpoint
+from ddyn.learn.evaluate import evaluate, format_summary, public
+from ddyn.learn.training import TrainConfig, train
+from ddyn.model import vehicle as vehicle_mod
+
+
+def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name: str | None = None,
+                        progress: bool = True) -> dict:
+    from ddyn.data.importers import load_any
+
+    ds = load_any(data_path, vehicle=vehicle_name)
+    name = vehicle_name or ds.vehicle
+    if not name:
+        raise DdynError(f"{data_path}: the dataset names no vehicle; pass --vehicle")
+    v = vehicle_mod.load(name)
+    result = train(ds, v, cfg, progress=progress)
+    ckpt = checkpoint.make(result, v, ds.content_hash(), str(data_path), len(ds))
+    # validation metrics on the held-out block, recorded in the checkpoint
+    _, va = split_train_validation(ds, cfg.tau, cfg.val_fraction)
+    val_ds = ds.subset(slice(int(va.end_row.min()) - cfg.tau + 1, int(va.end_row.max()) + 2))
+    ckpt["metrics"]["validation"] = public(evaluate(result.model, ckpt, val_ds))
+    checkpoint.save(ckpt, out)
+    return ckpt
+
+
+def _run(args) -> int:
+    overrides = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if getattr(args, f.name, None) is not None}
+    cfg = TrainConfig(**overrides)
+    ckpt = train_to_checkpoint(args.data, cfg, args.out, args.vehicle, progress=not args.quiet)
+    t = ckpt["training"]
+    print(f"trained {cfg.kind} in {t['seconds']:.1f} s, best validation loss {t['best_val_loss']:.4e}")
+    print("validation: " + format_summary(ckpt["metrics"]["validation"]))
+    print(f"wrote {args.out}")
+    if args.metrics_json:
+        with open(args.metrics_json, "w") as f:
+            json.dump(ckpt["metrics"], f, indent=2)
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("train", help="train a Deep Dynamics (ddm) or Deep Pacejka (dpm) model")
+    p.add_argument("--data", required=True, help="training dataset (any supported format)")
+    p.add_argument("-o", "--out", required=True, help="checkpoint file to write")
+    p.add_argument("--vehicle", help="vehicle name when the dataset does not name one")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--metrics-json", help="also write the checkpoint's metrics to this JSON file")
+    defaults = TrainConfig()
+    for f in fields(TrainConfig):
+        flag = "--" + f.name.replace("_", "-")
+        p.add_argument(flag, dest=f.name, type=type(getattr(defaults, f.name)), default=None,
+                       help=f"(default {getattr(defaults, f.name)})")
+    p.set_defaults(func=_run)

@@ -1,0 +1,184 @@
+"""Training of DDM and DPM on one-step prediction of vx, vy, omega.
+
+Loss: mean squared error of the next velocities, each channel divided by the
+standard deviation of its one-step change on the training set (so vx, vy and
+omega, which differ by orders of magnitude, weigh alike; the scales are stored
+in the checkpoint). Adam with a cosine learning-rate decay; the weights with the
+lowest validation loss are kept. float64 by default: the simulated targets are
+exact to rounding, and float32 would floor the error above the papers' figures.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from ddyn.data.dataset import Dataset
+from ddyn.data.windows import Windows, split_train_validation
+from ddyn.errors import DdynError
+from ddyn.learn.networks import DPM_OUTPUTS, DeepDynamics, DeepPacejka
+from ddyn.model.vehicle import Vehicle
+
+
+@dataclass
+class TrainConfig:
+    kind: str = "ddm"              # "ddm" or "dpm"
+    tau: int = 1                   # history length (rows)
+    hidden: int = 32               # width of GRU and dense layers
+    layers: int = 2                # dense layers (Mish) before the head
+    gru_layers: int = 0            # GRU layers before the dense ones (0: flattened history)
+    lr: float = 3e-3
+    batch_size: int = 256
+    epochs: int = 100
+    val_fraction: float = 0.2
+    seed: int = 0
+    method: str = "euler"          # discretisation of the physics step
+    weight_decay: float = 1e-7     # L2 penalty on weights (not biases): favours coefficients that vary
+                                   # only as much as the data demand
+    lbfgs_iterations: int = 4000     # full-batch L-BFGS iterations after Adam (polishes a near-exact fit)
+    dpm_iz_scale: float = 1.0      # DPM only: Iz given as truth times this (1.2, 0.8 for the +-20 % variants)
+    dtype: str = "float64"
+
+    def __post_init__(self):
+        if self.kind not in ("ddm", "dpm"):
+            raise DdynError(f"model kind must be ddm or dpm, got {self.kind!r}")
+        for name in ("tau", "hidden", "layers", "batch_size", "epochs"):
+            if getattr(self, name) < 1:
+                raise DdynError(f"{name} must be at least 1, got {getattr(self, name)}")
+
+
+@dataclass
+class TrainResult:
+    model: torch.nn.Module
+    config: TrainConfig
+    loss_scale: np.ndarray
+    history: list[dict]
+    best_val_loss: float
+    seconds: float
+
+
+def _tensor(a, dtype):
+    return torch.as_tensor(np.asarray(a), dtype=dtype)
+
+
+def build_model(cfg: TrainConfig, vehicle: Vehicle, mean: np.ndarray, std: np.ndarray) -> torch.nn.Module:
+    dtype = getattr(torch, cfg.dtype)
+    substeps = vehicle.rk4_substeps if cfg.method == "rk4" else 1
+    common = dict(tau=cfg.tau, hidden=cfg.hidden, layers=cfg.layers, gru_layers=cfg.gru_layers,
+                  mean=_tensor(mean, dtype), std=_tensor(std, dtype), known=vehicle.known,
+                  sample_time=vehicle.sample_time, method=cfg.method, substeps=substeps)
+    if cfg.kind == "ddm":
+        lo, hi = vehicle.range_arrays()
+        model = DeepDynamics(lo=_tensor(lo, dtype), hi=_tensor(hi, dtype), **common)
+    else:
+        if vehicle.true_coefficients is None:
+            raise DdynError(f"DPM needs Iz; vehicle {vehicle.name} has no true coefficients")
+        mid = {k: 0.5 * (a + b) for k, (a, b) in vehicle.ranges.items()}
+        init = _tensor([mid[k] if k != "Frx" else 0.0 for k in DPM_OUTPUTS], dtype)
+        model = DeepPacejka(init=init, iz=vehicle.true_coefficients["Iz"] * cfg.dpm_iz_scale, **common)
+    return model.to(dtype)
+
+
+def loss_fn(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    return (((pred[:, 3:6] - target) / scale) ** 2).mean()
+
+
+def weight_penalty(model: torch.nn.Module, weight_decay: float) -> torch.Tensor | float:
+    if weight_decay <= 0:
+        return 0.0
+    return weight_decay * sum((p ** 2).sum() for name, p in model.named_parameters() if "weight" in name)
+
+
+def _batch_tensors(w: Windows, dtype):
+    return tuple(_tensor(a, dtype) for a in (w.history, w.state, w.inputs, w.target))
+
+
+def evaluate_loss(model, w: Windows, scale: torch.Tensor, batch: int = 4096) -> float:
+    dtype = scale.dtype
+    total, n = 0.0, len(w)
+    with torch.no_grad():
+        for i in range(0, n, batch):
+            h, s, u, t = _batch_tensors(w.subset(slice(i, i + batch)), dtype)
+            pred, _ = model(h, s, u)
+            total += float(loss_fn(pred, t, scale)) * len(t)
+    return total / n
+
+
+def train(ds: Dataset, vehicle: Vehicle, cfg: TrainConfig, progress: bool = True,
+          validation: Windows | None = None) -> TrainResult:
+    """Train on ds (split by time into train and validation unless `validation` is given)."""
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    dtype = getattr(torch, cfg.dtype)
+    if validation is None:
+        tr, va = split_train_validation(ds, cfg.tau, cfg.val_fraction)
+    else:
+        from ddyn.data.windows import make_windows
+        tr, va = make_windows(ds, cfg.tau), validation
+    flat = tr.history.reshape(-1, tr.history.shape[-1])
+    mean, std = flat.mean(axis=0), np.maximum(flat.std(axis=0), 1e-12)
+    scale_np = np.maximum((tr.target - tr.state[:, 3:6]).std(axis=0), 1e-12)
+    scale = _tensor(scale_np, dtype)
+    model = build_model(cfg, vehicle, mean, std)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=cfg.epochs, eta_min=cfg.lr * 1e-3)
+    h_all, s_all, u_all, t_all = _batch_tensors(tr, dtype)
+    best = (float("inf"), None)
+    log: list[dict] = []
+    start = time.perf_counter()
+    bar = tqdm(range(cfg.epochs), desc=f"train {cfg.kind}", disable=not progress, leave=False)
+    for epoch in bar:
+        model.train()
+        order = torch.as_tensor(rng.permutation(len(tr)))
+        for i in range(0, len(tr), cfg.batch_size):
+            b = order[i:i + cfg.batch_size]
+            pred, _ = model(h_all[b], s_all[b], u_all[b])
+            loss = loss_fn(pred, t_all[b], scale) + weight_penalty(model, cfg.weight_decay)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        sched.step()
+        model.eval()
+        val = evaluate_loss(model, va, scale)
+        if not np.isfinite(val):
+            raise DdynError(f"training diverged at epoch {epoch} (validation loss {val}); lower the learning rate")
+        log.append({"epoch": epoch, "val_loss": val})
+        if val < best[0]:
+            best = (val, {k: v.clone() for k, v in model.state_dict().items()})
+        bar.set_postfix(val=f"{val:.3e}", best=f"{best[0]:.3e}")
+    model.load_state_dict(best[1])
+    if cfg.lbfgs_iterations > 0:
+        best = _polish_lbfgs(model, cfg, (h_all, s_all, u_all, t_all), va, scale, best, log, progress)
+    return TrainResult(model, cfg, scale_np, log, best[0], time.perf_counter() - start)
+
+
+def _polish_lbfgs(model, cfg: TrainConfig, batch, va: Windows, scale, best, log, progress: bool):
+    """Full-batch L-BFGS from the best Adam weights; keeps whichever validates best."""
+    h, s, u, t = batch
+    opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=20, history_size=50,
+                            tolerance_grad=1e-14, tolerance_change=1e-18, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = loss_fn(model(h, s, u)[0], t, scale) + weight_penalty(model, cfg.weight_decay)
+        loss.backward()
+        return loss
+
+    rounds = max(1, cfg.lbfgs_iterations // 20)
+    for r in tqdm(range(rounds), desc="polish (L-BFGS)", disable=not progress, leave=False):
+        opt.step(closure)
+        val = evaluate_loss(model, va, scale)
+        log.append({"epoch": cfg.epochs + r, "val_loss": val, "phase": "lbfgs"})
+        if not np.isfinite(val):
+            break
+        if val < best[0]:
+            best = (val, {k: v.clone() for k, v in model.state_dict().items()})
+    model.load_state_dict(best[1])
+    return best
+
+
+def config_dict(cfg: TrainConfig) -> dict:
+    return asdict(cfg)

@@ -1,0 +1,1 @@
+"""The one vehicle model (numpy, torch, CasADi), vehicles, unmodelled effects, sensors and tracks."""

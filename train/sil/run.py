@@ -1,0 +1,920 @@
+"""`ddyn sil run`: software-in-the-loop laps, the plant and the controller as two processes over vcan.
+
+The plant (firmware_sim/, `ddyn_sil_plant`) plays the car: the generated vehicle model under RK4
+sub-steps, actuators with their limits, sensors at the DBC's rates with the vehicle file's noise,
+the drive-by-wire unit with its watchdog, and the track (progress, lap times, footprint
+violations). The controller (`ddyn_sil_controller`) is the c_src runtime built as its own
+executable: EKF -> history -> guard network -> MPC -> DBW command. The two talk ONLY through CAN
+frames (can/ddyn_dbw.dbc) on vcan0: directly on a host that has vcan, otherwise inside a small qemu
+guest (the kernel, modules and busybox of scripts/vcan_guest; the plant is static, the controller
+and lcm-logger come with their shared libraries).
+
+The plant runs in lock-step with the controller by default (it waits, in wall time, for the
+command that answers each position frame, so laps run as fast as the controller allows and the
+result does not depend on the machine's load); `--realtime F` paces it at F times real time instead.
+
+Outputs (in --out): sil_metrics.json (lap times, average speed, violations, tracking error,
+controller loop time median/p99/max, deadline misses, DBW and bus counts, fault timings),
+trajectory.csv, controller_log.csv, controller.lcm (the controller's telemetry as it published it
+live over LCM during the run, recorded by lcm-logger; converted from its CSV log only as a
+labelled fallback: --where inprocess, or a build without LCM), lap.png, and the exact configs both
+processes ran with.
+"""
+from __future__ import annotations
+
+import argparse
+import base64
+import hashlib
+import importlib.util
+import json
+import math
+import os
+import re
+import shutil
+import signal
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ddyn.control.raceline import line_for
+from ddyn.errors import DdynError
+from ddyn.model.single_track import COEFF_NAMES
+from ddyn.model.tracks import Track, load_track
+from ddyn.model.vehicle import Vehicle
+from ddyn.model.vehicle import load as load_vehicle
+from ddyn.paths import REPO, shared_data_dir
+
+# Plant-side effects (firmware_sim/include/fsim/plant.hpp); the other effects of train/model/effects.py
+# change the tyre or gravity terms inside the model and are not offered by the plant.
+PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "yaw_rate_bias")
+# The car's footprint (length, width), m: the MPC's (train/control/mpc_setup.py).
+from ddyn.model.vehicle import FOOTPRINT  # noqa: E402
+
+# Sensor rates: the DBC's cycle times (GNSS 20 ms, IMU/wheel speeds/steering 10 ms).
+SENSOR_RATES = {"gnss_position": 50.0, "heading": 50.0, "yaw_rate": 100.0, "acceleration": 100.0,
+                "wheel_speed": 100.0, "steering": 100.0}
+SENSOR_ORDER = ("gnss_position", "heading", "yaw_rate", "acceleration", "wheel_speed", "steering")
+# DBW frames in ddyn_dbw_frame order and how many control periods (50 Hz) each may be missing
+# before the controller commands the safe stop: more than one period for the 100 Hz frames (two
+# frames in a row lost), more than two for the 50 Hz GNSS frames. Without frames the controller
+# runs a period on its own timer 1.5 periods after the last one, then every period, so a silent
+# bus gives the safe command about 50 ms after the last position frame (the target is 100 ms); a bus losing 5 % of its frames
+# rarely trips it (three GNSS frames in a row: about 1e-4 per period).
+FRAME_STALE_PERIODS = {"command": 0, "steering": 1, "status": 1, "wheel_speeds": 1, "imu": 1,
+                       "gnss_position": 2, "gnss_heading": 2}
+FILTER_ACCEL_STD = 1.0
+# the filter's process noise per period (x, y, yaw, vx, vy, omega, throttle, steering), as
+# train/bench/controller.py (the velocities' stands for the error of a step with estimated
+# coefficients), except throttle and steering: 1e-5 (std 3 mrad per period) instead of 1e-10, so
+# that the filter follows the steering sensor when a command frame is lost on the bus and the
+# actuator lags its commanded rate by a period (with 1e-10 it refuses the sensor instead)
+FILTER_PROCESS_NOISE = (1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-2, 1e-5, 1e-5)
+FAULT_KEYS = ("drop", "delay", "corrupt", "silent", "silent_at", "kill_controller", "restart_plant")
+SENSOR_OF_FRAME = {"imu": ("yaw_rate", "acceleration"), "gnss": ("gnss_position", "heading"),
+                   "gnss_position": ("gnss_position",), "gnss_heading": ("heading",),
+                   "wheel_speeds": ("wheel_speed",), "steering": ("steering",)}
+
+
+# ---------------------------------------------------------------------------------------------- specs
+
+def parse_kv(text: str | None, allowed: tuple[str, ...], what: str) -> dict:
+    """`a=1,b=x` or `a=1 b=x` into a dict (numbers as float)."""
+    out: dict = {}
+    if not text:
+        return out
+    for item in re.split(r"[,\s]+", text.strip()):
+        if not item:
+            continue
+        if "=" not in item:
+            raise DdynError(f"{what}: expected key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        if k not in allowed:
+            raise DdynError(f"{what}: unknown key {k!r}; expected one of {', '.join(allowed)}")
+        try:
+            out[k] = float(v)
+        except ValueError:
+            out[k] = v
+    return out
+
+
+def parse_effects(text: str | None) -> dict[str, float]:
+    fx = parse_kv(text, PLANT_EFFECTS, "--effects")
+    for k, v in fx.items():
+        if not isinstance(v, float):
+            raise DdynError(f"--effects: {k} needs a number, got {v!r}")
+    return fx
+
+
+def parse_faults(text: str | None) -> dict:
+    f = parse_kv(text, FAULT_KEYS, "--faults")
+    if "silent" in f and f["silent"] not in SENSOR_OF_FRAME:
+        raise DdynError(f"--faults: silent={f['silent']!r}; expected one of {', '.join(SENSOR_OF_FRAME)}")
+    if "silent" in f and "silent_at" not in f:
+        raise DdynError("--faults: silent=... needs silent_at=SECONDS")
+    if "drop" in f and not 0.0 <= f["drop"] < 1.0:
+        raise DdynError("--faults: drop is a fraction in [0, 1)")
+    return f
+
+
+# ---------------------------------------------------------------------------------------------- track
+
+def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float = 1.0, margin: float = 0.02) -> np.ndarray:
+    """Rows x, y, speed, room_left, room_right of the raceline the MPC tracks.
+
+    The MPC's own table (train/control/mpc_setup.py, what ddyn mpc lap tunes with): the raceline's first lap,
+    closed, resampled every 2.5 cm, its speed profile times speed_scale floored at 0.5 m/s, the room
+    to the bounds less half the car's width and `margin`.
+    """
+    from ddyn.control.mpc_setup import MpcSettings
+    from ddyn.control.mpc_setup import raceline_table as mpc_table
+    t = mpc_table(track, vehicle.name, MpcSettings(speed_scale=speed_scale, margin=margin))
+    return np.column_stack([t["x"], t["y"], t["speed"], t["room_left"], t["room_right"]])
+
+
+def start_state(track: Track, vx0: float, vehicle_name: str) -> list[float]:
+    """The car at the raceline's first point, heading along it, at vx0."""
+    rl = line_for(track, vehicle_name)
+    x0, y0 = float(rl.x[0]), float(rl.y[0])
+    k = 1
+    while np.hypot(rl.x[k] - x0, rl.y[k] - y0) < 1e-6:
+        k += 1
+    yaw = math.atan2(float(rl.y[k]) - y0, float(rl.x[k]) - x0)
+    return [x0, y0, yaw, vx0, 0.0, 0.0, 0.0, 0.0]
+
+
+# ---------------------------------------------------------------------------------------------- configs
+
+def sensor_noise(vehicle: Vehicle, scale: float) -> dict[str, list[float]]:
+    """Per sensor kind, the noise std of each component: the vehicle file's where it has one."""
+    n = vehicle.sensor_noise_std
+    pos = [n.get("x", 0.0), n.get("y", 0.0)]
+    vx = n.get("vx", 0.0)
+    # the accelerometer and the steering sensor are not in the vehicle files: chosen here as a
+    # typical MEMS accelerometer's 0.05 m/s^2 (scaled with the car: 1 % of the tyre limit of the
+    # 1:43 car) and a 0.1 % of full-range steering encoder
+    acc = 0.05 if vehicle.name == "orca_1_43" else 0.1
+    steer = 0.001 * (vehicle.input_limits["steering"][1] - vehicle.input_limits["steering"][0])
+    table = {"gnss_position": pos, "heading": [n.get("yaw", 0.0), 0.0], "yaw_rate": [n.get("omega", 0.0), 0.0],
+             "acceleration": [acc, acc], "wheel_speed": [vx, vx], "steering": [steer, 0.0]}
+    return {k: [scale * v for v in vals] for k, vals in table.items()}
+
+
+@dataclass
+class SilSpec:
+    vehicle: Vehicle
+    track: Track
+    coeffs_plant: np.ndarray
+    coeffs_controller: np.ndarray | None       # fixed coefficients (None: the network's)
+    nominal: np.ndarray
+    laps: int = 1
+    vx0: float = 0.1
+    effects: dict = field(default_factory=dict)
+    faults: dict = field(default_factory=dict)
+    noise_scale: float = 1.0
+    speed_scale: float = 1.0
+    margin: float = 0.02
+    realtime: float = 0.0
+    max_time: float | None = None
+    seed: int = 1
+    deadline: float = 0.08
+    throttle: str = "mpc"                      # "mpc" (the MPC plans it) or "pid" (PID on the speed error)
+    pid_gains: tuple | None = None             # (kp, ki, kd, preview s); None: the controller's defaults
+
+
+def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
+    v = spec.vehicle
+    lim = v.input_limits
+    noise = sensor_noise(v, spec.noise_scale)
+    sensors = {k: {"rate": SENSOR_RATES[k], "noise": noise[k]} for k in SENSOR_ORDER}
+    f = spec.faults
+    if "silent" in f:
+        for k in SENSOR_OF_FRAME[f["silent"]]:
+            sensors[k]["silent_from"] = float(f["silent_at"])
+    length, width = FOOTPRINT.get(v.name, (0.0, 0.0))
+    max_time = spec.max_time or max(20.0, 6.0 * spec.laps * spec.track.length / max(0.5, 0.5 * spec.speed_scale * 2.0))
+    cfg = {
+        "vehicle": v.name, "coefficients": [float(c) for c in spec.coeffs_plant],
+        "limits": {"throttle_min": lim["throttle"][0], "throttle_max": lim["throttle"][1],
+                   "steer_min": lim["steering"][0], "steer_max": lim["steering"][1],
+                   "dthrottle_max": lim["dthrottle"][1], "dsteer_max": lim["dsteering"][1]},
+        "effects": {k: float(val) for k, val in spec.effects.items()},
+        "substep": min(1e-3, v.sample_time / 20.0),
+        "track_dir": track_dir, "track": spec.track.name,
+        "footprint": {"length": length, "width": width},
+        "start": start_state(spec.track, spec.vx0, spec.vehicle.name),
+        "laps": spec.laps, "max_time": float(max_time),
+        "realtime_factor": spec.realtime, "lockstep_timeout": 3.0,
+        "sensors": sensors, "status_rate": 100.0, "seed": spec.seed,
+        "dbw": {"deadline": spec.deadline, "rearm_count": 0},
+        "faults": {"drop": f.get("drop", 0.0), "delay_max": f.get("delay", 0.0), "corrupt": f.get("corrupt", 0.0)},
+        "out_dir": out_dir, "log_period": 0.01, "snapshot_period": 0.05,
+    }
+    if "restart_plant" in f:
+        cfg["crash_at"] = float(f["restart_plant"])
+    return cfg
+
+
+def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
+    v = spec.vehicle
+    if spec.throttle not in ("mpc", "pid"):
+        raise DdynError(f"throttle {spec.throttle!r}: expected mpc or pid")
+    if spec.pid_gains is not None and (len(spec.pid_gains) != 4 or
+                                       not all(math.isfinite(g) and g >= 0.0 for g in spec.pid_gains)):
+        raise DdynError(f"PID gains {spec.pid_gains!r}: expected four finite numbers >= 0 (kp, ki, kd, preview)")
+    noise = sensor_noise(v, spec.noise_scale)
+    fixed = spec.coeffs_controller is not None
+    coeffs = spec.coeffs_controller if fixed else spec.nominal
+    die = -1
+    # lock-step: the controller's timer runs only after this much wall time without any frame (a
+    # plant slowed by an emulator or a loaded machine is not a silent one); when the scenario is a
+    # restarting plant, detection is what is measured: 1.5 periods, as in real time
+    lockstep = 0.0 if spec.realtime > 0.0 else (1.5 * v.sample_time if "restart_plant" in spec.faults else 0.5)
+    if "kill_controller" in spec.faults:
+        die = int(round(float(spec.faults["kill_controller"]) / v.sample_time))
+    lines = [
+        f"vehicle {v.name}", f"period {v.sample_time!r}", f"fixed {int(fixed)}",
+        "nominal " + " ".join(repr(float(c)) for c in spec.nominal),
+        "coeffs " + " ".join(repr(float(c)) for c in coeffs),
+        f"throttle {spec.throttle}",
+        "pid_gains " + ("default" if spec.pid_gains is None else " ".join(repr(float(g)) for g in spec.pid_gains)),
+        "x0 " + " ".join(repr(float(c)) for c in start_state(spec.track, spec.vx0, spec.vehicle.name)),
+        # the noise the filter assumes: twice the sensors' own (model error), 1 m/s^2 for the
+        # accelerometer (its model goes through the estimated coefficients), as the controller's
+        # closed-loop benchmark (train/bench/controller.py); a floor keeps R positive definite
+        "r_std " + " ".join(repr(max(FILTER_ACCEL_STD if k == "acceleration" else 2.0 * float(s), 1e-4))
+                            for k in SENSOR_ORDER for s in noise[k]),
+        "q " + " ".join(repr(q) for q in FILTER_PROCESS_NOISE),
+        "stale " + " ".join(str(FRAME_STALE_PERIODS[k]) for k in FRAME_STALE_PERIODS),
+        "max_steps 200000", "idle_exit 3.0", f"lockstep {lockstep!r}", f"die_at_step {die}",
+        f"metrics {out_dir}/controller_metrics.json", f"log {out_dir}/controller_log.csv",
+        f"track {len(table)}",
+    ]
+    lines += [" ".join(repr(float(c)) for c in row) for row in table]
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------------- build
+
+def build_binaries(export_dir: Path | None, build_root: Path | None = None, quiet: bool = True) -> Path:
+    """Configure and build the two SIL executables (for the given network export) in their own build dir."""
+    net = export_dir if export_dir is not None else REPO / "tests" / "c" / "generated" / "net_fixture"
+    key = hashlib.sha256(str(Path(net).resolve()).encode()).hexdigest()[:12]
+    build = (build_root or REPO / "build-sil") / key
+    cmd = ["cmake", "-S", str(REPO), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release", "-DDDYN_BUILD_TESTS=OFF",
+           f"-DDDYN_NET_EXPORT_DIR={Path(net).resolve()}"]
+    for c in (cmd, ["cmake", "--build", str(build), "-j2", "--target", "ddyn_sil_plant", "ddyn_sil_controller",
+                    "ddyn_sil_inprocess"]):
+        r = subprocess.run(c, capture_output=True, text=True)
+        if r.returncode != 0:
+            raise DdynError(f"building the SIL binaries failed: {' '.join(c)}\n{(r.stdout + r.stderr)[-3000:]}")
+    return build / "firmware_sim"
+
+
+def export_network(ckpt: Path, out: Path) -> Path:
+    from ddyn.learn.export import export
+    export(ckpt, out, torch_export=False)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- run
+
+def host_has_vcan() -> bool:
+    if Path("/sys/class/net/vcan0").exists():
+        subprocess.run(["ip", "link", "set", "up", "vcan0"], capture_output=True)
+        return True
+    r = subprocess.run(["ip", "link", "add", "dev", "vcan0", "type", "vcan"], capture_output=True)
+    if r.returncode != 0:
+        return False
+    return subprocess.run(["ip", "link", "set", "up", "vcan0"], capture_output=True).returncode == 0
+
+
+# LCM telemetry of the SIL controller (docs/lcm.md): LCM's default multicast group, TTL 0 (never
+# leaves the machine). In the guest the port is LCM's default; on a host it is a free one per run,
+# so that two runs (or the car's own LCM traffic) never share a log.
+LCM_GROUP = "239.255.76.67"
+LCM_GUEST_PORT = 7667
+LCM_LOG_NAME = "controller.lcm"
+
+
+def lcm_url(port: int) -> str:
+    return f"udpm://{LCM_GROUP}:{port}?ttl=0"
+
+
+def controller_has_lcm(bins: Path) -> bool:
+    """Whether the build's controller publishes LCM telemetry (configured with DDYN_WITH_LCM)."""
+    cache = bins.parent / "CMakeCache.txt"
+    return cache.is_file() and re.search(r"^DDYN_WITH_LCM:BOOL=(ON|1|TRUE|YES)$", cache.read_text(), re.M) is not None
+
+
+def lcm_logger_binary() -> Path:
+    """The lcm-logger of the pinned `lcm` package: the C binary itself (the venv's bin/lcm-logger is a
+    Python wrapper that SIGKILLs the logger on SIGINT, which can lose the log's tail)."""
+    from ddyn.data.lcm_types import lcm_module
+    exe = Path(lcm_module().LCM_BIN_DIR).resolve() / "lcm-logger"
+    if not exe.is_file():
+        raise DdynError(f"lcm-logger not found at {exe}; reinstall the pinned `lcm` package (scripts/setup.sh)")
+    return exe
+
+
+def _udp_sockets(port: int) -> list[list[str]]:
+    """The /proc/net/udp rows of sockets bound to a local port (fields split)."""
+    rows = []
+    for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+        f = line.split()
+        if len(f) > 4 and f[1].endswith(f":{port:04X}"):
+            rows.append(f)
+    return rows
+
+
+def _free_udp_port() -> int:
+    import socket
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as so:
+        so.bind(("", 0))
+        return so.getsockname()[1]
+
+
+def start_host_logger(work: Path) -> tuple[subprocess.Popen, str]:
+    """lcm-logger on a free port of the multicast group, listening before it returns."""
+    r = subprocess.run(["ip", "route", "get", LCM_GROUP], capture_output=True, text=True)
+    if r.returncode != 0:
+        raise DdynError(f"no route for LCM's multicast group {LCM_GROUP} on this host ({r.stderr.strip()}): the "
+                        f"controller's telemetry could not be logged; add one, e.g. `ip route add {LCM_GROUP}/32 dev lo`")
+    port = _free_udp_port()
+    url = lcm_url(port)
+    log = work / LCM_LOG_NAME
+    log.unlink(missing_ok=True)
+    proc = subprocess.Popen([str(lcm_logger_binary()), "--lcm-url", url, "-f", str(log)],
+                            stdout=open(work / "lcm-logger.stdout", "w"), stderr=subprocess.STDOUT)
+    group_hex = "".join(f"{int(b):02X}" for b in reversed(LCM_GROUP.split(".")))
+    deadline = time.monotonic() + 10.0
+    while not (_udp_sockets(port) and group_hex in Path("/proc/net/igmp").read_text()):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            raise DdynError(f"lcm-logger did not start listening on {url} "
+                            f"({(work / 'lcm-logger.stdout').read_text()[-500:]})")
+        time.sleep(0.05)
+    return proc, url
+
+
+def stop_host_logger(proc: subprocess.Popen, url: str) -> int:
+    """Let the logger drain its socket, then SIGINT (it closes the log cleanly); its exit status."""
+    port = int(url.rsplit(":", 1)[1].split("?")[0])
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and any(int(f[4].split(":")[1], 16) for f in _udp_sockets(port)):
+        time.sleep(0.05)
+    time.sleep(0.3)  # its reader thread hands the last datagrams to the writer
+    proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise DdynError("lcm-logger did not stop within 10 s of SIGINT") from None
+
+
+def run_host(bins: Path, work: Path, restart: bool, lcm: bool = False) -> dict:
+    """Both processes on the host's vcan0; with lcm, the controller publishes its telemetry over UDP
+    multicast and lcm-logger (started first) records it into controller.lcm."""
+    t0 = time.monotonic()
+    logger, url = start_host_logger(work) if lcm else (None, None)
+    try:
+        ctl = subprocess.Popen([str(bins / "ddyn_sil_controller"), str(work / "controller.txt"), "--can", "vcan0"]
+                               + (["--lcm", url] if url else []),
+                               stdout=open(work / "controller.stdout", "w"), stderr=subprocess.STDOUT)
+        with open(work / "plant.stdout", "w") as out:
+            rc = subprocess.call([str(bins / "ddyn_sil_plant"), str(work / "plant.json"), "--can", "vcan0"],
+                                 stdout=out, stderr=subprocess.STDOUT)
+            if rc == 3 and restart:
+                time.sleep(0.5)
+                rc = subprocess.call([str(bins / "ddyn_sil_plant"), str(work / "plant_resume.json"), "--can",
+                                      "vcan0"], stdout=out, stderr=subprocess.STDOUT)
+        if ctl.poll() is None:
+            ctl.terminate()
+        try:
+            ctl.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            ctl.kill()
+            ctl.wait()
+    except BaseException:
+        if logger is not None:
+            logger.kill()
+        raise
+    out = {"where": "host vcan0", "plant_exit": rc, "controller_exit": ctl.returncode,
+           "wall_time": time.monotonic() - t0}
+    if logger is not None:  # after the controller has exited: its last messages are on the way
+        out["lcm"] = {"url": url, "logger_exit": stop_host_logger(logger, url)}
+    return out
+
+
+def run_inprocess(bins: Path, work: Path) -> dict:
+    """Plant and controller node in one process, frames through memory (not the SIL path: for
+    development and host-native controller timings)."""
+    t0 = time.monotonic()
+    with open(work / "plant.stdout", "w") as out:
+        rc = subprocess.call([str(bins / "ddyn_sil_inprocess"), str(work / "plant.json"), str(work / "controller.txt")],
+                             stdout=out, stderr=subprocess.STDOUT)
+    if rc != 0:
+        raise DdynError(f"ddyn_sil_inprocess failed ({rc}): {(work / 'plant.stdout').read_text()[-2000:]}")
+    return {"where": "in-process on the host (one process, frames through memory; not vcan)", "plant_exit": rc,
+            "controller_exit": rc, "wall_time": time.monotonic() - t0}
+
+
+GUEST_INIT = """#!/bin/busybox sh
+/bin/busybox --install -s /bin
+mount -t proc proc /proc
+mount -t sysfs sysfs /sys
+mount -t devtmpfs devtmpfs /dev 2>/dev/null
+echo "DDYN_GUEST_INIT_UPTIME: $(cut -d' ' -f1 /proc/uptime)"
+for m in {modules}; do insmod /lib/modules/$m.ko || echo "DDYN_GUEST: insmod $m failed"; done
+ip link add dev vcan0 type vcan && ip link set up vcan0 || echo "DDYN_GUEST: cannot create vcan0"
+mkdir -p /out
+{lcm_start}/sil/ddyn_sil_controller /sil/controller.txt --can vcan0{lcm_arg} > /out/controller.stdout 2>&1 &
+cpid=$!
+/sil/ddyn_sil_plant /sil/plant.json --can vcan0 > /out/plant.stdout 2>&1
+rc=$?
+if [ $rc -eq 3 ] && [ -f /sil/plant_resume.json ]; then
+  sleep 0.5
+  /sil/ddyn_sil_plant /sil/plant_resume.json --can vcan0 >> /out/plant.stdout 2>&1
+  rc=$?
+fi
+kill -TERM $cpid 2>/dev/null
+wait $cpid
+crc=$?
+{lcm_stop}echo "DDYN_GUEST_RUN_UPTIME: $(cut -d' ' -f1 /proc/uptime)"
+for f in /out/*; do
+  echo "DDYN_FILE_BEGIN $(basename $f)"
+  gzip -c $f | base64
+  echo "DDYN_FILE_END"
+done
+echo "DDYN_GUEST_PLANT_EXIT: $rc"
+echo "DDYN_GUEST_CONTROLLER_EXIT: $crc"
+echo "DDYN_GUEST_EXIT: $rc"
+poweroff -f
+"""
+# LCM in the guest: loopback with multicast and a route for the group, lcm-logger (dynamically
+# linked: its libraries are in the guest's GUEST_LIB_DIR) started first and listening (its socket on
+# the port in /proc/net/udp, the group joined in /proc/net/igmp) before the controller starts; after
+# the controller has exited, the logger drains its socket and is stopped with SIGINT, which closes
+# the log cleanly; the log comes back with the other files of /out.
+GUEST_LCM_START = """export LD_LIBRARY_PATH={libdir}
+ip link set lo up && ip link set lo multicast on && ip route add {group}/32 dev lo || echo "DDYN_GUEST: cannot route {group} on lo"
+/sil/lcm-logger --lcm-url '{url}' -f /out/{log} > /out/lcm-logger.stdout 2>&1 &
+lpid=$!
+n=0
+while ! grep -q ':{port_hex} ' /proc/net/udp || ! grep -q '{group_hex}' /proc/net/igmp; do
+  n=$((n+1))
+  if [ $n -gt 600 ]; then echo "DDYN_GUEST: lcm-logger not listening after 60 s"; break; fi
+  sleep 0.1
+done
+echo "DDYN_GUEST_LOGGER_READY: up $(cut -d' ' -f1 /proc/uptime) s, $n polls"
+"""
+GUEST_LCM_STOP = """n=0
+while [ $n -lt 100 ]; do
+  q=$(awk '$2 ~ /:{port_hex}$/ {{split($5, a, ":"); print a[2]}}' /proc/net/udp | head -n 1)
+  [ "$q" = "00000000" ] && break
+  n=$((n+1))
+  sleep 0.1
+done
+sleep 0.3
+kill -INT $lpid
+wait $lpid
+echo "DDYN_GUEST_LOGGER_EXIT: $?"
+"""
+
+
+def _guest_module():
+    path = REPO / "scripts" / "vcan_guest" / "build_guest.py"
+    if not path.is_file():
+        raise DdynError(f"{path} is missing: the qemu guest tooling (scripts/vcan_guest) is needed without a host vcan")
+    spec = importlib.util.spec_from_file_location("ddyn_build_guest", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, timeout: float,
+              lcm: bool = False) -> dict:
+    """Both processes inside a qemu guest with vcan (the kernel, modules and busybox of scripts/vcan_guest);
+    with lcm, the controller publishes its telemetry over UDP multicast on the guest's loopback and
+    lcm-logger records it into controller.lcm (both dynamically linked, with their libraries)."""
+    bg = _guest_module()
+    cache = Path(os.environ.get("DDYN_VCAN_GUEST_DIR", REPO / "build" / "vcan-guest"))
+    cache.mkdir(parents=True, exist_ok=True)
+    try:
+        meta = bg.prepare_kernel(cache)
+    except Exception as e:  # the guest tooling's own errors name what is missing
+        raise DdynError(f"cannot prepare the qemu guest's kernel: {e}") from None
+    if not bg.BUSYBOX.is_file() or not bg.is_static_elf(bg.BUSYBOX):
+        raise DdynError(f"{bg.BUSYBOX} is missing or not static: install busybox-static")
+    if shutil.which("qemu-system-x86_64") is None:
+        raise DdynError("qemu-system-x86_64 is not installed (scripts/setup.sh installs qemu-system-x86)")
+    c = bg.Cpio()
+    for d in ("bin", "proc", "sys", "dev", "lib", "lib/modules", "sil", "sil/tracks", "out"):
+        c.dir(d)
+    c.file("bin/busybox", bg.BUSYBOX.read_bytes())
+    for m in meta["modules"]:
+        c.file(f"lib/modules/{m}.ko", (cache / "modules" / f"{m}.ko").read_bytes(), 0o644)
+    p = bins / "ddyn_sil_plant"
+    if not bg.is_static_elf(p):
+        raise DdynError(f"{p} is not statically linked; the guest has no libc")
+    c.file("sil/ddyn_sil_plant", p.read_bytes())
+    guest_bins = [bins / "ddyn_sil_controller"] + ([lcm_logger_binary()] if lcm else [])
+    if not lcm and not bg.is_static_elf(guest_bins[0]):
+        raise DdynError(f"{guest_bins[0]} is not statically linked and has no LCM; the guest has no libc")
+    try:  # dynamically linked ones (LCM) come with their interpreter and libraries
+        added = bg.add_binaries(c, "sil", guest_bins)
+    except bg.GuestError as e:
+        raise DdynError(f"cannot put the controller into the qemu guest: {e}") from None
+    for part in ("center", "inner", "outer"):
+        c.file(f"sil/tracks/{track}_{part}.txt", (track_dir / f"{track}_{part}.txt").read_bytes(), 0o644)
+    for name in ("plant.json", "plant_resume.json", "controller.txt"):
+        if (work / name).is_file():
+            c.file(f"sil/{name}", (work / name).read_bytes(), 0o644)
+    url = lcm_url(LCM_GUEST_PORT)
+    fill = dict(libdir=bg.GUEST_LIB_DIR, group=LCM_GROUP, url=url, log=LCM_LOG_NAME,
+                port_hex=f"{LCM_GUEST_PORT:04X}", group_hex="".join(f"{int(b):02X}" for b in reversed(LCM_GROUP.split("."))))
+    c.file("init", GUEST_INIT.format(modules=" ".join(meta["modules"]),
+                                     lcm_start=GUEST_LCM_START.format(**fill) if lcm else "",
+                                     lcm_arg=f" --lcm '{url}'" if lcm else "",
+                                     lcm_stop=GUEST_LCM_STOP.format(**fill) if lcm else "").encode())
+    initramfs = work / "guest-initramfs.cpio.gz"
+    import gzip
+    cpio = c.finish()
+    with open(initramfs, "wb") as f, gzip.GzipFile(fileobj=f, mode="wb", compresslevel=1, mtime=0) as gz:
+        gz.write(cpio)
+    sizes = {"initramfs_bytes": len(cpio), "initramfs_gz_bytes": initramfs.stat().st_size,
+             "shared_library_bytes": added["bytes"], "dynamic": added["dynamic"]}
+    cmd = ["qemu-system-x86_64"] + (["-enable-kvm"] if kvm else []) + [
+        "-m", "512M", "-smp", "2", "-nodefaults", "-no-reboot", "-display", "none", "-serial", "stdio",
+        "-monitor", "none", "-kernel", str(cache / meta["vmlinux"]), "-initrd", str(initramfs),
+        "-append", "console=ttyS0 quiet loglevel=3 panic=-1 rdinit=/init"]
+    t0 = time.monotonic()
+    try:
+        r = subprocess.run(cmd, capture_output=True, timeout=timeout, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise DdynError(f"the qemu guest timed out after {timeout:.0f} s") from None
+    wall = time.monotonic() - t0
+    log = r.stdout.decode(errors="replace").replace("\r", "")
+    if r.stderr:
+        log += "\n[qemu stderr]\n" + r.stderr.decode(errors="replace")
+    (work / "guest.log").write_text(log)
+    initramfs.unlink()
+    files = re.findall(r"DDYN_FILE_BEGIN (\S+)\n(.*?)DDYN_FILE_END", log, flags=re.S)
+    import gzip as gz_mod
+    for name, body in files:
+        (work / name).write_bytes(gz_mod.decompress(base64.b64decode("".join(body.split()))))
+    m = re.search(r"DDYN_GUEST_PLANT_EXIT: (\d+)", log)
+    mc = re.search(r"DDYN_GUEST_CONTROLLER_EXIT: (\d+)", log)
+    if m is None:
+        raise DdynError(f"the qemu guest did not finish the run (log: {work / 'guest.log'}):\n{log[-2000:]}")
+    for key, pat in (("init_uptime_s", "DDYN_GUEST_INIT_UPTIME"), ("run_done_uptime_s", "DDYN_GUEST_RUN_UPTIME")):
+        mu = re.search(pat + r": ([0-9.]+)", log)
+        sizes[key] = float(mu.group(1)) if mu else None
+    out = {"where": f"qemu guest vcan0 ({'KVM' if kvm else 'software emulation'})", "plant_exit": int(m.group(1)),
+           "controller_exit": int(mc.group(1)) if mc else None, "wall_time": wall, "guest": sizes}
+    if lcm:
+        ml = re.search(r"DDYN_GUEST_LOGGER_EXIT: (\d+)", log)
+        mr = re.search(r"DDYN_GUEST_LOGGER_READY: up ([0-9.]+) s, (\d+) polls", log)
+        out["lcm"] = {"url": url, "logger_exit": int(ml.group(1)) if ml else None,
+                      "logger_ready_uptime_s": float(mr.group(1)) if mr else None}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- results
+
+def read_csv(path: Path) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        return {}
+    with open(path) as f:
+        header = f.readline().strip().split(",")
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    if data.size == 0:
+        return {h: np.zeros(0) for h in header}
+    return {h: data[:, i] for i, h in enumerate(header)}
+
+
+def tracking_error(traj: dict, table: np.ndarray) -> dict:
+    """Distance of the car's reference point to the raceline (closed polyline): mean, rms, max."""
+    if not traj or len(traj["x"]) == 0:
+        return {"mean": None, "rms": None, "max": None}
+    from ddyn.model.tracks import distance_to_polyline
+    d = distance_to_polyline(np.column_stack([traj["x"], traj["y"]]), table[:, :2])
+    return {"mean": float(d.mean()), "rms": float(np.sqrt(np.mean(d * d))), "max": float(d.max())}
+
+
+def lap_average_speeds(traj: dict, lap_times: list[float]) -> list[float]:
+    """Per lap: the distance the car's centre of gravity drove in the lap over the lap time.
+
+    The paper's figure (2.010 m/s x 5.38 s = 10.8 m on ETHZMobil, whose centre line is 12.85 m)
+    is of this kind: the driven line, not the centre line, over the lap time."""
+    if not traj or len(traj.get("t", [])) < 2:
+        return []
+    t = np.asarray(traj["t"], float)
+    dist = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(traj["x"]), np.diff(traj["y"])))))
+    ends = np.cumsum(lap_times)
+    starts = np.concatenate(([0.0], ends[:-1]))
+    return [float((np.interp(b, t, dist) - np.interp(a, t, dist)) / (b - a)) for a, b in zip(starts, ends)]
+
+
+def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
+    pm_path, cm_path = work / "plant_metrics.json", work / "controller_metrics.json"
+    if not pm_path.is_file():
+        tail = (work / "plant.stdout").read_text()[-2000:] if (work / "plant.stdout").is_file() else ""
+        raise DdynError(f"the plant wrote no metrics (exit {run.get('plant_exit')}):\n{tail}")
+    pm = json.loads(pm_path.read_text())
+    cm = json.loads(cm_path.read_text()) if cm_path.is_file() else None
+    traj = read_csv(work / "trajectory.csv")
+    clog = read_csv(work / "controller_log.csv")
+    laps = pm["lap_times"]
+    out = {
+        "vehicle": spec.vehicle.name, "track": spec.track.name, "laps_requested": spec.laps,
+        "lap_completed": len(laps) >= spec.laps, "lap_times": laps,
+        "average_speed": lap_average_speeds(traj, laps),
+        "average_speed_centre_line": [spec.track.length / t for t in laps],
+        "average_speed_driven": pm["average_speed"], "violations": pm["violations"],
+        "time_outside": pm["time_outside"], "worst_clearance": pm["worst_clearance"],
+        "end_reason": pm["end_reason"], "tracking_error": tracking_error(traj, table),
+        "controller": None, "plant": pm, "run": run,
+        "effects": spec.effects, "faults": spec.faults,
+        "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
+        "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
+    }
+    if cm is not None:
+        out["controller"] = {"loop_us": cm["loop_us"], "deadline_misses": cm["deadline_misses"],
+                             "periods": cm["steps"], "safe_periods": cm["safe_steps"],
+                             "timer_periods": cm["timer_steps"], "frames": cm["frames"],
+                             "first_safe_latency": cm["first_safe_latency"],
+                             "first_stale_latency": cm.get("first_stale_latency"),
+                             "status_counts": cm["status_counts"],
+                             "sensor_rejected": cm.get("sensor_rejected"), "sensor_nonfinite": cm.get("sensor_nonfinite")}
+    # time to the safe state, where a fault required one
+    f = spec.faults
+    safe: dict = {}
+    if "kill_controller" in f:
+        safe["dbw_watchdog_latency"] = pm["dbw"]["first_trip_latency"]
+        safe["dbw_trip_time"] = pm["dbw"]["first_trip_time"]
+        safe["stopped_time"] = pm["dbw"]["stopped_time"]
+    if "restart_plant" in f and cm is not None:
+        # wall time from the last position frame to the controller's safe command for missing frames
+        safe["controller_stale_latency_wall"] = cm.get("first_stale_latency")
+    if "silent" in f and clog and len(clog.get("step", [])):
+        # the first period commanded safe for the missing frames after the silence began
+        # (controller periods -> seconds)
+        t_ctl = clog["step"] * spec.vehicle.sample_time
+        idx = np.nonzero((clog["stale"] > 0) & (t_ctl >= float(f["silent_at"])))[0]
+        safe["controller_safe_after_silence"] = (float(t_ctl[idx[0]] - float(f["silent_at"]))
+                                                 if len(idx) else None)
+    if safe:
+        out["safe_state"] = safe
+    return out
+
+
+def write_lcm_log(work: Path, period: float) -> Path | None:
+    """FALLBACK ONLY: the controller's per-period CSV log converted to an LCM event log on the host
+    (DDYN_STATE, DDYN_TIMING; lcmtypes/), for runs without a live publisher: `--where inprocess`
+    (one process, no controller executable) or a build without LCM (DDYN_WITH_LCM=OFF). The SIL
+    proper (guest or host vcan) records the controller's live telemetry instead (run_sil).
+    Same message types and utime convention (the controller's period count times the period).
+    """
+    from ddyn.data.lcm_types import lcm_module, types
+    clog = read_csv(work / "controller_log.csv")
+    if not clog or len(clog.get("step", [])) == 0:
+        return None
+    lcm, t = lcm_module(), types()
+    path = work / "controller.lcm"
+    log = lcm.EventLog(str(path), "w", overwrite=True)
+    misses, worst = 0, 0.0
+    names = ("x", "y", "yaw", "vx", "vy", "omega", "throttle", "steering")
+    for i in range(len(clog["step"])):
+        step = int(clog["step"][i])
+        utime = int(round(step * period * 1e6))
+        m = t.state_estimate_t()
+        m.utime, m.step = utime, step
+        for n in names:
+            setattr(m, n, float(clog[n][i]))
+        m.cov_diag = [float(clog[f"P{k}"][i]) for k in range(8)]
+        log.write_event(utime, "DDYN_STATE", m.encode())
+        total = float(clog["loop_us"][i]) * 1e-6
+        missed = total > period
+        misses += int(missed)
+        worst = max(worst, total)
+        tm = t.loop_timing_t()
+        tm.utime, tm.step, tm.period_s, tm.total_s, tm.deadline_s = utime, step, period, total, period
+        tm.deadline_missed, tm.deadline_misses, tm.max_total_s = bool(missed), misses, worst
+        tm.n_stages, tm.stage_names, tm.stage_s = 1, ["controller_step"], [total]
+        log.write_event(utime, "DDYN_TIMING", tm.encode())
+    log.close()
+    return path
+
+
+def lcm_log_summary(path: Path) -> dict:
+    """Events per channel of an LCM log, its size, and the logger's receive-time span."""
+    from ddyn.data.lcm_types import lcm_module
+    lcm = lcm_module()
+    counts: dict[str, int] = {}
+    first = last = None
+    log = lcm.EventLog(str(path), "r")
+    for ev in log:
+        counts[ev.channel] = counts.get(ev.channel, 0) + 1
+        first = ev.timestamp if first is None else first
+        last = ev.timestamp
+    log.close()
+    return {"path": str(path), "bytes": path.stat().st_size, "events": dict(sorted(counts.items())),
+            "event_span_s": (last - first) * 1e-6 if first is not None else None}
+
+
+def plot_lap(path: Path, track: Track, table: np.ndarray, work: Path, title: str) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    traj = read_csv(work / "trajectory.csv")
+    fig, ax = plt.subplots(figsize=(7, 6))
+    for b in (track.left_bound, track.right_bound):
+        bb = np.vstack([b, b[:1]])
+        ax.plot(bb[:, 0], bb[:, 1], "k-", lw=1)
+    rl = np.vstack([table[:, :2], table[:1, :2]])
+    ax.plot(rl[:, 0], rl[:, 1], "--", color="0.6", lw=1, label="raceline")
+    if traj and len(traj["x"]):
+        v = np.hypot(traj["vx"], traj["vy"])
+        sc = ax.scatter(traj["x"], traj["y"], c=v, s=3, cmap="viridis", label="car")
+        fig.colorbar(sc, ax=ax, label="speed (m/s)")
+        out = traj["clearance"] < 0
+        if out.any():
+            ax.plot(traj["x"][out], traj["y"][out], "rx", ms=4, label="footprint outside")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------- entry
+
+def coefficients_from(which: str, vehicle: Vehicle) -> np.ndarray:
+    """`true`, `reference_dataset`, or a JSON file {name: value} (missing names: the true value)."""
+    if which in ("true", "reference_dataset"):
+        return vehicle.coefficient_vector(which)
+    p = Path(which)
+    if not p.is_file():
+        raise DdynError(f"--coeffs {which!r}: neither true/reference_dataset nor a JSON file")
+    d = json.loads(p.read_text())
+    d = d.get("coefficients", d)
+    c = vehicle.true_vector().copy()
+    for k, v in d.items():
+        if k not in COEFF_NAMES:
+            raise DdynError(f"{p}: unknown coefficient {k!r}")
+        c[COEFF_NAMES.index(k)] = float(v)
+    return c
+
+
+def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "auto", kvm: bool | None = None,
+            timeout: float = 600.0, title: str = "") -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("plant_metrics.json", "controller_metrics.json", "trajectory.csv", "controller_log.csv",
+                  "snapshot.json", "sil_metrics.json"):
+        (out / stale).unlink(missing_ok=True)
+    table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin)
+    if len(table) > 1024:
+        raise DdynError(f"raceline of {len(table)} points; the MPC holds at most 1024")
+    bins = build_binaries(export_dir)
+    track_dir = shared_data_dir() / "tracks"
+    use_host = where in ("host", "inprocess") or (where == "auto" and host_has_vcan())
+    inside = "/out" if not use_host else str(out.resolve())
+    pc = plant_config(spec, "/sil/tracks" if not use_host else str(track_dir), inside)
+    (out / "plant.json").write_text(json.dumps(pc, indent=1) + "\n")
+    (out / "plant_resume.json").unlink(missing_ok=True)
+    if "restart_plant" in spec.faults:
+        (out / "plant_resume.json").write_text(json.dumps(dict(pc, resume=f"{inside}/snapshot.json"), indent=1))
+    (out / "controller.txt").write_text(controller_setup(spec, table, inside))
+    # the controller publishes its telemetry live over LCM (and lcm-logger records it) wherever it
+    # runs as its own process in a build with LCM; otherwise its CSV log is converted (fallback)
+    live = where != "inprocess" and controller_has_lcm(bins)
+    (out / LCM_LOG_NAME).unlink(missing_ok=True)
+    if where == "inprocess":
+        run = run_inprocess(bins, out)
+    elif use_host:
+        run = run_host(bins, out, "restart_plant" in spec.faults, lcm=live)
+    else:
+        if kvm is None:  # as scripts/vcan_guest: software emulation unless asked (KVM is not everywhere)
+            kvm = os.environ.get("DDYN_VCAN_KVM", "0") == "1"
+        run = run_guest(bins, out, track_dir, spec.track.name, kvm, timeout, lcm=live)
+    metrics = summarise(out, spec, table, run)
+    cm_path = out / "controller_metrics.json"
+    if live:
+        lcm_path = out / LCM_LOG_NAME
+        if not lcm_path.is_file() or run["lcm"].get("logger_exit") != 0:
+            raise DdynError(f"the live LCM log was not recorded (lcm-logger exit {run['lcm'].get('logger_exit')}, "
+                            f"{lcm_path} {'exists' if lcm_path.is_file() else 'missing'}); see "
+                            f"{out / ('guest.log' if 'guest' in run else 'lcm-logger.stdout')}")
+        metrics["lcm"] = dict(source="live", publisher="ddyn_sil_controller (c_src/linux/telemetry_lcm.c) over "
+                              + run["lcm"]["url"], logger="lcm-logger " + ("in the guest" if "guest" in run else
+                                                                             "on the host"),
+                              **lcm_log_summary(lcm_path))
+        if cm_path.is_file():  # absent when the controller was killed
+            metrics["lcm"]["publisher_counts"] = json.loads(cm_path.read_text()).get("telemetry")
+    else:
+        lcm_path = write_lcm_log(out, spec.vehicle.sample_time)
+        why = ("--where inprocess has no controller process" if where == "inprocess"
+               else "the build has no LCM (DDYN_WITH_LCM=OFF)")
+        metrics["lcm"] = dict(source="converted", publisher=f"FALLBACK: controller_log.csv converted on the host "
+                              f"(train/sil/run.py write_lcm_log; {why})", logger=None,
+                              **(lcm_log_summary(lcm_path) if lcm_path else {"path": None}))
+    metrics["lcm_log"] = str(lcm_path) if lcm_path and lcm_path.is_file() else None
+    (out / "sil_metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    laps = ", ".join(f"{t:.2f} s" for t in metrics["lap_times"]) or "none"
+    plot_lap(out / "lap.png", spec.track, table, out,
+             title or f"SIL {spec.vehicle.name} on {spec.track.name}: laps {laps}, "
+                       f"{metrics['violations']} violation(s), {metrics['end_reason']}")
+    return metrics
+
+
+def _run(args: argparse.Namespace) -> int:
+    vehicle = load_vehicle(args.vehicle)
+    track = load_track(args.track)
+    export_dir = None
+    fixed = None
+    if args.model:
+        from ddyn.learn import checkpoint
+        ckpt = checkpoint.read(args.model)
+        if ckpt["kind"] != "ddm":
+            raise DdynError(f"{args.model} is a {ckpt['kind']} checkpoint: the car runs a DDM's guard network "
+                            "(use --coeffs for fixed coefficients)")
+        export_dir = export_network(Path(args.model), Path(args.out) / "export")
+    else:
+        fixed = coefficients_from(args.coeffs, vehicle)
+    spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
+                   nominal=vehicle.true_vector(), laps=args.laps, vx0=args.vx0,
+                   effects=parse_effects(args.effects), faults=parse_faults(args.faults),
+                   noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin,
+                   realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
+                   pid_gains=args.pid_gains)
+    m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
+    laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
+    ctl = m["controller"] or {}
+    lu = ctl.get("loop_us", {})
+    print(f"sil: {m['run']['where']}: {m['end_reason']}; laps {laps}; violations {m['violations']}; "
+          f"tracking error mean {m['tracking_error']['mean'] or float('nan'):.3f} m; controller loop "
+          f"median {lu.get('median', float('nan')):.0f} us, p99 {lu.get('p99', float('nan')):.0f} us, "
+          f"max {lu.get('max', float('nan')):.0f} us, {ctl.get('deadline_misses')} deadline misses")
+    print(f"sil: wrote {Path(args.out) / 'sil_metrics.json'} and lap.png")
+    return 0
+
+
+def add_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--vehicle", default="orca_1_43", help="vehicle file name (default: %(default)s)")
+    p.add_argument("--track", default="ethzMobil", help="track (default: %(default)s)")
+    p.add_argument("--vx0", type=float, default=0.1, help="initial speed, m/s (default: %(default)s)")
+    p.add_argument("--noise", type=float, default=1.0, help="sensor noise scale (default: %(default)s)")
+    p.add_argument("--speed-scale", type=float, default=1.0,
+                   help="reference speed = raceline speed x this (default %(default)s: the vehicle's own "
+                        "time-optimal line, train/racelines/, is drivable at full speed)")
+    p.add_argument("--margin", type=float, default=0.02,
+                   help="room the MPC keeps between the car's side and the bounds, m (default: %(default)s)")
+    p.add_argument("--realtime", type=float, default=0.0,
+                   help="pace the plant at this multiple of real time (default 0: lock-step with the controller)")
+    p.add_argument("--max-time", type=float, default=None, help="simulated seconds before giving up")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--where", choices=("auto", "host", "guest", "inprocess"), default="auto",
+                   help="host vcan0, qemu guest, auto (host if it has vcan), or inprocess (one process, "
+                        "frames through memory: not the SIL path; host-native timings)")
+    p.add_argument("--kvm", action=argparse.BooleanOptionalAction, default=None,
+                   help="qemu with KVM (default: DDYN_VCAN_KVM=1, else software emulation)")
+    p.add_argument("--timeout", type=float, default=900.0, help="wall seconds for the guest run")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("run", help="software-in-the-loop laps: plant and controller processes over vcan")
+    who = p.add_mutually_exclusive_group()
+    who.add_argument("--model", help="DDM checkpoint: the controller runs its guard network")
+    who.add_argument("--coeffs", default="true",
+                     help="fixed coefficients instead of a network: true, reference_dataset or a JSON file")
+    p.add_argument("--laps", type=int, default=1)
+    p.add_argument("--effects", help=f"plant effects, key=value ({', '.join(PLANT_EFFECTS)})")
+    p.add_argument("--faults", help="faults, key=value: drop=FRACTION delay=SECONDS corrupt=FRACTION "
+                                    "silent=imu|gnss|gnss_position|gnss_heading|wheel_speeds|steering silent_at=S "
+                                    "kill_controller=S restart_plant=S")
+    p.add_argument("--out", default="out/sil", help="output directory (default: %(default)s)")
+    p.add_argument("--throttle", choices=("mpc", "pid"), default="mpc",
+                   help="who sets the throttle: the MPC (default) or a PID on the speed error, the MPC then "
+                        "planning only the steering (docs/controller.md)")
+    p.add_argument("--pid-gains", type=parse_gains, default=None, metavar="KP,KI,KD[,PREVIEW]",
+                   help="PID gains for --throttle pid, and the preview time (s) of its reference speed, 0 if "
+                        "not given (default: the controller's, docs/sil.md)")
+    add_common(p)
+    p.set_defaults(func=_run)
+
+
+def parse_gains(text: str) -> tuple[float, float, float, float]:
+    """`KP,KI,KD[,PREVIEW]` (numbers >= 0; preview 0 when left out) for --pid-gains."""
+    try:
+        g = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected KP,KI,KD[,PREVIEW]") from None
+    if len(g) not in (3, 4) or not all(math.isfinite(v) and v >= 0.0 for v in g):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected three or four finite numbers >= 0 (KP,KI,KD[,PREVIEW])")
+    return g if len(g) == 4 else g + (0.0,)

@@ -1,0 +1,1 @@
+"""Studies: the papers' tables (DDM/DPM, FTHD over data fractions, denoising)."""

@@ -1,0 +1,180 @@
+"""`ddyn study ddm`: the paper-table reproduction, as a command whose output goes into docs/learning.md.
+
+  sim   1:43 ORCA car, explicit-Euler data as in the papers: train on laps of ETHZ
+        (`ddyn simulate`, seed 1), test on laps of ETHZMobil (seed 2), validation the
+        last 20 % of the training laps. DDM, and DPM with Iz at truth, +20 % and -20 %.
+        The harder case: a DDM (Euler physics step) trained and tested on RK4 data.
+  real  the Putnam log of the AV-21, split by time into contiguous blocks: the first
+        80 % trains (its last fifth validates), the last 20 % tests.
+
+Writes DIR/results.json, DIR/results.md, and per model a checkpoint, metrics.json and
+plots; `--update-doc` replaces the block between the study markers in docs/learning.md.
+"""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ddyn.data import simulate
+from ddyn.data.dataset import write_canonical
+from ddyn.errors import DdynError
+from ddyn.learn import checkpoint
+from ddyn.learn.evaluate import evaluate, public
+from ddyn.learn.plots import plot_evaluation
+from ddyn.learn.train_cmd import train_to_checkpoint
+from ddyn.learn.training import TrainConfig
+from ddyn.model import tracks
+from ddyn.model import vehicle as vehicle_mod
+from ddyn.paths import REPO, shared_data_dir
+
+PAPER_SIM_DDM = {"vx": 1.506e-5, "vy": 1.839e-4, "omega": 9.6e-3, "ade": 3.77e-5, "fde": 1.15e-4}
+PAPER_REAL_DDM = {"vx": 0.0312, "vy": 0.0730, "omega": 0.0187, "ade": 0.1827, "fde": 0.3840}
+TARGET_COEFFS = ("Bf", "Cf", "Df", "Br", "Cr", "Dr", "Cm1", "Cm2", "Cr0", "Iz")
+STUDY_BEGIN, STUDY_END = "<!-- study:begin -->", "<!-- study:end -->"
+STUDY_DOC = REPO / "docs" / "learning.md"
+
+
+def _simulated_sets(out: Path, method: str, train_laps: int, test_laps: int) -> tuple[Path, Path]:
+    v = vehicle_mod.load("orca_1_43")
+    paths = []
+    for track, laps, seed, role in (("ethz", train_laps, 1, "train"), ("ethzMobil", test_laps, 2, "test")):
+        p = out / f"{role}_{track}_{method}.csv"
+        if not p.is_file():
+            write_canonical(simulate.simulate(v, tracks.load_track(track), laps=laps, method=method, seed=seed,
+                                              progress=False), p)
+        paths.append(p)
+    return paths[0], paths[1]
+
+
+def _run_model(name: str, train_path: Path, test_path: Path | None, test_ds, cfg: TrainConfig, out: Path) -> dict:
+    from ddyn.data.importers import load_any
+
+    ckpt_path = out / name / "model.ckpt"
+    ckpt = train_to_checkpoint(str(train_path), cfg, str(ckpt_path), progress=False)
+    model, ckpt = checkpoint.load(ckpt_path)
+    ds = test_ds if test_ds is not None else load_any(test_path)
+    m = evaluate(model, ckpt, ds)
+    plot_evaluation(m, ckpt, out / name)
+    result = {"name": name, "kind": cfg.kind, "train_seconds": ckpt["training"]["seconds"],
+              "validation_loss": ckpt["training"]["best_val_loss"], **public(m)}
+    (out / name / "metrics.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+def run_sim(out: Path, quick: bool = False) -> list[dict]:
+    out.mkdir(parents=True, exist_ok=True)
+    laps = (1, 1) if quick else (3, 2)
+    base = TrainConfig(epochs=5, lbfgs_iterations=40) if quick else TrainConfig()
+    euler = _simulated_sets(out, "euler", *laps)
+    rk4 = _simulated_sets(out, "rk4", *laps)
+    runs = [("DDM", euler, dict(kind="ddm"))]
+    runs += [(f"DPM Iz {label}", euler, dict(kind="dpm", dpm_iz_scale=s))
+             for label, s in (("true", 1.0), ("+20%", 1.2), ("-20%", 0.8))]
+    runs += [("DDM (RK4 data)", rk4, dict(kind="ddm"))]
+    results = []
+    for name, (tr, te), over in tqdm(runs, desc="sim study"):
+        cfg = TrainConfig(**{**base.__dict__, **over})
+        results.append(_run_model(_slug(name), tr, te, None, cfg, out) | {"label": name})
+    return results
+
+
+def run_real(out: Path, quick: bool = False) -> list[dict]:
+    from ddyn.data.importers import load_any
+
+    out.mkdir(parents=True, exist_ok=True)
+    src = shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+    if not src.is_file():
+        raise DdynError(f"real log not found: {src}")
+    ds = load_any(src)
+    cut = int(len(ds) * 0.8)
+    train_part, test_part = ds.subset(slice(0, cut)), ds.subset(slice(cut, None))
+    if quick:
+        train_part = train_part.subset(slice(0, 1500))
+    train_path = out / "putnam_train.csv"
+    write_canonical(train_part, train_path)
+    base = TrainConfig(epochs=5, lbfgs_iterations=40) if quick else TrainConfig()
+    return [_run_model("ddm_putnam", train_path, None, test_part, base, out) | {"label": "DDM (Putnam)"}]
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "_", name.lower().replace("+", "plus").replace("-20", "minus20")).strip("_")
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.3g}" if abs(x) >= 1e-2 else f"{x:.3e}"
+
+
+def markdown(sim: list[dict] | None, real: list[dict] | None) -> str:
+    lines = []
+    if sim:
+        lines += ["**Simulated 1:43 car** (train ETHZ, test ETHZMobil; RMSE of the next state; ADE/FDE over 300 ms)", "",
+                  "| model | vx (m/s) | vy (m/s) | omega (rad/s) | ADE (m) | FDE (m) | train time (s) |",
+                  "|---|---|---|---|---|---|---|"]
+        p = PAPER_SIM_DDM
+        lines.append(f"| paper: DDM | {_fmt(p['vx'])} | {_fmt(p['vy'])} | {_fmt(p['omega'])} | {_fmt(p['ade'])} "
+                     f"| {_fmt(p['fde'])} | |")
+        for r in sim:
+            lines.append(f"| {r['label']} | {_fmt(r['rmse']['vx'])} | {_fmt(r['rmse']['vy'])} | "
+                         f"{_fmt(r['rmse']['omega'])} | {_fmt(r['ade'])} | {_fmt(r['fde'])} | {r['train_seconds']:.0f} |")
+        ddm = next(r for r in sim if r["label"] == "DDM")
+        lines += ["", "DDM coefficient estimates on the test track (mean over samples) against the simulator's truth:", "",
+                  "| " + " | ".join(TARGET_COEFFS) + " |", "|" + "---|" * len(TARGET_COEFFS),
+                  "| " + " | ".join(f"{100 * ddm['coefficients'][c]['rel_error']:+.1f} %" for c in TARGET_COEFFS) + " |"]
+        pinned = sorted({f"{r['label']}: {n}" for r in sim for n, c in r["coefficients"].items()
+                         if c.get("at_lower_bound", 0) + c.get("at_upper_bound", 0) > 0.01})
+        lines += ["", "Guard saturation (over 1 % of samples within 1 % of a bound): "
+                  + ("; ".join(pinned) if pinned else "none") + "."]
+    if real:
+        r = real[0]
+        p = PAPER_REAL_DDM
+        lines += ["", "**Real AV-21, Putnam Park** (held-out last 20 % of the log; ADE/FDE over 600 ms). The paper's "
+                  "figures are from another track and split, so they are a reference point, not a like-for-like "
+                  "comparison.", "",
+                  "| model | vx (m/s) | vy (m/s) | omega (rad/s) | ADE (m) | FDE (m) | train time (s) |",
+                  "|---|---|---|---|---|---|---|",
+                  f"| paper: DDM (real data) | {p['vx']} | {p['vy']} | {p['omega']} | {p['ade']} | {p['fde']} | |",
+                  f"| {r['label']} | {_fmt(r['rmse']['vx'])} | {_fmt(r['rmse']['vy'])} | {_fmt(r['rmse']['omega'])} "
+                  f"| {_fmt(r['ade'])} | {_fmt(r['fde'])} | {r['train_seconds']:.0f} |"]
+        pinned = [n for n, c in r["coefficients"].items() if c.get("at_lower_bound", 0) + c.get("at_upper_bound", 0) > 0.01]
+        lines += ["", "Guard saturation on the real log: " + (", ".join(
+            f"{n} ({100 * (r['coefficients'][n].get('at_lower_bound', 0) + r['coefficients'][n].get('at_upper_bound', 0)):.0f} %)"
+            for n in pinned) if pinned else "none") + "."]
+    return "\n".join(lines) + "\n"
+
+
+def update_doc(block: str, doc: Path = STUDY_DOC) -> None:
+    text = doc.read_text()
+    if STUDY_BEGIN not in text or STUDY_END not in text:
+        raise DdynError(f"{doc} has no {STUDY_BEGIN} ... {STUDY_END} block")
+    head, rest = text.split(STUDY_BEGIN, 1)
+    _, tail = rest.split(STUDY_END, 1)
+    doc.write_text(f"{head}{STUDY_BEGIN}\n{block}{STUDY_END}{tail}")
+
+
+def _run(args) -> int:
+    out = Path(args.out)
+    sim = run_sim(out / "sim", args.quick) if args.which in ("sim", "all") else None
+    real = run_real(out / "real", args.quick) if args.which in ("real", "all") else None
+    results = {"sim": sim, "real": real, "quick": args.quick}
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    md = markdown(sim, real)
+    (out / "results.md").write_text(md)
+    print(md)
+    if args.update_doc:
+        if args.quick or args.which != "all":
+            raise DdynError("--update-doc needs the full study: `ddyn study ddm all` without --quick")
+        update_doc(md)
+        print(f"{STUDY_DOC.relative_to(REPO)} results block updated")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("ddm", help="reproduce the papers' DDM/DPM table (simulated and real)")
+    p.add_argument("which", nargs="?", choices=("sim", "real", "all"), default="all")
+    p.add_argument("--out", default="out/study", help="output directory (default: %(default)s)")
+    p.add_argument("--quick", action="store_true", help="tiny data and training: a smoke run, not the figures")
+    p.add_argument("--update-doc", action="store_true", help="write the results table into docs/learning.md")
+    p.set_defaults(func=_run)
