@@ -16,11 +16,13 @@ echo "== Python tests (pytest)"
 python -m pytest -q || status=1
 
 echo "== C tests (ctest, release build)"
-ctest --test-dir "$ROOT/build" --output-on-failure || status=1
+{ ctest --test-dir "$ROOT/build" --output-on-failure --output-junit "$ROOT/build/ctest-junit.xml" \
+    && python scripts/check_skips.py ctest "$ROOT/build/ctest-junit.xml"; } || status=1
 
 echo "== C tests (ctest, AddressSanitizer + UndefinedBehaviorSanitizer build)"
 { bash scripts/build.sh "$ROOT/build-asan" -DDDYN_SANITIZE=ON -DCMAKE_BUILD_TYPE=Debug \
-    && ctest --test-dir "$ROOT/build-asan" --output-on-failure; } || status=1
+    && ctest --test-dir "$ROOT/build-asan" --output-on-failure --output-junit "$ROOT/build-asan/ctest-junit.xml" \
+    && python scripts/check_skips.py ctest "$ROOT/build-asan/ctest-junit.xml"; } || status=1
 
 echo "== fuzz: CAN frame decoder and the controller's CAN input path (libFuzzer + ASan/UBSan, ${DDYN_FUZZ_SECONDS:-30} s)"
 bash scripts/fuzz_can.sh || status=1

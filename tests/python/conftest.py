@@ -1,4 +1,4 @@
-"""Shared fixtures: where the shared reference data lives."""
+"""Shared fixtures: where the shared reference data lives; skips fail the run unless allow-listed."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,6 +6,9 @@ from pathlib import Path
 import pytest
 
 from ddyn.paths import shared_data_dir
+
+# a skipped test fails the run unless tests/skip_allowlist.txt lists it (tests/python/skip_guard.py)
+pytest_plugins = ["skip_guard"]
 
 
 @pytest.fixture(scope="session")
@@ -15,3 +18,4 @@ def shared_data() -> Path:
     if not d.is_dir():
         pytest.skip(f"SHARED DATA MISSING: {d} does not exist (set DDYN_SHARED_DATA)")
     return d
+
