@@ -21,8 +21,8 @@ import cantools
 from cantools.database.can import c_source
 
 from ddyn.errors import DdynError
+from ddyn.paths import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 DBC_PATH = REPO / "can" / "ddyn_dbw.dbc"
 DEFAULT_OUT = REPO / "c_src" / "generated" / "can"
 DATABASE_NAME = "ddyn_can"

@@ -39,8 +39,8 @@ from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.sensors import MEASUREMENTS, measure
 from ddyn.model.single_track import N_COEFF, N_STATE
 from ddyn.model.vehicle import Vehicle
+from ddyn.paths import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "c_src" / "generated"
 DEFAULT_VECTORS_OUT = REPO / "tests" / "c" / "generated"
 # the files whose text defines the model: their hash identifies generated code

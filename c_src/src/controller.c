@@ -243,7 +243,9 @@ static ddyn_ctrl_status choose_coefficients(ddyn_ctrl *ctl)
     } else if (!history_in_range(ctl)) {
         st |= DDYN_CTRL_OUT_OF_RANGE;
     } else if (ddyn_guard_net_infer(&ctl->net, (const double(*)[NFEAT])ctl->history, c) != DDYN_NET_OK ||
-               !ddyn_all_finite(c, NC)) {
+               !coefficients_usable(c)) {
+        /* the same test as the fixed and nominal sets: an unguarded (DPM) or corrupt network may give
+         * finite coefficients the model cannot step with (Cm1 <= 0, Iz <= 0) */
         st |= DDYN_CTRL_NET_FAULT;
     } else {
         memcpy(ctl->coeffs, c, sizeof c);
@@ -261,14 +263,46 @@ static ddyn_ctrl_status choose_coefficients(ddyn_ctrl *ctl)
     return st;
 }
 
-/* The filter has diverged when a variance is not finite or above its bound. */
+/* The filter has diverged when a variance is not finite or above its bound, or P is not a
+ * covariance any more: a non-finite or asymmetric entry, or not positive definite (a P with a sound
+ * diagonal can still be indefinite; the next update would then be refused or go the wrong way).
+ * Positive definiteness by an in-place Cholesky of a copy: NX^3/6 multiply-adds, bounded. */
 static int covariance_ok(const ddyn_ctrl *ctl)
 {
-    int i;
+    double L[NX * NX];
+    int i, j, k;
+    if (!ddyn_all_finite(ctl->ekf.P, NX * NX)) {
+        return 0;
+    }
     for (i = 0; i < NX; ++i) {
         double v = ctl->ekf.P[i * NX + i];
         if (!(v <= ctl->cfg.p_max[i]) || !(v > 0.0)) {
             return 0;
+        }
+        for (j = 0; j < i; ++j) {
+            double a = ctl->ekf.P[i * NX + j], b = ctl->ekf.P[j * NX + i];
+            if (!(fabs(a - b) <= 1e-9 * (fabs(a) + fabs(b)) + 1e-300)) {
+                return 0; /* the EKF symmetrises after every update: asymmetry is corruption */
+            }
+        }
+    }
+    memcpy(L, ctl->ekf.P, sizeof L);
+    for (j = 0; j < NX; ++j) {
+        double d = L[j * NX + j];
+        for (k = 0; k < j; ++k) {
+            d -= L[j * NX + k] * L[j * NX + k];
+        }
+        if (!(d > 0.0)) {
+            return 0;
+        }
+        d = sqrt(d);
+        L[j * NX + j] = d;
+        for (i = j + 1; i < NX; ++i) {
+            double v = L[i * NX + j];
+            for (k = 0; k < j; ++k) {
+                v -= L[i * NX + k] * L[j * NX + k];
+            }
+            L[i * NX + j] = v / d;
         }
     }
     return 1;
@@ -323,9 +357,10 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
         } else if ((result = fuse(ctl, k, r->z)) != 0) {
             st |= DDYN_CTRL_MEAS_REJECTED;
             ctl->rejected_count[k] = saturating_increment(ctl->rejected_count[k]);
-            if (count_fault(ctl, k) && result == 2) {
-                /* readings that stay outside the gate: the filter no longer believes its sensors
-                 * (or a sensor lies); restart it with P0 so the gate opens, once per episode */
+            if (count_fault(ctl, k)) {
+                /* readings that stay outside the gate (result 2), or that the filter keeps refusing
+                 * (result 1: S not positive definite, a non-finite update): the filter no longer
+                 * believes its sensors, or cannot use them; restart it with P0, once per episode */
                 diverged = 1;
             }
         } else {
@@ -414,7 +449,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_ca
         ctl->plan_age += 1;
     }
     if (s == DDYN_OK && ddyn_all_finite(u, NU)) {
-        int h = ddyn_mpc_plan(&ctl->mpc, NULL, ctl->plan_u);
+        int h = ddyn_mpc_plan_inputs(&ctl->mpc, ctl->plan_u); /* a copy: no re-simulation that could fail */
         ctl->plan_horizon = h > 0 && h <= DDYN_MPC_MAX_HORIZON ? h : 0;
         ctl->plan_age = 0;
         memcpy(out->u, u, sizeof u);

@@ -393,11 +393,9 @@ int ddyn_dbw_init(ddyn_dbw *dbw, const ddyn_dbw_config *config)
     return 0;
 }
 
-static void fail(ddyn_dbw *dbw, ddyn_dbw_failure kind, int frame, uint64_t t_us)
+/* count a failure (statistics, mask, last failure) without touching the link state */
+static void count_failure(ddyn_dbw *dbw, ddyn_dbw_failure kind, int frame, uint64_t t_us)
 {
-    if ((unsigned)kind >= DDYN_DBW_FAIL_COUNT) {
-        return;
-    }
     if (dbw->failures[kind] < UINT32_MAX) {
         dbw->failures[kind]++;
     }
@@ -406,8 +404,29 @@ static void fail(ddyn_dbw *dbw, ddyn_dbw_failure kind, int frame, uint64_t t_us)
     dbw->last_failure_frame = frame;
     dbw->last_failure_us = t_us;
     dbw->any_failure = true;
+}
+
+static void fail(ddyn_dbw *dbw, ddyn_dbw_failure kind, int frame, uint64_t t_us)
+{
+    if ((unsigned)kind >= DDYN_DBW_FAIL_COUNT) {
+        return;
+    }
+    count_failure(dbw, kind, frame, t_us);
     dbw->state = DDYN_DBW_WAIT_GOOD;
     reset_streaks(dbw);
+}
+
+/* A defect of a received frame: fatal to the link only when this endpoint monitors that frame.
+ * A frame it does not monitor (deadline 0, e.g. the controller's own command seen on the bus) is
+ * counted for the diagnostics, but the link the car relies on is unaffected. */
+static void fail_received(ddyn_dbw *dbw, ddyn_dbw_failure kind, ddyn_dbw_frame frame, uint64_t t_us)
+{
+    if ((unsigned)frame < (unsigned)DDYN_DBW_FRAME_COUNT && dbw->config.deadline_us[frame] == 0u &&
+        (unsigned)kind < DDYN_DBW_FAIL_COUNT) {
+        count_failure(dbw, kind, (int)frame, t_us);
+        return;
+    }
+    fail(dbw, kind, (int)frame, t_us);
 }
 
 void ddyn_dbw_report(ddyn_dbw *dbw, ddyn_dbw_failure kind, uint64_t t_us)
@@ -450,11 +469,11 @@ ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const u
         /* the rejected frame used up a counter value the receiver cannot trust: accept any counter
          * next, so that one defect is counted once (recovery needs N good frames anyway) */
         dbw->rx[frame].counter_valid = false;
-        fail(dbw,
-             r == DDYN_DBW_DECODE_BAD_LENGTH ? DDYN_DBW_FAIL_BAD_LENGTH
-             : r == DDYN_DBW_DECODE_CHECKSUM ? DDYN_DBW_FAIL_CHECKSUM
-                                             : DDYN_DBW_FAIL_RANGE,
-             (int)frame, t_us);
+        fail_received(dbw,
+                      r == DDYN_DBW_DECODE_BAD_LENGTH ? DDYN_DBW_FAIL_BAD_LENGTH
+                      : r == DDYN_DBW_DECODE_CHECKSUM ? DDYN_DBW_FAIL_CHECKSUM
+                                                      : DDYN_DBW_FAIL_RANGE,
+                      frame, t_us);
         return r;
     default: return r;
     }
@@ -466,7 +485,7 @@ ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const u
                                                                 : DDYN_DBW_FAIL_COUNTER_JUMP;
             /* follow the sender's counter so that the next in-sequence frame counts as good */
             rx->last_counter = counter;
-            fail(dbw, kind, (int)frame, t_us);
+            fail_received(dbw, kind, frame, t_us);
             return r;
         }
     }

@@ -102,6 +102,20 @@ ddyn_net_status ddyn_guard_net_init(ddyn_guard_net *net, const ddyn_net_tables *
     if (tables->checkpoint_sha256 == NULL || strcmp(tables->checkpoint_sha256, DDYN_NET_CHECKPOINT_SHA256) != 0) {
         return DDYN_NET_ERR_HASH;
     }
+    {
+        /* infer() divides by std: a zero, negative or non-finite entry (a corrupt or hand-made table)
+         * would turn every history into inf/NaN features */
+        int f;
+        if (tables->mean == NULL || tables->std == NULL) {
+            return DDYN_NET_ERR_ARGUMENT;
+        }
+        for (f = 0; f < DDYN_NET_NFEAT; ++f) {
+            if (!isfinite((double)tables->mean[f]) || !((double)tables->std[f] > 0.0) ||
+                !isfinite((double)tables->std[f])) {
+                return DDYN_NET_ERR_NORMALISATION;
+            }
+        }
+    }
     net->tables = tables;
     net->initialised = 1;
     return DDYN_NET_OK;
@@ -195,6 +209,8 @@ const char *ddyn_net_status_name(ddyn_net_status status)
         return "DDYN_NET_ERR_NONFINITE_INPUT";
     case DDYN_NET_ERR_NONFINITE_OUTPUT:
         return "DDYN_NET_ERR_NONFINITE_OUTPUT";
+    case DDYN_NET_ERR_NORMALISATION:
+        return "DDYN_NET_ERR_NORMALISATION";
     }
     return "DDYN_NET_ERR_UNKNOWN";
 }

@@ -219,11 +219,14 @@ static track_point track_at(const ddyn_mpc_track *t, int i, double u)
     return p;
 }
 
-/* advance (i, u) by ds >= 0 metres along the closed raceline */
+/* advance (i, u) by ds >= 0 metres along the closed raceline; a look-ahead of more than a lap wraps */
 static void advance(const ddyn_mpc_track *t, int *i, double *u, double ds)
 {
     int k;
-    for (k = 0; k < t->n; ++k) { /* bounded: at most one lap of segments per call */
+    if (t->length > 0.0 && ds >= t->length) {
+        ds = fmod(ds, t->length); /* whole laps end where they started */
+    }
+    for (k = 0; k <= t->n; ++k) { /* bounded: under a lap from mid-segment crosses at most n + 1 segments */
         int j = *i + 1 < t->n ? *i + 1 : 0;
         double len = hypot(t->x[j] - t->x[*i], t->y[j] - t->y[*i]);
         double left = (1.0 - *u) * len;
@@ -589,6 +592,15 @@ ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_N
     }
     *speed = track_at(&mpc->track, i0, u0).speed;
     return DDYN_OK;
+}
+
+int ddyn_mpc_plan_inputs(const ddyn_mpc *mpc, double *u_plan)
+{
+    if (mpc == NULL || u_plan == NULL || !mpc->have_warm_start) {
+        return 0;
+    }
+    memcpy(u_plan, mpc->u_plan, (size_t)(mpc->cfg.horizon * DDYN_NU) * sizeof(double));
+    return mpc->cfg.horizon;
 }
 
 int ddyn_mpc_plan(ddyn_mpc *mpc, double *x_plan, double *u_plan)

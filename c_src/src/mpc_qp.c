@@ -453,13 +453,11 @@ ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol)
         qp->converged = res <= tol;
     }
     qp->residual = res;
-    for (i = 0; i < n; ++i) {
-        if (!isfinite(qp->z[i])) {
-            memset(qp->z, 0, sizeof qp->z);
-            memset(qp->slack, 0, sizeof qp->slack);
-            qp->converged = 0;
-            break;
-        }
+    if (!ddyn_all_finite(qp->z, n) || !ddyn_all_finite(qp->slack, qp->horizon)) {
+        /* the header promises a finite last iterate: never hand on NaN in z or in the slacks */
+        memset(qp->z, 0, sizeof qp->z);
+        memset(qp->slack, 0, sizeof qp->slack);
+        qp->converged = 0;
     }
     return qp->converged ? DDYN_OK : DDYN_ERR_QP_NOT_CONVERGED;
 }

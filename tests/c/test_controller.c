@@ -381,6 +381,50 @@ static void test_nonfinite_network_output_falls_back_to_nominal(void **state)
                 (DDYN_CTRL_NET_FAULT | DDYN_CTRL_MEAS_NONFINITE | DDYN_CTRL_COEFF_NOMINAL));
 }
 
+static void test_unusable_network_coefficients_fall_back_to_nominal(void **state)
+{
+    /* a network whose output is finite but not a car the model can step with (here Iz < 0 through
+     * a corrupt range table): refused as the fixed and nominal sets are, not only when non-finite */
+    static ddyn_net_real lo[DDYN_NET_NOUT], head_b[DDYN_NET_NOUT];
+    ddyn_net_tables broken = ddyn_net_weights;
+    ddyn_ctrl_output out;
+    int k;
+    (void)state;
+    memcpy(lo, ddyn_net_weights.lo, sizeof lo);
+    memcpy(head_b, ddyn_net_weights.head_b, sizeof head_b);
+    lo[DDYN_NET_NOUT - 1] = (ddyn_net_real)-1.0;         /* Iz range from -1 ... */
+    head_b[DDYN_NET_NOUT - 1] = (ddyn_net_real)-1000.0; /* ... and the sigmoid at its lower end */
+    broken.lo = lo;
+    broken.head_b = head_b;
+    start_on_circle(&broken);
+    for (k = 0; k <= DDYN_NET_TAU; ++k) {
+        run_exact(k, &out);
+    }
+    assert_true(out.status & DDYN_CTRL_NET_FAULT);
+    assert_true(out.status & DDYN_CTRL_COEFF_NOMINAL);
+    assert_memory_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
+    assert_int_equal(ctl.last_good_age, -1);
+}
+
+static void test_indefinite_covariance_restarts_the_filter(void **state)
+{
+    /* a P whose diagonal is sound but which is no covariance (x-y correlation above 1): the old
+     * diagonal-only check let it stand, and the position update it breaks was refused every period */
+    ddyn_ctrl_output out;
+    int i;
+    (void)state;
+    start_on_circle(&ddyn_net_weights);
+    run_exact(0, &out);
+    assert_false(out.status & DDYN_CTRL_EKF_DIVERGED);
+    ctl.ekf.P[0 * DDYN_NX + 1] = ctl.ekf.P[1 * DDYN_NX + 0] = 3.0 * sqrt(ctl.ekf.P[0] * ctl.ekf.P[DDYN_NX + 1]);
+    run_exact(1, &out);
+    assert_true(out.status & DDYN_CTRL_EKF_DIVERGED);
+    assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
+    for (i = 0; i < DDYN_NX; ++i) { /* restarted with the initial covariance */
+        assert_true(ctl.ekf.P[i * DDYN_NX + i] == cfg.p0_diag[i]);
+    }
+}
+
 static void test_covariance_blowup_resets_filter_and_is_safe(void **state)
 {
     ddyn_ctrl_output out;
@@ -703,6 +747,8 @@ static void test_pid_anti_windup(void **state)
 int main(void)
 {
     const struct CMUnitTest tests[] = {
+        cmocka_unit_test_setup(test_unusable_network_coefficients_fall_back_to_nominal, setup),
+        cmocka_unit_test_setup(test_indefinite_covariance_restarts_the_filter, setup),
         cmocka_unit_test_setup(test_bad_arguments_and_configurations, setup),
         cmocka_unit_test_setup(test_status_bits_have_distinct_names, setup),
         cmocka_unit_test_setup(test_safe_command_brakes_then_holds, setup),

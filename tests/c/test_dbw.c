@@ -366,6 +366,29 @@ static void inject_bad_length(void)
 static void inject_bus_off(void) { ddyn_dbw_report(&ctl, DDYN_DBW_FAIL_BUS_OFF, now); }
 static void inject_iface_gone(void) { ddyn_dbw_report(&ctl, DDYN_DBW_FAIL_IFACE_GONE, now); }
 
+static void test_defect_in_an_unmonitored_frame_is_counted_not_fatal(void **s)
+{
+    /* the controller's endpoint does not monitor the command frame (deadline 0: it sends it); a
+     * corrupted one on the bus is counted, but must not drop the link the car drives on (it used to
+     * send the endpoint to WAIT_GOOD and the car to its safe command) */
+    ddyn_dbw_command d = driving(), w;
+    uint8_t data[8];
+    (void)s;
+    assert_int_equal(ctl.config.deadline_us[DDYN_DBW_FRAME_COMMAND], 0u);
+    bring_to_active();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_COMMAND, &truth, data), 0);
+    data[7] ^= 0x80u;
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_COMMAND), data, 8, now),
+                     DDYN_DBW_DECODE_CHECKSUM);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_CHECKSUM], 1u);
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_true(fabs(w.throttle - 0.6) < 1e-4);
+    /* the same defect in a monitored frame still drops it */
+    inject_checksum();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
+}
+
 static void test_stale(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_STALE, inject_stale); }
 static void test_counter_jump(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_COUNTER_JUMP, inject_counter_jump); }
 static void test_counter_repeat(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_COUNTER_REPEAT, inject_counter_repeat); }
@@ -452,6 +475,7 @@ int main(void)
         cmocka_unit_test_setup(test_counter_jump, setup),
         cmocka_unit_test_setup(test_counter_repeat, setup),
         cmocka_unit_test_setup(test_checksum, setup),
+        cmocka_unit_test_setup(test_defect_in_an_unmonitored_frame_is_counted_not_fatal, setup),
         cmocka_unit_test_setup(test_range, setup),
         cmocka_unit_test_setup(test_unknown_frame, setup),
         cmocka_unit_test_setup(test_bad_length, setup),

@@ -56,6 +56,32 @@ static void test_refuses_tables_of_another_shape_or_checkpoint(void **state)
     assert_string_equal(ddyn_net_status_name(DDYN_NET_ERR_HASH), "DDYN_NET_ERR_HASH");
 }
 
+static void test_refuses_a_normalisation_it_cannot_divide_by(void **state)
+{
+    /* infer() divides each feature by its std: a zero, negative or non-finite std, or a non-finite
+     * mean, must stop init (it used to be accepted, and every history became inf/NaN features) */
+    static ddyn_net_real std[DDYN_NET_NFEAT], mean[DDYN_NET_NFEAT];
+    const ddyn_net_real bad_std[] = {(ddyn_net_real)0.0, (ddyn_net_real)-1.0, (ddyn_net_real)NAN,
+                                     (ddyn_net_real)INFINITY};
+    ddyn_net_tables t;
+    unsigned k;
+    (void)state;
+    for (k = 0; k < sizeof bad_std / sizeof bad_std[0]; ++k) {
+        t = ddyn_net_weights;
+        memcpy(std, ddyn_net_weights.std, sizeof std);
+        std[3] = bad_std[k];
+        t.std = std;
+        assert_int_equal(ddyn_guard_net_init(&net, &t), DDYN_NET_ERR_NORMALISATION);
+    }
+    t = ddyn_net_weights;
+    memcpy(mean, ddyn_net_weights.mean, sizeof mean);
+    mean[0] = (ddyn_net_real)NAN;
+    t.mean = mean;
+    assert_int_equal(ddyn_guard_net_init(&net, &t), DDYN_NET_ERR_NORMALISATION);
+    assert_string_equal(ddyn_net_status_name(DDYN_NET_ERR_NORMALISATION), "DDYN_NET_ERR_NORMALISATION");
+    assert_int_equal(ddyn_guard_net_init(&net, &ddyn_net_weights), DDYN_NET_OK);
+}
+
 static void test_refuses_uninitialised_and_nonfinite(void **state)
 {
     double h[DDYN_NET_TAU][DDYN_NET_NFEAT];
@@ -78,6 +104,7 @@ int main(void)
         cmocka_unit_test(test_matches_pytorch_and_stays_in_range),
         cmocka_unit_test(test_refuses_tables_of_another_shape_or_checkpoint),
         cmocka_unit_test(test_refuses_uninitialised_and_nonfinite),
+        cmocka_unit_test(test_refuses_a_normalisation_it_cannot_divide_by),
     };
     return cmocka_run_group_tests_name("guard_net", tests, NULL, NULL);
 }

@@ -78,7 +78,35 @@ static void test_reference_speed_reads_ahead_along_the_line(void **state)
     assert_true(fabs(speed - 1.0) < 1e-9);
     assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, 10.5 * seg, &speed), DDYN_OK);
     assert_true(fabs(speed - 1.105) < 1e-9); /* half-way between points 10 and 11 */
+    /* one lap and two laps further on: the same place, the same speed (it used to stop after one lap
+     * of segments at point 0 with the leftover distance dropped) */
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, mpc.track.length + 10.5 * seg, &speed), DDYN_OK);
+    assert_true(fabs(speed - 1.105) < 1e-9);
+    assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, 2.0 * mpc.track.length + 10.5 * seg, &speed), DDYN_OK);
+    assert_true(fabs(speed - 1.105) < 1e-9);
     assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, NAN, &speed), DDYN_ERR_NONFINITE_INPUT);
+}
+
+static void test_plan_inputs_need_no_simulation(void **state)
+{
+    /* the controller's shifted-plan fallback copies the plan's inputs: that copy must not depend on
+     * simulating the horizon, which fails with coefficients the model cannot step with */
+    static double C_BAD[DDYN_NC];
+    double x[DDYN_NX], u[DDYN_NU], up[DDYN_MPC_NV], up2[DDYN_MPC_NV], xp[(DDYN_MPC_MAX_HORIZON + 1) * DDYN_NX];
+    (void)state;
+    ring_mpc(30);
+    ring_start(x);
+    assert_int_equal(ddyn_mpc_plan_inputs(&mpc, up), 0); /* no plan yet */
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, NULL), DDYN_OK);
+    assert_int_equal(ddyn_mpc_plan(&mpc, NULL, up2), 20);
+    memcpy(C_BAD, C, sizeof C_BAD);
+    C_BAD[DDYN_NC - 1] = 0.0; /* Iz = 0: the model step divides by it */
+    assert_int_equal(ddyn_mpc_set_coefficients(&mpc, C_BAD), DDYN_OK);
+    assert_int_equal(ddyn_mpc_plan(&mpc, xp, NULL), 0); /* the simulation fails ... */
+    assert_int_equal(ddyn_mpc_plan_inputs(&mpc, up), 20); /* ... the copy does not */
+    assert_memory_equal(up, up2, 20 * DDYN_NU * sizeof(double));
+    assert_true(up[0] == u[0] && up[1] == u[1]);
+    assert_int_equal(ddyn_mpc_plan_inputs(&mpc, NULL), 0);
 }
 
 static void test_default_config_takes_the_vehicle_files_limits(void **state)
@@ -571,6 +599,7 @@ int main(void)
         cmocka_unit_test(test_closed_loop_stays_on_the_ring),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
+        cmocka_unit_test(test_plan_inputs_need_no_simulation),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -105,3 +105,22 @@ def test_commands_are_grouped_and_say_what_they_do():
     assert set(_commands(top["sil"])) == {"run", "table", "faults", "pid-sweep"}
     assert set(_commands(top["can"])) == {"codegen", "export", "import", "replay", "record", "bench"}
     assert set(_commands(top["study"])) >= {"ddm", "fthd", "denoise", "gap"}
+
+
+def test_default_tool_and_data_paths_point_into_the_repository():
+    """Module-level default paths (build tools, racelines, vehicle files, generated code) must resolve
+    from the repository root, not from a module's own folder, which moved in the restructure."""
+    import pathlib
+
+    checked = 0
+    for m in sorted(_modules()):
+        mod = importlib.import_module(m)
+        for name, value in vars(mod).items():
+            if name.isupper() and isinstance(value, pathlib.Path):
+                checked += 1
+                if "build" in value.parts:
+                    assert value.is_relative_to(REPO / "build") or value.is_relative_to(REPO / "build-net100k"), (
+                        f"{m}.{name} = {value}")
+                elif value.is_absolute() and value.is_relative_to(REPO):
+                    assert value.exists(), f"{m}.{name} = {value} does not exist"
+    assert checked >= 5

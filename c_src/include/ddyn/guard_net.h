@@ -39,7 +39,8 @@ typedef enum {
     DDYN_NET_ERR_HASH = 4,          /* tables exported from another checkpoint */
     DDYN_NET_ERR_NOT_INITIALISED = 5,
     DDYN_NET_ERR_NONFINITE_INPUT = 6,
-    DDYN_NET_ERR_NONFINITE_OUTPUT = 7
+    DDYN_NET_ERR_NONFINITE_OUTPUT = 7,
+    DDYN_NET_ERR_NORMALISATION = 8  /* a feature std that is not finite and > 0, or a non-finite mean */
 } ddyn_net_status;
 
 /* The exported tables (instance generated in ddyn_net_weights.c). Arrays are

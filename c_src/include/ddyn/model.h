@@ -75,7 +75,12 @@ ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_disc
                                       ddyn_model_work *work);
 
 /* Continuous-time derivative xdot = f(x, u, c). */
-/* 1 when v[0..n) holds no NaN or inf: the NaN/inf guard every runtime module uses on its inputs. */
+/* 1 when v[0..n) holds no NaN or inf: the NaN/inf guard every runtime module uses on its inputs.
+ * Under -ffast-math (-ffinite-math-only) the compiler may assume no NaN or inf exists and fold
+ * isfinite() to 1: every such check of the runtime would vanish without a word. Refuse to build. */
+#if defined(__FAST_MATH__) || (defined(__FINITE_MATH_ONLY__) && __FINITE_MATH_ONLY__)
+#error "ddyn: the runtime's NaN/inf checks need IEEE semantics; do not build it with -ffast-math or -ffinite-math-only"
+#endif
 int ddyn_all_finite(const double *v, int n);
 
 ddyn_status ddyn_model_derivatives(const ddyn_vehicle_model *model, const double x[DDYN_NX],

@@ -179,6 +179,11 @@ ddyn_status ddyn_mpc_reference_speed(const ddyn_mpc *mpc, const double x0[DDYN_N
  * may be NULL). Returns the horizon H, 0 if there is no plan yet or the simulation failed. */
 int ddyn_mpc_plan(ddyn_mpc *mpc, double *x_plan, double *u_plan);
 
+/* The input rates u_plan (H*2) of the last successful (or not converged) solve, copied as they are:
+ * no simulation, so it costs nothing and cannot fail once a plan exists (the controller's shifted-plan
+ * fallback relies on that). Returns H, or 0 if there is no plan yet. */
+int ddyn_mpc_plan_inputs(const ddyn_mpc *mpc, double *u_plan);
+
 /* Forget the warm start (e.g. after a discontinuity in the state); the next solve starts from
  * zero input rates and a global search for the raceline position. */
 void ddyn_mpc_reset(ddyn_mpc *mpc);
