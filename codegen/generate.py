@@ -205,6 +205,25 @@ def _vectors_header(vehicles: list[Vehicle], out: Path) -> Path:
     return path
 
 
+def _test_vehicles_header(vehicles: list[Vehicle], out: Path) -> Path:
+    """The vehicle files' true coefficients for the C and C++ tests, so that no test copies them by hand."""
+    from ddyn.model.single_track import COEFF_NAMES
+
+    parts = [_banner("The vehicle files' true coefficients (order: ddyn/model.h) for the C and C++ tests.", vehicles),
+             "#ifndef DDYN_TEST_VEHICLES_H", "#define DDYN_TEST_VEHICLES_H", "",
+             "/* " + ", ".join(COEFF_NAMES) + " */"]
+    for v in vehicles:
+        if v.true_coefficients is None:
+            parts.append(f"/* {v.name}: the vehicle file gives no true coefficients */")
+            continue
+        values = ", ".join(c_double(v.true_coefficients[k]) for k in COEFF_NAMES)
+        parts.append(f"#define DDYN_TEST_{v.name.upper()}_TRUE_COEFFS {{{values}}}")
+    parts += ["", "#endif", ""]
+    path = out / "ddyn_test_vehicles.h"
+    path.write_text("\n".join(parts))
+    return path
+
+
 def generate(vehicle_names: list[str] | None = None, out: Path = DEFAULT_OUT,
              vectors_out: Path | None = DEFAULT_VECTORS_OUT) -> list[Path]:
     names = vehicle_names or vehicle_mod.available()
@@ -223,6 +242,7 @@ def generate(vehicle_names: list[str] | None = None, out: Path = DEFAULT_OUT,
     if vectors_out is not None:
         Path(vectors_out).mkdir(parents=True, exist_ok=True)
         written.append(_vectors_header(vehicles, Path(vectors_out)))
+        written.append(_test_vehicles_header(vehicles, Path(vectors_out)))
     return written
 
 

@@ -8,6 +8,7 @@
 #include <string>
 
 #include "ddyn_models.h"
+#include "ddyn_test_vehicles.h"
 #include "fsim/plant.hpp"
 
 namespace fsim_test {
@@ -29,12 +30,11 @@ inline bool have_tracks() {
                    << "/tracks (set DDYN_SHARED_DATA)";                                                    \
   } while (0)
 
-// the paper's ORCA 1:43 car (train/vehicles/orca_1_43.json true_coefficients)
+// the paper's ORCA 1:43 car: the true coefficients of train/vehicles/orca_1_43.json (generated header)
 inline fsim::Coeffs orca_true() {
-  fsim::Coeffs c;
-  c << 5.579, 1.2, 0.192, -0.083, -0.0013, 0.00043, 5.3852, 1.2691, 0.1737, -0.019, -0.00376, 0.00091, 0.287,
-      0.0545, 0.0518, 0.00035, 2.78e-05;
-  return c;
+  static const double c[] = DDYN_TEST_ORCA_1_43_TRUE_COEFFS;
+  static_assert(sizeof c / sizeof c[0] == 17, "17 coefficients");
+  return Eigen::Map<const fsim::Coeffs>(c);
 }
 
 }  // namespace fsim_test

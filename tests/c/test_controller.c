@@ -16,6 +16,7 @@
 
 #include "ddyn/controller.h"
 #include "ddyn_models.h"
+#include "ddyn_test_vehicles.h"
 
 extern const ddyn_net_tables ddyn_net_weights;
 
@@ -23,8 +24,8 @@ extern const ddyn_net_tables ddyn_net_weights;
 #define RADIUS 1.5
 #define SPEED 1.0
 
-static const double C_TRUE[DDYN_NC] = {5.579, 1.2, 0.192, -0.083, -0.0013, 0.00043, 5.3852, 1.2691, 0.1737,
-                                       -0.019, -0.00376, 0.00091, 0.287, 0.0545, 0.0518, 0.00035, 2.78e-5};
+/* the ORCA car's true coefficients, from its vehicle file (generated: ddyn_test_vehicles.h) */
+static const double C_TRUE[DDYN_NC] = DDYN_TEST_ORCA_1_43_TRUE_COEFFS;
 
 /* the closed-loop PID test's bounds on the speed error over its last 2 s (m/s) */
 #define PID_WORST_ERROR 0.02

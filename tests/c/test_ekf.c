@@ -14,12 +14,13 @@
 
 #include "ddyn/ekf.h"
 #include "ddyn_models.h"
+#include "ddyn_test_vehicles.h"
 
 static ddyn_ekf ekf;
 static const double P0[DDYN_NX] = {1e-4, 1e-4, 1e-4, 1e-3, 1e-4, 1e-2, 1e-8, 1e-8};
 static const double Q[DDYN_NX] = {1e-8, 1e-8, 1e-8, 1e-6, 1e-6, 1e-4, 1e-12, 1e-12};
-static const double C[DDYN_NC] = {5.579, 1.2, 0.192, -0.083, -0.0013, 0.00043, 5.3852, 1.2691, 0.1737,
-                                  -0.019, -0.00376, 0.00091, 0.287, 0.0545, 0.0518, 0.00035, 2.78e-5};
+/* the ORCA car's true coefficients, from its vehicle file (generated: ddyn_test_vehicles.h) */
+static const double C[DDYN_NC] = DDYN_TEST_ORCA_1_43_TRUE_COEFFS;
 
 static void init_at_yaw(double yaw)
 {

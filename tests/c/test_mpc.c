@@ -17,6 +17,7 @@
 #include "ddyn/mpc.h"
 #include "ddyn/mpc_qp.h"
 #include "ddyn_models.h"
+#include "ddyn_test_vehicles.h"
 #include "ddyn_mpc_limits.h"
 
 #define PI 3.14159265358979323846
@@ -25,8 +26,8 @@
 
 static ddyn_mpc mpc;
 static ddyn_mpc_qp qp;
-static const double C[DDYN_NC] = {5.579, 1.2, 0.192, -0.083, -0.0013, 0.00043, 5.3852, 1.2691, 0.1737,
-                                  -0.019, -0.00376, 0.00091, 0.287, 0.0545, 0.0518, 0.00035, 2.78e-5};
+/* the ORCA car's true coefficients, from its vehicle file (generated: ddyn_test_vehicles.h) */
+static const double C[DDYN_NC] = DDYN_TEST_ORCA_1_43_TRUE_COEFFS;
 
 /* a counter-clockwise circle of radius 1 m, 1.2 m/s reference, 0.15 m of room either side */
 static void ring_mpc(int qp_iterations)
