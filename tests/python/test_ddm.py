@@ -170,3 +170,27 @@ def test_evaluate_reads_the_racecar_format_directly(tmp_path, shared_data):
     assert cli_main(["train", "--data", str(piece), "-o", str(ck), "--quiet", "--epochs", "1",
                      "--lbfgs-iterations", "0", "--hidden", "8"]) == 0
     assert cli_main(["evaluate", "--model", str(ck), "--data", str(putnam)]) == 0
+
+
+def test_training_recovers_the_identifiable_coefficients_on_clean_data(orca):
+    """Coefficient recovery, not just a falling loss: a short training on two clean laps of ETHZ gets
+    the coefficients this driving excites (front tyre B, C, D; yaw inertia; rolling resistance) within
+    3 % of the vehicle file's truth, judged on another track. The bounds come from training seeds 0-2
+    (0.2-2.1 % seen); this test's training seed (5) was not among them. The rear tyre and E, G, K
+    need the full training of the main job (docs/learning.md), and an untrained guard misses them all."""
+    from ddyn.model.single_track import COEFF_NAMES
+
+    train_ds = simulate.simulate(orca, tracks.load_track("ethz"), laps=2, seed=3, progress=False)
+    test_ds = simulate.simulate(orca, tracks.load_track("ethzMobil"), laps=1, seed=4, progress=False)
+    torch.manual_seed(0)
+    cfg = TrainConfig(epochs=20, lbfgs_iterations=1500, hidden=16, batch_size=128, seed=5)
+    r = train(train_ds, orca, cfg, progress=False)
+    ckpt = checkpoint.make(r, orca, train_ds.content_hash(), "two clean laps of ETHZ", len(train_ds))
+    identifiable = ("Bf", "Cf", "Df", "Iz", "Cr0")
+    errors = {k: abs(evaluate(r.model, ckpt, test_ds)["coefficients"][k]["rel_error"]) for k in identifiable}
+    assert max(errors.values()) < 0.03, errors
+    # the bound can fail: the same network before training (its guard near the range midpoints) misses it
+    untrained = build_model(cfg, orca, r.model.encoder.mean.numpy(), r.model.encoder.std.numpy())
+    e0 = {k: abs(evaluate(untrained, ckpt, test_ds)["coefficients"][k]["rel_error"]) for k in identifiable}
+    assert max(e0.values()) > 0.03, e0
+    assert set(identifiable) <= set(COEFF_NAMES)

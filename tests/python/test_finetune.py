@@ -262,7 +262,12 @@ def test_study_quick_runs_end_to_end(monkeypatch, shared_data, tmp_path):
     for r in res["sim"]["fractions"]:
         assert r["ddm"]["steps"] == r["fthd"]["steps"]
         assert set(r["fthd"]["coefficients"]) == set(r["ddm"]["coefficients"])
-        assert r["fthd"]["coefficients"]["Bf"]["abs_error"] >= 0
+        assert np.isfinite(r["fthd"]["coefficients"]["Bf"]["abs_error"])
+        if r["fraction"] <= 0.3:
+            # the paper's claim at small data fractions, in quick mode too: fine-tuning the pre-trained
+            # DDM beats training from scratch with the same counted steps (quick mode measured 0.31 vs
+            # 0.57 at 30 %, 0.41 vs 0.43 at 20 %, 0.39 vs 3.6 at 15 %; the full study: 38-115x)
+            assert r["fthd"]["min_val_loss"] < r["ddm"]["min_val_loss"], r["fraction"]
     assert [r["fraction"] for r in res["sim"]["budget_check"]["fractions"]] == [0.8, 0.15]
     assert {"sim_val_loss", "sim_coefficients", "real_sim_val_loss", "real_log_val_loss"} <= set(res["targets"])
     md = (out / "results.md").read_text()
