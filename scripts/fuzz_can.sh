@@ -7,7 +7,7 @@
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 secs="${1:-${DDYN_FUZZ_SECONDS:-30}}"
-out="$ROOT/build/fuzz-can"
+out="${DDYN_BUILD_DIR:-$ROOT/build}/fuzz-can"
 mkdir -p "$out/corpus"
 command -v clang >/dev/null || { echo "fuzz: FAIL: clang not installed (scripts/setup.sh installs it)"; exit 1; }
 clang -std=c99 -g -O1 -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=all \

@@ -9,15 +9,18 @@ source "$ROOT/scripts/setup.sh" || exit 1
 cd "$ROOT"
 status=0
 
-echo "== build (release): the C tests and the host tools some Python tests drive"
-bash scripts/build.sh "$ROOT/build" -DDDYN_NET_EXPORT_DIR="$ROOT/tests/c/generated/net_fixture" || status=1
+# The tests build into build-test/ (for the fixture network) and the Python tests drive the tools
+# there (DDYN_BUILD_DIR): the main job's build/, built for its trained network, is never replaced.
+export DDYN_BUILD_DIR="$ROOT/build-test"
+echo "== build (release): the C tests and the host tools some Python tests drive ($DDYN_BUILD_DIR)"
+bash scripts/build.sh "$DDYN_BUILD_DIR" -DDDYN_NET_EXPORT_DIR="$ROOT/tests/c/generated/net_fixture" || status=1
 
 echo "== Python tests (pytest)"
 python -m pytest -q || status=1
 
 echo "== C tests (ctest, release build)"
-{ ctest --test-dir "$ROOT/build" --output-on-failure --output-junit "$ROOT/build/ctest-junit.xml" \
-    && python scripts/check_skips.py ctest "$ROOT/build/ctest-junit.xml"; } || status=1
+{ ctest --test-dir "$DDYN_BUILD_DIR" --output-on-failure --output-junit "$DDYN_BUILD_DIR/ctest-junit.xml" \
+    && python scripts/check_skips.py ctest "$DDYN_BUILD_DIR/ctest-junit.xml"; } || status=1
 
 echo "== C tests (ctest, AddressSanitizer + UndefinedBehaviorSanitizer build)"
 { bash scripts/build.sh "$ROOT/build-asan" -DDDYN_SANITIZE=ON -DCMAKE_BUILD_TYPE=Debug \

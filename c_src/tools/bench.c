@@ -14,6 +14,7 @@
 #include <time.h>
 
 #include "bench_timing.h"
+#include "ddyn_net_config.h"
 #include "ddyn/ekf.h"
 #include "ddyn/guard_net.h"
 #include "ddyn_models.h"
@@ -45,6 +46,11 @@ int main(int argc, char **argv)
     static const double q[DDYN_NX] = {1e-8, 1e-8, 1e-8, 1e-6, 1e-6, 1e-4, 1e-12, 1e-12};
     int n = argc > 1 ? atoi(argv[1]) : 10000, n_hist = 0, i;
     double sink = 0.0;
+    if (argc == 2 && strcmp(argv[1], "--checkpoint-hash") == 0) {
+        /* the network this tool was built for: `ddyn bench` refuses to time another checkpoint's */
+        printf("%s\n", DDYN_NET_CHECKPOINT_SHA256);
+        return 0;
+    }
     if (n < 1 || n > MAX_CALLS) {
         fprintf(stderr, "ddyn_bench: N must be in 1..%d\n", MAX_CALLS);
         return 2;

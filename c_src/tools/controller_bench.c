@@ -28,6 +28,7 @@
 #include <time.h>
 
 #include "bench_timing.h"
+#include "ddyn_net_config.h"
 #include "ddyn/controller.h"
 
 #define MAX_STEPS 1000000
@@ -109,6 +110,11 @@ int main(int argc, char **argv)
     ddyn_model_work work;
     int steps = argc > 1 ? atoi(argv[1]) : 10000, n_track = 0, i, k, b;
     double max_offset = 0.0, progress0 = 0.0, progress_prev = 0.0, distance = 0.0;
+    if (argc == 2 && strcmp(argv[1], "--checkpoint-hash") == 0) {
+        /* the network this tool was built for: `ddyn bench` refuses to time another checkpoint's */
+        printf("%s\n", DDYN_NET_CHECKPOINT_SHA256);
+        return 0;
+    }
     if (argc > 2) {
         rng_state ^= (uint64_t)strtoull(argv[2], NULL, 10) * 0x9E3779B97F4A7C15ull;
     }

@@ -13,9 +13,10 @@ import can
 from ddyn.data import can_log, simulate
 from ddyn.data import can_protocol as proto
 from ddyn.model import mathns, sensors, tracks, vehicle
+from ddyn.paths import BUILD
 
 REPO = Path(__file__).resolve().parents[2]
-TOOL = REPO / "build" / "c_src" / "ddyn_can_decode"
+TOOL = BUILD / "c_src" / "ddyn_can_decode"
 C_RESULT = {None: "foreign_id", "unknown_frame": "unknown_id", "bad_length": "bad_length",
             "checksum": "checksum", "range": "range"}
 
@@ -177,7 +178,7 @@ def test_cli_export_and_import(sim, tmp_path, capsys):
 def test_can_bench_reports_c_and_python_side_by_side():
     from ddyn.bench import can as can_bench
 
-    tool = REPO / "build" / "c_src" / "ddyn_dbw_bench"
+    tool = BUILD / "c_src" / "ddyn_dbw_bench"
     if not tool.is_file():
         pytest.fail(f"{tool} missing: build the C side first (scripts/test.sh does)")
     rows = can_bench.run(tool, calls=1000, py_calls=200)

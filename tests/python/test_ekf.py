@@ -19,9 +19,10 @@ from scipy.stats import chi2
 from ddyn.data import simulate
 from ddyn.model import backends, mathns, tracks, vehicle
 from ddyn.model.sensors import MEASUREMENTS, measure
+from ddyn.paths import BUILD
 
 REPO = Path(__file__).resolve().parents[2]
-TOOL = REPO / "build" / "c_src" / "ddyn_ekf_replay"
+TOOL = BUILD / "c_src" / "ddyn_ekf_replay"
 RUNS, STEPS = 20, 250
 Q = np.array([1e-10, 1e-10, 1e-10, 1e-6, 1e-6, 1e-4, 1e-12, 1e-12])
 P0 = np.array([1e-4, 1e-4, 1e-4, 1e-3, 1e-4, 1e-2, 1e-10, 1e-10])

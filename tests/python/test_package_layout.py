@@ -12,6 +12,7 @@ import pytest
 import ddyn
 import ddyn.codegen
 from ddyn.cli import build_parser
+from ddyn.paths import BUILD
 
 REPO = Path(__file__).resolve().parents[2]
 PACKAGE_ROOTS = {"ddyn": Path(ddyn.__file__).parent, "ddyn.codegen": Path(ddyn.codegen.__file__).parent}
@@ -118,9 +119,10 @@ def test_default_tool_and_data_paths_point_into_the_repository():
         for name, value in vars(mod).items():
             if name.isupper() and isinstance(value, pathlib.Path):
                 checked += 1
-                if "build" in value.parts:
-                    assert value.is_relative_to(REPO / "build") or value.is_relative_to(REPO / "build-net100k"), (
-                        f"{m}.{name} = {value}")
+                if value.is_relative_to(BUILD):
+                    assert value == BUILD or value.parts[len(BUILD.parts)] == "c_src", f"{m}.{name} = {value}"
+                elif "build" in value.parts:
+                    assert value.is_relative_to(REPO / "build-net100k"), f"{m}.{name} = {value}"
                 elif value.is_absolute() and value.is_relative_to(REPO):
                     assert value.exists(), f"{m}.{name} = {value} does not exist"
     assert checked >= 5

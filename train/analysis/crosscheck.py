@@ -16,9 +16,9 @@ from ddyn.errors import DdynError
 from ddyn.model import backends
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.single_track import STATE_NAMES
-from ddyn.paths import REPO
+from ddyn.paths import BUILD
 
-DEFAULT_BINARY = REPO / "build" / "c_src" / "ddyn_model_replay"
+DEFAULT_BINARY = BUILD / "c_src" / "ddyn_model_replay"
 # relative to each channel's magnitude over the dataset: rounding of the same
 # float64 expressions in two implementations
 RTOL = 1e-12

@@ -15,9 +15,10 @@ import numpy as np
 
 from ddyn.data import can_protocol as proto
 from ddyn.errors import DdynError
+from ddyn.paths import BUILD
 
 REPO = Path(__file__).resolve().parents[2]
-DEFAULT_TOOL = REPO / "build" / "c_src" / "ddyn_dbw_bench"
+DEFAULT_TOOL = BUILD / "c_src" / "ddyn_dbw_bench"
 
 
 def python_decode_ns(calls: int) -> np.ndarray:

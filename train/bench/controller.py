@@ -12,11 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ddyn.bench.identity import require_same_network, tool_checkpoint_hash
 from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicle_mod
-from ddyn.paths import REPO
+from ddyn.paths import BUILD
 
-DEFAULT_CONTROLLER_TOOL = REPO / "build" / "c_src" / "ddyn_controller_bench"
+DEFAULT_CONTROLLER_TOOL = BUILD / "c_src" / "ddyn_controller_bench"
 
 
 # Simulated sensors of the closed-loop run: (period in control periods, noise std, std the filter
@@ -80,7 +81,8 @@ def run_controller(tool: str | Path = DEFAULT_CONTROLLER_TOOL, steps: int = 2000
     proc = subprocess.run([str(tool), str(steps), str(seed)], input=setup, capture_output=True, text=True)
     if proc.returncode != 0:
         raise DdynError(f"{tool} failed: {proc.stderr.strip()}")
-    results = {"loadavg_1min": [load_before, os.getloadavg()[0]], "cpus": os.cpu_count()}
+    results = {"loadavg_1min": [load_before, os.getloadavg()[0]], "cpus": os.cpu_count(),
+               "checkpoint_sha256": tool_checkpoint_hash(tool)}
     for line in proc.stdout.splitlines():
         parts = line.split()
         if len(parts) == 5 and parts[1].isdigit():
@@ -100,11 +102,13 @@ def format_controller(r: dict) -> str:
     mpc = f"; of it the MPC solve {m['median_us']:.2f} / {m['p99_us']:.2f} / {m['max_us']:.1f}" if m else ""
     return (f"| controller_step (closed loop) | {s['median_us']:.2f} / {s['p99_us']:.2f} / {s['max_us']:.1f} "
             f"(n={s['n']}){mpc} | laps {r.get('laps', 0.0):.2f}, max raceline offset {r.get('max_raceline_offset_m', 0.0):.3f} m"
-            f" | periods with status bits: {bits or 'none'}; load average {r['loadavg_1min'][0]:.1f} -> "
+            f" | network {r.get('checkpoint_sha256', '?')[:12]}; periods with status bits: {bits or 'none'}; load average {r['loadavg_1min'][0]:.1f} -> "
             f"{r['loadavg_1min'][1]:.1f} on {r['cpus']} CPUs |")
 
 
 def _run(args) -> int:
+    if args.model:
+        require_same_network(args.tool, args.model)
     r = run_controller(args.tool, args.steps)
     print(format_controller(r))
     if args.out:
@@ -116,5 +120,6 @@ def register(subparsers) -> None:
     c = subparsers.add_parser("controller", help="closed-loop timing of the C controller step (median, p99, max)")
     c.add_argument("--tool", default=str(DEFAULT_CONTROLLER_TOOL))
     c.add_argument("--steps", type=int, default=20000)
+    c.add_argument("--model", help="checkpoint the tool must have been built for (refused otherwise)")
     c.add_argument("--out", help="write the results as JSON here")
     c.set_defaults(func=_run)

@@ -22,14 +22,15 @@ import numpy as np
 import torch
 
 from ddyn.bench.controller import format_controller, run_controller
+from ddyn.bench.identity import require_same_network
 from ddyn.data.windows import make_windows
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.sensors import MEASUREMENTS
-from ddyn.paths import REPO
+from ddyn.paths import BUILD, REPO
 
-DEFAULT_TOOL = REPO / "build" / "c_src" / "ddyn_bench"
+DEFAULT_TOOL = BUILD / "c_src" / "ddyn_bench"
 
 
 def _stats(samples_us: list[float]) -> dict:
@@ -136,6 +137,7 @@ def run(ckpt_path: str, data_path: str, n: int = 10000, n_python: int = 2000, to
 
     if not Path(tool).is_file():
         raise DdynError(f"{tool} not found: build with scripts/build.sh build -DDDYN_NET_EXPORT_DIR=<export dir>")
+    network = require_same_network(tool, ckpt_path)
     model, ckpt = checkpoint.load(ckpt_path)
     hist = make_windows(load_any(data_path), ckpt["config"]["tau"]).history
     text = "\n".join(" ".join(repr(float(v)) for v in h.ravel()) for h in hist[:20000]) + "\n"
@@ -152,6 +154,7 @@ def run(ckpt_path: str, data_path: str, n: int = 10000, n_python: int = 2000, to
         "ekf_step": {"c": c_results["ekf_step"], "alternative": "numpy + CasADi functions from Python",
                      "alt": _python_ekf(n_python)},
         "parameters": int(sum(p.numel() for p in model.parameters())),
+        "checkpoint_sha256": network,
     }
     for key in ("guard_net_infer", "ekf_step"):
         r = results[key]
@@ -198,6 +201,8 @@ def _run(args) -> int:
               f"max {m['qp_iterations']['max']}; status {m['c_status_counts']}; closed loop "
               f"{m['c_closed_loop']['steps']} steps, {m['c_closed_loop']['violation_steps']} track violations")
     if args.controller:  # the whole controller step in closed loop (ddyn/bench/controller.py)
+        if args.model:
+            require_same_network(Path(args.tool).parent / "ddyn_controller_bench", args.model)
         r["controller_step"] = run_controller(Path(args.tool).parent / "ddyn_controller_bench", args.controller_steps)
         print(format_controller(r["controller_step"]))
     if args.out:
@@ -214,7 +219,7 @@ def register(subparsers) -> None:
     p.add_argument("--mpc-ipopt-steps", type=int, default=200, help="closed-loop steps timed with IPOPT")
     p.add_argument("--mpc-sqp-steps", type=int, default=50,
                    help="closed-loop steps timed with the generated sqpmethod (0: skip; compiling it takes ~1 min)")
-    p.add_argument("--mpc-tool", default=str(REPO / "build" / "c_src" / "ddyn_mpc_lap"), help="ddyn_mpc_lap binary")
+    p.add_argument("--mpc-tool", default=str(BUILD / "c_src" / "ddyn_mpc_lap"), help="ddyn_mpc_lap binary")
     p.add_argument("-n", type=int, default=10000, help="calls of each C function (default %(default)s)")
     p.add_argument("--n-python", type=int, default=2000, help="calls of each Python alternative")
     p.add_argument("--tool", default=str(DEFAULT_TOOL), help="ddyn_bench binary (default: %(default)s)")

@@ -23,9 +23,9 @@ from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.tracks import Track, load_track
 from ddyn.model.vehicle import FOOTPRINT
-from ddyn.paths import REPO
+from ddyn.paths import BUILD
 
-DEFAULT_TOOL = REPO / "build" / "c_src" / "ddyn_mpc_lap"
+DEFAULT_TOOL = BUILD / "c_src" / "ddyn_mpc_lap"
 STATUS_NAMES = {0: "ok", 2: "nonfinite_input", 3: "nonfinite_output", 4: "evaluation", 6: "qp_not_converged",
                 7: "not_ready"}
 

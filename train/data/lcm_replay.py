@@ -28,9 +28,9 @@ from ddyn.data.importers import load_any
 from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.single_track import COEFF_NAMES, STATE_NAMES
-from ddyn.paths import REPO
+from ddyn.paths import BUILD
 
-DEFAULT_TOOL = REPO / "build" / "c_src" / "ddyn_telemetry_replay"
+DEFAULT_TOOL = BUILD / "c_src" / "ddyn_telemetry_replay"
 DEFAULT_HORIZON = 10
 KINDS = ("state", "coeffs", "plan", "timing", "faults")
 
