@@ -441,7 +441,9 @@ def test_ddm_synthetic_mapping(ddm_file):
 
 @pytest.mark.parametrize("change, column, words", [
     ({"inputs": np.ones((2, 6))}, "inputs", ("shape (2, 6)", "expected (2, 5)")),
-    ({"states": np.ones((8, 6))}, "states", ("shape (8, 6)",)),
+    ({"states": np.ones((7, 6))}, "states", ("shape (7, 6)", "(8, N) with input rates")),
+    # the input-rates layout: states rows 6-7 must be the running integral of the rates
+    ({"states": np.ones((8, 6))}, "inputs", ("running integral", "not the input-rates layout")),
     ({"time": np.ones((1, 6))}, "time", ("shape (1, 6)",)),
     ({"time": np.array([0, 0.02, 0.04, 0.07, 0.09, 0.11])}, "time", ("row 4", "expected 0.02", "found 0.03")),
     ({"time": np.array([0, 0.02, 0.04, 0.04, 0.06, 0.08])}, "time", ("strictly increasing",)),
@@ -601,3 +603,22 @@ def test_ddyn_import_options(tmp_path, monkeypatch, racecar_file, capsys):
     assert load_any(out).column("throttle")[-1] == -1.0
     code, _ = run_cli(["import", str(tmp_path / "missing.npz"), "-o", str(out)], monkeypatch)
     assert code == 2 and "missing.npz" in capsys.readouterr().err
+
+
+def test_ddm_input_rates_layout_of_the_papers_track_2_file(shared_data):
+    """DYN-PP-ETHZMobil: states (8, N) with throttle and steering, inputs are their rates."""
+    path = shared_data / "reference" / "DYN-PP-ETHZMobil.npz"
+    raw = np.load(path)
+    ds = read_ddm_npz(path)
+    assert ds.metadata["layout"] == "input_rates" and ds.metadata["state_key"] == "states"
+    assert np.array_equal(ds.states.T, raw["states"])              # every row as stored, throttle and steering too
+    assert np.array_equal(ds.inputs[:-1].T, raw["inputs"]) and not ds.inputs[-1].any()
+    # the canonical file's rates integrate to its throttle and steering, as in every canonical file
+    assert np.allclose(ds.states[1:, 6:8], ds.states[:-1, 6:8] + 0.02 * ds.inputs[:-1], atol=1e-12)
+    # dstates on request: its pose and velocities, throttle and steering still from states
+    d = read_ddm_npz(path, state_key="dstates")
+    assert np.array_equal(d.states[1:, 3:6].T, raw["dstates"][3:6, 1:])
+    assert np.array_equal(d.states[:, 6:8], ds.states[:, 6:8])
+    # the absolute-inputs layout is unchanged
+    e = read_ddm_npz(shared_data / "reference" / "DYN-PP-ETHZ.npz")
+    assert e.metadata["layout"] == "absolute_inputs" and e.metadata["state_key"] == "dstates"

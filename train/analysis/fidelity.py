@@ -81,10 +81,13 @@ def _run(args) -> int:
         r = reproduce_reference(coeff_set)
         print(f"  {coeff_set + ' coefficients':32s} vx {r['vx']:.1e}  vy {r['vy']:.1e}  omega {r['omega']:.1e}"
               f"  pose {r['pose']:.1e}  ({r['steps']} steps)")
+    from ddyn.analysis.track2_file import format_report, track2_provenance
+
+    print(format_report(track2_provenance()))
     return 0
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("fidelity", help="measure backend agreement and the DYN-PP-ETHZ reproduction")
+    p = subparsers.add_parser("fidelity", help="measure backend agreement, the DYN-PP-ETHZ reproduction and how DYN-PP-ETHZMobil was made")
     p.add_argument("--cases", type=int, default=4000, help="random cases per vehicle and method")
     p.set_defaults(func=_run)

@@ -283,18 +283,26 @@ def _segment_column(path: Path, seg: np.ndarray, first_line: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Deep Dynamics .npz
 
-def read_ddm_npz(path: str | Path, vehicle: str = "orca_1_43", state_key: str = "dstates") -> Dataset:
-    """Read a Deep Dynamics simulated set (time (N,), states (6,N), dstates (8,N), inputs (2,N-1)).
+def read_ddm_npz(path: str | Path, vehicle: str = "orca_1_43", state_key: str | None = None) -> Dataset:
+    """Read a Deep Dynamics simulated set, in either of its two layouts (shared/data/README.md):
 
-    Row k: pose and velocities from `state_key` column k, throttle and steering the
-    command inputs[:, k] applied during step k (the last row holds the last command),
-    dthrottle and dsteering its forward differences (0 on the last row).
+    * absolute inputs (DYN-PP-ETHZ): time (N,), states (6,N) = pose and velocities from a high-order
+      integrator, dstates (8,N) = their explicit-Euler chain with the commands, inputs (2,N-1) = the
+      commands (throttle, steering) applied during each step. Row k: pose and velocities from
+      `state_key` (default dstates, the chain the model reproduces: docs/data.md), throttle and
+      steering inputs[:, k] (the last row holds the last command), their rates by forward differences.
+    * input rates (DYN-PP-ETHZMobil): states (8,N) = pose, velocities, throttle and steering, inputs
+      (2,N-1) = the rates (states[6:, k+1] = states[6:, k] + Ts inputs[:, k]), dstates (8,N). Row k:
+      pose and velocities from `state_key` (default states: this file's dstates carries the rates'
+      cumulative sum without Ts in rows 6-7 and departs from states by up to 41 rad/s),
+      throttle and steering states[6:, k], their rates inputs[:, k] (0 on the last row).
     """
-    if state_key not in DDM_STATE_KEYS:
+    if state_key is not None and state_key not in DDM_STATE_KEYS:
         raise DdynError(f"state_key must be one of {', '.join(DDM_STATE_KEYS)}, not {state_key!r}")
     path = Path(path)
-    a = _load_npz(path, ("time", "states", "inputs") + (("dstates",) if state_key == "dstates" else ()))
-    n = _check_ddm_shapes(path, a)
+    a = _load_npz(path, ("time", "states", "inputs", "dstates"))
+    n, layout = _check_ddm_shapes(path, a)
+    state_key = state_key or ("dstates" if layout == "absolute_inputs" else "states")
     time = a["time"]
     rows = np.arange(n) + 1
     _check_time_increasing(path, time, 1)
@@ -305,16 +313,25 @@ def read_ddm_npz(path: str | Path, vehicle: str = "orca_1_43", state_key: str = 
     # of single differences (the median of DYN-PP-ETHZ's is 0.019999999999999574)
     ts = _sample_time_of(path, (float(time[-1]) - float(time[0])) / (n - 1), "the time grid's step")
     pose = a[state_key][:6].T.copy()
-    metadata = {"import_format": "ddm_npz", "state_key": state_key}
+    metadata = {"import_format": "ddm_npz", "state_key": state_key, "layout": layout}
     if state_key == "dstates" and not pose[0, :3].any():
         # the Deep Dynamics files store the Euler chain's first pose as zeros
         pose[0, :3] = a["states"][:3, 0]
         metadata["initial_pose"] = "row 0 x, y, yaw taken from states[:, 0] (stored as zeros in dstates)"
-    cmd = np.concatenate([a["inputs"], a["inputs"][:, -1:]], axis=1).T   # last command held on the last row
+    if layout == "absolute_inputs":
+        cmd = np.concatenate([a["inputs"], a["inputs"][:, -1:]], axis=1).T   # last command held on the last row
+        rates = np.column_stack([_forward_rate(cmd[:, 0], ts), _forward_rate(cmd[:, 1], ts)])
+    else:
+        cmd = a["states"][6:8].T.copy()
+        rates = np.concatenate([a["inputs"], np.zeros((2, 1))], axis=1).T     # no rate after the last row
+        drift = float(np.max(np.abs(cmd[1:] - cmd[:-1] - ts * rates[:-1])))
+        if drift > 1e-9 * max(1.0, float(np.max(np.abs(cmd)))):
+            raise DataError(path, f"states rows 6-7 are not the running integral of the input rates "
+                            f"(largest departure {drift:.3g}): not the input-rates layout", column="inputs")
+        metadata["inputs"] = "rates: states[6:, k+1] = states[6:, k] + Ts inputs[:, k]"
     ds = Dataset(
         time=time, segment=np.zeros(n, dtype=np.int64),
-        states=np.column_stack([pose, cmd]),
-        inputs=np.column_stack([_forward_rate(cmd[:, 0], ts), _forward_rate(cmd[:, 1], ts)]),
+        states=np.column_stack([pose, cmd]), inputs=rates,
         sample_time=ts, vehicle=_check_vehicle(path, ts, vehicle), source=path.name, metadata=metadata,
     )
     return _require_finite_result(path, ds, rows)
@@ -346,22 +363,26 @@ def _load_npz(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _check_ddm_shapes(path: Path, a: dict[str, np.ndarray]) -> int:
-    """The arrays agree on the number of samples N >= 2 and are finite; returns N."""
+def _check_ddm_shapes(path: Path, a: dict[str, np.ndarray]) -> tuple[int, str]:
+    """The arrays agree on the number of samples N >= 2 and are finite; returns N and the layout:
+    "absolute_inputs" (states (6, N)) or "input_rates" (states (8, N))."""
     n = a["time"].shape[0] if a["time"].ndim == 1 else 0
     if n < 2:
         raise DataError(path, f"array time has shape {a['time'].shape}; expected (N,) with N >= 2", column="time")
-    expected = {"time": (n,), "states": (6, n), "dstates": (8, n), "inputs": (2, n - 1)}
+    rows = a["states"].shape[0] if a["states"].ndim == 2 else 0
+    layout = "input_rates" if rows == 8 else "absolute_inputs"
+    expected = {"time": (n,), "states": (8 if rows == 8 else 6, n), "dstates": (8, n), "inputs": (2, n - 1)}
     for name, arr in a.items():
         if arr.shape != expected[name]:
             raise DataError(path, f"array {name} has shape {arr.shape}; expected {expected[name]} "
-                            f"(N = {n} from time)", column=name)
+                            f"(N = {n} from time; states is (6, N) with absolute inputs or (8, N) with "
+                            f"input rates)", column=name)
         bad = np.argwhere(~np.isfinite(arr))
         if len(bad):
             at = tuple(int(i) for i in bad[0])
             raise DataError(path, f"{name}[{', '.join(map(str, at))}] is {arr[at]}; expected a finite number",
                             row=at[-1] + 1, column=name)
-    return n
+    return n, layout
 
 
 # ---------------------------------------------------------------------------------------------
