@@ -37,7 +37,9 @@ echo "== C runtime cross-build for a Cortex-M7 (arm-none-eabi-gcc, -Werror)"
     && cmake --build "$ROOT/build-m7" -j "$(nproc)" >/dev/null \
     && for lib in "$ROOT"/build-m7/c_src/libddyn_*.a; do \
          printf '%-28s text data bss: %s\n' "$(basename "$lib")" "$(arm-none-eabi-size -t "$lib" | tail -1 | awk '{print $1, $2, $3}')"; done \
-    && echo "Cortex-M7 build: ok"; } || { echo "Cortex-M7 build: FAILED"; status=1; }
+    && echo "Cortex-M7 build: ok" \
+    && bash tests/install/check_install.sh "$ROOT/build-m7" "$ROOT/build-m7/install-check" \
+         "$ROOT/cmake/arm-none-eabi-cortex-m7.cmake"; } || { echo "Cortex-M7 build: FAILED"; status=1; }
 
 if [ "$status" -eq 0 ]; then echo "== all tests passed"; else echo "== SOME TESTS FAILED"; fi
 exit "$status"
