@@ -123,6 +123,8 @@ def evaluate(model, ckpt: dict, ds: Dataset) -> dict:
         **rollout_errors(model, ds, tau, steps),
         "coefficients": coefficient_report(coeffs, names, truth, ckpt.get("ranges")),
         "truth_source": truth_source,
+        # which guard ranges the model was trained with (`ddyn train --ranges`; None: the vehicle file's)
+        "guard_ranges": (ckpt.get("ranges") or {}).get("source"),
         "_series": {"time": ds.time[w.end_row + 1], "pred": pred[:, 3:6], "target": w.target,
                     "coeffs": coeffs},
     }
@@ -149,6 +151,10 @@ def format_summary(m: dict) -> str:
         if sat > 0:
             s += f"  AT GUARD BOUND in {100 * sat:.1f} % of samples"
         lines.append(s)
+    if m.get("guard_ranges"):
+        from ddyn.learn.guard_ranges import describe
+
+        lines.append("  " + describe(m["guard_ranges"]))
     return "\n".join(lines)
 
 

@@ -8,12 +8,14 @@ from ddyn.data.windows import split_train_validation
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
 from ddyn.learn.evaluate import evaluate, format_summary, public
+from ddyn.learn.guard_ranges import describe, with_ranges
 from ddyn.learn.training import TrainConfig, train
 from ddyn.model import vehicle as vehicle_mod
 
 
 def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name: str | None = None,
-                        progress: bool = True) -> dict:
+                        progress: bool = True, ranges_file: str | None = None) -> dict:
+    """ranges_file: guard ranges in place of the vehicle file's (ddyn.learn.guard_ranges)."""
     from ddyn.data.importers import load_any
 
     ds = load_any(data_path, vehicle=vehicle_name)
@@ -21,8 +23,15 @@ def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name
     if not name:
         raise DdynError(f"{data_path}: the dataset names no vehicle; pass --vehicle")
     v = vehicle_mod.load(name)
+    ranges_record = None
+    if ranges_file:
+        if cfg.kind != "ddm":
+            raise DdynError("--ranges sets the Physics Guard's ranges: DDM only (the DPM has no guard)")
+        v, ranges_record = with_ranges(v, ranges_file)
     result = train(ds, v, cfg, progress=progress)
     ckpt = checkpoint.make(result, v, ds.content_hash(), str(data_path), len(ds))
+    if ckpt["ranges"] is not None:
+        ckpt["ranges"]["source"] = ranges_record
     # validation metrics on the held-out block, recorded in the checkpoint
     _, va = split_train_validation(ds, cfg.tau, cfg.val_fraction)
     val_ds = ds.subset(slice(int(va.end_row.min()) - cfg.tau + 1, int(va.end_row.max()) + 2))
@@ -34,9 +43,12 @@ def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name
 def _run(args) -> int:
     overrides = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if getattr(args, f.name, None) is not None}
     cfg = TrainConfig(**overrides)
-    ckpt = train_to_checkpoint(args.data, cfg, args.out, args.vehicle, progress=not args.quiet)
+    ckpt = train_to_checkpoint(args.data, cfg, args.out, args.vehicle, progress=not args.quiet,
+                               ranges_file=args.ranges)
     t = ckpt["training"]
     print(f"trained {cfg.kind} in {t['seconds']:.1f} s, best validation loss {t['best_val_loss']:.4e}")
+    if ckpt["ranges"] is not None:
+        print(describe(ckpt["ranges"].get("source")))
     print("validation: " + format_summary(ckpt["metrics"]["validation"]))
     print(f"wrote {args.out}")
     if args.metrics_json:
@@ -51,6 +63,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--out", required=True, help="checkpoint file to write")
     p.add_argument("--vehicle", help="vehicle name when the dataset does not name one")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--ranges", help="guard ranges file in place of the vehicle file's: `ddyn denoise --model` "
+                                    "writes one (OUT.ranges.json), or {\"Cm1\": [lo, hi], ...}")
     p.add_argument("--metrics-json", help="also write the checkpoint's metrics to this JSON file")
     defaults = TrainConfig()
     for f in fields(TrainConfig):
