@@ -77,8 +77,13 @@ def ground_truth(ds: Dataset, vehicle: Vehicle) -> tuple[np.ndarray | None, str]
     plant = ds.metadata.get("plant_coefficients")
     if plant:
         return np.array(json.loads(plant), dtype=float), "plant coefficients recorded by ddyn simulate"
-    if ds.metadata.get("import_format") == "ddm_npz" and vehicle.reference_dataset_coefficients:
+    if (ds.metadata.get("import_format") == "ddm_npz" and ds.metadata.get("layout", "absolute_inputs") ==
+            "absolute_inputs" and vehicle.reference_dataset_coefficients):
+        # DYN-PP-ETHZ's dstates are the Euler chain of these coefficients (ddyn study fidelity); the
+        # input-rates file (DYN-PP-ETHZMobil) is a chain of no known set (ddyn.analysis.track2_file)
         return vehicle.coefficient_vector("reference_dataset"), "vehicle file: reference_dataset_coefficients"
+    if ds.metadata.get("import_format") == "ddm_npz":
+        return None, "unknown (the Track-2 file is no chain of the model: ddyn study fidelity)"
     return None, "unknown (not simulated data)"
 
 
