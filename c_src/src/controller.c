@@ -441,6 +441,9 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_ca
             st |= throttle_pid(ctl, v_ref, out, &dthrottle);
             s = ddyn_mpc_solve_held_throttle(&ctl->mpc, ctl->ekf.x, dthrottle, u, &out->mpc_info);
         }
+    } else if (s == DDYN_OK && ctl->mpc.prepared) {
+        /* prepared after the last command (ddyn_ctrl_prepare): only the feedback phase remains */
+        s = ddyn_mpc_feedback(&ctl->mpc, ctl->ekf.x, u, &out->mpc_info);
     } else if (s == DDYN_OK) {
         s = ddyn_mpc_solve(&ctl->mpc, ctl->ekf.x, u, &out->mpc_info);
     }
@@ -520,6 +523,26 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
     ctl->started = 1;
     out->status = st;
     return st;
+}
+
+ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl)
+{
+    double x_next[NX];
+    ddyn_status s;
+    if (ctl == NULL || !ctl->initialised || !ctl->started) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    ctl->mpc.prepared = 0;
+    if (ctl->safe_mode || ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID) {
+        return DDYN_ERR_NOT_READY;
+    }
+    /* the filter's own prediction model, with this period's coefficients and the command just sent
+     * (the EKF's work memory is scratch between its calls) */
+    s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, ctl->ekf.x, ctl->u_prev, ctl->coeffs, x_next, &ctl->ekf.work);
+    if (s != DDYN_OK) {
+        return s;
+    }
+    return ddyn_mpc_prepare(&ctl->mpc, x_next);
 }
 
 const char *ddyn_ctrl_status_name(ddyn_ctrl_status bit)

@@ -154,6 +154,7 @@ void ddyn_mpc_reset(ddyn_mpc *mpc)
         return;
     }
     mpc->have_warm_start = 0;
+    mpc->prepared = 0;
     mpc->last_index = -1;
     memset(mpc->u_plan, 0, sizeof mpc->u_plan);
 }
@@ -354,6 +355,8 @@ static void references(ddyn_mpc *mpc, int i0, double u0)
         track_point p = track_at(t, i, u), c;
         r[0] = p.x;
         r[1] = p.y;
+        mpc->ref_tangent[2 * k] = p.tx;
+        mpc->ref_tangent[2 * k + 1] = p.ty;
         advance(t, &i, &u, p.speed * dt);
         ic = project(t, mpc->x_lin[k * DDYN_NX], mpc->x_lin[k * DDYN_NX + 1], ic, k == 0 ? LOCAL_WINDOW : STAGE_WINDOW, &uc);
         c = track_at(t, ic, uc);
@@ -494,12 +497,116 @@ static void plan_info(const ddyn_mpc *mpc, ddyn_mpc_info *info)
     info->kkt_residual = qp->residual;
 }
 
-static ddyn_status solve(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, double dthrottle0, double u[DDYN_NU],
-                         ddyn_mpc_info *info)
+/* d(x, y)_k / dx0 for k = 1..H: rows x, y of A_{k-1} ... A_0 (A column-major), by propagating the
+ * product forward one stage at a time: H products of an 8x8 by an 8x8, done in the preparation */
+static void state_sensitivities(ddyn_mpc *mpc)
+{
+    double P[DDYN_NX * DDYN_NX], Q[DDYN_NX * DDYN_NX];
+    int k, a, b, c;
+    memset(P, 0, sizeof P);
+    for (a = 0; a < DDYN_NX; ++a) {
+        P[a + a * DDYN_NX] = 1.0;
+    }
+    for (k = 1; k <= mpc->cfg.horizon; ++k) {
+        const double *Ak = mpc->A + (k - 1) * DDYN_NX * DDYN_NX;
+        double *row = mpc->phi + (k - 1) * 2 * DDYN_NX;
+        for (b = 0; b < DDYN_NX; ++b) {
+            for (a = 0; a < DDYN_NX; ++a) {
+                double acc = 0.0;
+                for (c = 0; c < DDYN_NX; ++c) {
+                    acc += Ak[a + c * DDYN_NX] * P[c + b * DDYN_NX];
+                }
+                Q[a + b * DDYN_NX] = acc;
+            }
+        }
+        memcpy(P, Q, sizeof P);
+        for (b = 0; b < DDYN_NX; ++b) {
+            row[b] = P[0 + b * DDYN_NX];
+            row[DDYN_NX + b] = P[1 + b * DDYN_NX];
+        }
+    }
+}
+
+static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, double dthrottle0)
+{
+    ddyn_status st;
+    double u0;
+    if (mpc == NULL || x0 == NULL || mpc->model == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    mpc->prepared = 0;
+    if (!ddyn_all_finite(x0, DDYN_NX)) {
+        return DDYN_ERR_NONFINITE_INPUT;
+    }
+    if (mpc->track.n < 4 || !mpc->have_coefficients) {
+        return DDYN_ERR_NOT_READY;
+    }
+    mpc->prep_index = project(&mpc->track, x0[0], x0[1], mpc->last_index, LOCAL_WINDOW, &u0);
+    mpc->prep_u0 = u0;
+    st = linearise(mpc, x0, hold, dthrottle0);
+    if (st != DDYN_OK) {
+        return st;
+    }
+    sensitivities(mpc);
+    references(mpc, mpc->prep_index, u0);
+    build_qp(mpc, x0, hold);
+    if (!hold) {
+        state_sensitivities(mpc);
+    }
+    memcpy(mpc->prep_x0, x0, sizeof mpc->prep_x0);
+    mpc->prep_hold = hold;
+    mpc->prepared = 1;
+    return DDYN_OK;
+}
+
+/* Move the prepared QP from x0_pred to x0: positions to first order through d(x, y)_k / dx0 (the
+ * cost's gradient and the track rows), throttle and steering exactly (they are integrators of the
+ * rates, so d x_k[6..7] / dx0 is the identity on them). */
+static void shift_to(ddyn_mpc *mpc, const double x0[DDYN_NX])
+{
+    const ddyn_mpc_config *cfg = &mpc->cfg;
+    const int h = cfg->horizon, n = 2 * h;
+    const double dt = mpc->model->sample_time;
+    ddyn_mpc_qp *qp = &mpc->qp;
+    double dx[DDYN_NX], ds;
+    int i, j, k, ch;
+    for (i = 0; i < DDYN_NX; ++i) {
+        dx[i] = x0[i] - mpc->prep_x0[i];
+    }
+    /* the cost's reference points start at x0's projection on the raceline: moving x0 along the
+     * line by ds moves every reference point along it by ds too (to first order) */
+    ds = dx[0] * mpc->ref_tangent[0] + dx[1] * mpc->ref_tangent[1];
+    for (k = 1; k <= h; ++k) {
+        const double *px = mpc->phi + (k - 1) * 2 * DDYN_NX, *py = px + DDYN_NX;
+        const double *sx = mpc->sens + (k - 1) * 2 * n, *sy = sx + n, *r = mpc->ref + k * 8;
+        const double *xk = mpc->x_lin + k * DDYN_NX;
+        double w = k == h ? cfg->q_terminal_scale : 1.0;
+        double qx = 2.0 * w * cfg->q_pos[0], qy = 2.0 * w * cfg->q_pos[1], ddx = 0.0, ddy = 0.0, doff;
+        for (i = 0; i < DDYN_NX; ++i) {
+            ddx += px[i] * dx[i];
+            ddy += py[i] * dx[i];
+        }
+        for (j = 0; j < 2 * k; ++j) {
+            qp->grad[j] += qx * sx[j] * (ddx - ds * mpc->ref_tangent[2 * k]) +
+                           qy * sy[j] * (ddy - ds * mpc->ref_tangent[2 * k + 1]);
+        }
+        doff = r[4] * ddx + r[5] * ddy;
+        qp->soft_hi[k - 1] -= doff;
+        qp->soft_lo[k - 1] -= doff;
+        for (ch = 0; ch < 2; ++ch) {
+            double lo = fmin(cfg->state_lo[ch], x0[6 + ch] + k * dt * cfg->rate_hi[ch]);
+            double hi = fmax(cfg->state_hi[ch], x0[6 + ch] + k * dt * cfg->rate_lo[ch]);
+            qp->hard_lo[2 * (k - 1) + ch] = lo - (xk[6 + ch] + dx[6 + ch]);
+            qp->hard_hi[2 * (k - 1) + ch] = hi - (xk[6 + ch] + dx[6 + ch]);
+        }
+    }
+}
+
+static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)
 {
     ddyn_mpc_info local;
-    ddyn_status st, qst;
-    int i0, k, j, h;
+    ddyn_status qst;
+    int k, j, h, hold, moved = 0;
     double u0;
     if (info == NULL) {
         info = &local;
@@ -515,20 +622,28 @@ static ddyn_status solve(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, doub
     if (!ddyn_all_finite(x0, DDYN_NX)) {
         return DDYN_ERR_NONFINITE_INPUT;
     }
-    if (mpc->track.n < 4 || !mpc->have_coefficients) {
+    if (!mpc->prepared) {
         return DDYN_ERR_NOT_READY;
     }
-    h = mpc->cfg.horizon;
-    i0 = project(&mpc->track, x0[0], x0[1], mpc->last_index, LOCAL_WINDOW, &u0);
-    info->track_index = i0;
-    info->progress = track_at(&mpc->track, i0, u0).s;
-    st = linearise(mpc, x0, hold, dthrottle0);
-    if (st != DDYN_OK) {
-        return st;
+    mpc->prepared = 0; /* one feedback per preparation: the QP is modified in place */
+    hold = mpc->prep_hold;
+    for (k = 0; k < DDYN_NX; ++k) {
+        moved |= x0[k] != mpc->prep_x0[k];
     }
-    sensitivities(mpc);
-    references(mpc, i0, u0);
-    build_qp(mpc, x0, hold);
+    if (moved) {
+        if (hold) {
+            return DDYN_ERR_NOT_READY; /* the held-throttle QP is prepared and solved at the same state */
+        }
+        shift_to(mpc, x0);
+    }
+    h = mpc->cfg.horizon;
+    if (moved) {
+        info->track_index = project(&mpc->track, x0[0], x0[1], mpc->prep_index, LOCAL_WINDOW, &u0);
+    } else {
+        info->track_index = mpc->prep_index;
+        u0 = mpc->prep_u0;
+    }
+    info->progress = track_at(&mpc->track, info->track_index, u0).s;
     qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
     if (qst != DDYN_OK && qst != DDYN_ERR_QP_NOT_CONVERGED) {
         return qst; /* malformed QP (non-finite sensitivities): keep the old plan */
@@ -543,10 +658,41 @@ static ddyn_status solve(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, doub
     }
     memcpy(mpc->x_plan, x0, DDYN_NX * sizeof(double));
     mpc->have_warm_start = 1;
-    mpc->last_index = i0;
+    mpc->last_index = info->track_index;
     u[0] = mpc->u_plan[0];
     u[1] = mpc->u_plan[1];
     return qst;
+}
+
+static ddyn_status solve(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, double dthrottle0, double u[DDYN_NU],
+                         ddyn_mpc_info *info)
+{
+    ddyn_status st;
+    if (info != NULL) {
+        memset(info, 0, sizeof *info);
+    }
+    if (u != NULL) {
+        u[0] = 0.0;
+        u[1] = 0.0;
+    }
+    if (mpc == NULL || x0 == NULL || u == NULL || mpc->model == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    st = prepare(mpc, x0, hold, dthrottle0);
+    if (st != DDYN_OK) {
+        return st;
+    }
+    return feedback(mpc, x0, u, info);
+}
+
+ddyn_status ddyn_mpc_prepare(ddyn_mpc *mpc, const double x0_pred[DDYN_NX])
+{
+    return prepare(mpc, x0_pred, 0, 0.0);
+}
+
+ddyn_status ddyn_mpc_feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)
+{
+    return feedback(mpc, x0, u, info);
 }
 
 ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)

@@ -14,6 +14,9 @@
  *   per sensor kind (ddyn_meas_kind order): period in control periods (0 = never), noise std of
  *   the simulated reading, std the filter assumes (its R: noise plus model error)
  *   n, then n raceline rows: x y speed width_left width_right
+ * With DDYN_BENCH_PREPARE=1 in the environment, ddyn_ctrl_prepare runs (timed on its own, line
+ * "controller_prepare") after each step, so that "controller_step" is the feedback latency: from the
+ * readings to the command with the MPC's preparation done beforehand.
  * Output: "controller_step n median_us p99_us max_us", the same for "mpc_solve" (the step's MPC
  * solve repeated alone on a copy of the MPC context: the MPC's share of the step), then
  * "# key value" lines: steps with each status bit, rejected readings per sensor, laps driven,
@@ -37,6 +40,7 @@ extern const ddyn_net_tables ddyn_net_weights;
 
 static double samples[MAX_STEPS];
 static double mpc_samples[MAX_STEPS];
+static double prepare_samples[MAX_STEPS];
 static ddyn_ctrl ctl;
 static ddyn_mpc mpc_replay; /* the step's MPC solve once more, timed alone */
 static double track[5][DDYN_MPC_MAX_TRACK_POINTS];
@@ -109,6 +113,8 @@ int main(int argc, char **argv)
     ddyn_ctrl_config cfg;
     ddyn_model_work work;
     int steps = argc > 1 ? atoi(argv[1]) : 10000, n_track = 0, i, k, b;
+    const char *prepare_env = getenv("DDYN_BENCH_PREPARE");
+    const int prepare_mode = prepare_env != NULL && strcmp(prepare_env, "1") == 0;
     double max_offset = 0.0, progress0 = 0.0, progress_prev = 0.0, distance = 0.0;
     if (argc == 2 && strcmp(argv[1], "--checkpoint-hash") == 0) {
         /* the network this tool was built for: `ddyn bench` refuses to time another checkpoint's */
@@ -169,6 +175,7 @@ int main(int argc, char **argv)
             }
         }
         memcpy(&mpc_replay, &ctl.mpc, sizeof mpc_replay); /* the MPC as the step will find it */
+        mpc_replay.prepared = 0;                             /* ... timed as the whole iteration */
         t0 = bench_now_us();
         ddyn_ctrl_step(&ctl, &in, &out);
         samples[i] = bench_now_us() - t0;
@@ -180,6 +187,11 @@ int main(int argc, char **argv)
             t0 = bench_now_us();
             ddyn_mpc_solve(&mpc_replay, out.x_est, u_replay, NULL);
             mpc_samples[i] = bench_now_us() - t0;
+        }
+        if (prepare_mode) {
+            t0 = bench_now_us();
+            (void)ddyn_ctrl_prepare(&ctl); /* after the command is out, before the next readings */
+            prepare_samples[i] = bench_now_us() - t0;
         }
         for (b = 0; b < DDYN_CTRL_STATUS_BITS; ++b) {
             bit_count[b] += (out.status >> b) & 1u;
@@ -202,6 +214,9 @@ int main(int argc, char **argv)
     }
     report("controller_step", samples, steps);
     report("mpc_solve", mpc_samples, steps);
+    if (prepare_mode) {
+        report("controller_prepare", prepare_samples, steps);
+    }
     for (b = 0; b < DDYN_CTRL_STATUS_BITS; ++b) {
         printf("# steps_%s %ld\n", ddyn_ctrl_status_name((ddyn_ctrl_status)1u << b), bit_count[b]);
     }

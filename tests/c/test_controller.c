@@ -510,6 +510,36 @@ static void test_healthy_closed_loop_follows_the_track(void **state)
     assert_true(ctl.plan_horizon == cfg.mpc.horizon && ctl.plan_age == 0);
 }
 
+static void test_prepared_iteration_drives_like_the_full_one(void **state)
+{
+    /* ddyn_ctrl_prepare after each command: the next step only does the MPC's feedback phase. The
+     * car follows the track as healthily, with commands close to the full iteration's. */
+    static ddyn_ctrl twin;
+    ddyn_ctrl_output out, out_full;
+    ddyn_ctrl_input in;
+    double diff = 0.0, size = 0.0;
+    int k;
+    (void)state;
+    start_on_circle(oracle_tables());
+    assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_ERR_ARGUMENT); /* nothing to predict from yet */
+    drive_healthy(20);
+    for (k = 20; k < 150; ++k) {
+        assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK);
+        assert_true(ctl.mpc.prepared);
+        twin = ctl; /* the same controller, whose MPC does the whole iteration this period */
+        twin.mpc.prepared = 0;
+        readings(&in, k);
+        assert_false(ddyn_ctrl_step(&twin, &in, &out_full) & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MPC_FAILED));
+        assert_false(run(&in, &out) & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MPC_FAILED | DDYN_CTRL_PLAN_SHIFTED));
+        assert_false(ctl.mpc.prepared); /* consumed by the step's feedback */
+        assert_true(fabs(hypot(plant[0], plant[1]) - RADIUS) < 0.15);
+        diff += fabs(out.u[0] - out_full.u[0]) + fabs(out.u[1] - out_full.u[1]);
+        size += fabs(out_full.u[0]) + fabs(out_full.u[1]);
+    }
+    print_message("prepared vs full iteration: mean |du| %g of mean |u| %g\n", diff / 130, size / 130);
+    assert_true(diff < 0.05 * size);
+}
+
 static void test_recovery_after_a_sensor_fault(void **state)
 {
     ddyn_ctrl_output out;
@@ -749,6 +779,7 @@ int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test_setup(test_unusable_network_coefficients_fall_back_to_nominal, setup),
+        cmocka_unit_test_setup(test_prepared_iteration_drives_like_the_full_one, setup),
         cmocka_unit_test_setup(test_indefinite_covariance_restarts_the_filter, setup),
         cmocka_unit_test_setup(test_bad_arguments_and_configurations, setup),
         cmocka_unit_test_setup(test_status_bits_have_distinct_names, setup),

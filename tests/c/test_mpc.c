@@ -88,6 +88,53 @@ static void test_reference_speed_reads_ahead_along_the_line(void **state)
     assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, NAN, &speed), DDYN_ERR_NONFINITE_INPUT);
 }
 
+static void test_prepare_then_feedback_is_the_real_time_iteration(void **state)
+{
+    /* The split (acados' preparation and feedback phases): prepared at the prediction of the next
+     * state, moved to the measured one to first order, the command is close to a full solve at the
+     * measured state, much closer than ignoring the measurement, and the car stays on the ring. */
+    static ddyn_model_work work;
+    static ddyn_mpc before, stale;
+    double x[DDYN_NX], xp[DDYN_NX], u[DDYN_NU], u_ref[DDYN_NU], u_stale[DDYN_NU], u_full[DDYN_NU];
+    double err_fb = 0.0, err_stale = 0.0;
+    int k, j;
+    (void)state;
+    ring_mpc(30);
+    ring_start(x);
+    assert_int_equal(ddyn_mpc_feedback(&mpc, x, u, NULL), DDYN_ERR_NOT_READY); /* nothing prepared */
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, NULL), DDYN_OK);
+    /* at the state it was prepared at, feedback is exactly the full solve */
+    before = mpc;
+    assert_int_equal(ddyn_mpc_prepare(&mpc, x), DDYN_OK);
+    assert_int_equal(ddyn_mpc_feedback(&mpc, x, u, NULL), DDYN_OK);
+    assert_int_equal(ddyn_mpc_solve(&before, x, u_full, NULL), DDYN_OK);
+    assert_memory_equal(u, u_full, sizeof u);
+    assert_int_equal(ddyn_mpc_feedback(&mpc, x, u, NULL), DDYN_ERR_NOT_READY); /* one feedback per preparation */
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, NULL), DDYN_OK);
+    for (k = 0; k < 100; ++k) {
+        /* preparation: the next state predicted with the command being sent */
+        assert_int_equal(ddyn_model_step(&ddyn_model_orca_1_43, DDYN_DISC_RK4, x, u, C, xp, &work), DDYN_OK);
+        before = mpc;
+        assert_int_equal(ddyn_mpc_prepare(&mpc, xp), DDYN_OK);
+        stale = mpc;
+        /* the plant: the prediction plus a disturbance the model did not know */
+        memcpy(x, xp, sizeof x);
+        x[0] += 0.004 * sin(0.3 * k);
+        x[1] += 0.004 * cos(0.2 * k);
+        x[5] += 0.05 * sin(0.5 * k);
+        assert_int_equal(ddyn_mpc_feedback(&mpc, x, u, NULL), DDYN_OK);
+        assert_int_equal(ddyn_mpc_solve(&before, x, u_ref, NULL), DDYN_OK);
+        assert_int_equal(ddyn_mpc_feedback(&stale, xp, u_stale, NULL), DDYN_OK);
+        for (j = 0; j < DDYN_NU; ++j) {
+            err_fb += fabs(u[j] - u_ref[j]);
+            err_stale += fabs(u_stale[j] - u_ref[j]);
+        }
+        assert_true(fabs(hypot(x[0], x[1]) - RADIUS) < 0.15);
+    }
+    print_message("feedback vs full solve %g, ignoring the measurement %g\n", err_fb, err_stale);
+    assert_true(err_fb < 0.25 * err_stale); /* the first-order move does most of the re-solve's work */
+}
+
 static void test_plan_inputs_need_no_simulation(void **state)
 {
     /* the controller's shifted-plan fallback copies the plan's inputs: that copy must not depend on
@@ -601,6 +648,7 @@ int main(void)
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
         cmocka_unit_test(test_plan_inputs_need_no_simulation),
+        cmocka_unit_test(test_prepare_then_feedback_is_the_real_time_iteration),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -71,14 +71,18 @@ def controller_setup(vehicle: str = "orca_1_43", track: str = "ethz", speed_scal
 
 
 def run_controller(tool: str | Path = DEFAULT_CONTROLLER_TOOL, steps: int = 20000, seed: int = 1,
-                   vehicle: str = "orca_1_43", track: str = "ethz", speed_scale: float = 1.0) -> dict:
-    """Run the C closed-loop controller benchmark and parse its "NAME n median p99 max" lines."""
+                   vehicle: str = "orca_1_43", track: str = "ethz", speed_scale: float = 1.0,
+                   prepare: bool = False) -> dict:
+    """Run the C closed-loop controller benchmark and parse its "NAME n median p99 max" lines.
+    prepare: the MPC's preparation after each command (ddyn_ctrl_prepare, timed apart), so that
+    controller_step is the feedback latency."""
     tool = Path(tool)
     if not tool.is_file():
         raise DdynError(f"{tool} not found: build with scripts/build.sh (DDYN_BUILD_TOOLS=ON)")
     setup = controller_setup(vehicle, track, speed_scale)
     load_before = os.getloadavg()[0]  # the machine may be shared: a loaded one inflates p99 and max
-    proc = subprocess.run([str(tool), str(steps), str(seed)], input=setup, capture_output=True, text=True)
+    env = {**os.environ, "DDYN_BENCH_PREPARE": "1" if prepare else "0"}
+    proc = subprocess.run([str(tool), str(steps), str(seed)], input=setup, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
         raise DdynError(f"{tool} failed: {proc.stderr.strip()}")
     results = {"loadavg_1min": [load_before, os.getloadavg()[0]], "cpus": os.cpu_count(),
@@ -99,7 +103,11 @@ def format_controller(r: dict) -> str:
     bits = {k.removeprefix("steps_DDYN_CTRL_").lower(): int(v) for k, v in r.items()
             if k.startswith("steps_DDYN_CTRL_") and v > 0}
     m = r.get("mpc_solve")
-    mpc = f"; of it the MPC solve {m['median_us']:.2f} / {m['p99_us']:.2f} / {m['max_us']:.1f}" if m else ""
+    mpc = f"; the MPC solve alone {m['median_us']:.2f} / {m['p99_us']:.2f} / {m['max_us']:.1f}" if m else ""
+    p = r.get("controller_prepare")
+    if p:
+        mpc = (f" = feedback latency (MPC prepared after the previous command: {p['median_us']:.2f} / "
+               f"{p['p99_us']:.2f} / {p['max_us']:.1f} off the critical path)") + mpc
     return (f"| controller_step (closed loop) | {s['median_us']:.2f} / {s['p99_us']:.2f} / {s['max_us']:.1f} "
             f"(n={s['n']}){mpc} | laps {r.get('laps', 0.0):.2f}, max raceline offset {r.get('max_raceline_offset_m', 0.0):.3f} m"
             f" | network {r.get('checkpoint_sha256', '?')[:12]}; periods with status bits: {bits or 'none'}; load average {r['loadavg_1min'][0]:.1f} -> "
@@ -109,7 +117,7 @@ def format_controller(r: dict) -> str:
 def _run(args) -> int:
     if args.model:
         require_same_network(args.tool, args.model)
-    r = run_controller(args.tool, args.steps)
+    r = run_controller(args.tool, args.steps, seed=args.seed, track=args.track, prepare=args.prepare)
     print(format_controller(r))
     if args.out:
         Path(args.out).write_text(json.dumps(r, indent=2) + "\n")
@@ -120,6 +128,10 @@ def register(subparsers) -> None:
     c = subparsers.add_parser("controller", help="closed-loop timing of the C controller step (median, p99, max)")
     c.add_argument("--tool", default=str(DEFAULT_CONTROLLER_TOOL))
     c.add_argument("--steps", type=int, default=20000)
+    c.add_argument("--seed", type=int, default=1, help="sensor noise seed (default %(default)s)")
+    c.add_argument("--track", default="ethz", help="track (default %(default)s)")
+    c.add_argument("--prepare", action="store_true",
+                   help="prepare the MPC after each command (ddyn_ctrl_prepare): the step is then the feedback latency")
     c.add_argument("--model", help="checkpoint the tool must have been built for (refused otherwise)")
     c.add_argument("--out", help="write the results as JSON here")
     c.set_defaults(func=_run)

@@ -219,6 +219,17 @@ ddyn_status ddyn_ctrl_set_track(ddyn_ctrl *ctl, int n, const double *x, const do
  * DDYN_CTRL_ERR_ARGUMENT). in may hold no valid reading at all. */
 ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctrl_output *out);
 
+/* The MPC's preparation phase for the next period (ddyn_mpc_prepare), to call after the command of
+ * ddyn_ctrl_step has been sent and before the next readings arrive: the next state is predicted
+ * from the estimate with the command just sent, and the MPC linearises, builds its QP and the
+ * state sensitivities there. The next ddyn_ctrl_step then only moves the QP to the measured state
+ * and solves it (ddyn_mpc_feedback): the measurement-to-command latency no longer includes the
+ * model evaluations along the horizon. Without it, ddyn_ctrl_step does the whole iteration.
+ * DDYN_ERR_NOT_READY in safe mode or with the PID throttle (its held-throttle QP needs the PID's
+ * output of the next period), DDYN_ERR_ARGUMENT before the first step; the next step then does
+ * the whole iteration. */
+ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl);
+
 /* The safe command in state x under cfg's bounds and the model's sample time (see the top). */
 void ddyn_ctrl_safe_command(const ddyn_ctrl *ctl, const double x[DDYN_NX], double u[DDYN_NU]);
 

@@ -122,6 +122,15 @@ typedef struct {
     double A[DDYN_MPC_MAX_HORIZON * DDYN_NX * DDYN_NX];
     double B[DDYN_MPC_MAX_HORIZON * DDYN_NX * DDYN_NU];
     double sens[2 * DDYN_MPC_MAX_HORIZON * DDYN_MPC_NV]; /* d(x, y)_k / du: stage k-1, row, column */
+    /* real-time iteration split (ddyn_mpc_prepare / ddyn_mpc_feedback): the state the QP was built
+     * at, d(x, y)_k / dx0 (stage k-1: row x then row y, 8 columns each), the held-throttle flag */
+    double prep_x0[DDYN_NX];
+    double ref_tangent[(DDYN_MPC_MAX_HORIZON + 1) * 2]; /* raceline tangent at each stage's cost point */
+    double phi[2 * DDYN_MPC_MAX_HORIZON * DDYN_NX];
+    int prepared;               /* 1 between a preparation and its feedback */
+    int prep_hold;
+    int prep_index;
+    double prep_u0;
     ddyn_mpc_qp qp;
     ddyn_model_work model_work;
 } ddyn_mpc;
@@ -156,6 +165,19 @@ ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const doub
  *     and the warm start are left as they were.
  * u is never NaN. info may be NULL. */
 ddyn_status ddyn_mpc_solve(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info);
+
+/* The real-time iteration in two phases, as acados splits it: the expensive part before the
+ * measurement, a short one after it.
+ * ddyn_mpc_prepare(x0_pred): linearise along the shifted plan from the predicted state x0_pred
+ *   (e.g. the last estimate stepped with the command just sent), the sensitivities, the track
+ *   references, the QP at x0_pred, and d(x, y)_k / dx0. Returns as ddyn_mpc_solve's errors; on
+ *   success the context is prepared.
+ * ddyn_mpc_feedback(x0): the QP moved to the measured x0 to first order (gradient and bounds by
+ *   d(x, y)_k / dx0 (x0 - x0_pred); throttle and steering exactly), solved; u and the plan as
+ *   ddyn_mpc_solve. DDYN_ERR_NOT_READY when not prepared. With x0 == x0_pred it is ddyn_mpc_solve.
+ * ddyn_mpc_solve(x0) = ddyn_mpc_prepare(x0) then ddyn_mpc_feedback(x0). */
+ddyn_status ddyn_mpc_prepare(ddyn_mpc *mpc, const double x0_pred[DDYN_NX]);
+ddyn_status ddyn_mpc_feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info);
 
 /* As ddyn_mpc_solve, with the throttle held (a speed controller outside the MPC sets it): the plan's
  * throttle-rate inputs are fixed, dthrottle0 at stage 0 (clipped to the rate bounds) and 0 after,
