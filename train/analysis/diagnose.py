@@ -758,12 +758,12 @@ def load_inputs(args):
     if args.model:
         from ddyn.learn import checkpoint
 
-        vname = checkpoint.vehicle_of(checkpoint.read(args.model)).name
-        ds = load_any(args.data, vehicle=vname)
+        # the checkpoint's embedded vehicle file, not its name: the file may live outside train/vehicles
+        ds = load_any(args.data, vehicle=checkpoint.vehicle_of(checkpoint.read(args.model)))
         nominal = nominal_from_checkpoint(args.model, ds)
     else:
         vehicle = load_vehicle(args.vehicle)
-        ds = load_any(args.data, vehicle=vehicle.name)
+        ds = load_any(args.data, vehicle=vehicle)   # the loaded file, not a second look-up by name
         try:
             coeffs = _coefficients_arg(args.coefficients)
         except (json.JSONDecodeError, KeyError, ValueError, TypeError) as e:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 from dataclasses import fields
 
+from ddyn.data import vehicle_ref
 from ddyn.data.windows import split_train_validation
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
@@ -14,13 +15,15 @@ from ddyn.model import vehicle as vehicle_mod
 
 def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name: str | None = None,
                         progress: bool = True) -> dict:
+    """vehicle_name: a name in train/vehicles or a JSON path (default: the dataset's, see vehicle_ref)."""
     from ddyn.data.importers import load_any
 
-    ds = load_any(data_path, vehicle=vehicle_name)
-    name = vehicle_name or ds.vehicle
-    if not name:
-        raise DdynError(f"{data_path}: the dataset names no vehicle; pass --vehicle")
-    v = vehicle_mod.load(name)
+    given = vehicle_mod.load(vehicle_name) if vehicle_name else None
+    ds = load_any(data_path, vehicle=given)
+    try:
+        v = vehicle_ref.of_dataset(ds, given)
+    except DdynError as e:
+        raise DdynError(f"{data_path}: {e}") from None
     result = train(ds, v, cfg, progress=progress)
     ckpt = checkpoint.make(result, v, ds.content_hash(), str(data_path), len(ds))
     # validation metrics on the held-out block, recorded in the checkpoint
@@ -49,7 +52,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("train", help="train a Deep Dynamics (ddm) or Deep Pacejka (dpm) model")
     p.add_argument("--data", required=True, help="training dataset (any supported format)")
     p.add_argument("-o", "--out", required=True, help="checkpoint file to write")
-    p.add_argument("--vehicle", help="vehicle name when the dataset does not name one")
+    p.add_argument("--vehicle", help="vehicle name or JSON file (default: the one the dataset records)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--metrics-json", help="also write the checkpoint's metrics to this JSON file")
     defaults = TrainConfig()
