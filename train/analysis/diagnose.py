@@ -39,6 +39,8 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
   model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit, at_bound}],
                   refit, heldout (as above), gap_closed_pct, error_reduction_pct
   greedy          the selection steps: best candidate, its dBIC, whether it was added
+  gate            the no-gap gate: ratio (refitted nominal's held-out normalised MSE / the noise floor's),
+                  threshold (None: off), gated, selected_without_gate
   where           one_step_rmse, noise_floor_rmse, rmse_over_noise_floor {vx, vy, omega}; ade (m) and
                   horizon_steps; multi_step_rmse (over the horizon), multi_step_final_rmse (at its end)
                   {vx, vy, omega}; factors {speed, lateral_acceleration, front_slip, rear_slip, throttle_brake,
@@ -70,6 +72,11 @@ CHANNELS = ("vx", "vy", "omega")
 UNITS = {"vx": "m/s", "vy": "m/s", "omega": "rad/s"}
 DEFAULT_REFIT = ("Df", "Dr")
 DEFAULT_FIT_FRACTION = 0.6
+# The no-gap gate (issue 14): when the refitted nominal's held-out normalised one-step MSE is at most this many
+# times the estimated noise floor's, nothing is selected, whatever the dBIC says: a gap inside the noise is no gap.
+# None: off. The value is calibrated on effect-free logs of the independent plant's calibration seeds
+# (docs/gap_independent.md), never on the scored seed.
+NO_GAP_GATE: float | None = None
 SCHEMA = "ddyn-diagnosis 1"
 
 
@@ -498,7 +505,9 @@ def _score(prob: Problem, base: dict, cand: dict, dk: int, m: int) -> dict:
 
 def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FRACTION,
              candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
-             max_starts: int = 400, progress=None) -> dict:
+             max_starts: int = 400, progress=None, gate: float | None | str = "default") -> dict:
+    """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off)."""
+    gate = NO_GAP_GATE if gate == "default" else gate
     t0 = _time.perf_counter()
     prob = Problem(ds, nominal, fit_fraction, refit)
     v = nominal.vehicle
@@ -566,6 +575,15 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     # the noise floor: from the residuals of the best model evaluated (closest to pure sensor noise)
     best_res = min([current_h["res"]] + [c["_res"] for c in first], key=lambda r: _norm_mse(prob, _rms(r)))
     floor = _noise_floor(prob, best_res)
+    # the no-gap gate: the refitted nominal's held-out error against the noise floor (both normalised MSE)
+    e_floor = float(np.mean(floor / prob.scale ** 2))
+    ratio = _norm_mse(prob, base["rmse"]) / e_floor if e_floor > 0 else math.inf
+    gated = gate is not None and bool(selected) and ratio <= gate
+    gate_info = {"ratio": ratio, "threshold": gate, "gated": gated, "selected_without_gate": list(selected),
+                 "rule": "select nothing when the refitted nominal's held-out normalised one-step MSE is at most "
+                         "`threshold` times the estimated noise floor's"}
+    if gated:
+        selected, current, current_h = [], base_fit, base
     for c in first:
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
@@ -583,7 +601,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     return {
         "schema": SCHEMA,
         "selected": selected,
-        "verdict": ("none: no candidate effect pays for its parameters on the held-out data" if not selected else
+        "verdict": (f"none: the nominal's held-out error is within the noise floor ({ratio:.3g}x <= gate {gate:g}x); "
+                    f"without the gate: {', '.join(gate_info['selected_without_gate'])}" if gated else
+                    "none: no candidate effect pays for its parameters on the held-out data" if not selected else
                     "; ".join(f"{e['effect']} {next(iter(e['params']))} = {next(iter(e['params'].values())):.4g} "
                               f"+- {next(iter(e['uncertainty'].values())):.2g} {e['unit']}"
                               + (" (AT THE EDGE of its range: a stand-in for another mismatch, not an estimate)"
@@ -591,6 +611,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "candidates": first,
         "model": final,
         "greedy": steps_log,
+        "gate": gate_info,
         "where": w,
         "nominal": {"source": nominal.label, "vehicle": v.name, "method": nominal.method,
                     "substeps": nominal.substeps, "refit_under_every_hypothesis": list(prob.refit),
@@ -639,8 +660,11 @@ def markdown(d: dict, figures: list[str]) -> str:
              + f" | {_fmt(h['ade_before'])} | {_fmt(h['fde_before'])} |",
              "| with selected effects | " + " | ".join(_fmt(h["rmse_after"][c]) for c in CHANNELS)
              + f" | {_fmt(h['ade_after'])} | {_fmt(h['fde_after'])} |", "",
-             f"Gap closed: {_fmt(m['gap_closed_pct'])} % of the held-out error above the estimated noise floor "
-             f"({_fmt(m['error_reduction_pct'])} % of the normalised one-step error).", "",
+             f"Gap closed: {_fmt(m['gap_closed_pct'])} % of the held-out error above the estimated noise floor, "
+             f"which is {_fmt(m['error_reduction_pct'])} % of the whole normalised one-step error (the refitted "
+             f"nominal's error is {d['gate']['ratio']:.3g}x the noise floor"
+             + (f"; no-gap gate at {d['gate']['threshold']:g}x: {'closed' if d['gate']['gated'] else 'open'}"
+                if d['gate']['threshold'] is not None else "") + ").", "",
              "## Where (nominal model, whole log)", ""]
     w = d["where"]
     lines += ["| nominal | vx (m/s) | vy (m/s) | omega (rad/s) |", "|---|---|---|---|"]
@@ -794,13 +818,16 @@ def _run(args) -> int:
     bad = [c for c in refit if c not in COEFF_NAMES]
     if bad:
         raise DdynError(f"--refit: unknown coefficient(s) {', '.join(bad)}")
-    d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds))
+    gate = "default" if args.gate is None else (None if args.gate <= 0 else args.gate)
+    d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate)
     paths = write_report(d, args.out, not args.no_plots)
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
     print("held-out one-step RMSE " + ", ".join(f"{c} {h['rmse_before'][c]:.3e} -> {h['rmse_after'][c]:.3e}"
                                                 for c in CHANNELS)
-          + f"; ADE {h['ade_before']:.3e} -> {h['ade_after']:.3e} m; gap closed {_fmt(d['model']['gap_closed_pct'])} %")
+          + f"; ADE {h['ade_before']:.3e} -> {h['ade_after']:.3e} m; gap closed {_fmt(d['model']['gap_closed_pct'])} % "
+          f"of the error above the noise floor, {_fmt(d['model']['error_reduction_pct'])} % of the whole error "
+          f"(nominal {d['gate']['ratio']:.3g}x the noise floor)")
     for s in d["where"]["summary"]:
         print(f"  where: {s}")
     print(f"wrote {paths['json']}, {paths['markdown']} and {len(paths['figures'])} figures in {d['seconds']:.1f} s")
@@ -827,5 +854,8 @@ def register(subparsers) -> None:
     p.add_argument("--refit", default=",".join(DEFAULT_REFIT),
                    help="nominal coefficients refitted (as factors) under every hypothesis (default Df,Dr; 'none')")
     p.add_argument("--max-effects", type=int, default=3)
+    p.add_argument("--gate", type=float, default=None, metavar="RATIO",
+                   help="no-gap gate: select nothing when the nominal's held-out error is at most RATIO times the "
+                        f"noise floor (default {NO_GAP_GATE}; 0: off)")
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=_run)
