@@ -183,3 +183,20 @@ def test_study_gap_commonroad_cli(tmp_path, monkeypatch):
     assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--gate", str(huge), "--out", str(out)]) == 0
     doc = json.loads((out / "results.json").read_text())
     assert all(r["top1"] == "none" for r in doc["results"])
+
+
+def test_the_command_hold_explains_the_dbw_delay():
+    """On an effect-free log of the plant, the ramped commands of the nominal lag the DBW's held ones by about
+    half a sample plus the servo: without --hold a steering delay of about that size is selected; with the hold
+    modelled, nothing is, and a real 60 ms delay is estimated on top of the hold."""
+    kw = dict(candidates=("steer_delay", "throttle_delay", "mass_offset"), max_effects=1, max_starts=50, gate=None)
+    clean = _log(seed=5, duration=60.0)
+    nominal = D.nominal_from_vehicle(NOMINAL, clean)
+    ramp = D.diagnose(clean, nominal, **kw)
+    assert ramp["selected"] == ["steer_delay"]
+    assert 0.02 < ramp["model"]["effects"][0]["params"]["delay"] < 0.06
+    assert D.diagnose(clean, nominal, hold=True, **kw)["selected"] == []
+    late = _log(CP.PlantEffects(steer_delay=0.06), seed=5, duration=60.0)
+    d = D.diagnose(late, D.nominal_from_vehicle(NOMINAL, late), hold=True, **kw)
+    assert d["selected"] == ["steer_delay"]
+    assert d["model"]["effects"][0]["params"]["delay"] == pytest.approx(0.06 + CP.SERVO_TAU, abs=0.015)

@@ -175,8 +175,13 @@ GRID_UNITS = {"steer_delay": (0.5, 1, 2, 3, 5, 8), "throttle_delay": (0.5, 1, 2,
 class Problem:
     """One-step residuals of the nominal model plus effects on a log, split into fit and held-out rows."""
 
-    def __init__(self, ds: Dataset, nominal: Nominal, fit_fraction: float, refit=DEFAULT_REFIT):
+    def __init__(self, ds: Dataset, nominal: Nominal, fit_fraction: float, refit=DEFAULT_REFIT, hold: bool = False):
         self.ds, self.nominal = ds, nominal
+        # commands held between samples (a drive-by-wire unit) while the model ramps them: on average the held
+        # command lags the ramp by half a sample, so every hypothesis gets that delay on both commands and the
+        # delay candidates estimate what comes on top of the hold
+        self.hold = 0.5 * ds.sample_time if hold else 0.0
+        self._hold_values = {"steer_delay": self.hold, "throttle_delay": self.hold} if hold else {}
         p = nominal.vehicle.known
         self.lm = E.LogModel.of(ds, p, nominal.method, nominal.substeps)
         k = ds.transition_index()
@@ -207,8 +212,14 @@ class Problem:
         c[..., self.refit_idx] *= 1.0 + np.asarray(rho)
         return c
 
+    def effects(self, values: dict) -> E.EffectSet:
+        """The effects of a hypothesis, with the command hold's half-sample delays added when hold is on."""
+        if self._hold_values:
+            values = {**values, **{k: values.get(k, 0.0) + v for k, v in self._hold_values.items()}}
+        return E.EffectSet.from_values(values)
+
     def predict(self, values: dict, rho: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return self.lm.one_step(E.EffectSet.from_values(values), rows, self.coeffs(rho))
+        return self.lm.one_step(self.effects(values), rows, self.coeffs(rho))
 
     def residuals(self, values: dict, rho, rows) -> np.ndarray:
         return (self.target[rows + 1] - self.predict(values, rho, rows)) / self.scale
@@ -318,7 +329,7 @@ def rollout_errors(prob: Problem, values: dict, rho, starts: np.ndarray, steps: 
     (vx, vy, omega), (steps, n_starts, 3)."""
     if len(starts) == 0:
         return (np.zeros((steps, 0)), np.zeros((steps, 0, 3))) if channels else np.zeros((steps, 0))
-    pred = prob.lm.rollout(E.EffectSet.from_values(values), starts, steps, prob.coeffs(rho),
+    pred = prob.lm.rollout(prob.effects(values), starts, steps, prob.coeffs(rho),
                            whole_state=channels)
     truth = np.stack([prob.ds.states[starts + j + 1] for j in range(steps)])
     pos = np.linalg.norm(pred[..., :2] - truth[..., :2], axis=-1)
@@ -505,11 +516,12 @@ def _score(prob: Problem, base: dict, cand: dict, dk: int, m: int) -> dict:
 
 def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FRACTION,
              candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
-             max_starts: int = 400, progress=None, gate: float | None | str = "default") -> dict:
-    """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off)."""
+             max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False) -> dict:
+    """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
+    between samples (drive-by-wire), not ramped as the model integrates them (see Problem)."""
     gate = NO_GAP_GATE if gate == "default" else gate
     t0 = _time.perf_counter()
-    prob = Problem(ds, nominal, fit_fraction, refit)
+    prob = Problem(ds, nominal, fit_fraction, refit, hold=hold)
     v = nominal.vehicle
     steps = max(1, int(round(v.evaluation_horizon / ds.sample_time)))
     starts = _starts(prob, prob.rows_held, steps, max_starts)
@@ -615,6 +627,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "where": w,
         "nominal": {"source": nominal.label, "vehicle": v.name, "method": nominal.method,
                     "substeps": nominal.substeps, "refit_under_every_hypothesis": list(prob.refit),
+                    "command_hold_delay": prob.hold,
                     "refit_only": {"rmse": _chan(base["rmse"]), "factors": {n: 1.0 + float(r) for n, r in
                                                                              zip(prob.refit, base_fit.rho)}}},
         "split": {"fit_fraction": fit_fraction, "fit_rows": int(len(prob.rows_fit)),
@@ -819,7 +832,8 @@ def _run(args) -> int:
     if bad:
         raise DdynError(f"--refit: unknown coefficient(s) {', '.join(bad)}")
     gate = "default" if args.gate is None else (None if args.gate <= 0 else args.gate)
-    d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate)
+    d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
+                 hold=args.hold)
     paths = write_report(d, args.out, not args.no_plots)
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
@@ -854,6 +868,9 @@ def register(subparsers) -> None:
     p.add_argument("--refit", default=",".join(DEFAULT_REFIT),
                    help="nominal coefficients refitted (as factors) under every hypothesis (default Df,Dr; 'none')")
     p.add_argument("--max-effects", type=int, default=3)
+    p.add_argument("--hold", action="store_true",
+                   help="the log's throttle and steering were held between samples (a drive-by-wire unit): the "
+                        "nominal gets half a sample of delay on both, delay estimates are on top of it")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="no-gap gate: select nothing when the nominal's held-out error is at most RATIO times the "
                         f"noise floor (default {NO_GAP_GATE}; 0: off)")

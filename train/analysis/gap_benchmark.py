@@ -584,7 +584,7 @@ def _run_commonroad(args, out: Path) -> int:
         if args.gate is not None:
             D.NO_GAP_GATE = None if args.gate <= 0 else args.gate   # workers inherit it (fork)
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
-        doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress)
+        doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -643,6 +643,8 @@ def register(subparsers) -> None:
                    help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
                         "single-track drift model (an independent plant, docs/gap_independent.md)")
     p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
+    p.add_argument("--hold", action="store_true", help="commonroad: diagnose with the DBW command hold modelled "
+                                                       "(diagnose --hold)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")

@@ -90,7 +90,7 @@ def run_case(case: dict) -> dict:
         return out | {"status": "simulation failed", "error": err}
     veh = load_vehicle(CP.NOMINAL_VEHICLE)
     t0 = time.perf_counter()
-    diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds))
+    diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds), hold=bool(case.get("hold", False)))
     seconds = time.perf_counter() - t0
     g = diag["gate"]
     top1 = diag["selected"][0] if diag["selected"] else NONE
@@ -209,7 +209,8 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                 else "(blind: chose nothing)")
              + f"; {s['cases']} cases ({s['cases'] - s['simulated']} not simulated), {s['effect_cases']} with an "
              f"effect, {s['none_cases']} effect-free; {seconds / 60:.1f} min with {settings['jobs']} job(s).", "",
-             f"No-gap gate: {'off' if gate is None else f'{gate:.4g}x the noise floor'}.", "",
+             f"No-gap gate: {'off' if gate is None else f'{gate:.4g}x the noise floor'}; command hold "
+             f"{'modelled (diagnose --hold)' if settings.get('hold') else 'not modelled'}.", "",
              "| metric | without gate | with gate |", "|---|---|---|",
              f"| top-1 identification (effect cases) | {_f(s['top1_without_gate'], True)} | {_f(s['top1'], True)} |",
              f"| false alarms on effect-free logs | {_f(s['false_alarm_rate_without_gate'], True)} | "
@@ -234,16 +235,17 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = True) -> dict:
+def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = True, hold: bool = False) -> dict:
+    """hold: diagnose with the command hold modelled (diagnose --hold)."""
     CP.require_commonroad()
     t0 = time.perf_counter()
-    cases = plan(n_cases, seed)
+    cases = [c | {"hold": hold} for c in plan(n_cases, seed)]
     results = run_cases(run_case, cases, jobs, desc="gap-benchmark (commonroad)", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad", "cases": n_cases, "seed": seed, "jobs": jobs,
                 "calibration_seed": seed in CALIBRATION_SEEDS, "calibration_seeds": list(CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": DURATION, "track": TRACK,
-                "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE}
+                "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold}
     sc = score(results)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
            "calibrated_gate": calibrate(results)}
