@@ -144,12 +144,19 @@ def test_effects_act_physically(clean):
 
 def test_gate_rescoring_and_calibration():
     rows = [{"status": "ok", "effect": "none", "selected_without_gate": ["mass_offset"] if i < 8 else [],
-             "gate_ratio": 1.0 + 0.01 * i, "correct_without_gate": i >= 8} for i in range(20)]
+             "gate_ratio": 1.0 + 0.01 * i, "correct_without_gate": i >= 8, "delta_bic_top": -1.0} for i in range(20)]
     thr = G.calibrate(rows)     # 8 alarms, at most 1 allowed (5 % of 20): the 7th largest alarm ratio
     assert thr == pytest.approx(1.06)
     gated = G.with_gate(rows, thr)
     assert sum(bool(r["selected"]) for r in gated) == 1
     assert sum(bool(r["selected"]) for r in G.with_gate(rows, None)) == 8
+    # the evidence margin: the first effect needs dBIC < -margin
+    for i, r in enumerate(rows):
+        r["delta_bic_top"] = -2.0 * i if r["selected_without_gate"] else 3.0
+    m = G.calibrate_margin(rows)           # alarms at dBIC 0, -2, ..., -14: all but the strongest refused
+    assert m == pytest.approx(12.0)
+    kept = G.with_gate(rows, None, m)
+    assert [r["top1"] for r in kept if r["selected"]] == ["mass_offset"] and kept[7]["selected"]
 
 
 def test_diagnose_gate_vetoes_a_selection_inside_the_noise():

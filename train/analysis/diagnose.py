@@ -77,6 +77,10 @@ DEFAULT_FIT_FRACTION = 0.6
 # None: off. The value is calibrated on effect-free logs of the independent plant's calibration seeds
 # (docs/gap_independent.md), never on the scored seed.
 NO_GAP_GATE: float | None = None
+# Evidence margin: an effect is added only when dBIC < -MIN_EVIDENCE (0: the plain EBIC rule). On an independent
+# plant the nominal's own structural mismatch makes spurious effects pay for themselves by a few to a few tens of
+# dBIC; the margin is calibrated like the gate (docs/gap_independent.md) and stays 0 by default.
+MIN_EVIDENCE = 0.0
 SCHEMA = "ddyn-diagnosis 1"
 
 
@@ -516,10 +520,13 @@ def _score(prob: Problem, base: dict, cand: dict, dk: int, m: int) -> dict:
 
 def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FRACTION,
              candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
-             max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False) -> dict:
+             max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False,
+             min_evidence: float | None = None) -> dict:
     """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
-    between samples (drive-by-wire), not ramped as the model integrates them (see Problem)."""
+    between samples (drive-by-wire), not ramped as the model integrates them (see Problem). min_evidence: an
+    effect is added only when its dBIC < -min_evidence (default MIN_EVIDENCE)."""
     gate = NO_GAP_GATE if gate == "default" else gate
+    margin = MIN_EVIDENCE if min_evidence is None else float(min_evidence)
     t0 = _time.perf_counter()
     prob = Problem(ds, nominal, fit_fraction, refit, hold=hold)
     v = nominal.vehicle
@@ -577,9 +584,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
             trials.append((ev["delta_bic"], name, f, ev))
         trials.sort(key=lambda t: t[0])
         dbic, name, f, ev = trials[0]
-        steps_log.append({"added": name if dbic < 0 else None, "best_candidate": name, "delta_bic": dbic,
+        steps_log.append({"added": name if dbic < -margin else None, "best_candidate": name, "delta_bic": dbic,
                           "after": selected + [name]})
-        if not dbic < 0:
+        if not dbic < -margin:
             break
         selected.append(name)
         current, current_h = f, ev["heldout"]
@@ -592,6 +599,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     ratio = _norm_mse(prob, base["rmse"]) / e_floor if e_floor > 0 else math.inf
     gated = gate is not None and bool(selected) and ratio <= gate
     gate_info = {"ratio": ratio, "threshold": gate, "gated": gated, "selected_without_gate": list(selected),
+                 "min_evidence": margin,
                  "rule": "select nothing when the refitted nominal's held-out normalised one-step MSE is at most "
                          "`threshold` times the estimated noise floor's"}
     if gated:
@@ -615,7 +623,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "selected": selected,
         "verdict": (f"none: the nominal's held-out error is within the noise floor ({ratio:.3g}x <= gate {gate:g}x); "
                     f"without the gate: {', '.join(gate_info['selected_without_gate'])}" if gated else
-                    "none: no candidate effect pays for its parameters on the held-out data" if not selected else
+                    "none: no candidate effect pays for its parameters on the held-out data"
+                    + (f" by the evidence margin (dBIC < -{margin:g})" if margin else "") if not selected else
                     "; ".join(f"{e['effect']} {next(iter(e['params']))} = {next(iter(e['params'].values())):.4g} "
                               f"+- {next(iter(e['uncertainty'].values())):.2g} {e['unit']}"
                               + (" (AT THE EDGE of its range: a stand-in for another mismatch, not an estimate)"
@@ -833,7 +842,7 @@ def _run(args) -> int:
         raise DdynError(f"--refit: unknown coefficient(s) {', '.join(bad)}")
     gate = "default" if args.gate is None else (None if args.gate <= 0 else args.gate)
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
-                 hold=args.hold)
+                 hold=args.hold, min_evidence=args.min_evidence)
     paths = write_report(d, args.out, not args.no_plots)
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
@@ -871,6 +880,8 @@ def register(subparsers) -> None:
     p.add_argument("--hold", action="store_true",
                    help="the log's throttle and steering were held between samples (a drive-by-wire unit): the "
                         "nominal gets half a sample of delay on both, delay estimates are on top of it")
+    p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
+                   help=f"add an effect only when its dBIC < -DBIC (default {MIN_EVIDENCE:g}: the plain rule)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="no-gap gate: select nothing when the nominal's held-out error is at most RATIO times the "
                         f"noise floor (default {NO_GAP_GATE}; 0: off)")

@@ -576,22 +576,25 @@ def _run_commonroad(args, out: Path) -> int:
             raise DdynError(f"--rescore: {path} not found")
         doc = json.loads(path.read_text())
         gate = doc["settings"].get("gate") if args.gate is None else (None if args.gate <= 0 else args.gate)
-        doc["results"] = G.with_gate(doc["results"], gate)
-        doc["settings"]["gate"] = gate
+        margin = doc["settings"].get("min_evidence", 0.0) if args.min_evidence is None else args.min_evidence
+        doc["results"] = G.with_gate(doc["results"], gate, margin)
+        doc["settings"]["gate"], doc["settings"]["min_evidence"] = gate, margin
         doc.update(G.score(doc["results"]))
         doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"], doc["seconds"])
     else:
         if args.gate is not None:
             D.NO_GAP_GATE = None if args.gate <= 0 else args.gate   # workers inherit it (fork)
+        if args.min_evidence is not None:
+            D.MIN_EVIDENCE = args.min_evidence
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
         doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
     print(doc["markdown"])
-    if doc.get("calibrated_gate") is not None or doc["settings"]["calibration_seed"]:
-        print(f"gate ratio leaving <= {100 * G.TARGET_FALSE_ALARMS:.0f} % false alarms on these effect-free logs: "
-              f"{doc.get('calibrated_gate')}")
+    if doc["settings"]["calibration_seed"]:
+        print(f"leaving <= {100 * G.TARGET_FALSE_ALARMS:.0f} % false alarms on these effect-free logs: gate ratio "
+              f"{G.calibrate(doc['results'])}, or evidence margin {G.calibrate_margin(doc['results'])}")
     print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
     return 0
 
@@ -645,6 +648,8 @@ def register(subparsers) -> None:
     p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
     p.add_argument("--hold", action="store_true", help="commonroad: diagnose with the DBW command hold modelled "
                                                        "(diagnose --hold)")
+    p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
+                   help="commonroad: the evidence margin for this run or --rescore (default diagnose's)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")

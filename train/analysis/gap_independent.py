@@ -129,20 +129,31 @@ def _rate(rows, key):
     return float(np.mean([bool(r[key]) for r in rows])) if rows else None
 
 
-def with_gate(results: list[dict], threshold: float | None) -> list[dict]:
-    """The results as the diagnosis would have given them with the gate at `threshold` (None: off): the gate
-    only vetoes a selection, so it can be applied to recorded cases (selected_without_gate, gate_ratio)."""
+def with_gate(results: list[dict], threshold: float | None, margin: float = 0.0) -> list[dict]:
+    """The results as the diagnosis would have given them with the gate at `threshold` (None: off) and the
+    evidence margin `margin`: both only veto, the gate a whole selection, the margin the first effect (whose
+    dBIC is the top candidate's), so top-1 and false alarms follow exactly from the recorded cases of a run
+    with neither (a later effect the margin would also refuse does not change either score)."""
     out = []
     for r in results:
         if r["status"] != "ok":
             out.append(r)
             continue
         sel = r["selected_without_gate"]
+        weak = bool(sel) and not r["delta_bic_top"] < -margin
         gated = threshold is not None and bool(sel) and r["gate_ratio"] <= threshold
-        top1 = NONE if gated or not sel else sel[0]
-        out.append(r | {"selected": [] if gated else sel, "top1": top1, "correct": top1 == r["effect"],
-                        "gate_threshold": threshold})
+        top1 = NONE if gated or weak or not sel else sel[0]
+        out.append(r | {"selected": [] if gated or weak else sel, "top1": top1, "correct": top1 == r["effect"],
+                        "gate_threshold": threshold, "min_evidence": margin})
     return out
+
+
+def calibrate_margin(results: list[dict], target: float = TARGET_FALSE_ALARMS) -> float:
+    """The smallest evidence margin that leaves at most `target` of the effect-free cases with a selection."""
+    none = [r for r in results if r["status"] == "ok" and r["effect"] == NONE]
+    alarms = sorted(-r["delta_bic_top"] for r in none if r["selected_without_gate"])
+    allowed = int(math.floor(target * len(none)))
+    return 0.0 if len(alarms) <= allowed else float(alarms[len(alarms) - allowed - 1])
 
 
 def calibrate(results: list[dict], target: float = TARGET_FALSE_ALARMS) -> float | None:
@@ -190,6 +201,7 @@ def score(results: list[dict]) -> dict:
         "median_ratio_none": _median([r["gate_ratio"] for r in none]),
         "max_ratio_none": max((r["gate_ratio"] for r in none), default=None),
         "gate_threshold": next((r["gate_threshold"] for r in ok), None),
+        "min_evidence": next((r.get("min_evidence", 0.0) for r in ok), 0.0),
         "median_diagnose_seconds": _median([r["diagnose_seconds"] for r in ok]),
     }, "per_effect": per}
 
@@ -209,9 +221,10 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                 else "(blind: chose nothing)")
              + f"; {s['cases']} cases ({s['cases'] - s['simulated']} not simulated), {s['effect_cases']} with an "
              f"effect, {s['none_cases']} effect-free; {seconds / 60:.1f} min with {settings['jobs']} job(s).", "",
-             f"No-gap gate: {'off' if gate is None else f'{gate:.4g}x the noise floor'}; command hold "
+             f"No-gap gate: {'off' if gate is None else f'{gate:.4g}x the noise floor'}; evidence margin "
+             f"dBIC < -{s['min_evidence']:g}; command hold "
              f"{'modelled (diagnose --hold)' if settings.get('hold') else 'not modelled'}.", "",
-             "| metric | without gate | with gate |", "|---|---|---|",
+             "| metric | plain rule (no gate, no margin) | with gate and margin |", "|---|---|---|",
              f"| top-1 identification (effect cases) | {_f(s['top1_without_gate'], True)} | {_f(s['top1'], True)} |",
              f"| false alarms on effect-free logs | {_f(s['false_alarm_rate_without_gate'], True)} | "
              f"{_f(s['false_alarm_rate'], True)} |", "",
@@ -242,11 +255,11 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
     cases = [c | {"hold": hold} for c in plan(n_cases, seed)]
     results = run_cases(run_case, cases, jobs, desc="gap-benchmark (commonroad)", progress=progress)
     seconds = time.perf_counter() - t0
-    settings = {"plant": "commonroad", "cases": n_cases, "seed": seed, "jobs": jobs,
+    settings = {"plant": "commonroad", "cases": n_cases, "seed": seed, "jobs": jobs, "min_evidence": D.MIN_EVIDENCE,
                 "calibration_seed": seed in CALIBRATION_SEEDS, "calibration_seeds": list(CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": DURATION, "track": TRACK,
                 "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold}
     sc = score(results)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
-           "calibrated_gate": calibrate(results)}
+           "calibrated_gate": calibrate(results), "calibrated_margin": calibrate_margin(results)}
     return doc | {"markdown": markdown(sc, settings, seconds)}
