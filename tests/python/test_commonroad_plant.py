@@ -207,3 +207,19 @@ def test_the_command_hold_explains_the_dbw_delay():
     d = D.diagnose(late, D.nominal_from_vehicle(NOMINAL, late), hold=True, **kw)
     assert d["selected"] == ["steer_delay"]
     assert d["model"]["effects"][0]["params"]["delay"] == pytest.approx(0.06 + CP.SERVO_TAU, abs=0.015)
+
+
+def test_identified_nominal_fits_the_plant_better(monkeypatch):
+    """Option (b): coefficients fitted on an effect-free plant log stay inside the vehicle file's ranges and
+    predict that log at least as well as the mapped ones."""
+    monkeypatch.setattr(G, "IDENT_DURATION", 20.0)
+    c, info = G.identified_coefficients(hold=True)
+    lo, hi = NOMINAL.range_arrays()
+    assert np.all((lo - 1e-9 <= c) & (c <= hi + 1e-9) | (NOMINAL.true_vector() == 0))
+    log = CP.make_log(G.TRACK, CP.PlantEffects(), G.IDENT_SEED, CP.LogSettings(duration=20.0))
+
+    def err(coeffs):
+        p = D.Problem(log, D.nominal_from_vehicle(NOMINAL, log, coeffs), 0.95, refit=(), hold=True)
+        return float(np.sum(p.residuals({}, np.zeros(0), p.rows_all) ** 2))
+
+    assert err(c) < err(NOMINAL.true_vector())

@@ -587,7 +587,8 @@ def _run_commonroad(args, out: Path) -> int:
         if args.min_evidence is not None:
             D.MIN_EVIDENCE = args.min_evidence
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
-        doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold)
+        doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
+                    nominal=args.nominal)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -646,6 +647,9 @@ def register(subparsers) -> None:
                    help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
                         "single-track drift model (an independent plant, docs/gap_independent.md)")
     p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
+    p.add_argument("--nominal", choices=("mapped", "identified"), default="mapped",
+                   help="commonroad: the nominal model: the plant's parameters mapped onto the model "
+                        "(commonroad_vehicle2.json, default) or identified on an effect-free log of the plant")
     p.add_argument("--hold", action="store_true", help="commonroad: diagnose with the DBW command hold modelled "
                                                        "(diagnose --hold)")
     p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
