@@ -1,5 +1,8 @@
 """`ddyn study gap`: does `ddyn diagnose` find an effect it was not told about?
 
+--plant own (default, below): logs of the project's own model, the easy case. --plant commonroad: logs of
+an independent plant (gap_independent.py, docs/gap_independent.md). --jobs N runs the cases in N processes.
+
 Each case: a nominal model identified on effect-free simulated data (per vehicle, once: the
 17 coefficients fitted by least squares to one-step predictions of a separate noisy log,
 starting from the vehicle file's values perturbed by up to 10 %), and a noisy simulated log

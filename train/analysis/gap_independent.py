@@ -4,7 +4,9 @@ The own-model benchmark (gap_benchmark.py) makes its logs with the model code th
 fits: an inverse crime, the easy case. Here each case is a log of CommonRoad's single-track
 drift model (ddyn.data.commonroad_plant: 1 kHz RK4, DBW-held commands, noise on every logged
 state) on Putnam, with one hidden effect in physical form or none, and the nominal model is
-the plant's parameters mapped onto the project's model (train/vehicles/plants/commonroad_vehicle2.json).
+the plant's parameters mapped onto the project's model (train/vehicles/plants/commonroad_vehicle2.json)
+or, --nominal identified, coefficients fitted on an effect-free plant log (identified_coefficients).
+Results and how to reproduce them: docs/gap_independent.md.
 
 Cases: effects cycled with three effect-free slots in ten; |magnitude| log-uniform over
 EFFECT_RANGES (random sign where SIGNED; bank and grade are peaks of profiles along the track),
