@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ddyn.data import vehicle_ref
 from ddyn.errors import DdynError
 from ddyn.model import backends
 from ddyn.model import vehicle as vehicle_mod
@@ -39,11 +40,12 @@ def crosscheck(data_path: str, binary: Path, method: str = "euler", coeff_set: s
                vehicle_name: str | None = None) -> dict:
     from ddyn.data.importers import load_any
 
-    ds = load_any(data_path, vehicle=vehicle_name)
-    name = vehicle_name or ds.vehicle
-    if not name:
-        raise DdynError(f"{data_path}: the dataset names no vehicle; pass --vehicle")
-    v = vehicle_mod.load(name)
+    given = vehicle_mod.load(vehicle_name) if vehicle_name else None
+    ds = load_any(data_path, vehicle=given)
+    try:
+        v = vehicle_ref.of_dataset(ds, given)
+    except DdynError as e:
+        raise DdynError(f"{data_path}: {e}") from None
     c = v.coefficient_vector(coeff_set)
     substeps = v.rk4_substeps if method == "rk4" else 1
     py = backends.step_numpy(ds.states, ds.inputs, c, v.known, v.sample_time, method, substeps)
@@ -76,5 +78,5 @@ def register(subparsers) -> None:
     p.add_argument("--method", choices=("euler", "rk4"), default="euler")
     p.add_argument("--coeffs", choices=("true", "reference_dataset"), default="true",
                    help="coefficient set of the vehicle file to use")
-    p.add_argument("--vehicle", help="vehicle name when the dataset does not name one")
+    p.add_argument("--vehicle", help="vehicle name or JSON file (default: the one the dataset records)")
     p.set_defaults(func=_run)

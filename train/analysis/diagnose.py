@@ -39,6 +39,8 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
   model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit, at_bound}],
                   refit, heldout (as above), gap_closed_pct, error_reduction_pct
   greedy          the selection steps: best candidate, its dBIC, whether it was added
+  gate            the no-gap gate: ratio (refitted nominal's held-out normalised MSE / the noise floor's),
+                  threshold (None: off), gated, selected_without_gate
   where           one_step_rmse, noise_floor_rmse, rmse_over_noise_floor {vx, vy, omega}; ade (m) and
                   horizon_steps; multi_step_rmse (over the horizon), multi_step_final_rmse (at its end)
                   {vx, vy, omega}; factors {speed, lateral_acceleration, front_slip, rear_slip, throttle_brake,
@@ -70,6 +72,15 @@ CHANNELS = ("vx", "vy", "omega")
 UNITS = {"vx": "m/s", "vy": "m/s", "omega": "rad/s"}
 DEFAULT_REFIT = ("Df", "Dr")
 DEFAULT_FIT_FRACTION = 0.6
+# The no-gap gate (issue 14): when the refitted nominal's held-out normalised one-step MSE is at most this many
+# times the estimated noise floor's, nothing is selected, whatever the dBIC says: a gap inside the noise is no gap.
+# None: off. The value is calibrated on effect-free logs of the independent plant's calibration seeds
+# (docs/gap_independent.md), never on the scored seed.
+NO_GAP_GATE: float | None = None
+# Evidence margin: an effect is added only when dBIC < -MIN_EVIDENCE (0: the plain EBIC rule). On an independent
+# plant the nominal's own structural mismatch makes spurious effects pay for themselves by a few to a few tens of
+# dBIC; the margin is calibrated like the gate (docs/gap_independent.md) and stays 0 by default.
+MIN_EVIDENCE = 0.0
 SCHEMA = "ddyn-diagnosis 1"
 
 
@@ -168,8 +179,13 @@ GRID_UNITS = {"steer_delay": (0.5, 1, 2, 3, 5, 8), "throttle_delay": (0.5, 1, 2,
 class Problem:
     """One-step residuals of the nominal model plus effects on a log, split into fit and held-out rows."""
 
-    def __init__(self, ds: Dataset, nominal: Nominal, fit_fraction: float, refit=DEFAULT_REFIT):
+    def __init__(self, ds: Dataset, nominal: Nominal, fit_fraction: float, refit=DEFAULT_REFIT, hold: bool = False):
         self.ds, self.nominal = ds, nominal
+        # commands held between samples (a drive-by-wire unit) while the model ramps them: on average the held
+        # command lags the ramp by half a sample, so every hypothesis gets that delay on both commands and the
+        # delay candidates estimate what comes on top of the hold
+        self.hold = 0.5 * ds.sample_time if hold else 0.0
+        self._hold_values = {"steer_delay": self.hold, "throttle_delay": self.hold} if hold else {}
         p = nominal.vehicle.known
         self.lm = E.LogModel.of(ds, p, nominal.method, nominal.substeps)
         k = ds.transition_index()
@@ -200,8 +216,14 @@ class Problem:
         c[..., self.refit_idx] *= 1.0 + np.asarray(rho)
         return c
 
+    def effects(self, values: dict) -> E.EffectSet:
+        """The effects of a hypothesis, with the command hold's half-sample delays added when hold is on."""
+        if self._hold_values:
+            values = {**values, **{k: values.get(k, 0.0) + v for k, v in self._hold_values.items()}}
+        return E.EffectSet.from_values(values)
+
     def predict(self, values: dict, rho: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return self.lm.one_step(E.EffectSet.from_values(values), rows, self.coeffs(rho))
+        return self.lm.one_step(self.effects(values), rows, self.coeffs(rho))
 
     def residuals(self, values: dict, rho, rows) -> np.ndarray:
         return (self.target[rows + 1] - self.predict(values, rho, rows)) / self.scale
@@ -311,7 +333,7 @@ def rollout_errors(prob: Problem, values: dict, rho, starts: np.ndarray, steps: 
     (vx, vy, omega), (steps, n_starts, 3)."""
     if len(starts) == 0:
         return (np.zeros((steps, 0)), np.zeros((steps, 0, 3))) if channels else np.zeros((steps, 0))
-    pred = prob.lm.rollout(E.EffectSet.from_values(values), starts, steps, prob.coeffs(rho),
+    pred = prob.lm.rollout(prob.effects(values), starts, steps, prob.coeffs(rho),
                            whole_state=channels)
     truth = np.stack([prob.ds.states[starts + j + 1] for j in range(steps)])
     pos = np.linalg.norm(pred[..., :2] - truth[..., :2], axis=-1)
@@ -498,9 +520,15 @@ def _score(prob: Problem, base: dict, cand: dict, dk: int, m: int) -> dict:
 
 def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FRACTION,
              candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
-             max_starts: int = 400, progress=None) -> dict:
+             max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False,
+             min_evidence: float | None = None) -> dict:
+    """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
+    between samples (drive-by-wire), not ramped as the model integrates them (see Problem). min_evidence: an
+    effect is added only when its dBIC < -min_evidence (default MIN_EVIDENCE)."""
+    gate = NO_GAP_GATE if gate == "default" else gate
+    margin = MIN_EVIDENCE if min_evidence is None else float(min_evidence)
     t0 = _time.perf_counter()
-    prob = Problem(ds, nominal, fit_fraction, refit)
+    prob = Problem(ds, nominal, fit_fraction, refit, hold=hold)
     v = nominal.vehicle
     steps = max(1, int(round(v.evaluation_horizon / ds.sample_time)))
     starts = _starts(prob, prob.rows_held, steps, max_starts)
@@ -556,9 +584,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
             trials.append((ev["delta_bic"], name, f, ev))
         trials.sort(key=lambda t: t[0])
         dbic, name, f, ev = trials[0]
-        steps_log.append({"added": name if dbic < 0 else None, "best_candidate": name, "delta_bic": dbic,
+        steps_log.append({"added": name if dbic < -margin else None, "best_candidate": name, "delta_bic": dbic,
                           "after": selected + [name]})
-        if not dbic < 0:
+        if not dbic < -margin:
             break
         selected.append(name)
         current, current_h = f, ev["heldout"]
@@ -566,6 +594,16 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     # the noise floor: from the residuals of the best model evaluated (closest to pure sensor noise)
     best_res = min([current_h["res"]] + [c["_res"] for c in first], key=lambda r: _norm_mse(prob, _rms(r)))
     floor = _noise_floor(prob, best_res)
+    # the no-gap gate: the refitted nominal's held-out error against the noise floor (both normalised MSE)
+    e_floor = float(np.mean(floor / prob.scale ** 2))
+    ratio = _norm_mse(prob, base["rmse"]) / e_floor if e_floor > 0 else math.inf
+    gated = gate is not None and bool(selected) and ratio <= gate
+    gate_info = {"ratio": ratio, "threshold": gate, "gated": gated, "selected_without_gate": list(selected),
+                 "min_evidence": margin,
+                 "rule": "select nothing when the refitted nominal's held-out normalised one-step MSE is at most "
+                         "`threshold` times the estimated noise floor's"}
+    if gated:
+        selected, current, current_h = [], base_fit, base
     for c in first:
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
@@ -583,7 +621,10 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     return {
         "schema": SCHEMA,
         "selected": selected,
-        "verdict": ("none: no candidate effect pays for its parameters on the held-out data" if not selected else
+        "verdict": (f"none: the nominal's held-out error is within the noise floor ({ratio:.3g}x <= gate {gate:g}x); "
+                    f"without the gate: {', '.join(gate_info['selected_without_gate'])}" if gated else
+                    "none: no candidate effect pays for its parameters on the held-out data"
+                    + (f" by the evidence margin (dBIC < -{margin:g})" if margin else "") if not selected else
                     "; ".join(f"{e['effect']} {next(iter(e['params']))} = {next(iter(e['params'].values())):.4g} "
                               f"+- {next(iter(e['uncertainty'].values())):.2g} {e['unit']}"
                               + (" (AT THE EDGE of its range: a stand-in for another mismatch, not an estimate)"
@@ -591,9 +632,11 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "candidates": first,
         "model": final,
         "greedy": steps_log,
+        "gate": gate_info,
         "where": w,
         "nominal": {"source": nominal.label, "vehicle": v.name, "method": nominal.method,
                     "substeps": nominal.substeps, "refit_under_every_hypothesis": list(prob.refit),
+                    "command_hold_delay": prob.hold,
                     "refit_only": {"rmse": _chan(base["rmse"]), "factors": {n: 1.0 + float(r) for n, r in
                                                                              zip(prob.refit, base_fit.rho)}}},
         "split": {"fit_fraction": fit_fraction, "fit_rows": int(len(prob.rows_fit)),
@@ -639,8 +682,11 @@ def markdown(d: dict, figures: list[str]) -> str:
              + f" | {_fmt(h['ade_before'])} | {_fmt(h['fde_before'])} |",
              "| with selected effects | " + " | ".join(_fmt(h["rmse_after"][c]) for c in CHANNELS)
              + f" | {_fmt(h['ade_after'])} | {_fmt(h['fde_after'])} |", "",
-             f"Gap closed: {_fmt(m['gap_closed_pct'])} % of the held-out error above the estimated noise floor "
-             f"({_fmt(m['error_reduction_pct'])} % of the normalised one-step error).", "",
+             f"Gap closed: {_fmt(m['gap_closed_pct'])} % of the held-out error above the estimated noise floor, "
+             f"which is {_fmt(m['error_reduction_pct'])} % of the whole normalised one-step error (the refitted "
+             f"nominal's error is {d['gate']['ratio']:.3g}x the noise floor"
+             + (f"; no-gap gate at {d['gate']['threshold']:g}x: {'closed' if d['gate']['gated'] else 'open'}"
+                if d['gate']['threshold'] is not None else "") + ").", "",
              "## Where (nominal model, whole log)", ""]
     w = d["where"]
     lines += ["| nominal | vx (m/s) | vy (m/s) | omega (rad/s) |", "|---|---|---|---|"]
@@ -758,12 +804,12 @@ def load_inputs(args):
     if args.model:
         from ddyn.learn import checkpoint
 
-        vname = checkpoint.vehicle_of(checkpoint.read(args.model)).name
-        ds = load_any(args.data, vehicle=vname)
+        # the checkpoint's embedded vehicle file, not its name: the file may live outside train/vehicles
+        ds = load_any(args.data, vehicle=checkpoint.vehicle_of(checkpoint.read(args.model)))
         nominal = nominal_from_checkpoint(args.model, ds)
     else:
         vehicle = load_vehicle(args.vehicle)
-        ds = load_any(args.data, vehicle=vehicle.name)
+        ds = load_any(args.data, vehicle=vehicle)   # the loaded file, not a second look-up by name
         try:
             coeffs = _coefficients_arg(args.coefficients)
         except (json.JSONDecodeError, KeyError, ValueError, TypeError) as e:
@@ -794,13 +840,17 @@ def _run(args) -> int:
     bad = [c for c in refit if c not in COEFF_NAMES]
     if bad:
         raise DdynError(f"--refit: unknown coefficient(s) {', '.join(bad)}")
-    d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds))
+    gate = "default" if args.gate is None else (None if args.gate <= 0 else args.gate)
+    d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
+                 hold=args.hold, min_evidence=args.min_evidence)
     paths = write_report(d, args.out, not args.no_plots)
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
     print("held-out one-step RMSE " + ", ".join(f"{c} {h['rmse_before'][c]:.3e} -> {h['rmse_after'][c]:.3e}"
                                                 for c in CHANNELS)
-          + f"; ADE {h['ade_before']:.3e} -> {h['ade_after']:.3e} m; gap closed {_fmt(d['model']['gap_closed_pct'])} %")
+          + f"; ADE {h['ade_before']:.3e} -> {h['ade_after']:.3e} m; gap closed {_fmt(d['model']['gap_closed_pct'])} % "
+          f"of the error above the noise floor, {_fmt(d['model']['error_reduction_pct'])} % of the whole error "
+          f"(nominal {d['gate']['ratio']:.3g}x the noise floor)")
     for s in d["where"]["summary"]:
         print(f"  where: {s}")
     print(f"wrote {paths['json']}, {paths['markdown']} and {len(paths['figures'])} figures in {d['seconds']:.1f} s")
@@ -827,5 +877,13 @@ def register(subparsers) -> None:
     p.add_argument("--refit", default=",".join(DEFAULT_REFIT),
                    help="nominal coefficients refitted (as factors) under every hypothesis (default Df,Dr; 'none')")
     p.add_argument("--max-effects", type=int, default=3)
+    p.add_argument("--hold", action="store_true",
+                   help="the log's throttle and steering were held between samples (a drive-by-wire unit): the "
+                        "nominal gets half a sample of delay on both, delay estimates are on top of it")
+    p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
+                   help=f"add an effect only when its dBIC < -DBIC (default {MIN_EVIDENCE:g}: the plain rule)")
+    p.add_argument("--gate", type=float, default=None, metavar="RATIO",
+                   help="no-gap gate: select nothing when the nominal's held-out error is at most RATIO times the "
+                        f"noise floor (default {NO_GAP_GATE}; 0: off)")
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=_run)

@@ -1,5 +1,8 @@
 """`ddyn study gap`: does `ddyn diagnose` find an effect it was not told about?
 
+--plant own (default, below): logs of the project's own model, the easy case. --plant commonroad: logs of
+an independent plant (gap_independent.py, docs/gap_independent.md). --jobs N runs the cases in N processes.
+
 Each case: a nominal model identified on effect-free simulated data (per vehicle, once: the
 17 coefficients fitted by least squares to one-step predictions of a separate noisy log,
 starting from the vehicle file's values perturbed by up to 10 %), and a noisy simulated log
@@ -48,6 +51,8 @@ from pathlib import Path
 import numpy as np
 
 from ddyn.analysis import diagnose as D
+from ddyn.analysis import gap_independent
+from ddyn.analysis.parallel import run_cases
 from ddyn.errors import DdynError
 from ddyn.model import effects as E
 from ddyn.model.single_track import COEFF_NAMES
@@ -449,7 +454,13 @@ def rescore(out: Path) -> dict:
     return doc | {"markdown": _write(doc, doc["nominal"], out)}
 
 
-def run(n_cases: int, out: Path, seed: int = DEFAULT_SEED, progress: bool = True, vehicles=VEHICLES) -> dict:
+def _case_job(job: tuple) -> dict:
+    """One case in a worker process: (case, vehicle, nominal coefficients)."""
+    return run_case(*job)
+
+
+def run(n_cases: int, out: Path, seed: int = DEFAULT_SEED, progress: bool = True, vehicles=VEHICLES,
+        jobs: int = 1) -> dict:
     import torch
 
     torch.set_num_threads(1)
@@ -461,18 +472,8 @@ def run(n_cases: int, out: Path, seed: int = DEFAULT_SEED, progress: bool = True
     nominal, info = {}, {}
     for name, v in models.items():
         nominal[name], info[name] = identified_nominal(v)
-    results = []
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(cases), desc="gap-benchmark")
-    for c in cases:
-        results.append(run_case(c, models[c["vehicle"]], nominal[c["vehicle"]]))
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+    results = run_cases(_case_job, [(c, models[c["vehicle"]], nominal[c["vehicle"]]) for c in cases], jobs,
+                        desc="gap-benchmark", progress=progress)
     seconds = time.perf_counter() - t0
     sc = score(results)
     settings = {"cases": n_cases, "seed": seed, "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}",
@@ -569,8 +570,45 @@ def real_markdown(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def _run_commonroad(args, out: Path) -> int:
+    """--plant commonroad: the independent plant (gap_independent.py)."""
+    G = gap_independent
+    if args.rescore:
+        path = out / "results.json"
+        if not path.is_file():
+            raise DdynError(f"--rescore: {path} not found")
+        doc = json.loads(path.read_text())
+        gate = doc["settings"].get("gate") if args.gate is None else (None if args.gate <= 0 else args.gate)
+        margin = doc["settings"].get("min_evidence", 0.0) if args.min_evidence is None else args.min_evidence
+        doc["results"] = G.with_gate(doc["results"], gate, margin)
+        doc["settings"]["gate"], doc["settings"]["min_evidence"] = gate, margin
+        doc.update(G.score(doc["results"]))
+        doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"], doc["seconds"])
+    else:
+        if args.gate is not None:
+            D.NO_GAP_GATE = None if args.gate <= 0 else args.gate   # workers inherit it (fork)
+        if args.min_evidence is not None:
+            D.MIN_EVIDENCE = args.min_evidence
+        seed = G.DEFAULT_SEED if args.seed is None else args.seed
+        doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
+                    nominal=args.nominal)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
+    (out / "results.md").write_text(doc["markdown"])
+    print(doc["markdown"])
+    if doc["settings"]["calibration_seed"]:
+        print(f"leaving <= {100 * G.TARGET_FALSE_ALARMS:.0f} % false alarms on these effect-free logs: gate ratio "
+              f"{G.calibrate(doc['results'])}, or evidence margin {G.calibrate_margin(doc['results'])}")
+    print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
+    return 0
+
+
 def _run(args) -> int:
     out = Path(args.out)
+    if args.plant == "commonroad":
+        return _run_commonroad(args, out)
+    if args.seed is None:
+        args.seed = DEFAULT_SEED
     if args.real:
         summary = run_real(out, args.model)
         md = real_markdown(summary)
@@ -591,7 +629,7 @@ def _run(args) -> int:
     if args.seed in DEVELOPMENT_SEEDS:
         print(f"note: seed {args.seed} was used to choose the benchmark's settings: not a blind test",
               file=sys.stderr)
-    doc = run(n, out, args.seed, progress=not args.no_progress, vehicles=vehicles)
+    doc = run(n, out, args.seed, progress=not args.no_progress, vehicles=vehicles, jobs=args.jobs)
     print(doc["markdown"])
     print(f"wrote {out / 'results.json'}, {out / 'results.md'} and {out / 'detection.png'}")
     return 0
@@ -604,9 +642,23 @@ def register(subparsers) -> None:
                    help=f"number of cases (default {30 * FOLD_BLOCK}; --quick {2 * FOLD_BLOCK})")
     p.add_argument("--out", default="runs/gap_benchmark", help="output directory")
     p.add_argument("--quick", action="store_true", help=f"a small run ({2 * FOLD_BLOCK} cases)")
-    p.add_argument("--seed", type=int, default=DEFAULT_SEED,
-                   help=f"benchmark seed (default {DEFAULT_SEED}; {', '.join(map(str, DEVELOPMENT_SEEDS))} were "
-                        "used to choose settings)")
+    p.add_argument("--seed", type=int, default=None,
+                   help=f"benchmark seed (default {DEFAULT_SEED}, commonroad {gap_independent.DEFAULT_SEED}; "
+                        f"{', '.join(map(str, DEVELOPMENT_SEEDS))} were used to choose the own plant's settings, "
+                        f"{', '.join(map(str, gap_independent.CALIBRATION_SEEDS))} the no-gap gate)")
+    p.add_argument("--plant", choices=("own", "commonroad"), default="own",
+                   help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
+                        "single-track drift model (an independent plant, docs/gap_independent.md)")
+    p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
+    p.add_argument("--nominal", choices=("mapped", "identified"), default="mapped",
+                   help="commonroad: the nominal model: the plant's parameters mapped onto the model "
+                        "(commonroad_vehicle2.json, default) or identified on an effect-free log of the plant")
+    p.add_argument("--hold", action="store_true", help="commonroad: diagnose with the DBW command hold modelled "
+                                                       "(diagnose --hold)")
+    p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
+                   help="commonroad: the evidence margin for this run or --rescore (default diagnose's)")
+    p.add_argument("--gate", type=float, default=None, metavar="RATIO",
+                   help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")
     p.add_argument("--real", action="store_true", help="diagnose the Putnam log: nominal from its first half "
                                                        "(or --model), diagnosis on the rest")

@@ -54,13 +54,11 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 def dataset_frames(ds, vehicle_name: str | None = None) -> list[can.Message]:
     """The protocol frames of every row of a canonical dataset, timestamped with its time."""
+    from ddyn.data import vehicle_ref
     from ddyn.model import mathns, sensors
-    from ddyn.model import vehicle as vehicle_mod
 
-    name = vehicle_name or ds.vehicle
-    if not name:
-        raise DdynError("the dataset names no vehicle; pass --vehicle (its coefficients give the accelerations)")
-    v = vehicle_mod.load(name)
+    # a name or JSON path, else the vehicle file the dataset records (its coefficients give the accelerations)
+    v = vehicle_ref.of_dataset(ds, vehicle_name)
     coeffs = v.coefficient_vector("true")
     st = np.asarray(ds.states, dtype=float).T  # (8, N): the measurement models take arrays
     ns = mathns.NUMPY

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ddyn.data import lcm_import
+from ddyn.data import lcm_import, vehicle_ref
 from ddyn.data.dataset import COLUMNS, FORMAT_MAGIC, SAMPLE_TIME_RTOL, Dataset, write_canonical
 from ddyn.errors import DataError, DdynError
 from ddyn.model import vehicle as vehicle_mod
@@ -147,9 +147,9 @@ def _sample_time_of(path: Path, estimate: float, what: str) -> float:
     return float(estimate)
 
 
-def _check_vehicle(path: Path, sample_time: float, name: str) -> str:
-    """The named vehicle exists and runs at the data's sample time; returns its name."""
-    v = vehicle_mod.load(name)
+def _check_vehicle(path: Path, sample_time: float, vehicle: "str | Path | vehicle_mod.Vehicle") -> str:
+    """The vehicle (a Vehicle, a name or a JSON path) exists and runs at the data's sample time; returns its name."""
+    v = vehicle_ref.as_vehicle(vehicle)
     if not abs(sample_time - v.sample_time) <= SAMPLE_TIME_RTOL * v.sample_time:
         raise DataError(path, f"sample time {sample_time!r} s does not match vehicle {v.name!r} "
                         f"({v.sample_time!r} s); choose the vehicle this data belongs to")
@@ -549,14 +549,14 @@ _READER_OPTIONS = {"canonical": (), "ddm_npz": ("state_key",), "racecar_csv": ("
                    "lcm_log": ("min_vx", "channel_prefix")}
 
 
-def load_any(path: str | Path, vehicle: str | None = None, fmt: str = "auto", **options) -> Dataset:
+def load_any(path: str | Path, vehicle: "str | Path | vehicle_mod.Vehicle | None" = None, fmt: str = "auto", **options) -> Dataset:
     """Read any accepted dataset file as a canonical Dataset.
 
     fmt: "auto" (detect from the first bytes) or one of FORMATS. options: state_key
     (ddm_npz), min_vx and brake_full_scale_kpa (racecar_csv), min_vx and channel_prefix
     (lcm_log); options of the other formats and None values are ignored, so one call
     serves any file. vehicle: for the imported formats, the vehicle the data belongs
-    to (default: the reader's); for a canonical file it must agree with the vehicle
+    to (a Vehicle, a name in train/vehicles or a JSON path; default: the reader's); for a canonical file it must agree with the vehicle
     the file names, if any.
     """
     unknown = sorted(set(options) - {o for opts in _READER_OPTIONS.values() for o in opts})
@@ -574,12 +574,14 @@ def load_any(path: str | Path, vehicle: str | None = None, fmt: str = "auto", **
     return _READERS[fmt](path, **kwargs)
 
 
-def _with_vehicle(path: Path, ds: Dataset, vehicle: str | None) -> Dataset:
+def _with_vehicle(path: Path, ds: Dataset, vehicle: "str | Path | vehicle_mod.Vehicle | None") -> Dataset:
     if vehicle is None:
         return ds
-    if ds.vehicle and ds.vehicle != vehicle:
-        raise DataError(path, f"the dataset is for vehicle {ds.vehicle!r}, not {vehicle!r}")
-    ds.vehicle = _check_vehicle(path, ds.sample_time, vehicle)
+    # compare with the file's name field, not with the argument: `--vehicle /x/car.json` names "car"
+    v = vehicle_ref.as_vehicle(vehicle)
+    if ds.vehicle and ds.vehicle != v.name:
+        raise DataError(path, f"the dataset is for vehicle {ds.vehicle!r}, not {v.name!r}")
+    ds.vehicle = _check_vehicle(path, ds.sample_time, v)
     return ds
 
 

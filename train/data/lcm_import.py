@@ -209,7 +209,7 @@ def _vehicle(path: Path, sample_time: float, name: str | None):
                             + ("no vehicle has" if not matches else
                                f"fits {', '.join(v.name for v in matches)}") + "; choose the vehicle with --vehicle")
         return matches[0]
-    v = vehicle_mod.load(name)
+    v = name if isinstance(name, vehicle_mod.Vehicle) else vehicle_mod.load(name)   # a Vehicle, name or path
     if abs(v.sample_time - sample_time) > CLOCK_RTOL * v.sample_time:
         raise DataError(path, f"the log's sample time is {sample_time:.6g} s (state estimates every "
                         f"{sample_time:.6g} s of the controller clock), not vehicle {v.name!r}'s {v.sample_time!r} s; "

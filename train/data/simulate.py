@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ddyn.data import vehicle_ref
 from ddyn.data.dataset import Dataset, write_canonical
 from ddyn.errors import DdynError
 from ddyn.model import backends
@@ -373,7 +374,9 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
         "excitation": repr(float(excitation)), "target_speed": repr(settings.target_speed),
         "grip": repr(settings.grip), "track": track.name, "track_length": repr(L),
         "laps": str(int(math.floor(completed + 1e-9))), "progress_laps": f"{completed:.6f}",
-        "duration": repr(float((k - 1) * Ts)), "vehicle_digest": vehicle.digest,
+        "duration": repr(float((k - 1) * Ts)),
+        # the vehicle file itself, so the log finds it again wherever it lives (ddyn.data.vehicle_ref)
+        **vehicle_ref.metadata_for(vehicle),
         # the plant's coefficients (COEFF_NAMES order): the ground truth evaluation compares estimates with
         "plant_coefficients": json.dumps([float(c) for c in coeffs]),
     }

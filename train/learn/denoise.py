@@ -448,8 +448,7 @@ def _run(args) -> int:
         source = source_from_checkpoint(args.model)
     elif args.vehicle and args.method == "ekf":
         source = source_from_vehicle(args.vehicle, args.integrator or "euler")
-    vehicle_name = source.vehicle.name if source else args.vehicle
-    ds = load_any(args.data, vehicle=vehicle_name)
+    ds = load_any(args.data, vehicle=source.vehicle if source else args.vehicle)   # a Vehicle, name or path
     if args.method == "ekf" and source is None:
         raise DdynError("the ekf method needs a DDM checkpoint (--model) or a vehicle (--vehicle)")
     if source is not None and args.integrator and args.model and args.integrator != source.method:

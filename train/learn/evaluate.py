@@ -167,7 +167,7 @@ def _run(args) -> int:
     from ddyn.data.importers import load_any
 
     model, ckpt = checkpoint.load(args.model)
-    ds = load_any(args.data, vehicle=ckpt["vehicle"]["name"])
+    ds = load_any(args.data, vehicle=checkpoint.vehicle_of(ckpt))   # embedded file: it may live anywhere
     m = evaluate(model, ckpt, ds)
     print(format_summary(m))
     if args.out:

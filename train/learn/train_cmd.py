@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 from dataclasses import fields
 
+from ddyn.data import vehicle_ref
 from ddyn.data.windows import split_train_validation
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
@@ -15,14 +16,16 @@ from ddyn.model import vehicle as vehicle_mod
 
 def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name: str | None = None,
                         progress: bool = True, ranges_file: str | None = None) -> dict:
-    """ranges_file: guard ranges in place of the vehicle file's (ddyn.learn.guard_ranges)."""
+    """vehicle_name: a name in train/vehicles or a JSON path (default: the dataset's, see vehicle_ref).
+    ranges_file: guard ranges in place of the vehicle file's (ddyn.learn.guard_ranges)."""
     from ddyn.data.importers import load_any
 
-    ds = load_any(data_path, vehicle=vehicle_name)
-    name = vehicle_name or ds.vehicle
-    if not name:
-        raise DdynError(f"{data_path}: the dataset names no vehicle; pass --vehicle")
-    v = vehicle_mod.load(name)
+    given = vehicle_mod.load(vehicle_name) if vehicle_name else None
+    ds = load_any(data_path, vehicle=given)
+    try:
+        v = vehicle_ref.of_dataset(ds, given)
+    except DdynError as e:
+        raise DdynError(f"{data_path}: {e}") from None
     ranges_record = None
     if ranges_file:
         if cfg.kind != "ddm":
@@ -61,7 +64,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("train", help="train a Deep Dynamics (ddm) or Deep Pacejka (dpm) model")
     p.add_argument("--data", required=True, help="training dataset (any supported format)")
     p.add_argument("-o", "--out", required=True, help="checkpoint file to write")
-    p.add_argument("--vehicle", help="vehicle name when the dataset does not name one")
+    p.add_argument("--vehicle", help="vehicle name or JSON file (default: the one the dataset records)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--ranges", help="guard ranges file in place of the vehicle file's: `ddyn denoise --model` "
                                     "writes one (OUT.ranges.json), or {\"Cm1\": [lo, hi], ...}")

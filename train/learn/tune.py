@@ -30,6 +30,7 @@ import time
 import warnings
 from pathlib import Path
 
+from ddyn.data import vehicle_ref
 from ddyn.errors import DdynError
 
 DEFAULT_OUT = "out/tune"
@@ -202,11 +203,12 @@ def run_study(data_path: str | Path, storage: str | None, study_name: str | None
     if lbfgs_iterations < 0:
         raise DdynError(f"--lbfgs-iterations must not be negative, got {lbfgs_iterations}")
     TrainConfig(kind=kind, epochs=epochs, lbfgs_iterations=lbfgs_iterations)  # validates kind and epochs
-    ds = load_any(data_path, vehicle=vehicle)
-    vname = vehicle or ds.vehicle
-    if not vname:
-        raise DdynError(f"{data_path}: the dataset names no vehicle; pass --vehicle")
-    veh = vehicle_mod.load(vname)
+    given = vehicle_mod.load(vehicle) if vehicle else None
+    ds = load_any(data_path, vehicle=given)
+    try:
+        veh = vehicle_ref.of_dataset(ds, given)
+    except DdynError as e:
+        raise DdynError(f"{data_path}: {e}") from None
 
     study_name = study_name or f"{kind}-{Path(data_path).stem}"
     url = storage or default_storage(out, study_name)
@@ -321,7 +323,7 @@ def register(subparsers) -> None:
     defaults = TrainConfig()
     p = subparsers.add_parser("tune", help="search training hyper-parameters with Optuna (one machine or many)")
     p.add_argument("--data", required=True, help="training dataset (any supported format)")
-    p.add_argument("--vehicle", help="vehicle name when the dataset does not name one")
+    p.add_argument("--vehicle", help="vehicle name or JSON file (default: the one the dataset records)")
     p.add_argument("--kind", choices=("ddm", "dpm"), default="ddm", help="model to tune (default ddm)")
     p.add_argument("--trials", type=int, default=20, help="trials this worker runs (default 20)")
     p.add_argument("--epochs", type=int, default=None,

@@ -1,0 +1,310 @@
+"""Logs from an independent plant: CommonRoad's single-track drift model (PyPI commonroad-vehicle-models).
+
+Why: `ddyn study gap` used to score the diagnosis on logs made by the very model code
+that `ddyn diagnose` fits (an inverse crime). This module makes "real" logs with a
+plant written by someone else: `vehiclemodels.vehicle_dynamics_std` (TUM CommonRoad:
+single-track with load transfer, wheel spin dynamics, combined-slip Pacejka MF tyres,
+a kinematic blend at walking speed) and its parameter set `parameters_vehicle2` (BMW
+320i). Nothing of ddyn.model integrates it; ddyn.model only supplies the track, and
+ddyn.data.simulate the driver's speed profile and excitation noise.
+
+How a log is made (the way a car with a drive-by-wire unit is logged):
+  - the plant is integrated with RK4 at PLANT_RATE (1 kHz);
+  - the driver (pure pursuit with yaw-rate feedback, PI on speed; the same structure as
+    ddyn.data.simulate) decides a throttle and a steering *angle* once per log sample;
+    the DBW unit holds both constant until the next sample; the log records these
+    commanded values (columns throttle, steering), dthrottle/dsteering are their
+    forward differences, so the project's model sees them ramp while the plant sees steps;
+  - the steering servo follows the (held, possibly delayed) command as a first-order lag
+    with time constant SERVO_TAU (steer_lag: a slower servo) inside CommonRoad's steering
+    rate limit; throttle T maps to a drive force m_nominal * ACCEL_SCALE * T, passed to
+    CommonRoad as the acceleration that force gives the true mass (its input is an
+    acceleration; a heavier car must accelerate less for the same pedal);
+  - aerodynamic drag and rolling resistance (CommonRoad has neither) and road bank and grade
+    are added as accelerations along and across the velocity after CommonRoad's right-hand side;
+  - downforce raises the tyre loads without adding inertia: CommonRoad is called with a mass
+    m (1 + k v^2) (its normal loads scale with it) and the accelerations it returns are
+    scaled back by (1 + k v^2), the drive force is passed unchanged;
+  - every logged state (x, y, yaw, vx, vy, omega) gets noise: white, or AR(1)-coloured.
+
+State mapping (CommonRoad -> canonical): x, y; yaw = psi; vx = v cos(beta), vy = v sin(beta);
+omega = psi_dot. The noise-free values and the actual wheel angle are kept as extras true_*.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ddyn.data import vehicle_ref
+from ddyn.data.dataset import Dataset
+from ddyn.data.simulate import BandNoise, driver_settings, speed_profile
+from ddyn.errors import DdynError
+from ddyn.model.tracks import Track, load_track
+from ddyn.model.vehicle import Vehicle
+
+try:  # the independent plant is a declared dependency (requirements.in); say so loudly if it is missing
+    from vehiclemodels import vehicle_dynamics_std as _std_module
+    from vehiclemodels.init_std import init_std
+    from vehiclemodels.parameters_vehicle2 import parameters_vehicle2
+except ImportError as _e:  # pragma: no cover
+    _IMPORT_ERROR: ImportError | None = _e
+else:
+    _IMPORT_ERROR = None
+
+G = 9.81
+PLANT_RATE = 1000.0          # Hz: RK4 step of the plant
+SERVO_TAU = 0.01             # s: the steering servo of the effect-free plant (fast, not instantaneous)
+ACCEL_SCALE = 6.0            # m/s^2 at throttle 1 for the nominal mass (drive and brake)
+DRAG = 0.4                   # kg/m: 0.5 rho Cd A of a saloon (rho 1.2, Cd A 0.67 m^2)
+ROLLING = 161.0              # N: 1.5 % of the weight, the usual rolling-resistance coefficient
+# these numbers mapped onto the project's model; kept out of train/vehicles (whose files every vehicle-wide tool
+# iterates: C code generation, LCM import's sample-time match, fidelity) and loaded by path like any user's file
+NOMINAL_VEHICLE = Path(__file__).resolve().parents[1] / "vehicles" / "plants" / "commonroad_vehicle2.json"
+NOISY = ("x", "y", "yaw", "vx", "vy", "omega")
+PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce", "bank_angle", "grade")
+
+
+def require_commonroad() -> None:
+    if _IMPORT_ERROR is not None:
+        raise DdynError(f"the independent plant needs the PyPI package commonroad-vehicle-models "
+                        f"(requirements.in; bash scripts/setup.sh installs it): {_IMPORT_ERROR}")
+
+
+@dataclass(frozen=True)
+class PlantEffects:
+    """Effects in physical form on the CommonRoad plant; zero is off. Units as ddyn.model.effects."""
+
+    steer_delay: float = 0.0     # s: the servo sees the steering command this much later
+    throttle_delay: float = 0.0  # s: the drivetrain sees the throttle command this much later
+    steer_lag: float = 0.0       # s: servo time constant (replaces SERVO_TAU when larger)
+    mass_offset: float = 0.0     # fraction: true mass and yaw inertia are (1 + f) times the nominal
+    downforce: float = 0.0       # s^2/m^2: tyre loads scaled by 1 + k v^2 (the project's downforce k)
+    bank_angle: float = 0.0      # rad: peak bank; the profile follows the curvature (banked into turns)
+    grade: float = 0.0           # rad: peak grade; sinusoid along the lap (GRADE_WAVES per lap)
+    grade_phase: float = 0.0     # rad
+
+    def active(self) -> dict[str, float]:
+        return {k: v for k, v in asdict(self).items() if k in PLANT_EFFECTS and v != 0.0}
+
+
+GRADE_WAVES = 3
+
+
+def bank_profile(track: Track, peak: float) -> np.ndarray:
+    """Bank angle at each centre-line point: banked into the turns, steepest in the tightest (both signs
+    on a road course), from the curvature smoothed over about 30 m so the road does not twist at each kink."""
+    kappa = np.asarray(track.curvature, float)
+    ds = float(track.length) / len(kappa)
+    half = max(1, int(round(15.0 / ds)))
+    kernel = np.ones(2 * half + 1) / (2 * half + 1)
+    smooth = np.convolve(np.concatenate([kappa[-half:], kappa, kappa[:half]]), kernel, mode="valid")
+    scale = float(np.max(np.abs(smooth))) or 1.0
+    return peak * smooth / scale
+
+
+def grade_profile(track: Track, peak: float, phase: float = 0.0) -> np.ndarray:
+    """Grade along the lap: a sinusoid with GRADE_WAVES periods, so the road climbs and falls back to the start."""
+    s = np.asarray(track.s, float)
+    return peak * np.sin(2 * math.pi * GRADE_WAVES * s / float(track.length) + phase)
+
+
+def commonroad_parameters():
+    """CommonRoad's parameters_vehicle2 (BMW 320i): a fresh dataclass object (make_log sets its m and I_z)."""
+    require_commonroad()
+    return copy.deepcopy(parameters_vehicle2())
+
+
+@dataclass
+class _Env:
+    """What the right-hand side needs besides the state and the held commands."""
+
+    p: object                    # CommonRoad parameters (p.m is set per call for downforce)
+    m_true: float
+    m_nominal: float
+    downforce: float
+    servo_tau: float
+    bank: float = 0.0            # rad at the current position (held over a log sample)
+    grade: float = 0.0
+
+
+def plant_rhs(x: list, steer_target: float, throttle: float, env: _Env) -> list:
+    """d/dt of CommonRoad's 9-state std model under the held commands, with the additions above."""
+    v, beta, psi_dot = x[3], x[6], x[5]
+    q = 1.0 + env.downforce * v * v                  # tyre-load factor of downforce
+    env.p.m = env.m_true * q
+    steer_rate = (steer_target - x[2]) / env.servo_tau
+    accel = env.m_nominal * ACCEL_SCALE * throttle / env.p.m   # the drive force, whatever the mass
+    f = _std_module.vehicle_dynamics_std(list(x), [steer_rate, accel], env.p)
+    # undo the downforce mass: forces / (m q) -> forces / m (yaw and wheel dynamics have no mass)
+    f[3] *= q
+    f[6] = -psi_dot + (f[6] + psi_dot) * q
+    # drag and rolling resistance act along the velocity; gravity of bank (+: to the left) and grade (+: uphill)
+    a_x = -G * math.sin(env.grade)
+    a_y = G * math.sin(env.bank)
+    cb, sb = math.cos(beta), math.sin(beta)
+    f[3] += -(DRAG * v * v + (ROLLING if v > 0.5 else 0.0)) / env.m_true + a_x * cb + a_y * sb
+    if v > 0.5:
+        f[6] += (a_y * cb - a_x * sb) / v
+    return f
+
+
+def rk4_step(x: list, h: float, steer_target: float, throttle: float, env: _Env) -> list:
+    k1 = plant_rhs(x, steer_target, throttle, env)
+    k2 = plant_rhs([a + 0.5 * h * b for a, b in zip(x, k1)], steer_target, throttle, env)
+    k3 = plant_rhs([a + 0.5 * h * b for a, b in zip(x, k2)], steer_target, throttle, env)
+    k4 = plant_rhs([a + h * b for a, b in zip(x, k3)], steer_target, throttle, env)
+    out = [a + h / 6.0 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(x, k1, k2, k3, k4)]
+    out[7], out[8] = max(out[7], 0.0), max(out[8], 0.0)   # as CommonRoad: no negative wheel spin
+    return out
+
+
+@dataclass(frozen=True)
+class LogSettings:
+    duration: float = 60.0       # s of log
+    noise_scale: float = 1.0     # times the nominal vehicle's sensor_noise_std
+    noise_color: float = 0.0     # AR(1) coefficient of the noise (0: white)
+    target_speed: float = 24.0   # m/s cap of the speed profile
+    excitation: float = 1.0
+    start_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+def _command_at(history: list, t: float, delay: float, Ts: float) -> float:
+    """The held command the actuator sees at time t: the one issued at the last sample before t - delay."""
+    k = int(math.floor((t - delay) / Ts + 1e-9))
+    return history[min(max(k, 0), len(history) - 1)]
+
+
+def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects(), seed: int = 0,
+             settings: LogSettings = LogSettings(), nominal: Vehicle | str | Path = NOMINAL_VEHICLE) -> Dataset:
+    """One log of the CommonRoad plant driven around `track` (see the module docstring)."""
+    require_commonroad()
+    track = load_track(track) if isinstance(track, str) else track
+    veh = vehicle_ref.as_vehicle(nominal) if not isinstance(nominal, Vehicle) else nominal
+    Ts = veh.sample_time
+    n_sub = int(round(Ts * PLANT_RATE))
+    if abs(n_sub / PLANT_RATE - Ts) > 1e-9:
+        raise DdynError(f"the log's sample time {Ts} s is not a multiple of the plant's {1 / PLANT_RATE} s")
+    h = 1.0 / PLANT_RATE
+    p = commonroad_parameters()
+    m_nom = veh.known.mass
+    p.I_z = p.I_z * (1.0 + effects.mass_offset)
+    env = _Env(p=p, m_true=m_nom * (1.0 + effects.mass_offset), m_nominal=m_nom, downforce=effects.downforce,
+               servo_tau=max(SERVO_TAU, effects.steer_lag))
+    bank = bank_profile(track, effects.bank_angle) if effects.bank_angle else None
+    grade = grade_profile(track, effects.grade, effects.grade_phase) if effects.grade else None
+
+    ds_settings = driver_settings(veh, settings.target_speed)
+    profile = speed_profile(track, veh, veh.true_vector(), ds_settings)
+    wheelbase = veh.known.lf + veh.known.lr
+    t_lo, t_hi = veh.input_limits["throttle"]
+    d_lo, d_hi = veh.input_limits["steering"]
+    dt_max = veh.input_limits["dthrottle"][1] * Ts
+    dd_max = veh.input_limits["dsteering"][1] * Ts
+    seeds = np.random.SeedSequence(seed).spawn(4)
+    ex_steer = BandNoise(np.random.default_rng(seeds[0]), 0.08)
+    ex_throttle = BandNoise(np.random.default_rng(seeds[1]), 0.04)
+    ex_speed = BandNoise(np.random.default_rng(seeds[2]), 0.004)
+    noise_rng = np.random.default_rng(seeds[3])
+
+    L = track.length
+    s0 = float(settings.start_s) % L
+    px, py = (float(v) for v in track.position(s0))
+    v0 = float(track.interpolate(profile, s0))
+    delta0 = math.atan(wheelbase * float(track.curvature_at(s0)))
+    x = init_std([px, py, delta0, v0, float(track.heading_at(s0)), 0.0, 0.0], p)
+    n = int(round(settings.duration / Ts)) + 1
+    rows = np.empty((n, 6))
+    true_delta = np.empty(n)
+    T_hist: list[float] = []
+    D_hist: list[float] = []
+    T_cmd, D_cmd = 0.0, delta0
+    integ = 0.0
+    s_prev = s0
+    window = max(4.0 * ds_settings.lookahead_min, 0.05 * L)
+    preview = np.linspace(0.0, 1.0, 6)
+    for k in range(n):
+        X, Y, delta, v, psi, psi_dot, beta = x[:7]
+        if not all(math.isfinite(a) for a in x):
+            raise DdynError(f"the CommonRoad plant diverged at t = {k * Ts:.2f} s")
+        vx, vy = v * math.cos(beta), v * math.sin(beta)
+        rows[k] = (X, Y, psi, vx, vy, psi_dot)
+        true_delta[k] = delta
+        s_arr, lat_arr = track.project(X, Y, s_hint=s_prev, window=window)
+        s, lat = float(s_arr), float(lat_arr)
+        s_prev = s
+        wl, wr = track.half_widths(s)
+        if max(lat - float(wl), -lat - float(wr)) > 0.5 * track.width:
+            raise DdynError(f"the driver lost the CommonRoad car at t = {k * Ts:.2f} s, s = {s:.0f} m "
+                            f"(seed {seed}, effects {effects.active()}); try a lower target speed")
+        # ---- driver (on the true state, once per log sample)
+        look = max(ds_settings.lookahead_min, ds_settings.lookahead_time * vx)
+        gx, gy = track.position(s + look)
+        alpha = math.atan2(float(gy) - Y, float(gx) - X) - psi
+        kappa_cmd = 2.0 * math.sin(alpha) / math.hypot(float(gx) - X, float(gy) - Y)
+        d_new = math.atan(wheelbase * kappa_cmd)
+        v_yaw = max(vx, ds_settings.lookahead_min / ds_settings.lookahead_time)
+        d_new += ds_settings.yaw_gain * wheelbase * (kappa_cmd - psi_dot / v_yaw)
+        amp = ds_settings.steer_excitation * min(1.0, (ds_settings.excitation_speed / max(vx, 1e-6)) ** 2)
+        d_new += settings.excitation * amp * ex_steer.next()
+        scale = 1.0 + settings.excitation * ds_settings.speed_excitation * ex_speed.next()
+        v_ref = scale * float(np.min(track.interpolate(profile, s + preview * ds_settings.speed_preview * max(vx, 0))))
+        err = v_ref - vx
+        t_new = (ds_settings.kp * err + ds_settings.ki * integ) / ACCEL_SCALE \
+            + settings.excitation * ds_settings.throttle_excitation * ex_throttle.next()
+        if t_lo < t_new < t_hi:
+            integ += err * Ts
+        # the DBW unit's rate and range limits (the log's rates stay inside the vehicle's input limits)
+        T_cmd = min(max(T_cmd + min(max(t_new - T_cmd, -dt_max), dt_max), t_lo), t_hi)
+        D_cmd = min(max(D_cmd + min(max(d_new - D_cmd, -dd_max), dd_max), d_lo), d_hi)
+        T_hist.append(T_cmd)
+        D_hist.append(D_cmd)
+        if k == n - 1:
+            break
+        # ---- plant: n_sub RK4 steps with the held (possibly delayed) commands
+        if bank is not None:
+            env.bank = float(track.interpolate(bank, s))
+        if grade is not None:
+            env.grade = float(track.interpolate(grade, s))
+        for j in range(n_sub):
+            t = k * Ts + j * h
+            x = rk4_step(x, h, _command_at(D_hist, t, effects.steer_delay, Ts),
+                         _command_at(T_hist, t, effects.throttle_delay, Ts), env)
+
+    T = np.array(T_hist)
+    D = np.array(D_hist)
+    states = np.column_stack([rows[:, :3], rows[:, 3:6], T, D])
+    inputs = np.zeros((n, 2))
+    inputs[:-1, 0] = np.diff(T) / Ts
+    inputs[:-1, 1] = np.diff(D) / Ts
+    extras = {f"true_{c}": rows[:, i].copy() for i, c in enumerate(NOISY)}
+    extras["true_steering"] = true_delta
+    noisy = states.copy()
+    if settings.noise_scale > 0:
+        std = np.array([settings.noise_scale * veh.sensor_noise_std[c] for c in NOISY])
+        w = noise_rng.standard_normal((n, 6))
+        rho = float(settings.noise_color)
+        if rho:
+            # AR(1) with the same marginal std: n_k = rho n_k-1 + sqrt(1 - rho^2) w_k
+            for k in range(1, n):
+                w[k] = rho * w[k - 1] + math.sqrt(1 - rho * rho) * w[k]
+        noisy[:, :6] += w * std
+    active = effects.active()
+    metadata = {
+        "plant": "commonroad vehicle_dynamics_std, parameters_vehicle2, RK4 at 1 kHz, DBW hold",
+        "track": track.name, "seed": str(seed), "noise_scale": repr(float(settings.noise_scale)),
+        "noise_color": repr(float(settings.noise_color)), "target_speed": repr(float(settings.target_speed)),
+        "method": "rk4", "substeps": str(veh.rk4_substeps),
+        # ground truth in the project's effect names (bank and grade: the peak of a profile)
+        "plant_effects": json.dumps(active),
+        **vehicle_ref.metadata_for(veh),
+    }
+    src = (f"commonroad plant (vehicle_dynamics_std, BMW 320i) on {track.name}, seed {seed}, "
+           f"effects {active or 'none'}")
+    return Dataset(time=np.arange(n) * Ts, segment=np.zeros(n, dtype=np.int64), states=noisy, inputs=inputs,
+                   sample_time=Ts, vehicle=veh.name, source=src, extras=extras, metadata=metadata)
