@@ -10,7 +10,9 @@ work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 "$PY" -m venv "$work/venv"
 "$work/venv/bin/pip" install -q --disable-pip-version-check -r "$ROOT/requirements.in"
-"$work/venv/bin/pip" freeze --all --exclude-editable | grep -v -E '^(pip|setuptools|wheel)==' > "$work/frozen.txt"
+"$work/venv/bin/pip" freeze --all --exclude-editable | grep -v -E '^(pip|wheel)==' > "$work/frozen.txt"
+# setuptools stays in the lock: torch requires setuptools>=77 at install time, and --require-hashes
+# refuses an unpinned requirement (a fresh venv has an older setuptools)
 # the very files pip chose: download them (no resolution: every pin is listed) and hash them
 "$work/venv/bin/pip" download -q --disable-pip-version-check --no-deps -d "$work/files" -r "$work/frozen.txt"
 {
