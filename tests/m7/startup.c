@@ -17,13 +17,22 @@ static void m7_fault(void)
     m7_exit(3);
 }
 
-/* initial SP, then reset, NMI, HardFault, MemManage, BusFault, UsageFault (the rest unused) */
+/* SysTick: a fault unless the firmware defines it (the profiling build samples the PC there) */
+void m7_systick(void) __attribute__((weak, alias("m7_fault_handler")));
+void m7_fault_handler(void);
+void m7_fault_handler(void)
+{
+    m7_fault();
+}
+
+/* initial SP, then reset, NMI, HardFault, MemManage, BusFault, UsageFault, ..., SysTick (15) */
 typedef struct {
     uint32_t *initial_sp;
     void (*handler[15])(void);
 } m7_vector_table;
 __attribute__((section(".vectors"), used)) static const m7_vector_table vectors = {
-    &__stack_top, {m7_reset, m7_fault, m7_fault, m7_fault, m7_fault, m7_fault}};
+    &__stack_top,
+    {m7_reset, m7_fault, m7_fault, m7_fault, m7_fault, m7_fault, 0, 0, 0, 0, 0, 0, 0, 0, m7_systick}};
 
 static uintptr_t semihost(uintptr_t op, const void *arg)
 {
