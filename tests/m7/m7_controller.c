@@ -40,7 +40,9 @@
 #ifndef M7_CAP_STEPS
 #define M7_CAP_STEPS 300
 #endif
-#define M7_MAX_STEPS 5000
+#ifndef M7_MAX_STEPS
+#define M7_MAX_STEPS 5000 /* pass 1 replays min(this, the segment's periods) */
+#endif
 #define INSN_PER_TICK 40u /* 1 ns per instruction (-icount shift=0) / 25 MHz SysTick clock */
 #define STACK_PAINT 0xA5A5A5A5u
 
@@ -48,7 +50,7 @@ extern const ddyn_net_tables ddyn_net_weights;
 extern uint32_t __stack_bottom, __stack_top;
 
 static ddyn_ctrl ctl;
-static uint32_t insn[M7_MAX_STEPS], sorted[M7_MAX_STEPS];
+static uint32_t insn[5000], sorted[5000];
 static double track_col[5][DDYN_MPC_MAX_TRACK_POINTS];
 
 /* ---- console output without stdio (semihosting SYS_WRITE0) ---- */
