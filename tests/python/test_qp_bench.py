@@ -54,9 +54,9 @@ def test_standard_form_is_the_c_solvers_problem(lap):
         # mpc_qp.c measures its residuals relative to the slack price rho1 (see mpc_qp.c): even at 1e-10
         # it stops up to ~1e-4 (objective, absolute) above the optimum, never below it
         assert f_ref - 1e-9 * max(1.0, abs(f_ref)) <= f_c <= f_ref + 1e-4 * max(1.0, abs(f_ref))
-        # the applied input (stage 0); the late stages' inputs barely change the cost (ill-conditioned:
-        # equal objectives to 1e-7 with inputs 1e-2 apart), so only the first is compared
-        assert np.max(np.abs(x_c[:2] - x_ref[:2])) < 1e-3  # rates: bounds +-10 (1/s), +-5 (rad/s)
+        # the applied input (stage 0) to what the objective's accuracy allows: the throttle rate is nearly
+        # free (flat cost), the late stages' inputs more so (equal objectives with inputs 1e-2 apart)
+        assert np.max(np.abs(x_c[:2] - x_ref[:2])) < 1e-2  # rates: bounds +-10 (1/s), +-5 (rad/s)
 
 
 def test_float32_build_solves_the_same_problems(lap):
