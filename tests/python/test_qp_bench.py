@@ -54,9 +54,9 @@ def test_standard_form_is_the_c_solvers_problem(lap):
         # mpc_qp.c measures its residuals relative to the slack price rho1 (see mpc_qp.c): even at 1e-10
         # it stops up to ~1e-4 (objective, absolute) above the optimum, never below it
         assert f_ref - 1e-9 * max(1.0, abs(f_ref)) <= f_c <= f_ref + 1e-4 * max(1.0, abs(f_ref))
-        # the applied input (stage 0) to what the objective's accuracy allows: the throttle rate is nearly
-        # free (flat cost), the late stages' inputs more so (equal objectives with inputs 1e-2 apart)
-        assert np.max(np.abs(x_c[:2] - x_ref[:2])) < 1e-2  # rates: bounds +-10 (1/s), +-5 (rad/s)
+        # the applied steering rate (stage 0); the throttle rate is nearly free in the cost (the C solver's
+        # differs by up to ~1e-2 1/s at equal objectives) and the late stages' inputs more so
+        assert abs(x_c[1] - x_ref[1]) < 1e-3  # rad/s, bounds +-5
 
 
 def test_float32_build_solves_the_same_problems(lap):
