@@ -333,9 +333,11 @@ int main(void)
          * warm start is the host's plan. Without this a last-bit difference of the two C libraries'
          * sin/cos/atan grows through the integrator states (throttle, steering: no sensor corrects
          * them) and the real-time iteration's warm start until whole stretches differ (docs/m7.md). */
+#ifndef M7_NO_FEEDBACK /* scripts/m7_no_feedback.sh: what happens without it */
         memcpy(ctl.u_prev, rec->u, sizeof ctl.u_prev);
         memcpy(ctl.mpc.u_plan, rec->u_plan, sizeof ctl.mpc.u_plan);
         ctl.mpc.last_index = rec->last_index;
+#endif
         iter_diff += out.mpc_info.qp_iterations != rec->qp_iterations;
         if (out.status & DDYN_CTRL_MPC_NOT_CONVERGED) {
             ++capped_pass1;
