@@ -21,6 +21,8 @@ dpkg -s libglib2.0-0 >/dev/null 2>&1 || missing+=(libglib2.0-0)
 # the Cortex-M7 cross-build of the runtime (scripts/test.sh)
 command -v arm-none-eabi-gcc >/dev/null || missing+=(gcc-arm-none-eabi)
 dpkg -s libnewlib-arm-none-eabi >/dev/null 2>&1 || missing+=(libnewlib-arm-none-eabi)
+# the controller firmware on an emulated Cortex-M7 (qemu mps2-an500, tests/m7/, docs/m7.md)
+command -v qemu-system-arm >/dev/null || missing+=(qemu-system-arm)
 # the virtual-CAN tests: a qemu guest (software emulation) with busybox (scripts/vcan_guest/);
 # apt-get download and dpkg-deb fetch its kernel
 command -v qemu-system-x86_64 >/dev/null || missing+=(qemu-system-x86)

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Every test (the README's second command): Python tests with pytest, the C tests with
 # ctest in a normal build (including the virtual-CAN tests in a qemu guest) and in an
-# AddressSanitizer + UBSan build, a bounded libFuzzer run of the CAN input path, and the
-# cross-build of the runtime for a Cortex-M7. Runs all even when one fails; exits non-zero if any failed.
+# AddressSanitizer + UBSan build, a bounded libFuzzer run of the CAN input path, the
+# cross-build of the runtime for a Cortex-M7 and the controller firmware run on an emulated one
+# (tests/m7/). Runs all even when one fails; exits non-zero if any failed.
 set -uo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$ROOT/scripts/setup.sh" || exit 1
@@ -40,6 +41,10 @@ echo "== C runtime cross-build for a Cortex-M7 (arm-none-eabi-gcc, -Werror)"
     && echo "Cortex-M7 build: ok" \
     && bash tests/install/check_install.sh "$ROOT/build-m7" "$ROOT/build-m7/install-check" \
          "$ROOT/cmake/arm-none-eabi-cortex-m7.cmake"; } || { echo "Cortex-M7 build: FAILED"; status=1; }
+
+echo "== the controller step on an emulated Cortex-M7 (qemu mps2-an500, -icount shift=0; docs/m7.md)"
+{ ctest --test-dir "$ROOT/build-m7" --output-on-failure --output-junit "$ROOT/build-m7/ctest-junit.xml" \
+    && python scripts/check_skips.py ctest "$ROOT/build-m7/ctest-junit.xml"; } || status=1
 
 if [ "$status" -eq 0 ]; then echo "== all tests passed"; else echo "== SOME TESTS FAILED"; fi
 exit "$status"

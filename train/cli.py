@@ -43,7 +43,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("study", ("ddyn.studies.ddm", "ddyn.studies.fthd", "ddyn.studies.denoise",
                       "ddyn.analysis.gap_benchmark", "ddyn.analysis.fidelity"),
             "the papers' tables and the project's studies (DDM/DPM, FTHD, denoising, gap diagnosis, fidelity)"),
-    Command("bench", ("ddyn.bench.runtime", "ddyn.bench.controller", "ddyn.bench.large_net"),
+    Command("bench", ("ddyn.bench.runtime", "ddyn.bench.controller", "ddyn.bench.large_net", "ddyn.bench.qp"),
             "timing of the C runtime against Python (median, p99, max)"),
     Command("can", ("ddyn.codegen.can", "ddyn.data.can_log", "ddyn.bench.can"),
             "the drive-by-wire CAN protocol: C code from the DBC, candump logs, bus replay and record, timing"),

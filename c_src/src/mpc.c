@@ -527,7 +527,7 @@ static void state_sensitivities(ddyn_mpc *mpc)
     }
 }
 
-static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, double dthrottle0)
+static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, double dthrottle0, int split)
 {
     ddyn_status st;
     double u0;
@@ -550,11 +550,12 @@ static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, do
     sensitivities(mpc);
     references(mpc, mpc->prep_index, u0);
     build_qp(mpc, x0, hold);
-    if (!hold) {
-        state_sensitivities(mpc);
+    if (split && !hold) {
+        state_sensitivities(mpc); /* only a feedback at another state needs them: not in ddyn_mpc_solve */
     }
     memcpy(mpc->prep_x0, x0, sizeof mpc->prep_x0);
     mpc->prep_hold = hold;
+    mpc->prep_movable = split && !hold; /* only with the sensitivities can the QP be moved to another x0 */
     mpc->prepared = 1;
     return DDYN_OK;
 }
@@ -631,8 +632,8 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         moved |= x0[k] != mpc->prep_x0[k];
     }
     if (moved) {
-        if (hold) {
-            return DDYN_ERR_NOT_READY; /* the held-throttle QP is prepared and solved at the same state */
+        if (!mpc->prep_movable) {
+            return DDYN_ERR_NOT_READY; /* prepared by a whole iteration, or with the throttle held: solved where built */
         }
         shift_to(mpc, x0);
     }
@@ -678,7 +679,7 @@ static ddyn_status solve(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, doub
     if (mpc == NULL || x0 == NULL || u == NULL || mpc->model == NULL) {
         return DDYN_ERR_ARGUMENT;
     }
-    st = prepare(mpc, x0, hold, dthrottle0);
+    st = prepare(mpc, x0, hold, dthrottle0, 0);
     if (st != DDYN_OK) {
         return st;
     }
@@ -687,7 +688,7 @@ static ddyn_status solve(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, doub
 
 ddyn_status ddyn_mpc_prepare(ddyn_mpc *mpc, const double x0_pred[DDYN_NX])
 {
-    return prepare(mpc, x0_pred, 0, 0.0);
+    return prepare(mpc, x0_pred, 0, 0.0, 1);
 }
 
 ddyn_status ddyn_mpc_feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)

@@ -2,12 +2,14 @@
  * ddyn_mpc_lap: the C MPC driving the simulated car in closed loop (host tool; `ddyn mpc lap` and
  * `ddyn bench runtime` drive it). The plant is the generated model step (RK4) with its own coefficients.
  *
- * usage: ddyn_mpc_lap < setup      setup is text, keyword lines then the raceline table:
+ * usage: ddyn_mpc_lap [QP_DUMP] < setup      setup is text, keyword lines then the raceline table:
  *   vehicle NAME | disc rk4_single|euler|rk4 | horizon H | steps N | weights qx qy q_terminal r_dT r_dd l1 l2
  *   qp MAX_ITER TOL | coeffs c1..c17 (the MPC's) | plant_coeffs c1..c17 | x0 x1..x8
  *   track N, followed by N lines "x y speed room_left room_right"
  * Prints one line per step: "k status qp_iterations converged kkt_residual max_slack solve_us
  * u0 u1 x1..x8" (x after applying u), then "done".
+ * With QP_DUMP, every step's condensed QP (ddyn_mpc_qp: problem and the solver's answer) is appended
+ * to that file as little-endian doubles, one record per step (c_src/tools/qp_dump.h, `ddyn bench qp`).
  */
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
@@ -16,6 +18,7 @@
 #include <time.h>
 
 #include "bench_timing.h"
+#include "qp_dump.h"
 #include "ddyn/mpc.h"
 #include "ddyn_models.h"
 
@@ -36,8 +39,9 @@ static int read_doubles(double *v, int n)
 static double tx[DDYN_MPC_MAX_TRACK_POINTS], ty[DDYN_MPC_MAX_TRACK_POINTS], tv[DDYN_MPC_MAX_TRACK_POINTS],
     twl[DDYN_MPC_MAX_TRACK_POINTS], twr[DDYN_MPC_MAX_TRACK_POINTS];
 
-int main(void)
+int main(int argc, char **argv)
 {
+    FILE *dump = NULL;
     static ddyn_mpc mpc;
     static ddyn_model_work work;
     char key[64], name[64] = "orca_1_43", disc[16] = "rk4";
@@ -107,12 +111,20 @@ int main(void)
         fprintf(stderr, "ddyn_mpc_lap: setup refused: %s\n", ddyn_status_name(st));
         return 2;
     }
+    if (argc > 1 && (dump = fopen(argv[1], "wb")) == NULL) {
+        fprintf(stderr, "ddyn_mpc_lap: cannot write %s\n", argv[1]);
+        return 2;
+    }
     for (k = 0; k < steps; ++k) {
         double u[DDYN_NU], xn[DDYN_NX], t0, t1;
         ddyn_mpc_info info;
         t0 = bench_now_us();
         st = ddyn_mpc_solve(&mpc, x, u, &info);
         t1 = bench_now_us();
+        if (dump != NULL && (st == DDYN_OK || st == DDYN_ERR_QP_NOT_CONVERGED) && !qp_dump_write(dump, &mpc.qp)) {
+            fprintf(stderr, "ddyn_mpc_lap: writing %s failed\n", argv[1]);
+            return 1;
+        }
         if (ddyn_model_step(model, DDYN_DISC_RK4, x, u, pc, xn, &work) != DDYN_OK) {
             fprintf(stderr, "ddyn_mpc_lap: plant step failed at step %d\n", k);
             return 1;
@@ -126,5 +138,8 @@ int main(void)
         printf("\n");
     }
     printf("done\n");
+    if (dump != NULL && fclose(dump) != 0) {
+        return 1;
+    }
     return 0;
 }

@@ -129,6 +129,7 @@ typedef struct {
     double phi[2 * DDYN_MPC_MAX_HORIZON * DDYN_NX];
     int prepared;               /* 1 between a preparation and its feedback */
     int prep_hold;
+    int prep_movable;
     int prep_index;
     double prep_u0;
     ddyn_mpc_qp qp;

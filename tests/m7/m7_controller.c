@@ -1,0 +1,448 @@
+/*
+ * tests/m7/m7_controller.c - the controller step on an emulated Cortex-M7 (qemu-system-arm -M mps2-an500
+ * -icount shift=0), replaying a recorded closed-loop segment (segment.h, generated/controller_segment.c).
+ *
+ * Pass 1 replays the segment's readings period by period through ddyn_ctrl_step (EKF, history, guard
+ * network, MPC) from the recorded set-up and compares every command with the host build's: every
+ * period within M7_U_TOL, at least M7_TIGHT_PERCENT % within M7_U_TIGHT (absolute, per component),
+ * the same status bits in every period. After each period the host's applied command and MPC plan
+ * are fed back (see the loop). Pass 2 replays the first M7_CAP_STEPS periods again with the
+ * QP tolerance set to 1e-300, so that every QP runs to the iteration cap (qp_max_iterations): the
+ * worst case with the cap reached. Instructions per step are counted with SysTick: under -icount
+ * shift=0 qemu's virtual clock advances 1 ns per guest instruction, and the board's SysTick counts
+ * the 25 MHz system clock of that virtual time, so one tick is 40 instructions (calibrated at start
+ * on a loop of known length; the firmware fails when the factor is not 40, e.g. without -icount).
+ * The stack is painted before pass 1 and scanned after both passes (high-water mark).
+ *
+ * Prints "m7: key value" lines; exits 0 when the commands agree, the worst case of both passes is at
+ * most M7_BOUND_INSN instructions (the bound the QP's iteration cap gives, measured: a regression
+ * check) and the stack did not overflow, else 1 (qemu exits with that code). Whether the worst case
+ * meets the issue's target M7_MAX_INSN is printed (target_met): it does not yet (docs/m7.md).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#include "ddyn/controller.h"
+#include "m7_board.h"
+#include "segment.h"
+
+#ifndef M7_MAX_INSN
+#define M7_MAX_INSN 3000000ul /* target: 5 ms at 600 MHz at one instruction per cycle, a quarter of a 50 Hz period */
+#endif
+#ifndef M7_BOUND_INSN
+/* what the test enforces: the worst case with every QP at its iteration cap measured 6,108,160
+ * instructions; 6.5 M leaves 6 % for compiler and library changes, and fails on a real regression */
+#define M7_BOUND_INSN 6500000ul
+#endif
+#ifndef M7_U_TOL
+#define M7_U_TOL 1e-3 /* absolute, per command component (dthrottle 1/s, dsteering rad/s), every period */
+#endif
+#ifndef M7_U_TIGHT
+#define M7_U_TIGHT 1e-6 /* ... and at least M7_TIGHT_PERCENT % of the periods within this */
+#endif
+#ifndef M7_TIGHT_PERCENT
+#define M7_TIGHT_PERCENT 95
+#endif
+#ifndef M7_CAP_STEPS
+#define M7_CAP_STEPS 300
+#endif
+#ifndef M7_MAX_STEPS
+#define M7_MAX_STEPS 5000 /* pass 1 replays min(this, the segment's periods) */
+#endif
+#define INSN_PER_TICK 40u /* 1 ns per instruction (-icount shift=0) / 25 MHz SysTick clock */
+#define STACK_PAINT 0xA5A5A5A5u
+
+extern const ddyn_net_tables ddyn_net_weights;
+extern uint32_t __stack_bottom, __stack_top;
+
+static ddyn_ctrl ctl;
+static uint32_t insn[5000], sorted[5000];
+static double track_col[5][DDYN_MPC_MAX_TRACK_POINTS];
+
+/* ---- console output without stdio (semihosting SYS_WRITE0) ---- */
+static char line[160];
+static int line_len;
+
+static void put_str(const char *s)
+{
+    while (*s && line_len < (int)sizeof line - 1) {
+        line[line_len++] = *s++;
+    }
+}
+static void put_ulong(unsigned long v)
+{
+    char buf[24];
+    int n = 0;
+    do {
+        buf[n++] = (char)('0' + v % 10u);
+        v /= 10u;
+    } while (v && n < (int)sizeof buf);
+    while (n > 0 && line_len < (int)sizeof line - 1) {
+        line[line_len++] = buf[--n];
+    }
+}
+/* %.3e-like: enough to state a difference or a tolerance */
+static void put_sci(double v)
+{
+    int e = 0;
+    unsigned long m;
+    if (!isfinite(v)) {
+        put_str("nan");
+        return;
+    }
+    if (v < 0.0) {
+        put_str("-");
+        v = -v;
+    }
+    if (v == 0.0) {
+        put_str("0");
+        return;
+    }
+    while (v >= 10.0 && e < 400) {
+        v /= 10.0;
+        ++e;
+    }
+    while (v < 1.0 && e > -400) {
+        v *= 10.0;
+        --e;
+    }
+    m = (unsigned long)(v * 1000.0 + 0.5);
+    if (m >= 10000u) {
+        m /= 10u;
+        ++e;
+    }
+    put_ulong(m / 1000u);
+    put_str(".");
+    line[line_len++] = (char)('0' + (m / 100u) % 10u);
+    line[line_len++] = (char)('0' + (m / 10u) % 10u);
+    line[line_len++] = (char)('0' + m % 10u);
+    put_str(e < 0 ? "e-" : "e+");
+    put_ulong((unsigned long)(e < 0 ? -e : e));
+}
+static void flush(void)
+{
+    line[line_len++] = '\n';
+    line[line_len] = '\0';
+    m7_puts(line);
+    line_len = 0;
+}
+static void kv(const char *key, unsigned long v)
+{
+    put_str("m7: ");
+    put_str(key);
+    put_str(" ");
+    put_ulong(v);
+    flush();
+}
+
+#ifdef M7_PROFILE
+/* Profiling build (scripts/m7_profile.sh): SysTick interrupts every M7_PROFILE ticks (40 M7_PROFILE
+ * instructions) during pass 1 and the handler counts the interrupted PC in 16-byte buckets; the
+ * instruction counts of such a build include the handler and are not the figures. */
+#define PROFILE_BUCKETS (0x100000u >> 4) /* the first MB of code */
+static uint32_t profile_hist[PROFILE_BUCKETS];
+static volatile int profiling;
+void m7_profile_sample(const uint32_t *frame);
+void m7_profile_sample(const uint32_t *frame)
+{
+    uint32_t pc = frame[6]; /* exception frame: r0-r3, r12, lr, pc, xpsr */
+    if (profiling && pc < 0x100000u) {
+        profile_hist[pc >> 4] += 1u;
+    }
+}
+__attribute__((naked)) void m7_systick(void);
+void m7_systick(void)
+{
+    __asm__ volatile("mrs r0, msp\n\tb m7_profile_sample");
+}
+#endif
+
+/* ---- SysTick: 24-bit down-counter on the processor clock ---- */
+#define SYST_CSR (*(volatile uint32_t *)0xE000E010u)
+#define SYST_RVR (*(volatile uint32_t *)0xE000E014u)
+#define SYST_CVR (*(volatile uint32_t *)0xE000E018u)
+
+static uint32_t ticks_since(uint32_t start)
+{
+    return (start - SYST_CVR) & 0xFFFFFFu;
+}
+
+/* 1 + 2n instructions (subs, bne per round) */
+static uint32_t count_loop(uint32_t n)
+{
+    uint32_t t0 = SYST_CVR;
+    __asm__ volatile("1: subs %0, %0, #1\n\tbne 1b" : "+r"(n)::"cc");
+    return ticks_since(t0);
+}
+
+static uint32_t median_of(const uint32_t *v, int n)
+{
+    int i, j;
+    memcpy(sorted, v, (size_t)n * sizeof *v);
+    for (i = 1; i < n; ++i) { /* insertion sort: n is a few thousand at most */
+        uint32_t x = sorted[i];
+        for (j = i; j > 0 && sorted[j - 1] > x; --j) {
+            sorted[j] = sorted[j - 1];
+        }
+        sorted[j] = x;
+    }
+    return n % 2 ? sorted[n / 2] : (sorted[n / 2 - 1] + sorted[n / 2]) / 2u;
+}
+
+static int controller_init(double qp_tolerance)
+{
+    const ddyn_vehicle_model *model = ddyn_model_find(m7_seg_vehicle);
+    ddyn_ctrl_config cfg;
+    int i, k;
+    if (model == NULL || ddyn_ctrl_default_config(model, &cfg) != DDYN_OK) {
+        return 0;
+    }
+    memcpy(cfg.c_nominal, m7_seg_c_nominal, sizeof cfg.c_nominal);
+    memcpy(cfg.q_diag, m7_seg_q_diag, sizeof cfg.q_diag);
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        double sd = m7_seg_r_std[k];
+        for (i = 0; i < DDYN_MEAS_MAX_DIM; ++i) {
+            cfg.r_diag[k][i] = sd > 0.0 ? sd * sd : 1e-8;
+        }
+    }
+    if (qp_tolerance > 0.0) {
+        cfg.mpc.qp_tolerance = qp_tolerance;
+    }
+    for (i = 0; i < m7_seg_track_n; ++i) {
+        for (k = 0; k < 5; ++k) {
+            track_col[k][i] = m7_seg_track[i][k];
+        }
+    }
+    return ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, m7_seg_x0) == DDYN_OK &&
+           ddyn_ctrl_set_track(&ctl, m7_seg_track_n, track_col[0], track_col[1], track_col[2], track_col[3],
+                               track_col[4]) == DDYN_OK;
+}
+
+static void input_of(const m7_seg_period *p, ddyn_ctrl_input *in)
+{
+    int k;
+    memset(in, 0, sizeof *in);
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        in->reading[k].valid = (p->valid >> k) & 1u;
+        memcpy(in->reading[k].z, &p->z[k * DDYN_MEAS_MAX_DIM], sizeof in->reading[k].z);
+    }
+}
+
+/* the firmware's stack pointer now */
+static uintptr_t stack_pointer(void)
+{
+    uintptr_t sp;
+    __asm__ volatile("mov %0, sp" : "=r"(sp));
+    return sp;
+}
+
+int main(void)
+{
+    const int steps = m7_seg_steps < M7_MAX_STEPS ? m7_seg_steps : M7_MAX_STEPS;
+    const int cap_steps = M7_CAP_STEPS < steps ? M7_CAP_STEPS : steps;
+    uint32_t c1, c4, worst = 0, worst_cap = 0, worst_capped_pass1 = 0, *p;
+    uintptr_t sp_main;
+    int i, k, fail = 0, mismatch = 0, loose = 0, status_diff = 0, iter_diff = 0, capped_pass1 = 0, worst_step = 0;
+    double max_du[DDYN_NU] = {0.0, 0.0};
+
+    SYST_RVR = 0xFFFFFFu;
+    SYST_CVR = 0u;
+    SYST_CSR = 5u; /* enable, processor clock, no interrupt */
+
+    /* calibration: instructions per tick on two loop lengths */
+    c1 = count_loop(100000u);
+    c4 = count_loop(400000u);
+    put_str("m7: calibration ticks ");
+    put_ulong(c1);
+    put_str(" / ");
+    put_ulong(c4);
+    put_str(" for 200001 / 800001 instructions");
+    flush();
+    if (c1 < 4990u || c1 > 5010u || c4 < 19990u || c4 > 20010u) {
+        m7_puts("m7: FAIL: SysTick does not count 40 instructions per tick: run qemu with -icount shift=0\n");
+        return 1;
+    }
+
+    kv("sizeof_ddyn_ctrl_bytes", (unsigned long)sizeof(ddyn_ctrl));
+    kv("sizeof_ddyn_mpc_bytes", (unsigned long)sizeof(ddyn_mpc));
+    kv("sizeof_ddyn_mpc_qp_bytes", (unsigned long)sizeof(ddyn_mpc_qp));
+    kv("sizeof_ddyn_ekf_bytes", (unsigned long)sizeof(ddyn_ekf));
+    kv("sizeof_ddyn_guard_net_bytes", (unsigned long)sizeof(ddyn_guard_net));
+    if (!controller_init(0.0)) {
+        m7_puts("m7: FAIL: controller refused the recorded set-up\n");
+        return 1;
+    }
+
+    /* paint the stack below this frame */
+    sp_main = stack_pointer();
+    for (p = &__stack_bottom; (uintptr_t)p < sp_main - 64u; ++p) {
+        *p = STACK_PAINT;
+    }
+
+#ifdef M7_PROFILE
+    SYST_RVR = M7_PROFILE - 1u;
+    SYST_CVR = 0u;
+    SYST_CSR = 7u; /* enable, processor clock, interrupt */
+    profiling = 1;
+#endif
+    /* pass 1: the recorded segment, commands compared with the host's */
+    for (i = 0; i < steps; ++i) {
+        const m7_seg_period *rec = &m7_seg_periods[i];
+        ddyn_ctrl_input in;
+        ddyn_ctrl_output out;
+        uint32_t t0;
+        input_of(rec, &in);
+        t0 = SYST_CVR;
+        ddyn_ctrl_step(&ctl, &in, &out);
+        insn[i] = ticks_since(t0) * INSN_PER_TICK;
+        worst = insn[i] > worst ? insn[i] : worst;
+        if (insn[i] == worst) {
+            worst_step = i;
+        }
+        for (k = 0; k < DDYN_NU; ++k) {
+            double d = fabs(out.u[k] - rec->u[k]);
+            if (!(d <= M7_U_TOL)) {
+                if (mismatch < 5) {
+                    put_str("m7: command differs at period ");
+                    put_ulong((unsigned long)i);
+                    put_str(": |du| ");
+                    put_sci(d);
+                    flush();
+                }
+                ++mismatch;
+            }
+            max_du[k] = d > max_du[k] || !isfinite(d) ? d : max_du[k];
+        }
+#ifdef M7_DEBUG
+        if (i < M7_DEBUG) {
+            put_str("dbg ");
+            put_ulong((unsigned long)i);
+            put_str(" st ");
+            put_ulong(out.status);
+            put_str(" ");
+            put_ulong(rec->status);
+            put_str(" it ");
+            put_ulong((unsigned long)out.mpc_info.qp_iterations);
+            put_str(" ");
+            put_ulong((unsigned long)rec->qp_iterations);
+            put_str(" du ");
+            put_sci(fabs(out.u[0] - rec->u[0]));
+            put_str(" ");
+            put_sci(fabs(out.u[1] - rec->u[1]));
+            flush();
+        }
+#endif
+        loose += !(fabs(out.u[0] - rec->u[0]) <= M7_U_TIGHT && fabs(out.u[1] - rec->u[1]) <= M7_U_TIGHT);
+        status_diff += out.status != rec->status;
+        /* each period is compared from the host's state: the car applied the host's command in the
+         * recording, so the filter and the history go on from that one (as on the car), and the MPC's
+         * warm start is the host's plan. Without this a last-bit difference of the two C libraries'
+         * sin/cos/atan grows through the integrator states (throttle, steering: no sensor corrects
+         * them) and the real-time iteration's warm start until whole stretches differ (docs/m7.md). */
+#ifndef M7_NO_FEEDBACK /* scripts/m7_no_feedback.sh: what happens without it */
+        memcpy(ctl.u_prev, rec->u, sizeof ctl.u_prev);
+        memcpy(ctl.mpc.u_plan, rec->u_plan, sizeof ctl.mpc.u_plan);
+        ctl.mpc.last_index = rec->last_index;
+#endif
+        iter_diff += out.mpc_info.qp_iterations != rec->qp_iterations;
+        if (out.status & DDYN_CTRL_MPC_NOT_CONVERGED) {
+            ++capped_pass1;
+            worst_capped_pass1 = insn[i] > worst_capped_pass1 ? insn[i] : worst_capped_pass1;
+        }
+    }
+#ifdef M7_PROFILE
+    profiling = 0;
+    SYST_CSR = 0u;
+    for (i = 0; i < (int)PROFILE_BUCKETS; ++i) {
+        if (profile_hist[i]) {
+            put_str("m7: profile ");
+            put_ulong((unsigned long)i << 4);
+            put_str(" ");
+            put_ulong(profile_hist[i]);
+            flush();
+        }
+    }
+    return 0;
+#endif
+    kv("periods", (unsigned long)steps);
+    kv("insn_per_step_median", (unsigned long)median_of(insn, steps));
+    kv("insn_per_step_max", (unsigned long)worst);
+    kv("insn_per_step_max_period", (unsigned long)worst_step);
+    kv("periods_qp_cap_reached", (unsigned long)capped_pass1);
+    kv("insn_per_step_max_qp_cap_reached", (unsigned long)worst_capped_pass1);
+    put_str("m7: max_abs_du dthrottle ");
+    put_sci(max_du[0]);
+    put_str(" dsteering ");
+    put_sci(max_du[1]);
+    put_str(" tolerance ");
+    put_sci(M7_U_TOL);
+    flush();
+    kv("commands_outside_tolerance", (unsigned long)mismatch);
+    put_str("m7: periods_outside_tight_tolerance ");
+    put_ulong((unsigned long)loose);
+    put_str(" (tight ");
+    put_sci(M7_U_TIGHT);
+    put_str(", allowed ");
+    put_ulong((unsigned long)(100 - M7_TIGHT_PERCENT));
+    put_str(" %)");
+    flush();
+    kv("periods_status_differs", (unsigned long)status_diff);
+    kv("periods_qp_iterations_differ", (unsigned long)iter_diff);
+
+    /* pass 2: every QP to the iteration cap */
+    if (!controller_init(1e-300)) {
+        m7_puts("m7: FAIL: controller refused the set-up of pass 2\n");
+        return 1;
+    }
+    {
+        int capped = 0;
+        for (i = 0; i < cap_steps; ++i) {
+            ddyn_ctrl_input in;
+            ddyn_ctrl_output out;
+            uint32_t t0;
+            input_of(&m7_seg_periods[i], &in);
+            t0 = SYST_CVR;
+            ddyn_ctrl_step(&ctl, &in, &out);
+            insn[i] = ticks_since(t0) * INSN_PER_TICK;
+            capped += out.mpc_info.qp_iterations == ctl.cfg.mpc.qp_max_iterations;
+            worst_cap = insn[i] > worst_cap ? insn[i] : worst_cap;
+        }
+        kv("cap_pass_periods", (unsigned long)cap_steps);
+        kv("cap_pass_qp_max_iterations", (unsigned long)ctl.cfg.mpc.qp_max_iterations);
+        kv("cap_pass_periods_at_cap", (unsigned long)capped);
+        kv("cap_pass_insn_per_step_median", (unsigned long)median_of(insn, cap_steps));
+        kv("cap_pass_insn_per_step_max", (unsigned long)worst_cap);
+        if (capped == 0) {
+            m7_puts("m7: FAIL: no QP of pass 2 reached the iteration cap\n");
+            fail = 1;
+        }
+    }
+
+    /* stack high-water mark */
+    for (p = &__stack_bottom; (uintptr_t)p < sp_main && *p == STACK_PAINT; ++p) {
+    }
+    kv("stack_high_water_bytes", (unsigned long)((uintptr_t)&__stack_top - (uintptr_t)p));
+    kv("stack_below_main_bytes", (unsigned long)(sp_main - (uintptr_t)p));
+    kv("stack_size_bytes", (unsigned long)((uintptr_t)&__stack_top - (uintptr_t)&__stack_bottom));
+    if (p == &__stack_bottom) {
+        m7_puts("m7: FAIL: the painted stack was used to its bottom (overflow)\n");
+        fail = 1;
+    }
+    kv("target_max_insn", M7_MAX_INSN);
+    kv("target_met", worst <= M7_MAX_INSN && worst_cap <= M7_MAX_INSN ? 1ul : 0ul);
+    kv("enforced_bound_insn", M7_BOUND_INSN);
+    if (mismatch || status_diff || (long)loose * 100 > (long)(100 - M7_TIGHT_PERCENT) * steps) {
+        m7_puts("m7: FAIL: commands or status differ from the host build's beyond the tolerance\n");
+        fail = 1;
+    }
+    if (worst > M7_MAX_INSN || worst_cap > M7_MAX_INSN) {
+        m7_puts("m7: NOTE: worst case above the 3M-instruction target (not met yet, docs/m7.md)\n");
+    }
+    if (worst > M7_BOUND_INSN || worst_cap > M7_BOUND_INSN) {
+        m7_puts("m7: FAIL: worst case above the enforced bound\n");
+        fail = 1;
+    }
+    m7_puts(fail ? "m7: FAIL\n" : "m7: PASS\n");
+    return fail;
+}

@@ -1,0 +1,70 @@
+"""`ddyn bench qp` pieces (train/bench/qp.py, c_src/tools/qp_dump.h, qp_replay.c, qp_f32.c) on a short lap:
+the dumped QPs written in standard form have the C solver's answers as (near-)optimal feasible points of
+the libraries' problem, the tight C answer equals PIQP's, and the float32 build solves the same problems."""
+from __future__ import annotations
+
+import subprocess
+
+import numpy as np
+import pytest
+
+from ddyn.bench import qp as qpb
+from ddyn.control.mpc_lap import setup_text
+from ddyn.control.mpc_setup import MpcSettings, raceline_table, start_state
+from ddyn.model import vehicle as vehicle_mod
+from ddyn.model.tracks import load_track
+
+STEPS = 40
+
+
+@pytest.fixture(scope="module")
+def lap(tmp_path_factory):
+    lap_tool, replay_tool = qpb.DEFAULT_BUILD / "ddyn_mpc_lap", qpb.DEFAULT_BUILD / "ddyn_qp_replay"
+    for t in (lap_tool, replay_tool):
+        if not t.is_file():
+            pytest.fail(f"{t} missing: build the C side first (scripts/test.sh does)")
+    tmp = tmp_path_factory.mktemp("qp")
+    s = MpcSettings()
+    table = raceline_table(load_track("ethzMobil"), "orca_1_43", s)
+    true = vehicle_mod.load("orca_1_43").true_vector()
+    text = setup_text("orca_1_43", table, s, true, true, start_state(table), STEPS)
+    subprocess.run([str(lap_tool), str(tmp / "qps.bin")], input=text, capture_output=True, text=True, check=True)
+    subprocess.run([str(replay_tool), str(tmp / "qps.bin"), "1", str(s.qp_max_iterations), repr(s.qp_tolerance),
+                    str(tmp / "replay.bin")], capture_output=True, text=True, check=True)
+    qps = qpb.read_dump(tmp / "qps.bin")
+    return qps, qpb.read_replay(tmp / "replay.bin", qps), [qpb.standard_form(q) for q in qps]
+
+
+def test_dump_holds_one_qp_per_step(lap):
+    qps, own, _ = lap
+    assert len(qps) == STEPS and all(q["H"] == 20 for q in qps)
+    # the replay's runtime-settings solve is the lap's solve: same iterations, same answer
+    assert own["runtime"]["iterations"] == [q["iterations"] for q in qps]
+    for q, x in zip(qps, own["runtime"]["x"]):
+        assert np.allclose(x, np.concatenate([q["z"], q["slack"]]), rtol=0.0, atol=1e-12)
+
+
+def test_standard_form_is_the_c_solvers_problem(lap):
+    _, own, forms = lap
+    ref = qpb.solve_piqp(forms, 1e-10)
+    assert all(ref["converged"])
+    for sf, x_c, x_ref in zip(forms, own["tight"]["x"], ref["x"]):
+        assert qpb.violation(sf, x_c) < 1e-7
+        f_c, f_ref = qpb.objective(sf, x_c), qpb.objective(sf, x_ref)
+        # mpc_qp.c measures its residuals relative to the slack price rho1 (see mpc_qp.c): even at 1e-10
+        # it stops up to ~1e-4 (objective, absolute) above the optimum, never below it
+        assert f_ref - 1e-9 * max(1.0, abs(f_ref)) <= f_c <= f_ref + 1e-4 * max(1.0, abs(f_ref))
+        # the applied steering rate (stage 0); the throttle rate is nearly free in the cost (the C solver's
+        # differs by up to ~1e-2 1/s at equal objectives) and the late stages' inputs more so
+        assert abs(x_c[1] - x_ref[1]) < 1e-3  # rad/s, bounds +-5
+
+
+def test_float32_build_solves_the_same_problems(lap):
+    """The float32 build's answers are finite, within the bounds to float32's resolution and no better
+    than the double optimum (how far from it: docs/m7.md, `ddyn bench qp`)."""
+    _, own, forms = lap
+    for sf, x32, x64 in zip(forms, own["f32"]["x"], own["tight"]["x"]):
+        assert np.all(np.isfinite(x32))
+        assert qpb.violation(sf, x32) < 1e-3
+        f32, f64 = qpb.objective(sf, x32), qpb.objective(sf, x64)
+        assert f32 >= f64 - 1e-3 * max(1.0, abs(f64))
