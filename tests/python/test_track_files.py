@@ -134,3 +134,16 @@ def test_sil_plant_gets_a_users_track(tmp_path, shared_data):
     back = open_track(str(d / user.name))
     assert np.array_equal(back.center, user.center) and np.array_equal(back.outer, user.outer)
     check_track(back, "orca_1_43")
+
+
+def test_simulate_and_diagnose_take_a_users_track(tmp_path):
+    """`ddyn simulate --track <files>` drives the user's track; `ddyn diagnose --track <files>` loads it."""
+    from ddyn.analysis.diagnose import _track
+    from ddyn.data.simulate import simulate
+
+    write_track(open_track("random:4"), tmp_path / "mine")
+    ds = simulate("orca_1_43", str(tmp_path / "mine"), laps=1, progress=False)
+    assert ds.metadata["track"] == "mine" and float(ds.metadata["laps"]) >= 1
+    assert _track(str(tmp_path / "mine"), ds).name == "mine"
+    with pytest.raises(DdynError, match="nowhere_center.txt"):
+        _track(str(tmp_path / "nowhere"), ds)
