@@ -95,7 +95,7 @@ def test_solve_reproduces_the_committed_line(name, orca):
 
 def test_tighter_margin_gives_a_faster_lap(mobil, orca):
     """The optimum reacts to its constraints: less room to the bounds, shorter lap (coarse grid)."""
-    coarse = dict(intervals=120)
+    coarse = dict(intervals=80)
     wide = R.solve(orca, mobil, R.RacelineSettings(margin=0.05, **coarse))["T"]
     tight = R.solve(orca, mobil, R.RacelineSettings(margin=0.01, **coarse))["T"]
     assert tight < wide - 0.02
