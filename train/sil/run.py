@@ -122,7 +122,7 @@ def parse_faults(text: str | None) -> dict:
 
 # ---------------------------------------------------------------------------------------------- track
 
-def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float = 1.0, margin: float = 0.02) -> np.ndarray:
+def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float = 1.0, margin: float = 0.03) -> np.ndarray:
     """Rows x, y, speed, room_left, room_right of the raceline the MPC tracks.
 
     The MPC's own table (train/control/mpc_setup.py, what ddyn mpc lap tunes with): the raceline's first lap,
@@ -176,7 +176,7 @@ class SilSpec:
     faults: dict = field(default_factory=dict)
     noise_scale: float = 1.0
     speed_scale: float = 1.0
-    margin: float = 0.02
+    margin: float = 0.03
     realtime: float = 0.0
     max_time: float | None = None
     seed: int = 1
@@ -884,7 +884,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed-scale", type=float, default=1.0,
                    help="reference speed = raceline speed x this (default %(default)s: the vehicle's own "
                         "time-optimal line, train/racelines/, is drivable at full speed)")
-    p.add_argument("--margin", type=float, default=0.02,
+    p.add_argument("--margin", type=float, default=0.03,
                    help="room the MPC keeps between the car's side and the bounds, m (default: %(default)s)")
     p.add_argument("--realtime", type=float, default=0.0,
                    help="pace the plant at this multiple of real time (default 0: lock-step with the controller)")
