@@ -147,3 +147,29 @@ def test_simulate_and_diagnose_take_a_users_track(tmp_path):
     assert _track(str(tmp_path / "mine"), ds).name == "mine"
     with pytest.raises(DdynError, match="nowhere_center.txt"):
         _track(str(tmp_path / "nowhere"), ds)
+
+
+def test_sil_plant_drives_a_users_track_in_process(tmp_path, monkeypatch, shared_data):
+    """The C++ plant reads the user's track from the run's folder and the lap completes on it
+    (ETHZMobil written as a user's files; its committed line serves it: same geometry, same digest)."""
+    import json
+    import shutil
+
+    from ddyn.control import raceline as R
+    from ddyn.model.vehicle import load as load_vehicle
+    from ddyn.sil import run as sil
+
+    write_track(load_track("ethzMobil"), tmp_path / "files" / "mine")
+    user = open_track(str(tmp_path / "files" / "mine"), "orca_1_43")
+    monkeypatch.setattr(R, "USER_RACELINE_DIR", tmp_path / "lines")
+    (tmp_path / "lines").mkdir()
+    shutil.copy(R.default_path("orca_1_43", "ethzMobil"), R.default_path("orca_1_43", user))
+    orca = load_vehicle("orca_1_43")
+    spec = sil.SilSpec(vehicle=orca, track=user, coeffs_plant=orca.true_vector(),
+                       coeffs_controller=orca.true_vector(), nominal=orca.true_vector(), max_time=15.0)
+    out = tmp_path / "run"
+    m = sil.run_sil(spec, out, None, where="inprocess")
+    plant = json.loads((out / "plant.json").read_text())
+    assert plant["track"] == "mine" and plant["track_dir"] == str(out / "track")
+    assert (out / "track" / "mine_outer.txt").is_file()
+    assert m["lap_completed"] and m["violations"] == 0, m["end_reason"]
