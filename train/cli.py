@@ -35,7 +35,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("export", ("ddyn.learn.export",)),
     Command("codegen", ("ddyn.codegen.generate", "ddyn.analysis.crosscheck"),
             "C code of the vehicle model, EKF Jacobians and MPC pieces (CasADi), and its check against Python"),
-    Command("mpc", ("ddyn.control.raceline", "ddyn.control.mpc_lap"),
+    Command("mpc", ("ddyn.control.raceline", "ddyn.control.mpc_lap", "ddyn.control.mpc_tracks"),
             "racing lines (CasADi + IPOPT) and closed-loop laps of the C MPC on the host"),
     Command("sil", ("ddyn.sil.run", "ddyn.sil.table"),
             "software in the loop: plant and controller as processes over virtual CAN"),

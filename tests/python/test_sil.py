@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ddyn.control.mpc_setup import MpcSettings
 from ddyn.errors import DdynError
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.tracks import load_track
@@ -60,7 +61,8 @@ def test_raceline_table_room_matches_the_track(orca, mobil):
     # room left + right + the car's width + both margins is the track's width at that point
     s, _ = mobil.project(table[:, 0], table[:, 1])
     wl, wr = mobil.half_widths(s)
-    np.testing.assert_allclose(table[:, 3] + table[:, 4] + 0.05 + 2 * 0.02, wl + wr, atol=1e-9)
+    margin = MpcSettings().margin  # the default room the MPC keeps (ddyn sil run --margin)
+    np.testing.assert_allclose(table[:, 3] + table[:, 4] + 0.05 + 2 * margin, wl + wr, atol=1e-9)
     # the time-optimal raceline runs closer to the bounds than half the car plus margin in places
     # (about 13 % of its points): the MPC's soft bounds handle that; elsewhere there is room
     assert np.mean((table[:, 3] > 0) & (table[:, 4] > 0)) > 0.8
@@ -68,7 +70,7 @@ def test_raceline_table_room_matches_the_track(orca, mobil):
     step = np.hypot(*np.diff(np.vstack([table[:, :2], table[:1, :2]]), axis=0).T)
     assert step.max() < 0.1
     wider = sil.raceline_table(mobil, orca, margin=0.0)
-    np.testing.assert_allclose(wider[:, 3], table[:, 3] + 0.02)
+    np.testing.assert_allclose(wider[:, 3], table[:, 3] + margin)
 
 
 def test_plant_config_and_controller_setup(orca, mobil, tmp_path):

@@ -819,9 +819,12 @@ def load_inputs(args):
 
 
 def _track(name: str | None, ds: Dataset):
+    from ddyn.model.track_files import open_track
     from ddyn.model.tracks import TRACK_NAMES, load_track
 
-    name = name or ds.metadata.get("track")
+    if name:  # asked for on the command line: a name or a user's files, errors shown
+        return open_track(name)
+    name = ds.metadata.get("track")
     if name in (None, "", "none") or name not in TRACK_NAMES:
         return None
     try:

@@ -21,7 +21,8 @@ from ddyn.control.mpc_setup import MpcSettings, perturbed_start, raceline_table,
 from ddyn.control.raceline import line_for
 from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicle_mod
-from ddyn.model.tracks import Track, load_track
+from ddyn.model.track_files import open_track
+from ddyn.model.tracks import Track
 from ddyn.model.vehicle import FOOTPRINT
 from ddyn.paths import BUILD
 
@@ -39,7 +40,7 @@ def sweep(vehicle_name: str = "orca_1_43", track_name: str = "ethzMobil", steps:
           tool: Path = DEFAULT_TOOL) -> list[dict]:
     """Robustness: the long closed loop from every start speed x start perturbation, scored each."""
     settings = settings or MpcSettings()
-    track = load_track(track_name)
+    track = open_track(track_name, vehicle_name)
     table = raceline_table(track, vehicle_name, settings)
     rows = []
     for v0 in speeds:
@@ -165,7 +166,7 @@ def lap(vehicle_name: str = "orca_1_43", track_name: str = "ethzMobil", seconds:
         settings: MpcSettings | None = None, reference: bool = True, out: Path | None = None,
         tool: Path = DEFAULT_TOOL) -> dict:
     settings = settings or MpcSettings()
-    track = load_track(track_name)
+    track = open_track(track_name, vehicle_name)
     v = vehicle_mod.load(vehicle_name)
     steps = int(round(seconds / v.sample_time))
     c_run = run_c(vehicle_name, track, settings, steps, tool=tool)
@@ -227,7 +228,7 @@ def _run_grid(args, settings: MpcSettings) -> int:
     """First lap (C MPC, --seconds) at every combination of the --grid values: how the defaults were chosen."""
     import itertools
     grid = _parse_assignments(args.grid, multi=True)
-    track = load_track(args.track)
+    track = open_track(args.track, args.vehicle)
     steps = int(round(args.seconds / vehicle_mod.load(args.vehicle).sample_time))
     keys = list(grid)
     print("| " + " | ".join(keys) + " | lap (s) | violation steps | closest corner (mm) | QP iterations max |")

@@ -32,36 +32,55 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from ddyn.errors import DdynError
+from ddyn.paths import REPO
 from ddyn.model.single_track import derivatives
-from ddyn.model.tracks import Raceline, Track, load_track
+from ddyn.model.track_frame import frame
+from ddyn.model.track_files import is_named, open_track, track_digest
+from ddyn.model.tracks import Raceline, Track
 from ddyn.model.vehicle import Vehicle
 from ddyn.model.vehicle import load as load_vehicle
 
 RACELINE_DIR = Path(__file__).resolve().parents[1] / "racelines"  # train/racelines
+START_SPEED = 1.5  # m/s: the standing start's intervals (warm start below it) take start_substeps
+USER_RACELINE_DIR = REPO / "out" / "racelines"
 
 
 @dataclass(frozen=True)
 class RacelineSettings:
-    intervals: int = 300          # N: ~4 cm of centre line each on ETHZMobil
+    intervals: int = 0            # N; 0: one per `spacing` of centre line
+    spacing: float = 0.03         # m of centre line per interval when intervals is 0 (the data's point spacing)
     margin: float = 0.03          # m between the footprint and the bounds (the MPC keeps 0.02: room to track)
     vx0: float = 0.1              # m/s at the start line (the paper's closed-loop start)
     vx_min: float = 0.05          # m/s: the car never stops (the slip model is not meant for standstill)
     regularisation: float = 1e-4  # weight of the input rates (s^-1 per (unit/s)^2): removes chattering
     max_iterations: int = 3000
-    guess_speed: float = 1.5      # m/s: initial guess, a constant speed along the centre line
+    start_substeps: int = 1       # x the plant's RK4 sub-steps in the standing start's intervals
+    expand: bool = False          # SX-expand the NLP: faster per iteration, but ETHZ at 400 intervals took 2.7 GB
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
-def default_path(vehicle_name: str, track_name: str) -> Path:
-    return RACELINE_DIR / f"{vehicle_name}_{track_name}.npz"
+def resolved(settings: RacelineSettings, track: Track) -> RacelineSettings:
+    """The settings with the number of intervals fixed (what a re-solve needs to reproduce a line)."""
+    if settings.intervals > 0:
+        return settings
+    return replace(settings, intervals=max(50, int(round(track.length / settings.spacing))))
+
+
+def default_path(vehicle_name: str, track: str | Track) -> Path:
+    """Where a vehicle's line on a track is kept: train/racelines/ (committed) for the shared data's
+    tracks, out/racelines/ for a user's or a random track (computed on demand, never committed)."""
+    if isinstance(track, str) or (is_named(track.name) and not track.files):
+        name = track if isinstance(track, str) else track.name
+        return RACELINE_DIR / f"{vehicle_name}_{name}.npz"
+    return USER_RACELINE_DIR / f"{vehicle_name}_{track.name}.npz"
 
 
 def _footprint(vehicle_name: str) -> tuple[float, float]:
@@ -72,11 +91,27 @@ def _footprint(vehicle_name: str) -> tuple[float, float]:
     return FOOTPRINT[vehicle_name]
 
 
-def _periodic_interpolant(ca, name: str, track: Track, values: np.ndarray):
-    """A linear interpolant of per-centre-point values over s, extended one lap each side."""
-    s = np.concatenate([track.s - track.length, track.s, track.s + track.length, [2 * track.length + track.s[0]]])
-    v = np.concatenate([values, values, values, values[:1]])
-    return ca.interpolant(name, "linear", [s], v)
+def speed_profile(vehicle: Vehicle, kappa: np.ndarray, ds: float, vx0: float) -> np.ndarray:
+    """A curvature-limited speed at the m frame points plus the closing point (the warm start).
+
+    v <= sqrt(a_lat / |kappa|) with a_lat a fraction of the tyres' peak force over the mass, under
+    the drivetrain's top speed; then a forward pass (drivetrain acceleration from vx0) and a
+    backward pass (braking at a_lat). Only a guess: IPOPT starts from a lap the car could nearly
+    drive instead of a constant speed that leaves the track in the first hairpin.
+    """
+    c, mass = vehicle.true_coefficients, float(vehicle.known.mass)
+    a_lat = 0.6 * (c["Df"] + c["Dr"]) / mass
+    a, b, k = c["Cd"], c["Cm2"], c["Cm1"] - c["Cr0"]
+    top = (-b + np.sqrt(b * b + 4 * a * k)) / (2 * a)
+    v = np.minimum(0.9 * top, np.sqrt(a_lat / np.maximum(np.abs(kappa), 1e-6)))
+    v = np.append(v, v[0])
+    a_acc = 0.5 * k / mass
+    v[0] = vx0
+    for i in range(len(v) - 1):
+        v[i + 1] = min(v[i + 1], np.sqrt(v[i] ** 2 + 2 * a_acc * ds))
+    for i in range(len(v) - 2, -1, -1):
+        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * a_lat * ds))
+    return np.maximum(v, vx0)
 
 
 def solve(vehicle: Vehicle, track: Track, settings: RacelineSettings = RacelineSettings(),
@@ -88,107 +123,116 @@ def solve(vehicle: Vehicle, track: Track, settings: RacelineSettings = RacelineS
     if vehicle.true_coefficients is None:
         raise DdynError(f"vehicle {vehicle.name!r} has no true coefficients to drive with")
     ns = get_ns("casadi")
-    N = settings.intervals
+    N = resolved(settings, track).intervals
     length_fp, width_fp = _footprint(vehicle.name)
-    kappa = _periodic_interpolant(ca, "kappa", track, track.curvature)
-    wl_f = _periodic_interpolant(ca, "wl", track, track.half_width_left)
-    wr_f = _periodic_interpolant(ca, "wr", track, track.half_width_right)
+    fr = frame(track, N)
+    ds = fr.length / N
+    kap = fr.kappa  # each interval is an arc: a constant, not a function of s
     coeffs = [float(c) for c in vehicle.true_vector()]
 
-    X = ca.SX.sym("X", 8)
+    X = ca.SX.sym("X", 8)  # (s, n, mu, vx, vy, omega, throttle, steering); s counts from the interval's start
     U = ca.SX.sym("U", 2)
+    k = ca.SX.sym("kappa")
     s, n, mu, vx, vy, omega, thr, steer = [X[i] for i in range(8)]
-    k = kappa(s)
     sdot = (vx * ca.cos(mu) - vy * ca.sin(mu)) / (1 - n * k)
     body = derivatives(ns, (0, 0, 0, vx, vy, omega, thr, steer), (U[0], U[1]), coeffs, vehicle.known)
-    f = ca.Function("f", [X, U], [ca.vertcat(sdot, vx * ca.sin(mu) + vy * ca.cos(mu), omega - k * sdot,
-                                             *body[3:])])
+    f = ca.Function("f", [X, U, k], [ca.vertcat(sdot, vx * ca.sin(mu) + vy * ca.cos(mu), omega - k * sdot,
+                                                *body[3:])])
     h = ca.SX.sym("h")
-    m = vehicle.rk4_substeps
-    xs = X
-    for _ in range(m):  # the plant's integrator: RK4 with the vehicle's sub-steps
-        k1 = f(xs, U)
-        k2 = f(xs + h / m / 2 * k1, U)
-        k3 = f(xs + h / m / 2 * k2, U)
-        k4 = f(xs + h / m * k3, U)
-        xs = xs + h / m / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    step = ca.Function("step", [X, U, h], [xs]).map(N)
 
+    def rk4(m: int):
+        xs = X
+        for _ in range(m):
+            k1 = f(xs, U, k)
+            k2 = f(xs + h / m / 2 * k1, U, k)
+            k3 = f(xs + h / m / 2 * k2, U, k)
+            k4 = f(xs + h / m * k3, U, k)
+            xs = xs + h / m / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return ca.Function("step", [X, U, h, k], [xs])
+
+    # The plant's integrator (RK4, the vehicle's sub-steps): where the car is fast an interval lasts
+    # about one sample. From the standing start an interval of ds lasts up to ~0.5 s, one RK4 step
+    # that is inaccurate in the low-speed tyre dynamics; start_substeps multiplies the sub-steps of
+    # the intervals whose warm-start speed is below START_SPEED (docs/tracks.md: 1 by default,
+    # 2 fixes random track 201's start but fails on random track 3 and finds a slower ETHZ optimum).
+    v_guess = speed_profile(vehicle, fr.kappa, ds, settings.vx0)
+    fast = np.nonzero(v_guess[:-1] >= START_SPEED)[0]
+    n_start = N if settings.start_substeps == 1 else max(1, int(fast[0]) if len(fast) else N)
+    pieces = [(0, n_start, settings.start_substeps * vehicle.rk4_substeps), (n_start, N, vehicle.rk4_substeps)]
+    maps = [(a, b, rk4(m).map(b - a)) for a, b, m in pieces if b > a]
+
+    def step(x, u, hh, kk):
+        return ca.horzcat(*[fn(x[:, a:b], u[:, a:b], hh[:, a:b], kk[:, a:b]) for a, b, fn in maps])
+
+    # Each interval covers a fixed ds of the centre line in its own free time H_k: the track's
+    # curvature and widths are per-interval constants, and the lap time is sum(H).
     opti = ca.Opti()
-    Xv = opti.variable(8, N + 1)
+    Xv = opti.variable(7, N + 1)  # (n, mu, vx, vy, omega, throttle, steering) at the frame's points
     Uv = opti.variable(2, N)
-    T = opti.variable()
-    hk = T / N
-    opti.subject_to(Xv[:, 1:] == step(Xv[:, :-1], Uv, ca.repmat(hk, 1, N)))
+    H = opti.variable(1, N)
+    nxt = step(ca.vertcat(ca.DM.zeros(1, N), Xv[:, :-1]), Uv, H, ca.DM(kap).T)
+    opti.subject_to(nxt[0, :] == ds)
+    opti.subject_to(Xv[:, 1:] == nxt[1:, :])
     lim = vehicle.input_limits
-    opti.subject_to(opti.bounded(lim["throttle"][0], Xv[6, :], lim["throttle"][1]))
-    opti.subject_to(opti.bounded(lim["steering"][0], Xv[7, :], lim["steering"][1]))
+    opti.subject_to(opti.bounded(lim["throttle"][0], Xv[5, :], lim["throttle"][1]))
+    opti.subject_to(opti.bounded(lim["steering"][0], Xv[6, :], lim["steering"][1]))
     opti.subject_to(opti.bounded(lim["dthrottle"][0], Uv[0, :], lim["dthrottle"][1]))
     opti.subject_to(opti.bounded(lim["dsteering"][0], Uv[1, :], lim["dsteering"][1]))
-    opti.subject_to(Xv[3, :] >= settings.vx_min)
-    opti.subject_to(opti.bounded(-1.2, Xv[2, :], 1.2))  # heading error: keeps the curvilinear frame valid
-    wl = ca.horzcat(*[wl_f(Xv[0, i]) for i in range(N + 1)]) - settings.margin
-    wr = ca.horzcat(*[wr_f(Xv[0, i]) for i in range(N + 1)]) - settings.margin
+    opti.subject_to(Xv[2, :] >= settings.vx_min)
+    opti.subject_to(opti.bounded(-1.2, Xv[1, :], 1.2))  # heading error: keeps the curvilinear frame valid
+    opti.subject_to(opti.bounded(1e-4, H, 2.0 * ds / settings.vx_min))
+    wl = ca.DM(np.append(fr.wl, fr.wl[0])).T - settings.margin
+    wr = ca.DM(np.append(fr.wr, fr.wr[0])).T - settings.margin
     for sign in (-1.0, 1.0):
-        along = sign * 0.5 * length_fp * ca.sin(Xv[2, :])
-        across = 0.5 * width_fp * ca.cos(Xv[2, :])
-        opti.subject_to(Xv[1, :] + along + across <= wl)
-        opti.subject_to(Xv[1, :] + along - across >= -wr)
-    opti.subject_to(Xv[0, 0] == 0)
-    opti.subject_to(Xv[3:, 0] == ca.DM([settings.vx0, 0, 0, 0, 0]))
-    opti.subject_to(Xv[0, N] == track.length)
+        along = sign * 0.5 * length_fp * ca.sin(Xv[1, :])
+        across = 0.5 * width_fp * ca.cos(Xv[1, :])
+        opti.subject_to(Xv[0, :] + along + across <= wl)
+        opti.subject_to(Xv[0, :] + along - across >= -wr)
+    opti.subject_to(Xv[2:, 0] == ca.DM([settings.vx0, 0, 0, 0, 0]))
+    opti.subject_to(Xv[0, N] == Xv[0, 0])  # the line closes in position and heading
     opti.subject_to(Xv[1, N] == Xv[1, 0])
-    opti.subject_to(Xv[2, N] == Xv[2, 0])
-    opti.subject_to(opti.bounded(1.0, T, 60.0))
-    opti.minimize(T + settings.regularisation * ca.sumsqr(Uv) * hk)
+    opti.minimize(ca.sum2(H) + settings.regularisation * ca.sum2(ca.sum1(Uv ** 2) * H))
 
-    # initial guess: constant speed along the centre line after a short ramp
-    T0 = track.length / settings.guess_speed
-    sg = np.linspace(0.0, track.length, N + 1)
-    opti.set_initial(T, T0)
-    opti.set_initial(Xv[0, :], sg)
-    opti.set_initial(Xv[3, :], np.full(N + 1, settings.guess_speed))
-    opti.set_initial(Xv[5, :], settings.guess_speed * track.curvature_at(sg))
-    opti.set_initial(Xv[6, :], np.full(N + 1, 0.3))
-    opti.solver("ipopt", {"print_time": False, "expand": True},
-                {"max_iter": settings.max_iterations, "mu_strategy": "adaptive", "print_level": 5 if verbose else 0, "sb": "yes",
-                 "tol": 1e-8, "acceptable_tol": 1e-6})
+    # warm start: the centre line at a curvature-limited speed
+    v0 = v_guess
+    kn = np.append(kap, kap[0])
+    wheelbase = float(vehicle.known.lf + vehicle.known.lr)
+    opti.set_initial(Xv[2, :], v0)
+    opti.set_initial(Xv[4, :], v0 * kn)
+    opti.set_initial(Xv[5, :], np.full(N + 1, 0.3))
+    opti.set_initial(Xv[6, :], np.clip(np.arctan(wheelbase * kn), *lim["steering"]))
+    opti.set_initial(H, 2 * ds / (v0[:-1] + v0[1:]))
+    opti.solver("ipopt", {"print_time": False, "expand": settings.expand},
+                {"max_iter": settings.max_iterations, "mu_strategy": "adaptive", "print_level": 5 if verbose else 0,
+                 "sb": "yes", "tol": 1e-8, "acceptable_tol": 1e-6})
     t0 = time.perf_counter()
     try:
         sol = opti.solve()
         stats, get = sol.stats(), sol.value
     except RuntimeError as e:
         stats = opti.stats()
-        raise DdynError(f"raceline: IPOPT did not solve the lap ({stats.get('return_status', e)}) after "
-                        f"{stats.get('iter_count')} iterations") from None
+        raise DdynError(f"raceline: IPOPT did not solve the lap on {track.name!r} "
+                        f"({stats.get('return_status', e)}) after {stats.get('iter_count')} iterations") from None
     seconds = time.perf_counter() - t0
-    Xs, Us, Ts = np.asarray(get(Xv)), np.asarray(get(Uv)).reshape(2, N), float(get(T))
-    return {"X": Xs, "U": Us, "T": Ts, "iterations": int(stats["iter_count"]),
-            "status": str(stats["return_status"]), "solve_seconds": seconds}
-
-
-def to_cartesian(track: Track, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions and yaw of the car from (s, n, mu): the centre point plus n along its left normal."""
-    s, n, mu = X[0], X[1], X[2]
-    cx, cy = track.position(s)
-    i, t = track._locate(s)
-    # heading interpolated between the point headings (bisectors), so the normal turns smoothly
-    h0, h1 = track.heading[i], track.heading[(i + 1) % track.n]
-    head = h0 + t * np.angle(np.exp(1j * (h1 - h0)))
-    x, y = cx - n * np.sin(head), cy + n * np.cos(head)
-    return x, y, head + mu
+    Hs = np.asarray(get(H)).reshape(N)
+    Xs = np.vstack([np.append(fr.s, fr.length), np.asarray(get(Xv)).reshape(7, N + 1)])
+    return {"X": Xs, "U": np.asarray(get(Uv)).reshape(2, N), "H": Hs, "T": float(Hs.sum()), "frame": fr,
+            "iterations": int(stats["iter_count"]), "status": str(stats["return_status"]),
+            "solve_seconds": seconds}
 
 
 def raceline_arrays(vehicle: Vehicle, track: Track, result: dict, settings: RacelineSettings) -> dict:
     """The arrays of a raceline file: one lap, the end point (= the start) dropped."""
-    X, U, T = result["X"], result["U"], result["T"]
+    X, U, T, fr = result["X"], result["U"], result["T"], result["frame"]
     N = U.shape[1]
-    x, y, yaw = to_cartesian(track, X)
+    x, y = fr.to_xy(X[1, :N])
     meta = {"vehicle": vehicle.name, "vehicle_digest": vehicle.digest, "track": track.name,
-            "lap_time_s": T, "settings": settings.as_dict(), "ipopt_status": result["status"],
-            "ipopt_iterations": result["iterations"], "command": "ddyn mpc raceline"}
-    return {"x": x[:N], "y": y[:N], "time": np.arange(N) * T / N, "speed": np.hypot(X[3], X[4])[:N],
-            "inputs": U[:, : N - 1], "yaw": yaw[:N], "states": X[:, :N], "meta": np.array(json.dumps(meta))}
+            "track_digest": track_digest(track), "lap_time_s": T, "settings": settings.as_dict(), "ipopt_status": result["status"],
+            "ipopt_iterations": result["iterations"], "command": "ddyn mpc raceline",
+            "formulation": "fixed arc-length intervals of a smoothed centre spline, free time per interval"}
+    return {"x": x, "y": y, "time": np.concatenate(([0.0], np.cumsum(result["H"])[:-1])),
+            "speed": np.hypot(X[3], X[4])[:N], "inputs": U[:, : N - 1], "yaw": fr.heading + X[2, :N],
+            "states": X[:, :N], "meta": np.array(json.dumps(meta))}
 
 
 def save(path: Path, arrays: dict) -> Path:
@@ -199,9 +243,12 @@ def save(path: Path, arrays: dict) -> Path:
 
 def load_for(vehicle_name: str, track: Track) -> Raceline | None:
     """The computed line of this vehicle on this track, if one is committed; else None."""
-    path = default_path(vehicle_name, track.name)
+    path = default_path(vehicle_name, track)
     if not path.is_file():
         return None
+    digest = meta_of(path).get("track_digest")
+    if digest is not None and digest != track_digest(track):
+        return None  # a line for another track of the same name (a user's file): not this one
     with np.load(path) as z:
         return Raceline(z["x"], z["y"], z["time"], z["speed"], z["inputs"], str(path))
 
@@ -212,7 +259,7 @@ def line_for(track: Track, vehicle_name: str) -> Raceline:
     if line is None:
         line = track.raceline
     if line is None:
-        raise DdynError(f"track {track.name!r} has no raceline for {vehicle_name!r} (compute one: ddyn mpc raceline)")
+        raise DdynError(f"track {track.name!r} has no raceline for {vehicle_name!r} (compute one: ddyn mpc raceline --vehicle {vehicle_name} --track with the same track)")
     return line
 
 
@@ -223,11 +270,12 @@ def meta_of(path: Path) -> dict:
 
 def _run(args: argparse.Namespace) -> int:
     vehicle = load_vehicle(args.vehicle)
-    track = load_track(args.track)
-    settings = RacelineSettings(intervals=args.intervals, margin=args.margin, vx0=args.vx0)
+    track = open_track(args.track, vehicle.name)
+    settings = resolved(RacelineSettings(intervals=args.intervals, margin=args.margin, vx0=args.vx0,
+                                         start_substeps=args.start_substeps), track)
     result = solve(vehicle, track, settings, verbose=args.verbose)
     arrays = raceline_arrays(vehicle, track, result, settings)
-    out = Path(args.out) if args.out else default_path(vehicle.name, track.name)
+    out = Path(args.out) if args.out else default_path(vehicle.name, track)
     save(out, arrays)
     worst = float(np.min(track.boundary_distance(arrays["x"], arrays["y"])))
     print(f"raceline: {vehicle.name} on {track.name}: lap {result['T']:.3f} s from vx0 = {settings.vx0} m/s, "
@@ -243,9 +291,11 @@ def register(subparsers) -> None:
     d = RacelineSettings()
     p.add_argument("--vehicle", default="orca_1_43")
     p.add_argument("--track", default="ethzMobil")
-    p.add_argument("--intervals", type=int, default=d.intervals)
+    p.add_argument("--intervals", type=int, default=d.intervals, help="shooting intervals (default: one per 3 cm of centre line)")
     p.add_argument("--margin", type=float, default=d.margin, help="m between footprint and bounds")
     p.add_argument("--vx0", type=float, default=d.vx0)
+    p.add_argument("--start-substeps", type=int, default=d.start_substeps,
+                   help="x the RK4 sub-steps in the standing start's intervals (default %(default)s; docs/tracks.md)")
     p.add_argument("--out", default=None, help="npz to write (default: the committed train/racelines/ file)")
     p.add_argument("--verbose", action="store_true", help="IPOPT's iteration log")
     p.set_defaults(func=_run)

@@ -36,7 +36,8 @@ from ddyn.errors import DdynError
 from ddyn.model import backends
 from ddyn.model.effects import EffectSet, Plant, effects_json, parse_effects
 from ddyn.model.single_track import COEFF_NAMES, N_STATE, STATE_NAMES, drivetrain_force
-from ddyn.model.tracks import TRACK_NAMES, Track, load_track
+from ddyn.model.track_files import open_track
+from ddyn.model.tracks import Track
 from ddyn.model.vehicle import Vehicle
 from ddyn.model.vehicle import load as load_vehicle
 
@@ -158,7 +159,7 @@ def _resolve(vehicle, track) -> tuple[Vehicle, Track]:
     if isinstance(vehicle, str):
         vehicle = load_vehicle(vehicle)
     if isinstance(track, str):
-        track = load_track(track)
+        track = open_track(track, vehicle.name)
     return vehicle, track
 
 
@@ -438,7 +439,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("simulate", help="drive a vehicle around a track in closed loop; write a dataset",
                               description=__doc__.splitlines()[0])
     p.add_argument("--vehicle", required=True, help="vehicle name (train/vehicles) or JSON path")
-    p.add_argument("--track", required=True, choices=TRACK_NAMES)
+    p.add_argument("--track", required=True,
+                   help="ethz, ethzMobil, putnam, random:SEED, or a user's files (docs/tracks.md)")
     stop = p.add_mutually_exclusive_group()
     stop.add_argument("--laps", type=float, default=None, help="laps to drive (default 2)")
     stop.add_argument("--duration", type=float, default=None, help="seconds to drive instead of laps")

@@ -179,6 +179,16 @@ def centre_from_bounds(bound_a: np.ndarray, bound_b: np.ndarray, spacing: float 
     return centre
 
 
+def bounds_from_widths(centre: np.ndarray, w_left: np.ndarray, w_right: np.ndarray):
+    """Left and right bounds: the centre points moved along their normals (bisector of adjacent segments)."""
+    d = np.roll(centre, -1, axis=0) - centre
+    t_seg = d / np.hypot(d[:, 0], d[:, 1])[:, None]
+    t = t_seg + np.roll(t_seg, 1, axis=0)
+    t /= np.hypot(t[:, 0], t[:, 1])[:, None]
+    normal = np.column_stack([-t[:, 1], t[:, 0]])  # left of the direction of travel
+    return centre + w_left[:, None] * normal, centre - w_right[:, None] * normal
+
+
 # ----------------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -205,6 +215,7 @@ class Track:
             raise DdynError(f"track {name!r}: centre line has non-finite points")
         self.name = name
         self.source = source
+        self.files: dict[str, str] = {}  # the user's files it was read from (ddyn.model.track_files)
         self.raceline = raceline
         self.inner = _close_open(np.asarray(inner, dtype=float).reshape(-1, 2))
         self.outer = _close_open(np.asarray(outer, dtype=float).reshape(-1, 2))

@@ -42,7 +42,8 @@ import numpy as np
 from ddyn.control.raceline import line_for
 from ddyn.errors import DdynError
 from ddyn.model.single_track import COEFF_NAMES
-from ddyn.model.tracks import Track, load_track
+from ddyn.model.track_files import is_named, open_track, write_track
+from ddyn.model.tracks import Track
 from ddyn.model.vehicle import Vehicle
 from ddyn.model.vehicle import load as load_vehicle
 from ddyn.paths import REPO, shared_data_dir
@@ -121,7 +122,7 @@ def parse_faults(text: str | None) -> dict:
 
 # ---------------------------------------------------------------------------------------------- track
 
-def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float = 1.0, margin: float = 0.02) -> np.ndarray:
+def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float = 1.0, margin: float = 0.03) -> np.ndarray:
     """Rows x, y, speed, room_left, room_right of the raceline the MPC tracks.
 
     The MPC's own table (train/control/mpc_setup.py, what ddyn mpc lap tunes with): the raceline's first lap,
@@ -175,7 +176,7 @@ class SilSpec:
     faults: dict = field(default_factory=dict)
     noise_scale: float = 1.0
     speed_scale: float = 1.0
-    margin: float = 0.02
+    margin: float = 0.03
     realtime: float = 0.0
     max_time: float | None = None
     seed: int = 1
@@ -772,6 +773,16 @@ def coefficients_from(which: str, vehicle: Vehicle) -> np.ndarray:
     return c
 
 
+def plant_track_dir(track: Track, out: Path) -> Path:
+    """The folder the plant reads <name>_center/_inner/_outer.txt from: the shared data's for its
+    own tracks, else the track as loaded here written into the run's folder (a user's files or a
+    CSV with widths, a random track: the plant reads only the three-file format)."""
+    if is_named(track.name) and not track.files:
+        return shared_data_dir() / "tracks"
+    write_track(track, out / "track" / track.name)
+    return out / "track"
+
+
 def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "auto", kvm: bool | None = None,
             timeout: float = 600.0, title: str = "") -> dict:
     out.mkdir(parents=True, exist_ok=True)
@@ -782,7 +793,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     if len(table) > 1024:
         raise DdynError(f"raceline of {len(table)} points; the MPC holds at most 1024")
     bins = build_binaries(export_dir)
-    track_dir = shared_data_dir() / "tracks"
+    track_dir = plant_track_dir(spec.track, out)
     use_host = where in ("host", "inprocess") or (where == "auto" and host_has_vcan())
     inside = "/out" if not use_host else str(out.resolve())
     pc = plant_config(spec, "/sil/tracks" if not use_host else str(track_dir), inside)
@@ -835,7 +846,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
 
 def _run(args: argparse.Namespace) -> int:
     vehicle = load_vehicle(args.vehicle)
-    track = load_track(args.track)
+    track = open_track(args.track, vehicle.name)
     export_dir = None
     fixed = None
     if args.model:
@@ -873,7 +884,7 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed-scale", type=float, default=1.0,
                    help="reference speed = raceline speed x this (default %(default)s: the vehicle's own "
                         "time-optimal line, train/racelines/, is drivable at full speed)")
-    p.add_argument("--margin", type=float, default=0.02,
+    p.add_argument("--margin", type=float, default=0.03,
                    help="room the MPC keeps between the car's side and the bounds, m (default: %(default)s)")
     p.add_argument("--realtime", type=float, default=0.0,
                    help="pace the plant at this multiple of real time (default 0: lock-step with the controller)")
