@@ -136,8 +136,12 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     if (strcmp(DDYN_NET_OUTPUT_NAMES, COEFF_ORDER) != 0) {
         return DDYN_ERR_ARGUMENT;
     }
-    if (tables != NULL && ddyn_guard_net_init(&ctl->net, tables) != DDYN_NET_OK) {
-        return DDYN_ERR_ARGUMENT;
+    if (tables != NULL) {
+        /* magic, shape, checkpoint hash, normalisation: the caller is told which */
+        s = ddyn_guard_net_init(&ctl->net, tables);
+        if (s != DDYN_OK) {
+            return s;
+        }
     }
     s = ddyn_ekf_init(&ctl->ekf, model, cfg->ekf_disc, x0, cfg->p0_diag, cfg->q_diag);
     if (s != DDYN_OK) {

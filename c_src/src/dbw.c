@@ -181,12 +181,12 @@ static int encode_gnss_heading(const ddyn_dbw_sensors *s, uint8_t counter, uint8
     return ddyn_can_gnss_heading_pack(data, &m, DDYN_DBW_FRAME_LEN) == (int)DDYN_DBW_FRAME_LEN ? 0 : -1;
 }
 
-int ddyn_dbw_encode(ddyn_dbw_frame frame, const ddyn_dbw_signals *s, uint8_t counter,
-                    uint8_t data[DDYN_DBW_FRAME_LEN])
+ddyn_status ddyn_dbw_encode(ddyn_dbw_frame frame, const ddyn_dbw_signals *s, uint8_t counter,
+                            uint8_t data[DDYN_DBW_FRAME_LEN])
 {
     int rc;
     if (s == NULL || data == NULL) {
-        return -1;
+        return DDYN_ERR_ARGUMENT;
     }
     counter = (uint8_t)(counter % DDYN_DBW_COUNTER_MODULO);
     switch (frame) {
@@ -197,12 +197,13 @@ int ddyn_dbw_encode(ddyn_dbw_frame frame, const ddyn_dbw_signals *s, uint8_t cou
     case DDYN_DBW_FRAME_IMU: rc = encode_imu(&s->sensors, counter, data); break;
     case DDYN_DBW_FRAME_GNSS_POSITION: rc = encode_gnss_position(&s->sensors, counter, data); break;
     case DDYN_DBW_FRAME_GNSS_HEADING: rc = encode_gnss_heading(&s->sensors, counter, data); break;
-    default: return -1;
+    default: return DDYN_ERR_ARGUMENT;
     }
-    if (rc == 0) {
-        data[CHECKSUM_BYTE] = ddyn_dbw_checksum(FRAME_IDS[frame], data);
+    if (rc != 0) {
+        return DDYN_ERR_RANGE;
     }
-    return rc;
+    data[CHECKSUM_BYTE] = ddyn_dbw_checksum(FRAME_IDS[frame], data);
+    return DDYN_OK;
 }
 
 /* ---- decoding: bytes -> raw (range-checked) -> physical ---- */
@@ -372,25 +373,25 @@ static void reset_streaks(ddyn_dbw *dbw)
     }
 }
 
-int ddyn_dbw_init(ddyn_dbw *dbw, const ddyn_dbw_config *config)
+ddyn_status ddyn_dbw_init(ddyn_dbw *dbw, const ddyn_dbw_config *config)
 {
     unsigned f, monitored = 0u;
     if (dbw == NULL || config == NULL) {
-        return -1;
+        return DDYN_ERR_ARGUMENT;
     }
     for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
         monitored += config->deadline_us[f] != 0u ? 1u : 0u;
     }
     if (monitored == 0u || config->recovery_good_frames == 0u || !(config->safe_brake >= 0.0) ||
         !(config->safe_brake <= 1.0)) {
-        return -1;
+        return DDYN_ERR_CONFIG;
     }
     memset(dbw, 0, sizeof(*dbw));
     dbw->config = *config;
     dbw->state = DDYN_DBW_WAIT_GOOD;
     dbw->last_failure = DDYN_DBW_FAIL_COUNT;
     dbw->last_failure_frame = -1;
-    return 0;
+    return DDYN_OK;
 }
 
 /* count a failure (statistics, mask, last failure) without touching the link state */
@@ -547,13 +548,16 @@ ddyn_dbw_state ddyn_dbw_check(ddyn_dbw *dbw, uint64_t now_us)
     return dbw->state;
 }
 
-int ddyn_dbw_enable(ddyn_dbw *dbw)
+ddyn_status ddyn_dbw_enable(ddyn_dbw *dbw)
 {
-    if (dbw == NULL || dbw->state != DDYN_DBW_READY) {
-        return -1;
+    if (dbw == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    if (dbw->state != DDYN_DBW_READY) {
+        return DDYN_ERR_NOT_READY;
     }
     dbw->state = DDYN_DBW_ACTIVE;
-    return 0;
+    return DDYN_OK;
 }
 
 void ddyn_dbw_disable(ddyn_dbw *dbw)
@@ -610,15 +614,15 @@ ddyn_dbw_state ddyn_dbw_command_frame(ddyn_dbw *dbw, uint64_t now_us, const ddyn
     return dbw->state;
 }
 
-int ddyn_dbw_next_frame(ddyn_dbw *dbw, ddyn_dbw_frame frame, const ddyn_dbw_signals *s,
-                        uint8_t data[DDYN_DBW_FRAME_LEN])
+ddyn_status ddyn_dbw_next_frame(ddyn_dbw *dbw, ddyn_dbw_frame frame, const ddyn_dbw_signals *s,
+                                uint8_t data[DDYN_DBW_FRAME_LEN])
 {
-    int rc;
+    ddyn_status rc;
     if (dbw == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT) {
-        return -1;
+        return DDYN_ERR_ARGUMENT;
     }
     rc = ddyn_dbw_encode(frame, s, dbw->tx_counter[frame], data);
-    if (rc == 0) {
+    if (rc == DDYN_OK) {
         /* a frame that could not be encoded is not sent, so it does not consume a counter value */
         dbw->tx_counter[frame] = (uint8_t)((dbw->tx_counter[frame] + 1u) % DDYN_DBW_COUNTER_MODULO);
     }

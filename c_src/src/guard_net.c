@@ -189,28 +189,3 @@ ddyn_net_status ddyn_guard_net_infer(ddyn_guard_net *net, const double history[D
     }
     return DDYN_NET_OK;
 }
-
-const char *ddyn_net_status_name(ddyn_net_status status)
-{
-    switch (status) {
-    case DDYN_NET_OK:
-        return "DDYN_NET_OK";
-    case DDYN_NET_ERR_ARGUMENT:
-        return "DDYN_NET_ERR_ARGUMENT";
-    case DDYN_NET_ERR_MAGIC:
-        return "DDYN_NET_ERR_MAGIC";
-    case DDYN_NET_ERR_SHAPE:
-        return "DDYN_NET_ERR_SHAPE";
-    case DDYN_NET_ERR_HASH:
-        return "DDYN_NET_ERR_HASH";
-    case DDYN_NET_ERR_NOT_INITIALISED:
-        return "DDYN_NET_ERR_NOT_INITIALISED";
-    case DDYN_NET_ERR_NONFINITE_INPUT:
-        return "DDYN_NET_ERR_NONFINITE_INPUT";
-    case DDYN_NET_ERR_NONFINITE_OUTPUT:
-        return "DDYN_NET_ERR_NONFINITE_OUTPUT";
-    case DDYN_NET_ERR_NORMALISATION:
-        return "DDYN_NET_ERR_NORMALISATION";
-    }
-    return "DDYN_NET_ERR_UNKNOWN";
-}

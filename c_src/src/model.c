@@ -164,26 +164,3 @@ ddyn_status ddyn_model_measure(const ddyn_vehicle_model *model, ddyn_meas_kind k
     len[2] = 0;
     return evaluate(model->meas[kind], x, c, NULL, out, len, work);
 }
-
-const char *ddyn_status_name(ddyn_status status)
-{
-    switch (status) {
-    case DDYN_OK:
-        return "DDYN_OK";
-    case DDYN_ERR_ARGUMENT:
-        return "DDYN_ERR_ARGUMENT";
-    case DDYN_ERR_NONFINITE_INPUT:
-        return "DDYN_ERR_NONFINITE_INPUT";
-    case DDYN_ERR_NONFINITE_OUTPUT:
-        return "DDYN_ERR_NONFINITE_OUTPUT";
-    case DDYN_ERR_EVALUATION:
-        return "DDYN_ERR_EVALUATION";
-    case DDYN_ERR_NOT_POSITIVE_DEFINITE:
-        return "DDYN_ERR_NOT_POSITIVE_DEFINITE";
-    case DDYN_ERR_QP_NOT_CONVERGED:
-        return "DDYN_ERR_QP_NOT_CONVERGED";
-    case DDYN_ERR_NOT_READY:
-        return "DDYN_ERR_NOT_READY";
-    }
-    return "DDYN_ERR_UNKNOWN";
-}

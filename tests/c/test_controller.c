@@ -125,6 +125,41 @@ static ddyn_ctrl_status run_exact(int period, ddyn_ctrl_output *out)
     return run(&in, out);
 }
 
+static void test_init_names_what_is_wrong_with_the_network(void **state)
+{
+    /* the network's own error, not one code for all (ddyn/status.h: the runtime's one error type) */
+    ddyn_net_tables t = ddyn_net_weights;
+    static ddyn_net_real std0[DDYN_NET_NFEAT];
+    (void)state;
+    t.magic ^= 1u;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &t, &cfg, plant), DDYN_ERR_NET_MAGIC);
+    t = ddyn_net_weights;
+    t.hidden += 1;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &t, &cfg, plant), DDYN_ERR_NET_SHAPE);
+    t = ddyn_net_weights;
+    t.checkpoint_sha256 = "0000000000000000000000000000000000000000000000000000000000000000";
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &t, &cfg, plant), DDYN_ERR_NET_HASH);
+    t = ddyn_net_weights;
+    t.std = std0; /* all zero */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &t, &cfg, plant), DDYN_ERR_NET_NORMALISATION);
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
+    assert_string_equal(ddyn_status_name(DDYN_ERR_NET_HASH), "DDYN_ERR_NET_HASH");
+}
+
+static void test_every_status_has_its_own_name(void **state)
+{
+    int a, b;
+    (void)state;
+    for (a = DDYN_OK; a <= DDYN_ERR_RANGE; ++a) {
+        assert_true(strncmp(ddyn_status_name((ddyn_status)a), "DDYN_", 5) == 0);
+        assert_string_not_equal(ddyn_status_name((ddyn_status)a), "DDYN_ERR_UNKNOWN");
+        for (b = 0; b < a; ++b) {
+            assert_string_not_equal(ddyn_status_name((ddyn_status)a), ddyn_status_name((ddyn_status)b));
+        }
+    }
+    assert_string_equal(ddyn_status_name((ddyn_status)(DDYN_ERR_RANGE + 1)), "DDYN_ERR_UNKNOWN");
+}
+
 static void test_bad_arguments_and_configurations(void **state)
 {
     ddyn_ctrl_output out;
@@ -781,6 +816,8 @@ int main(void)
         cmocka_unit_test_setup(test_unusable_network_coefficients_fall_back_to_nominal, setup),
         cmocka_unit_test_setup(test_prepared_iteration_drives_like_the_full_one, setup),
         cmocka_unit_test_setup(test_indefinite_covariance_restarts_the_filter, setup),
+        cmocka_unit_test_setup(test_init_names_what_is_wrong_with_the_network, setup),
+        cmocka_unit_test_setup(test_every_status_has_its_own_name, setup),
         cmocka_unit_test_setup(test_bad_arguments_and_configurations, setup),
         cmocka_unit_test_setup(test_status_bits_have_distinct_names, setup),
         cmocka_unit_test_setup(test_safe_command_brakes_then_holds, setup),

@@ -185,23 +185,23 @@ static void test_encode_refuses_out_of_range_and_non_finite(void **state)
     ddyn_dbw_signals s = truth;
     (void)state;
     s.command.throttle = 1.0001;
-    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), -1);
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), DDYN_ERR_RANGE);
     s = truth;
     s.command.steering = NAN;
-    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), -1);
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), DDYN_ERR_RANGE);
     s = truth;
     s.command.brake = -0.01; /* cantools' encode would wrap this to a large raw value */
-    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), -1);
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, 0, data), DDYN_ERR_RANGE);
     s = truth;
     s.sensors.gnss_x = 30000.5;
-    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_GNSS_POSITION, &s, 0, data), -1);
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_GNSS_POSITION, &s, 0, data), DDYN_ERR_RANGE);
     s = truth;
     s.sensors.fix_type = 5;
-    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_GNSS_HEADING, &s, 0, data), -1);
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_GNSS_HEADING, &s, 0, data), DDYN_ERR_RANGE);
     s = truth;
     s.sensors.yaw_rate = INFINITY;
-    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_IMU, &s, 0, data), -1);
-    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COUNT, &truth, 0, data), -1);
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_IMU, &s, 0, data), DDYN_ERR_RANGE);
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COUNT, &truth, 0, data), DDYN_ERR_ARGUMENT);
 }
 
 static void test_decode_names_each_defect(void **state)
@@ -234,16 +234,16 @@ static void test_init_refuses_bad_configs(void **state)
     ddyn_dbw d;
     (void)state;
     ddyn_dbw_default_config(&c, 0u);
-    assert_int_equal(ddyn_dbw_init(&d, &c), -1); /* monitors nothing */
+    assert_int_equal(ddyn_dbw_init(&d, &c), DDYN_ERR_CONFIG); /* monitors nothing */
     ddyn_dbw_default_config(&c, DDYN_DBW_MONITOR_CONTROLLER);
     c.recovery_good_frames = 0u;
-    assert_int_equal(ddyn_dbw_init(&d, &c), -1);
+    assert_int_equal(ddyn_dbw_init(&d, &c), DDYN_ERR_CONFIG);
     ddyn_dbw_default_config(&c, DDYN_DBW_MONITOR_CONTROLLER);
     c.safe_brake = NAN;
-    assert_int_equal(ddyn_dbw_init(&d, &c), -1);
+    assert_int_equal(ddyn_dbw_init(&d, &c), DDYN_ERR_CONFIG);
     c.safe_brake = 1.5;
-    assert_int_equal(ddyn_dbw_init(&d, &c), -1);
-    assert_int_equal(ddyn_dbw_init(NULL, &c), -1);
+    assert_int_equal(ddyn_dbw_init(&d, &c), DDYN_ERR_CONFIG);
+    assert_int_equal(ddyn_dbw_init(NULL, &c), DDYN_ERR_ARGUMENT);
     assert_int_equal(c.deadline_us[DDYN_DBW_FRAME_IMU], 30000u);
     assert_int_equal(c.deadline_us[DDYN_DBW_FRAME_GNSS_POSITION], 60000u);
     assert_int_equal(c.deadline_us[DDYN_DBW_FRAME_COMMAND], 0u);
@@ -256,7 +256,7 @@ static void test_starts_safe_and_needs_good_frames_and_enable(void **state)
     (void)state;
     assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
     assert_safe(&w, 0.0);
-    assert_int_equal(ddyn_dbw_enable(&ctl), -1); /* no feedback yet */
+    assert_int_equal(ddyn_dbw_enable(&ctl), DDYN_ERR_NOT_READY); /* no feedback yet */
     for (i = 0; i + 1 < ctl.config.recovery_good_frames; ++i) {
         deliver_period();
     }
@@ -294,7 +294,7 @@ static void check_failure(ddyn_dbw_failure kind, void (*inject)(void))
     assert_int_equal(ctl.last_failure, kind);
     assert_int_equal(ddyn_dbw_take_failures(&ctl), 1u << kind);
     /* good frames resume: N periods bring READY, still safe until enabled */
-    assert_int_equal(ddyn_dbw_enable(&ctl), -1);
+    assert_int_equal(ddyn_dbw_enable(&ctl), DDYN_ERR_NOT_READY);
     for (i = 0; i < ctl.config.recovery_good_frames; ++i) {
         assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
         assert_safe(&w, 0.2);

@@ -53,7 +53,7 @@ static void test_refuses_tables_of_another_shape_or_checkpoint(void **state)
     t = ddyn_net_weights;
     t.magic = 0;
     assert_int_equal(ddyn_guard_net_init(&net, &t), DDYN_NET_ERR_MAGIC);
-    assert_string_equal(ddyn_net_status_name(DDYN_NET_ERR_HASH), "DDYN_NET_ERR_HASH");
+    assert_string_equal(ddyn_net_status_name(DDYN_NET_ERR_HASH), "DDYN_ERR_NET_HASH");
 }
 
 static void test_refuses_a_normalisation_it_cannot_divide_by(void **state)
@@ -78,7 +78,7 @@ static void test_refuses_a_normalisation_it_cannot_divide_by(void **state)
     mean[0] = (ddyn_net_real)NAN;
     t.mean = mean;
     assert_int_equal(ddyn_guard_net_init(&net, &t), DDYN_NET_ERR_NORMALISATION);
-    assert_string_equal(ddyn_net_status_name(DDYN_NET_ERR_NORMALISATION), "DDYN_NET_ERR_NORMALISATION");
+    assert_string_equal(ddyn_status_name(DDYN_NET_ERR_NORMALISATION), "DDYN_ERR_NET_NORMALISATION");
     assert_int_equal(ddyn_guard_net_init(&net, &ddyn_net_weights), DDYN_NET_OK);
 }
 

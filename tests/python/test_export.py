@@ -49,7 +49,8 @@ def _build(export_dir: Path, tmp: Path) -> Path:
     assert cc, "no C compiler: scripts/setup.sh installs gcc"
     subprocess.run([cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Wpedantic", "-Werror",
                     "-I", str(REPO / "c_src/include"), "-I", str(export_dir),
-                    str(REPO / "c_src/src/guard_net.c"), str(export_dir / "ddyn_net_weights.c"),
+                    str(REPO / "c_src/src/guard_net.c"), str(REPO / "c_src/src/status.c"),
+                    str(export_dir / "ddyn_net_weights.c"),
                     str(REPO / "c_src/tools/net_infer.c"), "-lm", "-o", str(exe)], check=True)
     return exe
 
@@ -105,7 +106,7 @@ def test_runtime_refuses_other_shape_or_checkpoint(tmp_path, logs):
     export(ckpt, tmp_path / "e", torch_export=False)
     out = subprocess.run([str(_build(tmp_path / "e", tmp_path)), "--check"], capture_output=True, text=True,
                          check=True).stdout.split("\n")
-    assert out[:3] == ["exported DDYN_NET_OK", "other_shape DDYN_NET_ERR_SHAPE", "other_hash DDYN_NET_ERR_HASH"]
+    assert out[:3] == ["exported DDYN_OK", "other_shape DDYN_ERR_NET_SHAPE", "other_hash DDYN_ERR_NET_HASH"]
 
 
 def test_export_is_reproducible_and_has_a_torch_program(tmp_path, logs):

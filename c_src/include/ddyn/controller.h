@@ -206,7 +206,8 @@ typedef struct {
 ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_config *cfg);
 
 /* Check cfg, validate the network tables (ddyn_guard_net_init) and set up the filter at x0.
- * Returns DDYN_ERR_ARGUMENT for a bad configuration or tables the library was not built for.
+ * Returns DDYN_ERR_ARGUMENT for a bad configuration, and the network's own error for tables the
+ * library was not built for (DDYN_ERR_NET_MAGIC, _SHAPE, _HASH, _NORMALISATION).
  * With cfg->coeff_source = DDYN_CTRL_SOURCE_FIXED, tables may be NULL (given, they are still checked). */
 ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, const ddyn_net_tables *tables,
                            const ddyn_ctrl_config *cfg, const double x0[DDYN_NX]);

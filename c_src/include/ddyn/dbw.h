@@ -24,6 +24,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "ddyn/status.h"
+
 #ifdef __cplusplus
 extern "C" {
 #endif
@@ -181,8 +183,9 @@ uint32_t ddyn_dbw_cycle_us(ddyn_dbw_frame frame);
 uint8_t ddyn_dbw_checksum(uint32_t can_id, const uint8_t data[DDYN_DBW_FRAME_LEN]);
 
 /* Encode frame `frame` from `s` (its physical values) with rolling counter `counter` into data[8].
- * Returns 0, or -1 when a value is non-finite or outside its DBC range (data is then unspecified). */
-int ddyn_dbw_encode(ddyn_dbw_frame frame, const ddyn_dbw_signals *s, uint8_t counter,
+ * Returns DDYN_OK, DDYN_ERR_ARGUMENT (NULL, unknown frame) or DDYN_ERR_RANGE when a value is
+ * non-finite or outside its DBC range (data is then unspecified). */
+ddyn_status ddyn_dbw_encode(ddyn_dbw_frame frame, const ddyn_dbw_signals *s, uint8_t counter,
                     uint8_t data[DDYN_DBW_FRAME_LEN]);
 
 /* Decode one received frame: identifier, length, checksum and raw ranges are checked; on OK
@@ -201,9 +204,9 @@ void ddyn_dbw_default_config(ddyn_dbw_config *config, uint32_t monitored_mask);
      (1u << DDYN_DBW_FRAME_IMU) | (1u << DDYN_DBW_FRAME_GNSS_POSITION) | (1u << DDYN_DBW_FRAME_GNSS_HEADING))
 #define DDYN_DBW_MONITOR_DBW_UNIT (1u << DDYN_DBW_FRAME_COMMAND)
 
-/* Returns 0, or -1 for a NULL argument or a config with no monitored frame, recovery_good_frames 0
+/* Returns DDYN_OK, DDYN_ERR_ARGUMENT for a NULL argument or DDYN_ERR_CONFIG for a config with no monitored frame, recovery_good_frames 0
  * or a safe brake outside [0, 1]. Starts in WAIT_GOOD. */
-int ddyn_dbw_init(ddyn_dbw *dbw, const ddyn_dbw_config *config);
+ddyn_status ddyn_dbw_init(ddyn_dbw *dbw, const ddyn_dbw_config *config);
 
 /* Feed one received frame (kernel receive time t_us). Foreign identifiers are ignored; everything
  * else either updates `latest` or is a failure. Returns the decode result. */
@@ -219,8 +222,9 @@ void ddyn_dbw_report(ddyn_dbw *dbw, ddyn_dbw_failure kind, uint64_t t_us);
  * with a good streak of recovery_good_frames. Returns the state. */
 ddyn_dbw_state ddyn_dbw_check(ddyn_dbw *dbw, uint64_t now_us);
 
-/* READY -> ACTIVE. Returns 0, or -1 in any other state (the caller must wait for good frames). */
-int ddyn_dbw_enable(ddyn_dbw *dbw);
+/* READY -> ACTIVE. Returns DDYN_OK, or DDYN_ERR_NOT_READY in any other state (the caller must wait
+ * for good frames; DDYN_ERR_ARGUMENT for NULL). */
+ddyn_status ddyn_dbw_enable(ddyn_dbw *dbw);
 /* Back to WAIT_GOOD without a failure (the operator disengages). */
 void ddyn_dbw_disable(ddyn_dbw *dbw);
 
@@ -235,8 +239,8 @@ ddyn_dbw_state ddyn_dbw_command_frame(ddyn_dbw *dbw, uint64_t now_us, const ddyn
                                       ddyn_dbw_command *sent, uint8_t data[DDYN_DBW_FRAME_LEN]);
 
 /* Encode frame `frame` from `s` with this endpoint's next rolling counter for it (for the DBW
- * unit / simulator side sending feedback and sensors). Returns 0 or -1 as ddyn_dbw_encode. */
-int ddyn_dbw_next_frame(ddyn_dbw *dbw, ddyn_dbw_frame frame, const ddyn_dbw_signals *s,
+ * unit / simulator side sending feedback and sensors). Returns as ddyn_dbw_encode. */
+ddyn_status ddyn_dbw_next_frame(ddyn_dbw *dbw, ddyn_dbw_frame frame, const ddyn_dbw_signals *s,
                         uint8_t data[DDYN_DBW_FRAME_LEN]);
 
 /* Read-and-clear of the fresh-frame and failure bit sets. */

@@ -24,16 +24,7 @@ extern "C" {
 
 #include "ddyn_model_dims.h" /* generated: work sizes, sensor kinds (ddyn_meas_kind) and their dimensions */
 
-typedef enum {
-    DDYN_OK = 0,
-    DDYN_ERR_ARGUMENT = 1,          /* null pointer or unknown discretisation */
-    DDYN_ERR_NONFINITE_INPUT = 2,   /* NaN or inf in x, u or c: nothing computed */
-    DDYN_ERR_NONFINITE_OUTPUT = 3,  /* the model produced NaN or inf (e.g. Iz = 0) */
-    DDYN_ERR_EVALUATION = 4,        /* the generated function reported failure */
-    DDYN_ERR_NOT_POSITIVE_DEFINITE = 5, /* a covariance that must be positive definite is not */
-    DDYN_ERR_QP_NOT_CONVERGED = 6,  /* the MPC's QP hit its iteration cap: the command is defined but not optimal */
-    DDYN_ERR_NOT_READY = 7          /* the MPC lacks its track or coefficients */
-} ddyn_status;
+#include "ddyn/status.h" /* ddyn_status: the one error type of the runtime */
 
 typedef enum { DDYN_DISC_EULER = 0, DDYN_DISC_RK4 = 1, DDYN_DISC_COUNT = 2 } ddyn_discretisation;
 
@@ -95,7 +86,6 @@ ddyn_status ddyn_model_measure(const ddyn_vehicle_model *model, ddyn_meas_kind k
 /* Number of components of a sensor kind (0 for an unknown kind). */
 int ddyn_meas_dim(ddyn_meas_kind kind);
 
-const char *ddyn_status_name(ddyn_status status);
 
 #ifdef __cplusplus
 }
