@@ -52,8 +52,9 @@ def test_standard_form_is_the_c_solvers_problem(lap):
         assert qpb.violation(sf, x_c) < 1e-7
         f_c, f_ref = qpb.objective(sf, x_c), qpb.objective(sf, x_ref)
         # mpc_qp.c measures its residuals relative to the slack price rho1 (see mpc_qp.c): even at 1e-10
-        # it stops up to ~1e-4 (objective, absolute) above the optimum, never below it
-        assert f_ref - 1e-9 * max(1.0, abs(f_ref)) <= f_c <= f_ref + 1e-4 * max(1.0, abs(f_ref))
+        # it stops above the optimum, never below it, by an amount that grows with the cost's weights
+        # (up to 1.0e-4 with the steering-rate weight 0.1, 1.2e-4 with 1.0, the weight chosen in issue 18)
+        assert f_ref - 1e-9 * max(1.0, abs(f_ref)) <= f_c <= f_ref + 3e-4 * max(1.0, abs(f_ref))
         # the applied steering rate (stage 0); the throttle rate is nearly free in the cost (the C solver's
         # differs by up to ~1e-2 1/s at equal objectives) and the late stages' inputs more so
         assert abs(x_c[1] - x_ref[1]) < 1e-3  # rad/s, bounds +-5

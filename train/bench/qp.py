@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from ddyn.errors import DdynError
-from ddyn.paths import REPO
+from ddyn.paths import BUILD
 
-DEFAULT_BUILD = REPO / "build" / "c_src"
+DEFAULT_BUILD = BUILD / "c_src"
 INF = 1e30  # DAQP's infinity; PIQP and ProxQP get np.inf
 
 
