@@ -604,6 +604,19 @@ static void shift_to(ddyn_mpc *mpc, const double x0[DDYN_NX])
     }
 }
 
+/* Every refusal leaves a defined answer: u = {0, 0} (hold throttle and steering) and a zero info. */
+static ddyn_status clear_outputs(const ddyn_mpc *mpc, const double *x0, double *u, ddyn_mpc_info *info)
+{
+    if (info != NULL) {
+        memset(info, 0, sizeof *info);
+    }
+    if (u != NULL) {
+        u[0] = 0.0;
+        u[1] = 0.0;
+    }
+    return mpc == NULL || x0 == NULL || u == NULL || mpc->model == NULL ? DDYN_ERR_ARGUMENT : DDYN_OK;
+}
+
 static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DDYN_NU], ddyn_mpc_info *info)
 {
     ddyn_mpc_info local;
@@ -613,12 +626,7 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
     if (info == NULL) {
         info = &local;
     }
-    memset(info, 0, sizeof *info);
-    if (u != NULL) {
-        u[0] = 0.0;
-        u[1] = 0.0;
-    }
-    if (mpc == NULL || x0 == NULL || u == NULL || mpc->model == NULL) {
+    if (clear_outputs(mpc, x0, u, info) != DDYN_OK) {
         return DDYN_ERR_ARGUMENT;
     }
     if (!ddyn_all_finite(x0, DDYN_NX)) {
@@ -670,14 +678,7 @@ static ddyn_status solve(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, doub
                          ddyn_mpc_info *info)
 {
     ddyn_status st;
-    if (info != NULL) {
-        memset(info, 0, sizeof *info);
-    }
-    if (u != NULL) {
-        u[0] = 0.0;
-        u[1] = 0.0;
-    }
-    if (mpc == NULL || x0 == NULL || u == NULL || mpc->model == NULL) {
+    if (clear_outputs(mpc, x0, u, info) != DDYN_OK) {
         return DDYN_ERR_ARGUMENT;
     }
     st = prepare(mpc, x0, hold, dthrottle0, 0);
