@@ -432,13 +432,36 @@ static ddyn_ctrl_status throttle_pid(ddyn_ctrl *ctl, double v_ref, ddyn_ctrl_out
     return st;
 }
 
+/* Coefficients the prepared QP may keep: each within PREPARED_COEFF_TOL of the new value, measured on
+ * the guard's range of that coefficient (on the value itself without a guard). The network's estimates
+ * drift by far less from one period to the next; a fallback to other coefficients moves them by more. */
+#define PREPARED_COEFF_TOL 1e-2
+static int coefficients_close(const ddyn_ctrl *ctl, const double a[NC], const double b[NC])
+{
+    const ddyn_net_tables *t = ctl->net.tables;
+    int i;
+    for (i = 0; i < NC; ++i) {
+        double scale = t != NULL && t->guarded ? (double)t->hi[i] - (double)t->lo[i] : fabs(b[i]);
+        if (!(fabs(a[i] - b[i]) <= PREPARED_COEFF_TOL * scale)) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
 /* Steps 4-5: solve the MPC and pick the command; *safe_cause set when the plan is exhausted. */
 static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_cause)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
     double u[NU], dthrottle = 0.0, v_ref = 0.0;
     const int pid = ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID;
-    ddyn_status s = ddyn_mpc_set_coefficients(&ctl->mpc, ctl->coeffs);
+    ddyn_status s;
+    if (ctl->mpc.prepared && !coefficients_close(ctl, ctl->mpc.c, ctl->coeffs)) {
+        /* prepared with coefficients this period replaced (a fallback, a jump of the network's estimate):
+         * a QP built on them would steer by the wrong car, so the whole iteration runs instead */
+        ctl->mpc.prepared = 0;
+    }
+    s = ddyn_mpc_set_coefficients(&ctl->mpc, ctl->coeffs);
     if (s == DDYN_OK && pid) {
         s = ddyn_mpc_reference_speed(&ctl->mpc, ctl->ekf.x, ctl->cfg.pid.preview * fabs(ctl->ekf.x[VX]), &v_ref);
         if (s == DDYN_OK) {

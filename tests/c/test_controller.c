@@ -573,6 +573,18 @@ static void test_prepared_iteration_drives_like_the_full_one(void **state)
     }
     print_message("prepared vs full iteration: mean |du| %g of mean |u| %g\n", diff / 130, size / 130);
     assert_true(diff < 0.05 * size);
+    /* a preparation made with coefficients the next period replaces (here: Bf moved by half its guard
+     * range, as a fallback would) is dropped: the step runs the whole iteration, prepared at the
+     * estimate itself, instead of the feedback from the predicted state */
+    assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK);
+    ctl.mpc.c[0] += 0.5 * ((double)ddyn_net_weights.hi[0] - (double)ddyn_net_weights.lo[0]);
+    readings(&in, 150);
+    run(&in, &out);
+    assert_memory_equal(ctl.mpc.prep_x0, out.x_est, sizeof out.x_est);
+    assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK); /* unchanged coefficients: the feedback runs */
+    readings(&in, 151);
+    run(&in, &out);
+    assert_memory_not_equal(ctl.mpc.prep_x0, out.x_est, sizeof out.x_est);
 }
 
 static void test_recovery_after_a_sensor_fault(void **state)
