@@ -12,10 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ddyn.data import vehicle_ref
 from ddyn.errors import DdynError
 from ddyn.model import backends
-from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.single_track import STATE_NAMES
 from ddyn.paths import BUILD
 
@@ -38,14 +36,9 @@ def run_c_model(binary: Path, vehicle_name: str, method: str, x: np.ndarray, u: 
 
 def crosscheck(data_path: str, binary: Path, method: str = "euler", coeff_set: str = "true",
                vehicle_name: str | None = None) -> dict:
-    from ddyn.data.importers import load_any
+    from ddyn.data.importers import load_with_vehicle
 
-    given = vehicle_mod.load(vehicle_name) if vehicle_name else None
-    ds = load_any(data_path, vehicle=given)
-    try:
-        v = vehicle_ref.of_dataset(ds, given)
-    except DdynError as e:
-        raise DdynError(f"{data_path}: {e}") from None
+    ds, v = load_with_vehicle(data_path, vehicle_name)
     c = v.coefficient_vector(coeff_set)
     substeps = v.rk4_substeps if method == "rk4" else 1
     py = backends.step_numpy(ds.states, ds.inputs, c, v.known, v.sample_time, method, substeps)

@@ -574,6 +574,17 @@ def load_any(path: str | Path, vehicle: "str | Path | vehicle_mod.Vehicle | None
     return _READERS[fmt](path, **kwargs)
 
 
+def load_with_vehicle(path: str | Path, vehicle: "str | Path | None" = None) -> "tuple[Dataset, vehicle_mod.Vehicle]":
+    """A dataset and the vehicle it belongs to: the given one (a name or a JSON path), else the one the
+    log records (ddyn.data.vehicle_ref); an error names the file."""
+    given = vehicle_mod.load(vehicle) if vehicle else None
+    ds = load_any(path, vehicle=given)
+    try:
+        return ds, vehicle_ref.of_dataset(ds, given)
+    except DdynError as e:
+        raise DdynError(f"{path}: {e}") from None
+
+
 def _with_vehicle(path: Path, ds: Dataset, vehicle: "str | Path | vehicle_mod.Vehicle | None") -> Dataset:
     if vehicle is None:
         return ds

@@ -4,28 +4,21 @@ from __future__ import annotations
 import json
 from dataclasses import fields
 
-from ddyn.data import vehicle_ref
 from ddyn.data.windows import split_train_validation
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
 from ddyn.learn.evaluate import evaluate, format_summary, public
 from ddyn.learn.guard_ranges import describe, with_ranges
 from ddyn.learn.training import TrainConfig, train
-from ddyn.model import vehicle as vehicle_mod
 
 
 def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name: str | None = None,
                         progress: bool = True, ranges_file: str | None = None) -> dict:
     """vehicle_name: a name in train/vehicles or a JSON path (default: the dataset's, see vehicle_ref).
     ranges_file: guard ranges in place of the vehicle file's (ddyn.learn.guard_ranges)."""
-    from ddyn.data.importers import load_any
+    from ddyn.data.importers import load_with_vehicle
 
-    given = vehicle_mod.load(vehicle_name) if vehicle_name else None
-    ds = load_any(data_path, vehicle=given)
-    try:
-        v = vehicle_ref.of_dataset(ds, given)
-    except DdynError as e:
-        raise DdynError(f"{data_path}: {e}") from None
+    ds, v = load_with_vehicle(data_path, vehicle_name)
     ranges_record = None
     if ranges_file:
         if cfg.kind != "ddm":

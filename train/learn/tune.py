@@ -30,7 +30,6 @@ import time
 import warnings
 from pathlib import Path
 
-from ddyn.data import vehicle_ref
 from ddyn.errors import DdynError
 
 DEFAULT_OUT = "out/tune"
@@ -189,9 +188,8 @@ def run_study(data_path: str | Path, storage: str | None, study_name: str | None
     has completed.
     """
     optuna = _optuna()
-    from ddyn.data.importers import load_any
+    from ddyn.data.importers import load_with_vehicle
     from ddyn.learn.training import TrainConfig, train
-    from ddyn.model import vehicle as vehicle_mod
 
     if n_trials < 1:
         raise DdynError(f"--trials must be at least 1, got {n_trials}")
@@ -203,12 +201,7 @@ def run_study(data_path: str | Path, storage: str | None, study_name: str | None
     if lbfgs_iterations < 0:
         raise DdynError(f"--lbfgs-iterations must not be negative, got {lbfgs_iterations}")
     TrainConfig(kind=kind, epochs=epochs, lbfgs_iterations=lbfgs_iterations)  # validates kind and epochs
-    given = vehicle_mod.load(vehicle) if vehicle else None
-    ds = load_any(data_path, vehicle=given)
-    try:
-        veh = vehicle_ref.of_dataset(ds, given)
-    except DdynError as e:
-        raise DdynError(f"{data_path}: {e}") from None
+    ds, veh = load_with_vehicle(data_path, vehicle)
 
     study_name = study_name or f"{kind}-{Path(data_path).stem}"
     url = storage or default_storage(out, study_name)
