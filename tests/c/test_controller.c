@@ -389,6 +389,21 @@ static void test_out_of_range_history_falls_back_last_good_then_nominal(void **s
     assert_memory_not_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
 }
 
+/* a full history on the circle with a network whose every output is refused: NET_FAULT, and the
+ * nominal coefficients (the true ones here) since no output was ever good */
+static void drive_refused_network(const ddyn_net_tables *tables, ddyn_ctrl_output *out)
+{
+    int k;
+    start_on_circle(tables);
+    for (k = 0; k <= DDYN_NET_TAU; ++k) {
+        run_exact(k, out);
+    }
+    assert_true(out->status & DDYN_CTRL_NET_FAULT);
+    assert_true(out->status & DDYN_CTRL_COEFF_NOMINAL);
+    assert_memory_equal(out->coeffs, C_TRUE, sizeof C_TRUE);
+    assert_int_equal(ctl.last_good_age, -1);
+}
+
 static void test_nonfinite_network_output_falls_back_to_nominal(void **state)
 {
     static ddyn_net_real nan_bias[DDYN_NET_NOUT];
@@ -401,14 +416,7 @@ static void test_nonfinite_network_output_falls_back_to_nominal(void **state)
         nan_bias[k] = (ddyn_net_real)NAN; /* a corrupted weight table */
     }
     broken.head_b = nan_bias;
-    start_on_circle(&broken);
-    for (k = 0; k <= DDYN_NET_TAU; ++k) {
-        run_exact(k, &out);
-    }
-    assert_true(out.status & DDYN_CTRL_NET_FAULT);
-    assert_true(out.status & DDYN_CTRL_COEFF_NOMINAL);
-    assert_memory_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
-    assert_int_equal(ctl.last_good_age, -1);
+    drive_refused_network(&broken, &out);
     /* several causes in one period are all reported */
     readings(&in, 1);
     in.reading[DDYN_MEAS_STEERING].z[0] = -INFINITY;
@@ -424,7 +432,6 @@ static void test_unusable_network_coefficients_fall_back_to_nominal(void **state
     static ddyn_net_real lo[DDYN_NET_NOUT], head_b[DDYN_NET_NOUT];
     ddyn_net_tables broken = ddyn_net_weights;
     ddyn_ctrl_output out;
-    int k;
     (void)state;
     memcpy(lo, ddyn_net_weights.lo, sizeof lo);
     memcpy(head_b, ddyn_net_weights.head_b, sizeof head_b);
@@ -432,14 +439,7 @@ static void test_unusable_network_coefficients_fall_back_to_nominal(void **state
     head_b[DDYN_NET_NOUT - 1] = (ddyn_net_real)-1000.0; /* ... and the sigmoid at its lower end */
     broken.lo = lo;
     broken.head_b = head_b;
-    start_on_circle(&broken);
-    for (k = 0; k <= DDYN_NET_TAU; ++k) {
-        run_exact(k, &out);
-    }
-    assert_true(out.status & DDYN_CTRL_NET_FAULT);
-    assert_true(out.status & DDYN_CTRL_COEFF_NOMINAL);
-    assert_memory_equal(out.coeffs, C_TRUE, sizeof C_TRUE);
-    assert_int_equal(ctl.last_good_age, -1);
+    drive_refused_network(&broken, &out);
 }
 
 static void test_indefinite_covariance_restarts_the_filter(void **state)
