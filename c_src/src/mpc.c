@@ -1,6 +1,7 @@
 /* ddyn MPC: configuration, parameters, raceline table and the real-time-iteration step (see ddyn/mpc.h). */
 #include "ddyn/mpc.h"
 #include "ddyn/mpc_qp.h"
+#include "ddyn/mpc_qp_daqp.h"
 #include "ddyn_mpc_limits.h"
 
 #include <math.h>
@@ -44,6 +45,7 @@ ddyn_status ddyn_mpc_default_config(const ddyn_vehicle_model *model, ddyn_mpc_co
     cfg->r_rate[1] = 1.0; /* chosen on random tracks 0-19, held out on 200-219 (docs/tracks.md) */
     cfg->slack_l1 = 1e4;
     cfg->slack_l2 = 1e5;
+    cfg->qp_solver = DDYN_MPC_QP_DAQP; /* docs/mpc.md: faster and far more accurate than the own IPM */
     cfg->qp_max_iterations = 30;
     cfg->qp_tolerance = 1e-6;
     return DDYN_OK;
@@ -53,6 +55,7 @@ static int config_valid(const ddyn_mpc_config *cfg)
 {
     int j;
     if (cfg->horizon < 1 || cfg->horizon > DDYN_MPC_MAX_HORIZON || (unsigned)cfg->prediction >= (unsigned)DDYN_MPC_PRED_COUNT ||
+        (unsigned)cfg->qp_solver >= (unsigned)DDYN_MPC_QP_COUNT ||
         cfg->qp_max_iterations < 1 || cfg->qp_max_iterations > DDYN_MPC_MAX_QP_ITERATIONS) {
         return 0;
     }
@@ -158,6 +161,7 @@ void ddyn_mpc_reset(ddyn_mpc *mpc)
     mpc->prepared = 0;
     mpc->last_index = -1;
     memset(mpc->u_plan, 0, sizeof mpc->u_plan);
+    ddyn_mpc_qp_daqp_reset(&mpc->daqp); /* the next QP starts cold */
 }
 
 /* ---- raceline geometry ------------------------------------------------------------------ */
@@ -546,6 +550,7 @@ static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, do
     mpc->prep_u0 = u0;
     st = linearise(mpc, x0, hold, dthrottle0);
     if (st != DDYN_OK) {
+        ddyn_mpc_qp_daqp_reset(&mpc->daqp); /* a period without a QP: its working set no longer fits */
         return st;
     }
     sensitivities(mpc);
@@ -654,7 +659,15 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         u0 = mpc->prep_u0;
     }
     info->progress = track_at(&mpc->track, info->track_index, u0).s;
-    qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
+    if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP) {
+        /* warm start: the last solve's working set one stage on, unless there is no plan to continue */
+        if (!mpc->have_warm_start) {
+            ddyn_mpc_qp_daqp_reset(&mpc->daqp);
+        }
+        qst = ddyn_mpc_qp_daqp_solve(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
+    } else {
+        qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
+    }
     if (qst != DDYN_OK && qst != DDYN_ERR_QP_NOT_CONVERGED) {
         return qst; /* malformed QP (non-finite sensitivities): keep the old plan */
     }

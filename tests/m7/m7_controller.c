@@ -402,6 +402,9 @@ int main(void)
             ddyn_ctrl_output out;
             uint32_t t0;
             input_of(&m7_seg_periods[i], &in);
+            /* DAQP (the default solver) ignores the tolerance: it starts from a wrong working set
+             * instead, which it takes apart one constraint per iteration */
+            ddyn_mpc_qp_daqp_adversarial_start(&ctl.mpc.daqp, ctl.cfg.mpc.horizon);
             t0 = SYST_CVR;
             ddyn_ctrl_step(&ctl, &in, &out);
             insn[i] = ticks_since(t0) * INSN_PER_TICK;

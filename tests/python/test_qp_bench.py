@@ -38,10 +38,24 @@ def lap(tmp_path_factory):
 def test_dump_holds_one_qp_per_step(lap):
     qps, own, _ = lap
     assert len(qps) == STEPS and all(q["H"] == 20 for q in qps)
-    # the replay's runtime-settings solve is the lap's solve: same iterations, same answer
-    assert own["runtime"]["iterations"] == [q["iterations"] for q in qps]
-    for q, x in zip(qps, own["runtime"]["x"]):
+    # the lap runs the default solver (DAQP, warm-started along the lap); the replay's DAQP run, warm-started
+    # along the same sequence, is the lap's solve: same iterations, same answer
+    assert own["daqp"]["iterations"] == [q["iterations"] for q in qps]
+    for q, x in zip(qps, own["daqp"]["x"]):
         assert np.allclose(x, np.concatenate([q["z"], q["slack"]]), rtol=0.0, atol=1e-12)
+
+
+def test_runtime_daqp_path_is_optimal(lap):
+    """mpc_qp_daqp.c (DAQP's core on the static workspace, the soft rows as DAQP soft constraints with the
+    MPC's penalty) solves the same problem as the standard form: its answers equal PIQP's tight ones."""
+    _, own, forms = lap
+    ref = qpb.solve_piqp(forms, 1e-10)
+    assert all(own["daqp"]["converged"])
+    for sf, x_d, x_ref in zip(forms, own["daqp"]["x"], ref["x"]):
+        assert qpb.violation(sf, x_d) < 1e-6  # DAQP's primal tolerance
+        f_d, f_ref = qpb.objective(sf, x_d), qpb.objective(sf, x_ref)
+        assert abs(f_d - f_ref) <= 1e-7 * max(1.0, abs(f_ref))
+        assert abs(x_d[1] - x_ref[1]) < 1e-4  # the applied steering rate (rad/s, bounds +-5)
 
 
 def test_standard_form_is_the_c_solvers_problem(lap):

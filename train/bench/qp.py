@@ -2,8 +2,10 @@
 
 The QPs are those of a closed-loop lap: ddyn_mpc_lap (c_src/tools/mpc_lap.c) drives the simulated car
 with the C MPC and dumps every step's condensed QP (c_src/tools/qp_dump.h). ddyn_qp_replay
-(c_src/tools/qp_replay.c) solves each with mpc_qp.c as the runtime does (double, its iteration cap
-and tolerance), with the float32 build of the same solver, and tightly (50 iterations, 1e-10). Here
+(c_src/tools/qp_replay.c) solves each with mpc_qp.c (the interior point, `qp_solver = ipm`: double, its
+iteration cap and tolerance), with the float32 build of the same solver, tightly (50 iterations, 1e-10),
+and with the runtime's DAQP path (c_src/src/mpc_qp_daqp.c, the default `qp_solver = daqp`: DAQP's core
+on the static workspace, warm-started from the previous QP's working set shifted one stage). Here
 each QP is written in standard form (variables z, s; objective 1/2 z'Hz + f'z + rho1 1's + rho2 s's;
 bounds on z and s >= 0; the integrator rows; the soft rows as two one-sided rows each) and solved
 by DAQP (dual active set, warm-started with the previous QP's multipliers), PIQP (proximal interior
@@ -29,6 +31,7 @@ from ddyn.paths import BUILD
 
 DEFAULT_BUILD = BUILD / "c_src"
 INF = 1e30  # DAQP's infinity; PIQP and ProxQP get np.inf
+RUNS = ("ipm", "f32", "tight", "daqp")  # ddyn_qp_replay's runs, in its order
 
 
 def read_dump(path: Path) -> list[dict]:
@@ -53,13 +56,13 @@ def read_dump(path: Path) -> list[dict]:
 
 
 def read_replay(path: Path, qps: list[dict]) -> dict:
-    """ddyn_qp_replay's output: per run (runtime, f32, tight) iterations, converged, us, x = (z, s)."""
+    """ddyn_qp_replay's output: per run (ipm, f32, tight, daqp) iterations, converged, us, x = (z, s)."""
     raw = np.fromfile(path, dtype="<f8")
-    out = {k: {"iterations": [], "converged": [], "us": [], "x": []} for k in ("runtime", "f32", "tight")}
+    out = {k: {"iterations": [], "converged": [], "us": [], "x": []} for k in RUNS}
     i = 0
     for qp in qps:
         m = qp["H"]; size = 3 + 3 * m
-        for k in ("runtime", "f32", "tight"):
+        for k in RUNS:
             r = raw[i:i + size]; i += size
             out[k]["iterations"].append(int(r[0])); out[k]["converged"].append(int(r[1]))
             out[k]["us"].append(r[2]); out[k]["x"].append(r[3:].copy())
@@ -212,13 +215,15 @@ def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track
     check = solve_proxqp(forms, 1e-10, warm=False)
     rows = [accuracy("reference: PIQP 0.6.4 at eps_abs 1e-10 (cold)", ref, forms, ref["x"]),
             accuracy("reference check: ProxQP 0.8.0 at eps_abs 1e-10 (cold) vs the reference", check, forms, ref["x"])]
-    rows.append(accuracy(f"mpc_qp.c (runtime: double, cap {settings.qp_max_iterations}, tol "
-                         f"{settings.qp_tolerance:g}, cold)", own["runtime"], forms, ref["x"]))
+    rows.append(accuracy(f"**runtime DAQP path** (mpc_qp_daqp.c: double, cap {settings.qp_max_iterations}, warm: "
+                         "previous working set shifted one stage)", own["daqp"], forms, ref["x"]))
+    rows.append(accuracy(f"mpc_qp.c (qp_solver = ipm: double, cap {settings.qp_max_iterations}, tol "
+                         f"{settings.qp_tolerance:g}, cold)", own["ipm"], forms, ref["x"]))
     rows.append(accuracy("mpc_qp.c float32 (same cap and tol)", own["f32"], forms, ref["x"]))
     rows.append(accuracy("mpc_qp.c float32 against mpc_qp.c double (not the reference)", own["f32"], forms,
-                         own["runtime"]["x"]))
+                         own["ipm"]["x"]))
     rows.append(accuracy("mpc_qp.c tight (50 iterations, 1e-10)", own["tight"], forms, ref["x"]))
-    rows.append(accuracy("DAQP 0.11.0 (default tol, warm: previous multipliers)", solve_daqp(forms, True), forms, ref["x"]))
+    rows.append(accuracy("DAQP 0.11.0 Python (slacks as variables, default tol, warm: previous multipliers)", solve_daqp(forms, True), forms, ref["x"]))
     rows.append(accuracy("PIQP 0.6.4 (eps_abs = eps_rel = 1e-6, cold)", solve_piqp(forms, 1e-6), forms, ref["x"]))
     # cold: ProxQP 0.8.0 warm-started with WARM_START_WITH_PREVIOUS_RESULT did not return (minutes on one QP of
     # this lap, also with max_iter 10,000)

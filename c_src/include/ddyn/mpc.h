@@ -34,6 +34,7 @@
 
 #include "ddyn/model.h"
 #include "ddyn/mpc_qp.h"
+#include "ddyn/mpc_qp_daqp.h"
 
 #ifdef __cplusplus
 extern "C" {
@@ -60,6 +61,14 @@ typedef enum {
     DDYN_MPC_PRED_COUNT = 3
 } ddyn_mpc_prediction;
 
+/* The QP solver (docs/mpc.md, "The QP solver against DAQP, PIQP and ProxQP"). */
+typedef enum {
+    DDYN_MPC_QP_DAQP = 0, /* default: DAQP's dual active-set core (mpc_qp_daqp.c), warm-started from the
+                             last period's working set shifted one stage; qp_tolerance unused */
+    DDYN_MPC_QP_IPM = 1,  /* the own dense interior point (mpc_qp.c), cold every period */
+    DDYN_MPC_QP_COUNT = 2
+} ddyn_mpc_qp_solver;
+
 typedef struct {
     int horizon;                /* H, 1..DDYN_MPC_MAX_HORIZON (default 20) */
     ddyn_mpc_prediction prediction; /* prediction model (default DDYN_MPC_PRED_RK4_SINGLE) */
@@ -72,8 +81,10 @@ typedef struct {
     double state_hi[2];
     double slack_l1;            /* rho1: exact penalty of a track-bound violation, per metre */
     double slack_l2;            /* rho2: quadratic penalty, per square metre (> 0) */
-    int qp_max_iterations;      /* interior-point iteration cap, 1..DDYN_MPC_MAX_QP_ITERATIONS */
-    double qp_tolerance;        /* stop when residuals and mean complementarity are below this */
+    ddyn_mpc_qp_solver qp_solver; /* DDYN_MPC_QP_DAQP (default) or DDYN_MPC_QP_IPM */
+    int qp_max_iterations;      /* QP iteration cap, 1..DDYN_MPC_MAX_QP_ITERATIONS; hitting it returns
+                                   DDYN_ERR_QP_NOT_CONVERGED (the controller then shifts the last plan) */
+    double qp_tolerance;        /* IPM: stop when residuals and mean complementarity are below this */
 } ddyn_mpc_config;
 
 /* Raceline table with the room to the track bounds (set once per track with ddyn_mpc_set_track). */
@@ -90,7 +101,7 @@ typedef struct {
 
 /* What one solve did. */
 typedef struct {
-    int qp_iterations;          /* interior-point iterations used */
+    int qp_iterations;          /* QP iterations used */
     int converged;              /* 1 if the QP met qp_tolerance within qp_max_iterations */
     double kkt_residual;        /* final max(primal residual, dual residual, mean complementarity) */
     double max_slack;           /* largest track-bound slack of the plan (m): > 0 = the plan leaves the track */
@@ -133,6 +144,7 @@ typedef struct {
     int prep_index;
     double prep_u0;
     ddyn_mpc_qp qp;
+    ddyn_mpc_qp_daqp daqp;      /* DAQP's workspace and warm start (qp_solver DDYN_MPC_QP_DAQP) */
     ddyn_model_work model_work;
 } ddyn_mpc;
 
