@@ -224,8 +224,8 @@ int main(int argc, char **argv)
     }
     memcpy(x_start, x, sizeof x_start);
     ddyn_ctrl_default_config(model, &cfg);
-    if (getenv("DDYN_BENCH_QP_SOLVER") != NULL) {
-        cfg.mpc.qp_solver = strcmp(getenv("DDYN_BENCH_QP_SOLVER"), "ipm") == 0 ? DDYN_MPC_QP_IPM : DDYN_MPC_QP_DAQP;
+    if (getenv("DDYN_QP_SOLVER") != NULL) {
+        cfg.mpc.qp_solver = strcmp(getenv("DDYN_QP_SOLVER"), "ipm") == 0 ? DDYN_MPC_QP_IPM : DDYN_MPC_QP_DAQP;
     }
     memcpy(cfg.c_nominal, c_nominal, sizeof c_nominal);
     memcpy(cfg.q_diag, q, sizeof q);

@@ -6,6 +6,7 @@
  *   vehicle NAME | disc rk4_single|euler|rk4 | horizon H | steps N | weights qx qy q_terminal r_dT r_dd l1 l2
  *   qp MAX_ITER TOL | coeffs c1..c17 (the MPC's) | plant_coeffs c1..c17 | x0 x1..x8
  *   track N, followed by N lines "x y speed room_left room_right"
+ * DDYN_QP_SOLVER=ipm in the environment selects the interior-point QP solver (default daqp).
  * Prints one line per step: "k status qp_iterations converged kkt_residual max_slack solve_us
  * u0 u1 x1..x8" (x after applying u), then "done".
  * With QP_DUMP, every step's condensed QP (ddyn_mpc_qp: problem and the solver's answer) is appended
@@ -104,6 +105,9 @@ int main(int argc, char **argv)
     if (qiter > 0) {
         cfg.qp_max_iterations = qiter;
         cfg.qp_tolerance = qtol;
+    }
+    if (getenv("DDYN_QP_SOLVER") != NULL) { /* ipm or daqp (the default): docs/mpc.md */
+        cfg.qp_solver = strcmp(getenv("DDYN_QP_SOLVER"), "ipm") == 0 ? DDYN_MPC_QP_IPM : DDYN_MPC_QP_DAQP;
     }
     if ((st = ddyn_mpc_init(&mpc, model, &cfg)) != DDYN_OK ||
         (st = ddyn_mpc_set_track(&mpc, n_track, tx, ty, tv, twl, twr)) != DDYN_OK ||

@@ -494,6 +494,164 @@ static void test_iteration_cap_reports_and_commands_within_bounds(void **state)
     assert_true(info.kkt_residual > mpc.cfg.qp_tolerance);
 }
 
+/* ---- the DAQP path (mpc_qp_daqp.c): the same structured problems, the penalty, warm start, cap ---- */
+static ddyn_mpc_qp_daqp daqp;
+
+static void test_daqp_solves_the_structured_qps(void **state)
+{
+    /* the three problems with known answers above, now through DAQP's core on the static workspace */
+    int i, k, h;
+    double acc = 0.0;
+    (void)state;
+    /* box only: the clipped minimiser */
+    h = 10;
+    qp_clear(h);
+    open_bounds(2 * h);
+    for (i = 0; i < 2 * h; ++i) {
+        qp.hess[i + i * DDYN_QP_NV] = 1.0 + 0.1 * i;
+        qp.grad[i] = (i % 3 == 0 ? -5.0 : (i % 3 == 1 ? 4.0 : 0.3)) * qp.hess[i + i * DDYN_QP_NV];
+        qp.lb[i] = -1.0;
+        qp.ub[i] = 2.0;
+    }
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    for (i = 0; i < 2 * h; ++i) {
+        assert_true(fabs(qp.z[i] - (i % 3 == 0 ? 2.0 : (i % 3 == 1 ? -1.0 : -0.3))) < 1e-9);
+    }
+    assert_true(qp.converged && qp.residual <= 1e-9 && daqp.cold);
+    /* cold, one constraint per iteration: at least the 14 active bounds; the same QP warm-started
+     * (shift 0) from that working set only checks it */
+    assert_true(qp.iterations >= 14 && daqp.warm_n == 14);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(!daqp.cold && qp.iterations <= 1 && fabs(qp.z[0] - 2.0) < 1e-9);
+    /* shifted one stage: with the same pattern at every stage (throttle at its upper, steering at its
+     * lower bound), stage k's bounds move to stage k-1 and only the last stage's two are added */
+    for (i = 0; i < 2 * h; ++i) {
+        qp.grad[i] = (i % 2 == 0 ? -5.0 : 4.0) * qp.hess[i + i * DDYN_QP_NV];
+    }
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(qp.iterations >= 2 * h && daqp.warm_n == 2 * h);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 1), DDYN_OK);
+    assert_true(qp.iterations == 3 && fabs(qp.z[2 * h - 2] - 2.0) < 1e-9 && fabs(qp.z[2 * h - 1] + 1.0) < 1e-9);
+    /* the soft row's penalty rho1 s + rho2 s^2, mapped onto DAQP's w s + s^2 / (2 rho): exact below
+     * the price, s = (1.5 - rho1) / (1 + 2 rho2) above it */
+    qp_clear(1);
+    open_bounds(2);
+    qp.hess[0] = 1.0;
+    qp.hess[1 + DDYN_QP_NV] = 1.0;
+    qp.grad[0] = -2.0;
+    qp.soft_row[0] = 1.0;
+    qp.soft_hi[0] = 0.5;
+    qp.soft_lo[0] = -1.0;
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(fabs(qp.z[0] - 0.5) < 1e-9 && fabs(qp.slack[0]) < 1e-9);
+    qp.rho1 = 1.0;
+    qp.rho2 = 0.5;
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(fabs(qp.slack[0] - 0.25) < 1e-9 && fabs(qp.z[0] - 0.75) < 1e-9);
+    qp.rho2 = 2.0; /* s = 0.5 / 5 */
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(fabs(qp.slack[0] - 0.1) < 1e-9);
+    /* the integrator rows cap the prefix sums of one channel, the other stays free */
+    h = 5;
+    qp_clear(h);
+    open_bounds(2 * h);
+    for (i = 0; i < 2 * h; ++i) {
+        qp.hess[i + i * DDYN_QP_NV] = 1.0;
+        qp.grad[i] = -50.0;
+    }
+    for (k = 0; k < h; ++k) {
+        qp.hard_hi[2 * k] = 0.1;
+    }
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    for (k = 0; k < h; ++k) {
+        acc += qp.z[2 * k];
+        assert_true(qp.dt * acc <= 0.1 + 1e-9);
+        assert_true(fabs(qp.z[2 * k + 1] - 50.0) < 1e-9);
+    }
+    assert_true(fabs(qp.dt * acc - 0.1) < 1e-9);
+}
+
+static void test_daqp_refusals_and_crossing_bounds_start_cold(void **state)
+{
+    (void)state;
+    qp_clear(2);
+    open_bounds(4);
+    for (int i = 0; i < 4; ++i) {
+        qp.hess[i + i * DDYN_QP_NV] = 1.0;
+    }
+    qp.soft_lo[0] = -1.0; /* a soft row that binds: the working set is not empty */
+    qp.soft_row[0] = 1.0;
+    qp.grad[0] = -5.0;
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    qp.soft_hi[0] = 0.1;
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(daqp.warm_n > 0);
+    qp.grad[2] = NAN;
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 1), DDYN_ERR_NONFINITE_INPUT);
+    assert_true(qp.z[0] == 0.0 && daqp.warm_n == 0);
+    qp.grad[2] = 0.0;
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(daqp.warm_n > 0);
+    qp.hard_lo[1] = 1.0; /* crossing hard bounds: no solution, a defined answer, cold next time */
+    qp.hard_hi[1] = 0.5;
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_true(!qp.converged && daqp.warm_n == 0 && isfinite(qp.z[0]));
+    qp.hess[5] = 1.0; /* not symmetric positive definite: H = [[1, 1], [1, 1]] in the first block */
+    qp.hess[1] = 1.0;
+    qp.hard_lo[1] = -100.0;
+    qp.hard_hi[1] = 100.0;
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_ERR_ARGUMENT);
+}
+
+static void test_daqp_warm_start_shifts_and_the_cap_is_defined(void **state)
+{
+    /* closed loop on the ring with DAQP (the default): every QP, re-solved cold from the same problem,
+     * has the same answer; the shifted warm start needs fewer iterations than cold starts in total */
+    static ddyn_model_work work;
+    static ddyn_mpc_qp copy;
+    double x[DDYN_NX], u[DDYN_NU], xn[DDYN_NX];
+    ddyn_mpc_info info;
+    int k, i, warm_total = 0, cold_total = 0;
+    (void)state;
+    ring_mpc(30);
+    assert_int_equal(mpc.cfg.qp_solver, DDYN_MPC_QP_DAQP);
+    ring_start(x);
+    for (k = 0; k < 60; ++k) {
+        assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+        warm_total += info.qp_iterations;
+        memcpy(&copy, &mpc.qp, sizeof copy);
+        ddyn_mpc_qp_daqp_reset(&daqp);
+        assert_int_equal(ddyn_mpc_qp_daqp_solve(&copy, &daqp, 50, 1), DDYN_OK);
+        cold_total += copy.iterations;
+        for (i = 0; i < 2 * mpc.cfg.horizon; ++i) {
+            assert_true(fabs(copy.z[i] - mpc.qp.z[i]) < 1e-7);
+        }
+        assert_int_equal(ddyn_model_step(&ddyn_model_orca_1_43, DDYN_DISC_RK4, x, u, C, xn, &work), DDYN_OK);
+        memcpy(x, xn, sizeof x);
+    }
+    /* (the ring's QPs have few active constraints: about one iteration each either way) */
+    print_message("DAQP on the ring: %d iterations warm-started, %d cold over 60 QPs\n", warm_total, cold_total);
+    assert_true(warm_total <= cold_total);
+    /* the cap: from a wrong working set DAQP cannot finish in 3 iterations; the answer is finite and
+     * within the rate bounds, the working set reached is kept, and the next period finishes the work */
+    ddyn_mpc_qp_daqp_adversarial_start(&mpc.daqp, mpc.cfg.horizon);
+    mpc.cfg.qp_max_iterations = 3;
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_true(info.qp_iterations == 3 && !info.converged && mpc.daqp.warm_n > 0);
+    assert_true(isfinite(u[0]) && isfinite(u[1]) && fabs(u[0]) <= 10.0 && fabs(u[1]) <= 5.0);
+    mpc.cfg.qp_max_iterations = 50; /* 35 wrong constraints are left to drop */
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+    /* a reset of the MPC (a fault) starts the QP cold */
+    ddyn_mpc_reset(&mpc);
+    assert_int_equal(mpc.daqp.warm_n, 0);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+    assert_true(mpc.daqp.cold);
+}
+
 static void test_generated_prediction_step_jacobians_and_integrators(void **state)
 {
     /* the MPC's step: A, B against central differences; throttle, steering are exact integrators
@@ -645,6 +803,9 @@ int main(void)
         cmocka_unit_test(test_iteration_cap_reports_and_commands_within_bounds),
         cmocka_unit_test(test_generated_prediction_step_jacobians_and_integrators),
         cmocka_unit_test(test_closed_loop_stays_on_the_ring),
+        cmocka_unit_test(test_daqp_solves_the_structured_qps),
+        cmocka_unit_test(test_daqp_refusals_and_crossing_bounds_start_cold),
+        cmocka_unit_test(test_daqp_warm_start_shifts_and_the_cap_is_defined),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
         cmocka_unit_test(test_plan_inputs_need_no_simulation),

@@ -209,6 +209,9 @@ static int controller_init(double qp_tolerance)
     if (qp_tolerance > 0.0) {
         cfg.mpc.qp_tolerance = qp_tolerance;
     }
+#ifdef M7_QP_CAP /* exploring other caps (docs/m7.md); pass 1 then no longer matches the recording */
+    cfg.mpc.qp_max_iterations = M7_QP_CAP;
+#endif
     for (i = 0; i < m7_seg_track_n; ++i) {
         for (k = 0; k < 5; ++k) {
             track_col[k][i] = m7_seg_track[i][k];
