@@ -26,6 +26,7 @@ void ddyn_mpc_qp_daqp_reset(ddyn_mpc_qp_daqp *w)
     if (w != NULL) {
         w->warm_n = 0;
         w->warm_h = 0;
+        w->capped = 0;
     }
 }
 
@@ -420,7 +421,13 @@ ddyn_status ddyn_mpc_qp_daqp_solve(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max
         return DDYN_ERR_QP_NOT_CONVERGED;
     }
     /* the working set for the next solve; after the iteration cap the one reached so far, so that
-     * the next period goes on from there (a cold start would need as many iterations again) */
+     * the next period goes on from there (a cold start would need as many iterations again), unless
+     * the previous solve was capped too: then that continuation is no guide either, and it starts cold */
+    if (exitflag == DAQP_EXIT_ITERLIMIT && w->capped) {
+        ddyn_mpc_qp_daqp_reset(w);
+        return DDYN_ERR_QP_NOT_CONVERGED;
+    }
+    w->capped = exitflag == DAQP_EXIT_ITERLIMIT;
     w->warm_n = 0;
     for (i = 0; i < work.n_active && i < DDYN_DAQP_WS; ++i) {
         const int id = work.WS[i];
