@@ -184,7 +184,9 @@ def accuracy(name: str, res: dict, forms: list[dict], ref: list[np.ndarray]) -> 
 
 
 def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track: str = "ethzMobil",
-        vehicle: str = "orca_1_43") -> list[dict]:
+        vehicle: str = "orca_1_43", f32_build: Path | None = None) -> list[dict]:
+    """f32_build: a build with -DDDYN_QP_FLOAT32=ON whose ddyn_qp_replay re-solves the same QPs (the
+    runtime's DAQP path in float32)."""
     from ddyn.control.mpc_lap import setup_text
     from ddyn.control.mpc_setup import MpcSettings, raceline_table, start_state
     from ddyn.model import vehicle as vehicle_mod
@@ -210,6 +212,14 @@ def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track
             raise DdynError(f"{replay_tool}: {p.stderr.strip()}")
         qps = read_dump(dump)
         own = read_replay(rep, qps)
+        own32 = None
+        if f32_build is not None:
+            tool32 = Path(f32_build) / "ddyn_qp_replay"
+            p = subprocess.run([str(tool32), str(dump), str(repeats), str(settings.qp_max_iterations),
+                                repr(settings.qp_tolerance), str(rep)], capture_output=True, text=True)
+            if p.returncode != 0:
+                raise DdynError(f"{tool32}: {p.stderr.strip()}")
+            own32 = read_replay(rep, qps)
     forms = [standard_form(qp) for qp in qps]
     ref = solve_piqp(forms, 1e-10)
     check = solve_proxqp(forms, 1e-10, warm=False)
@@ -217,6 +227,11 @@ def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track
             accuracy("reference check: ProxQP 0.8.0 at eps_abs 1e-10 (cold) vs the reference", check, forms, ref["x"])]
     rows.append(accuracy(f"**runtime DAQP path** (mpc_qp_daqp.c: double, cap {settings.qp_max_iterations}, warm: "
                          "previous working set shifted one stage)", own["daqp"], forms, ref["x"]))
+    if own32 is not None:
+        rows.append(accuracy("runtime DAQP path in float32 (DDYN_QP_FLOAT32: DAQP_SINGLE_PRECISION)", own32["daqp"],
+                             forms, ref["x"]))
+        rows.append(accuracy("runtime DAQP path float32 against double (not the reference)", own32["daqp"], forms,
+                             own["daqp"]["x"]))
     rows.append(accuracy(f"mpc_qp.c (qp_solver = ipm: double, cap {settings.qp_max_iterations}, tol "
                          f"{settings.qp_tolerance:g}, cold)", own["ipm"], forms, ref["x"]))
     rows.append(accuracy("mpc_qp.c float32 (same cap and tol)", own["f32"], forms, ref["x"]))
@@ -244,7 +259,8 @@ def format_rows(rows: list[dict]) -> str:
 
 
 def _run(args) -> int:
-    rows = run(Path(args.build), args.steps, args.repeats, args.track)
+    rows = run(Path(args.build), args.steps, args.repeats, args.track,
+               f32_build=Path(args.f32_build) if args.f32_build else None)
     print(format_rows(rows))
     if args.out:
         Path(args.out).write_text(json.dumps(rows, indent=2) + "\n")
@@ -255,7 +271,8 @@ def register(subparsers) -> None:
     c = subparsers.add_parser("qp", help="the MPC's QP solver against DAQP, PIQP, ProxQP on a lap's QPs")
     c.add_argument("--build", default=str(DEFAULT_BUILD), help="directory with ddyn_mpc_lap, ddyn_qp_replay")
     c.add_argument("--steps", type=int, default=1500, help="closed-loop steps (one QP each)")
-    c.add_argument("--repeats", type=int, default=20, help="timed solves of each QP by mpc_qp.c")
+    c.add_argument("--repeats", type=int, default=20, help="timed solves of each QP by the C solvers")
     c.add_argument("--track", default="ethzMobil")
+    c.add_argument("--f32-build", help="also the DAQP path of this -DDDYN_QP_FLOAT32=ON build's ddyn_qp_replay")
     c.add_argument("--out", help="write the rows as JSON here")
     c.set_defaults(func=_run)
