@@ -556,6 +556,11 @@ static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, do
     sensitivities(mpc);
     references(mpc, mpc->prep_index, u0);
     build_qp(mpc, x0, hold);
+    if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP) {
+        /* DAQP's factorisation reads only what the feedback leaves alone: done here, before the
+         * measurement (its failure is reported by the feedback's solve) */
+        (void)ddyn_mpc_qp_daqp_factor(&mpc->qp, &mpc->daqp);
+    }
     if (split && !hold) {
         state_sensitivities(mpc); /* only a feedback at another state needs them: not in ddyn_mpc_solve */
     }
@@ -664,7 +669,7 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         if (!mpc->have_warm_start) {
             ddyn_mpc_qp_daqp_reset(&mpc->daqp);
         }
-        qst = ddyn_mpc_qp_daqp_solve(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
+        qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
     } else {
         qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
     }

@@ -68,7 +68,8 @@ static void default_settings(DAQPSettings *s, int max_iterations)
     s->presolve = 0;
 }
 
-static int problem_finite(const ddyn_mpc_qp *qp, int n, int h)
+/* what the factorisation reads: H, the soft rows, dt, the penalty */
+static int matrices_finite(const ddyn_mpc_qp *qp, int n)
 {
     int i;
     for (i = 0; i < n; ++i) {
@@ -76,9 +77,15 @@ static int problem_finite(const ddyn_mpc_qp *qp, int n, int h)
             return 0;
         }
     }
+    return isfinite(qp->dt) && isfinite(qp->rho1) && isfinite(qp->rho2);
+}
+
+/* what the solve reads besides: the gradient and the bounds (the feedback phase changes these) */
+static int vectors_finite(const ddyn_mpc_qp *qp, int n, int h)
+{
     return ddyn_all_finite(qp->grad, n) && ddyn_all_finite(qp->lb, n) && ddyn_all_finite(qp->ub, n) &&
            ddyn_all_finite(qp->hard_lo, n) && ddyn_all_finite(qp->hard_hi, n) && ddyn_all_finite(qp->soft_lo, h) &&
-           ddyn_all_finite(qp->soft_hi, h) && isfinite(qp->dt) && isfinite(qp->rho1) && isfinite(qp->rho2);
+           ddyn_all_finite(qp->soft_hi, h);
 }
 
 /* H = R'R, then Rinv = R^-1 (both packed upper, row-major, in w->Rinv). Returns 0 if H is not
@@ -141,31 +148,40 @@ static int factor_inverse(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, int
     return 1;
 }
 
-/* A (general rows), bounds, sense and the soft weights. Returns 0 for crossing hard bounds. */
-static int build_constraints(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, int h)
+/* A's general rows (row-major): the integrator rows and the soft rows (DAQP's refinement reads A) */
+static void build_rows(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, int h)
 {
-    const int m = 2 * n + h;
     int i, j;
-    memset(w->soft_w, 0, sizeof w->soft_w);
-    for (i = 0; i < n; ++i) {
-        w->bupper[i] = (c_float)qp->ub[i];
-        w->blower[i] = (c_float)qp->lb[i];
-    }
     for (i = 0; i < n; ++i) { /* integrator row r = 2(k-1) + ch: dt * sum_{j<k} z[2j + ch] */
         c_float *a = w->A + i * n;
         for (j = 0; j < n; ++j) {
             a[j] = (j % 2 == i % 2 && j <= i) ? (c_float)qp->dt : 0;
         }
+    }
+    for (i = 0; i < h; ++i) {
+        c_float *a = w->A + (n + i) * n;
+        for (j = 0; j < n; ++j) {
+            a[j] = j < 2 * (i + 1) ? (c_float)qp->soft_row[i * DDYN_QP_NV + j] : 0;
+        }
+    }
+}
+
+/* bounds, sense (with the zero rows the factorisation found) and the soft weights. Returns 0 for
+ * crossing hard bounds. */
+static int build_bounds(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, int h)
+{
+    const int m = 2 * n + h;
+    int i;
+    memset(w->soft_w, 0, sizeof w->soft_w);
+    for (i = 0; i < n; ++i) {
+        w->bupper[i] = (c_float)qp->ub[i];
+        w->blower[i] = (c_float)qp->lb[i];
         w->bupper[n + i] = (c_float)qp->hard_hi[i];
         w->blower[n + i] = (c_float)qp->hard_lo[i];
     }
     for (i = 0; i < h; ++i) {
         const int id = 2 * n + i;
-        c_float *a = w->A + (n + i) * n;
         double lo = qp->soft_lo[i], hi = qp->soft_hi[i];
-        for (j = 0; j < n; ++j) {
-            a[j] = j < 2 * (i + 1) ? (c_float)qp->soft_row[i * DDYN_QP_NV + j] : 0;
-        }
         if (lo > hi) { /* no room at all (a raceline outside its bounds): aim at the middle */
             lo = hi = 0.5 * (lo + hi);
         }
@@ -184,12 +200,16 @@ static int build_constraints(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, 
         if (i < 2 * n && gap < (c_float)DAQP_DEFAULT_ZERO_TOL) { /* an equality, as DAQP's check_bounds */
             w->sense[i] = DAQP_ACTIVE | DAQP_IMMUTABLE;
         }
+        if (i >= n && w->zero_row[i - n]) { /* ignored, as DAQP's normalize_M does */
+            w->sense[i] = DAQP_ZERO_ROW_MARK(w->sense[i]);
+        }
     }
     return 1;
 }
 
-/* M = A Rinv (before Rinv's rows are normalised), v = Rinv' f, then the normalisation and d. */
-static void form_ldp(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, int h)
+/* M = A Rinv (before Rinv's rows are normalised), then the rows of Rinv (simple bounds) and of M
+ * normalised, their scaling kept (DAQP's normalize_Rinv, normalize_M) */
+static void form_M(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, int h)
 {
     const c_float dt = (c_float)qp->dt;
     int i, j, k;
@@ -216,49 +236,76 @@ static void form_ldp(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, int h)
             }
         }
     }
-    for (j = n - 1; j >= 0; --j) { /* v = Rinv' f: v_j = sum_{i<=j} Rinv(i, j) f_i */
-        c_float acc = 0;
-        for (i = 0; i <= j; ++i) {
-            acc += R[row_start(i, n) - i + j] * (c_float)qp->grad[i];
-        }
-        w->v[j] = acc;
-    }
-    for (i = 0; i < n; ++i) { /* simple bounds: rows of Rinv normalised */
+    for (i = 0; i < n; ++i) { /* simple bounds: rows of Rinv */
         const int ri = row_start(i, n) - i;
-        c_float s2 = 0, s, dv = 0;
+        c_float s2 = 0, sc;
         for (j = i; j < n; ++j) {
             s2 += R[ri + j] * R[ri + j];
         }
-        s = 1 / (c_float)sqrt(s2);
-        w->scaling[i] = s;
+        sc = 1 / (c_float)sqrt(s2);
+        w->scaling[i] = sc;
         for (j = i; j < n; ++j) {
-            R[ri + j] *= s;
-            dv += R[ri + j] * w->v[j];
+            R[ri + j] *= sc;
         }
-        w->dupper[i] = w->bupper[i] * s + dv;
-        w->dlower[i] = w->blower[i] * s + dv;
     }
     for (i = 0; i < n + h; ++i) { /* general rows */
-        const int id = n + i;
-        c_float *mi = w->M + i * n, s2 = 0, s, dv = 0;
+        c_float *mi = w->M + i * n, s2 = 0, sc;
         for (j = 0; j < n; ++j) {
             s2 += mi[j] * mi[j];
         }
-        if (s2 < (c_float)DAQP_DEFAULT_ZERO_TOL) { /* a zero row (e.g. a soft row of a held channel): ignored */
-            w->scaling[id] = 1;
-            w->sense[id] = DAQP_ZERO_ROW_MARK(w->sense[id]);
+        w->zero_row[i] = s2 < (c_float)DAQP_DEFAULT_ZERO_TOL; /* e.g. a soft row of a held channel */
+        if (w->zero_row[i]) {
+            w->scaling[n + i] = 1;
+            continue;
+        }
+        sc = 1 / (c_float)sqrt(s2);
+        w->scaling[n + i] = sc;
+        for (j = 0; j < n; ++j) {
+            mi[j] *= sc;
+        }
+    }
+}
+
+/* v = Rinv' f (from the normalised rows: Rinv(i, j) = Rn(i, j) / scaling_i, as DAQP's update_v), then
+ * d = b scaling + (normalised row) v */
+static void form_d(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int n, int h)
+{
+    const c_float *R = w->Rinv;
+    c_float fs[DDYN_DAQP_N];
+    int i, j;
+    for (i = 0; i < n; ++i) {
+        fs[i] = (c_float)qp->grad[i] / w->scaling[i];
+        w->v[i] = 0;
+    }
+    for (i = 0; i < n; ++i) { /* row-wise over the packed rows: v_j += Rn(i, j) fs_i */
+        const int ri = row_start(i, n) - i;
+        for (j = i; j < n; ++j) {
+            w->v[j] += R[ri + j] * fs[i];
+        }
+    }
+    for (i = 0; i < n; ++i) {
+        const int ri = row_start(i, n) - i;
+        c_float dv = 0;
+        for (j = i; j < n; ++j) {
+            dv += R[ri + j] * w->v[j];
+        }
+        w->dupper[i] = w->bupper[i] * w->scaling[i] + dv;
+        w->dlower[i] = w->blower[i] * w->scaling[i] + dv;
+    }
+    for (i = 0; i < n + h; ++i) {
+        const int id = n + i;
+        const c_float *mi = w->M + i * n;
+        c_float dv = 0;
+        if (w->zero_row[i]) {
             w->dupper[id] = w->bupper[id];
             w->dlower[id] = w->blower[id];
             continue;
         }
-        s = 1 / (c_float)sqrt(s2);
-        w->scaling[id] = s;
         for (j = 0; j < n; ++j) {
-            mi[j] *= s;
             dv += mi[j] * w->v[j];
         }
-        w->dupper[id] = w->bupper[id] * s + dv;
-        w->dlower[id] = w->blower[id] * s + dv;
+        w->dupper[id] = w->bupper[id] * w->scaling[id] + dv;
+        w->dlower[id] = w->blower[id] * w->scaling[id] + dv;
     }
 }
 
@@ -317,41 +364,89 @@ static void outputs(ddyn_mpc_qp *qp, const ddyn_mpc_qp_daqp *w, int n, int h)
     qp->residual = viol;
 }
 
-ddyn_status ddyn_mpc_qp_daqp_solve(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max_iterations, int shift)
+static void clear_answer(ddyn_mpc_qp *qp)
 {
-    DAQPProblem prob;
-    DAQPSettings set;
-    DAQPWorkspace work;
-    int n, h, m, i, ill = 0, exitflag;
-    if (qp == NULL || w == NULL) {
-        return DDYN_ERR_ARGUMENT;
-    }
-    h = qp->horizon;
     memset(qp->z, 0, sizeof qp->z);
     memset(qp->slack, 0, sizeof qp->slack);
     qp->iterations = 0;
     qp->converged = 0;
     qp->residual = 0.0;
-    if (h < 1 || h > DDYN_MPC_MAX_HORIZON || max_iterations < 1 || shift < 0) {
+}
+
+ddyn_status ddyn_mpc_qp_daqp_factor(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w)
+{
+    int n, h, ill = 0;
+    if (qp == NULL || w == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    w->factored_h = 0;
+    h = qp->horizon;
+    if (h < 1 || h > DDYN_MPC_MAX_HORIZON) {
+        w->factor_status = DDYN_ERR_ARGUMENT;
+        return w->factor_status;
+    }
+    n = 2 * h;
+    if (!matrices_finite(qp, n)) {
+        w->factor_status = DDYN_ERR_NONFINITE_INPUT;
+    } else if (!(qp->dt > 0.0) || qp->rho1 < 0.0 || !(qp->rho2 > 0.0) || !factor_inverse(qp, w, n, &ill)) {
+        w->factor_status = DDYN_ERR_ARGUMENT;
+    } else {
+        build_rows(qp, w, n, h);
+        form_M(qp, w, n, h);
+        w->ill = ill;
+        w->factored_h = h;
+        w->factor_status = DDYN_OK;
+    }
+    return w->factor_status;
+}
+
+ddyn_status ddyn_mpc_qp_daqp_solve(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max_iterations, int shift)
+{
+    ddyn_status st;
+    if (qp == NULL || w == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    st = ddyn_mpc_qp_daqp_factor(qp, w);
+    if (st != DDYN_OK) {
+        clear_answer(qp);
+        ddyn_mpc_qp_daqp_reset(w);
+        return st;
+    }
+    return ddyn_mpc_qp_daqp_solve_factored(qp, w, max_iterations, shift);
+}
+
+ddyn_status ddyn_mpc_qp_daqp_solve_factored(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max_iterations, int shift)
+{
+    DAQPProblem prob;
+    DAQPSettings set;
+    DAQPWorkspace work;
+    int n, h, m, i, exitflag;
+    if (qp == NULL || w == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    h = qp->horizon;
+    clear_answer(qp);
+    if (w->factor_status != DDYN_OK || w->factored_h != h) { /* a failed or missing factorisation */
+        ddyn_mpc_qp_daqp_reset(w);
+        return w->factor_status != DDYN_OK ? w->factor_status : DDYN_ERR_ARGUMENT;
+    }
+    w->factored_h = 0; /* one solve per factorisation: the caller may change H next */
+    if (max_iterations < 1 || shift < 0) {
         ddyn_mpc_qp_daqp_reset(w);
         return DDYN_ERR_ARGUMENT;
     }
     n = 2 * h;
     m = 2 * n + h;
-    if (!problem_finite(qp, n, h)) {
+    if (!vectors_finite(qp, n, h)) {
         ddyn_mpc_qp_daqp_reset(w);
         return DDYN_ERR_NONFINITE_INPUT;
     }
-    if (!(qp->dt > 0.0) || qp->rho1 < 0.0 || !(qp->rho2 > 0.0) || !factor_inverse(qp, w, n, &ill)) {
-        ddyn_mpc_qp_daqp_reset(w);
-        return DDYN_ERR_ARGUMENT;
-    }
-    if (!build_constraints(qp, w, n, h)) { /* crossing hard bounds: no solution; the caller falls back */
+    if (!build_bounds(qp, w, n, h)) { /* crossing hard bounds: no solution; the caller falls back */
         ddyn_mpc_qp_daqp_reset(w);
         w->exitflag = DAQP_EXIT_INFEASIBLE;
         return DDYN_ERR_QP_NOT_CONVERGED;
     }
-    form_ldp(qp, w, n, h);
+    form_d(qp, w, n, h);
     w->cold = w->warm_n == 0 || w->warm_h != h;
     apply_warm_start(w, n, h, shift);
 
@@ -393,7 +488,7 @@ ddyn_status ddyn_mpc_qp_daqp_solve(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max
     work.w_us = w->soft_w + 3 * m;
     work.settings = &set;
     work.outer_iter = 1;
-    work.state = DAQP_STATE_RINV_NORMALIZED | (ill ? DAQP_STATE_ILL_CONDITIONED : 0);
+    work.state = DAQP_STATE_RINV_NORMALIZED | (w->ill ? DAQP_STATE_ILL_CONDITIONED : 0);
     memset(w->u, 0, sizeof w->u);
     memset(w->xold, 0, sizeof w->xold);
     reset_daqp_workspace(&work);

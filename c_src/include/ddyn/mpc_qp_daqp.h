@@ -55,6 +55,11 @@ typedef struct {
     int exitflag;  /* DAQP's exit flag of the last solve (1 optimal, 2 soft optimal, < 0 failed) */
     int cold;      /* 1 if the last solve started cold */
     int capped;    /* 1 if the last solve hit the iteration cap (its working set is kept once) */
+    /* the factorisation (ddyn_mpc_qp_daqp_factor) the next solve_factored uses */
+    int zero_row[DDYN_DAQP_MG];
+    int ill;
+    int factored_h; /* horizon factored, 0 = none */
+    ddyn_status factor_status;
 } ddyn_mpc_qp_daqp;
 
 /* The next solve starts cold (after a fault, a reset of the MPC, or a failed solve). */
@@ -69,6 +74,16 @@ void ddyn_mpc_qp_daqp_reset(ddyn_mpc_qp_daqp *w);
  *   started from a capped one; other DAQP failures (cycling, infeasible): the next solve starts cold), DDYN_ERR_ARGUMENT /
  *   DDYN_ERR_NONFINITE_INPUT for a malformed problem (z, slack zero; next solve cold). */
 ddyn_status ddyn_mpc_qp_daqp_solve(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max_iterations, int shift);
+
+/* The solve in two parts, for the real-time iteration's split (docs/controller.md): the factor reads
+ * only what the feedback phase leaves alone (H, the soft rows, dt, the penalty) and forms Rinv and M;
+ * solve_factored then reads the gradient and the bounds (which the feedback moves to the measured
+ * state) and runs DAQP. ddyn_mpc_qp_daqp_solve = factor + solve_factored. The factor returns DDYN_OK,
+ * DDYN_ERR_NONFINITE_INPUT or DDYN_ERR_ARGUMENT (H not positive definite); solve_factored returns that
+ * error again (z zero, next solve cold) if the factorisation failed or is missing, else as
+ * ddyn_mpc_qp_daqp_solve. One solve_factored per factor. */
+ddyn_status ddyn_mpc_qp_daqp_factor(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w);
+ddyn_status ddyn_mpc_qp_daqp_solve_factored(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max_iterations, int shift);
 
 /* For the worst-case measurement (tests/m7): make the next solve start from a wrong working set,
  * the upper bounds of every stage but the last active, which DAQP must take apart one constraint per
