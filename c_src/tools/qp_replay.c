@@ -8,8 +8,9 @@
  *   - by the double solver with 50 iterations and tolerance 1e-10 (a tight own answer).
  *   - by DAQP as the runtime does (mpc_qp_daqp.c: cap MAX_ITER, warm-started from the previous QP's
  *     working set shifted one stage, cold for the first), REPEATS times from the same warm start.
+ *   - by DAQP cold (an empty working set for every QP; cap MAX_ITER), REPEATS times.
  * The interior point always starts cold (infeasible start). OUT gets per QP, as doubles:
- *   iterations, converged, median_us, z (2H), slack (H)      for each of the four runs in that order.
+ *   iterations, converged, median_us, z (2H), slack (H)      for each of the five runs in that order.
  */
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
@@ -24,7 +25,7 @@
 #define MAX_REPEATS 1000
 
 static ddyn_mpc_qp problem, work;
-static ddyn_mpc_qp_daqp daqp;
+static ddyn_mpc_qp_daqp daqp, daqp_cold;
 static double times[MAX_REPEATS];
 
 static int put(FILE *f, double it, double conv, double us, const double *z, const double *s, int m)
@@ -102,6 +103,18 @@ int main(int argc, char **argv)
                 conv = ddyn_mpc_qp_daqp_solve(&work, &daqp, max_it, count > 0) == DDYN_OK;
                 times[r] = bench_now_us() - t0;
             }
+        }
+        st = bench_stats_of(times, repeats);
+        if (!put(out, work.iterations, conv, st.median, work.z, work.slack, m)) {
+            return 1;
+        }
+        for (r = 0; r < repeats; ++r) {
+            double t0;
+            memcpy(&work, &problem, sizeof work);
+            ddyn_mpc_qp_daqp_reset(&daqp_cold);
+            t0 = bench_now_us();
+            conv = ddyn_mpc_qp_daqp_solve(&work, &daqp_cold, max_it, 0) == DDYN_OK;
+            times[r] = bench_now_us() - t0;
         }
         st = bench_stats_of(times, repeats);
         if (!put(out, work.iterations, conv, st.median, work.z, work.slack, m)) {

@@ -31,7 +31,7 @@ from ddyn.paths import BUILD
 
 DEFAULT_BUILD = BUILD / "c_src"
 INF = 1e30  # DAQP's infinity; PIQP and ProxQP get np.inf
-RUNS = ("ipm", "f32", "tight", "daqp")  # ddyn_qp_replay's runs, in its order
+RUNS = ("ipm", "f32", "tight", "daqp", "daqp_cold")  # ddyn_qp_replay's runs, in its order
 
 
 def read_dump(path: Path) -> list[dict]:
@@ -56,7 +56,7 @@ def read_dump(path: Path) -> list[dict]:
 
 
 def read_replay(path: Path, qps: list[dict]) -> dict:
-    """ddyn_qp_replay's output: per run (ipm, f32, tight, daqp) iterations, converged, us, x = (z, s)."""
+    """ddyn_qp_replay's output: per run (ipm, f32, tight, daqp, daqp_cold) iterations, converged, us, x = (z, s)."""
     raw = np.fromfile(path, dtype="<f8")
     out = {k: {"iterations": [], "converged": [], "us": [], "x": []} for k in RUNS}
     i = 0
@@ -178,6 +178,7 @@ def accuracy(name: str, res: dict, forms: list[dict], ref: list[np.ndarray]) -> 
     ok = np.array(res["converged"], dtype=bool)  # a capped QP's iterate is not an answer (the runtime falls back)
     return {"solver": name, "n": len(forms), "converged": int(np.sum(res["converged"])),
             "iter_median": float(np.median(it)), "iter_max": int(it.max()),
+            "iter_p99": float(np.percentile(it, 99)), "iter_total": int(it.sum()), "iter_over_30": int(np.sum(it > 30)),
             "us_median": float(np.median(us)), "us_p99": float(np.percentile(us, 99)), "us_max": float(us.max()),
             "obj_rel_err_median": float(np.median(rel)), "obj_rel_err_max": float(rel.max()),
             "z_err_median": float(np.median(dz)), "z_err_max": float(dz.max()),
@@ -188,9 +189,10 @@ def accuracy(name: str, res: dict, forms: list[dict], ref: list[np.ndarray]) -> 
 
 
 def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track: str = "ethzMobil",
-        vehicle: str = "orca_1_43", f32_build: Path | None = None) -> list[dict]:
+        vehicle: str = "orca_1_43", f32_build: Path | None = None, replay_cap: int | None = None) -> list[dict]:
     """f32_build: a build with -DDDYN_QP_FLOAT32=ON whose ddyn_qp_replay re-solves the same QPs (the
-    runtime's DAQP path in float32)."""
+    runtime's DAQP path in float32). replay_cap: the C solvers' iteration cap in the replay (default the
+    lap's, MpcSettings: 30), e.g. 50 to see how many iterations DAQP needs where 30 caps it."""
     from ddyn.control.mpc_lap import setup_text
     from ddyn.control.mpc_setup import MpcSettings, raceline_table, start_state
     from ddyn.model import vehicle as vehicle_mod
@@ -201,6 +203,7 @@ def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track
         if not t.is_file():
             raise DdynError(f"{t} not found: build with scripts/build.sh")
     settings = MpcSettings()
+    cap = replay_cap or settings.qp_max_iterations
     v = vehicle_mod.load(vehicle)
     table = raceline_table(load_track(track), vehicle, settings)
     true = v.true_vector()
@@ -210,7 +213,7 @@ def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track
         p = subprocess.run([str(lap_tool), str(dump)], input=text, capture_output=True, text=True)
         if p.returncode != 0:
             raise DdynError(f"{lap_tool}: {p.stderr.strip()}")
-        p = subprocess.run([str(replay_tool), str(dump), str(repeats), str(settings.qp_max_iterations),
+        p = subprocess.run([str(replay_tool), str(dump), str(repeats), str(cap),
                             repr(settings.qp_tolerance), str(rep)], capture_output=True, text=True)
         if p.returncode != 0:
             raise DdynError(f"{replay_tool}: {p.stderr.strip()}")
@@ -219,7 +222,7 @@ def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track
         own32 = None
         if f32_build is not None:
             tool32 = Path(f32_build) / "ddyn_qp_replay"
-            p = subprocess.run([str(tool32), str(dump), str(repeats), str(settings.qp_max_iterations),
+            p = subprocess.run([str(tool32), str(dump), str(repeats), str(cap),
                                 repr(settings.qp_tolerance), str(rep)], capture_output=True, text=True)
             if p.returncode != 0:
                 raise DdynError(f"{tool32}: {p.stderr.strip()}")
@@ -229,14 +232,16 @@ def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track
     check = solve_proxqp(forms, 1e-10, warm=False)
     rows = [accuracy("reference: PIQP 0.6.4 at eps_abs 1e-10 (cold)", ref, forms, ref["x"]),
             accuracy("reference check: ProxQP 0.8.0 at eps_abs 1e-10 (cold) vs the reference", check, forms, ref["x"])]
-    rows.append(accuracy(f"**runtime DAQP path** (mpc_qp_daqp.c: double, cap {settings.qp_max_iterations}, warm: "
+    rows.append(accuracy(f"**runtime DAQP path** (mpc_qp_daqp.c: double, cap {cap}, warm: "
                          "previous working set shifted one stage)", own["daqp"], forms, ref["x"]))
+    rows.append(accuracy(f"runtime DAQP path cold (cap {cap}: an empty working set for every QP)", own["daqp_cold"],
+                         forms, ref["x"]))
     if own32 is not None:
         rows.append(accuracy("runtime DAQP path in float32 (DDYN_QP_FLOAT32: DAQP_SINGLE_PRECISION)", own32["daqp"],
                              forms, ref["x"]))
         rows.append(accuracy("runtime DAQP path float32 against double (not the reference)", own32["daqp"], forms,
                              own["daqp"]["x"]))
-    rows.append(accuracy(f"mpc_qp.c (qp_solver = ipm: double, cap {settings.qp_max_iterations}, tol "
+    rows.append(accuracy(f"mpc_qp.c (qp_solver = ipm: double, cap {cap}, tol "
                          f"{settings.qp_tolerance:g}, cold)", own["ipm"], forms, ref["x"]))
     rows.append(accuracy("mpc_qp.c float32 (same cap and tol)", own["f32"], forms, ref["x"]))
     rows.append(accuracy("mpc_qp.c float32 against mpc_qp.c double (not the reference)", own["f32"], forms,
@@ -251,12 +256,13 @@ def run(build: Path = DEFAULT_BUILD, steps: int = 1500, repeats: int = 20, track
 
 
 def format_rows(rows: list[dict]) -> str:
-    lines = ["| solver | converged | iterations median / max | time µs median / p99 / max | objective rel. error "
+    lines = ["| solver | converged | iterations median / p99 / max (total; QPs above 30) | time µs median / p99 / max | objective rel. error "
              "median / max | max abs z error median / max | first input max error | max violation | converged "
              "QPs only: objective error max / first input max error / max violation |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['solver']} | {r['converged']}/{r['n']} | {r['iter_median']:g} / {r['iter_max']} | "
+        lines.append(f"| {r['solver']} | {r['converged']}/{r['n']} | {r['iter_median']:g} / {r['iter_p99']:g} / "
+                     f"{r['iter_max']} ({r['iter_total']}; {r['iter_over_30']}) | "
                      f"{r['us_median']:.1f} / {r['us_p99']:.1f} / {r['us_max']:.1f} | {r['obj_rel_err_median']:.1e} / "
                      f"{r['obj_rel_err_max']:.1e} | {r['z_err_median']:.1e} / {r['z_err_max']:.1e} | "
                      f"{r['u0_err_max']:.1e} | {r['violation_max']:.1e} | {r['obj_rel_err_max_converged']:.1e} / "
@@ -266,7 +272,7 @@ def format_rows(rows: list[dict]) -> str:
 
 def _run(args) -> int:
     rows = run(Path(args.build), args.steps, args.repeats, args.track,
-               f32_build=Path(args.f32_build) if args.f32_build else None)
+               f32_build=Path(args.f32_build) if args.f32_build else None, replay_cap=args.replay_cap)
     print(format_rows(rows))
     if args.out:
         Path(args.out).write_text(json.dumps(rows, indent=2) + "\n")
@@ -280,5 +286,6 @@ def register(subparsers) -> None:
     c.add_argument("--repeats", type=int, default=20, help="timed solves of each QP by the C solvers")
     c.add_argument("--track", default="ethzMobil")
     c.add_argument("--f32-build", help="also the DAQP path of this -DDDYN_QP_FLOAT32=ON build's ddyn_qp_replay")
+    c.add_argument("--replay-cap", type=int, help="iteration cap of the C solvers in the replay (default: the lap's, 30)")
     c.add_argument("--out", help="write the rows as JSON here")
     c.set_defaults(func=_run)
