@@ -70,9 +70,9 @@ typedef struct {
 /* ONE table: every key the file may hold. Another module's setting is one more row (and a field). */
 static const key_spec KEYS[] = {
     {"vehicle", K_STRING, OFF(vehicle), FSZ(vehicle), 0, 0, 0, 1, NULL, NONE,
-     "required: the generated vehicle model (orca_1_43, av21)"},
+     "the generated vehicle model (orca_1_43, av21)"},
     {"nominal_coefficients", K_NAMED, OFF(nominal), 0, DDYN_NC, -BIG, BIG, 1, COEFF_NAMES, NONE,
-     "required, all 17 (Bf .. Iz): the vehicle file's coefficients, the fallback of last resort"},
+     "all 17 (Bf .. Iz): the vehicle file's coefficients, the fallback of last resort"},
     {"coefficients", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE, "where each period's coefficients come from"},
     {"coefficients.source", K_ENUM, OFF(fixed), 0, 0, 0, 0, 0, SOURCE_NAMES, NONE,
      "network (default: the guard network built in) or fixed (coefficients.fixed, the network never run)"},
@@ -82,12 +82,12 @@ static const key_spec KEYS[] = {
      "sha256 of the checkpoint the network must come from; a build for another is refused (default: not checked)"},
     {"can", K_SECTION, 0, 0, 0, 0, 0, 1, NULL, NONE, "the drive-by-wire bus"},
     {"can.interface", K_STRING, OFF(can_interface), FSZ(can_interface), 0, 0, 0, 1, NULL, NONE,
-     "required: the SocketCAN interface (can0, vcan0)"},
+     "the SocketCAN interface (can0, vcan0)"},
     {"can.stale_periods", K_NAMED_INT, OFF(stale), 0, DDYN_DBW_FRAME_COUNT, 0, 1000, 0, FRAME_NAMES, NONE,
      "per frame, periods it may be missing before the safe command; 0 = not monitored (default 0 1 1 1 1 2 2)"},
     {"control", K_SECTION, 0, 0, 0, 0, 0, 1, NULL, NONE, "the control loop"},
     {"control.period", K_NUMBER, OFF(period), 0, 0, 1e-4, 10.0, 1, NULL, NONE,
-     "required: the control period, s (the vehicle's sample time: 0.02 for orca_1_43)"},
+     "the control period, s (the vehicle's sample time: 0.02 for orca_1_43)"},
     {"control.throttle", K_ENUM, OFF(throttle_pid), 0, 0, 0, 0, 0, THROTTLE_NAMES, NONE,
      "mpc (default: the MPC plans throttle and steering) or pid (a PID on the speed error sets the throttle)"},
     {"control.pid", K_NAMED, OFF(pid), 0, 4, 0.0, 1e6, 0, PID_NAMES,
@@ -115,7 +115,7 @@ static const key_spec KEYS[] = {
     {"filter.sensor_std.steering", K_NUMBERS, R_STD(DDYN_MEAS_STEERING), 0, 1, 0.0, 1e6, 0, NULL, NONE,
      "steering angle (rad)"},
     {"raceline", K_FILE, OFF(raceline), FSZ(raceline), 0, 0, 0, 1, NULL, NONE,
-     "required: CSV x,y,speed,width_left,width_right (header line optional), 4 .. 1024 rows, closed loop"},
+     "CSV x,y,speed,width_left,width_right (header line optional), 4 .. 1024 rows, closed loop"},
     {"mpc", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE, "overrides of the MPC's defaults (docs/mpc.md)"},
     {"mpc.horizon", K_INT, MPC(horizon), 0, 0, 1, DDYN_MPC_MAX_HORIZON, 0, NULL, NONE, "stages"},
     {"mpc.q_pos", K_NUMBERS, MPC(q_pos), 0, 2, 0.0, 1e12, 0, NULL, NONE, "weights of the x and y error"},
@@ -208,10 +208,10 @@ static int number_in(parse_ctx *p, const char *key, const key_spec *k, const cJS
     }
     x = v->valuedouble;
     if (!isfinite(x) || (integral && x != floor(x))) {
-        return fail(p, key, "%.17g is not %s", x, integral ? "an integer" : "finite");
+        return fail(p, key, "%.10g is not %s", x, integral ? "an integer" : "finite");
     }
     if (x < k->lo || x > k->hi) {
-        return fail(p, key, "%.17g is out of range (%.6g .. %.6g)", x, k->lo, k->hi);
+        return fail(p, key, "%.10g is out of range (%.6g .. %.6g)", x, k->lo, k->hi);
     }
     *out = x;
     return 1;
@@ -280,7 +280,7 @@ static int leaf(parse_ctx *p, const char *key, const key_spec *k, const cJSON *v
             return fail(p, key, "expected a string, got %s", type_name(v));
         }
         if (k->type == K_HASH) {
-            if (!is_hex64(v->valuestring)) {
+            if (v->valuestring[0] != '\0' && !is_hex64(v->valuestring)) { /* "": not checked */
                 return fail(p, key, "'%s' is not a sha256 (64 lowercase hex digits)", v->valuestring);
             }
             memcpy(dst, v->valuestring, 65);
@@ -528,8 +528,9 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
     if (veh != NULL && cJSON_IsString(veh)) {
         model = ddyn_model_find(veh->valuestring);
         if (model == NULL) {
+            fail(&p, "vehicle", "no generated model '%s'", veh->valuestring);
             cJSON_Delete(root);
-            return fail(&p, "vehicle", "no generated model '%s'", veh->valuestring);
+            return 0;
         }
         ddyn_ctrl_default_config(model, &defaults);
         c->mpc = defaults.mpc;

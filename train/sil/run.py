@@ -187,6 +187,8 @@ class SilSpec:
     checkpoint_hash: str | None = None         # sha256 of the network's checkpoint: a controller built for
                                                # another is refused (coefficients.checkpoint_hash)
     prepare: bool = True                       # the MPC's preparation after each command (RTI split)
+    pacing: str = "frame"                      # the controller's realtime.pacing: frame, or timer (needs realtime > 0)
+    rt_priority: int = 0                       # realtime.priority: SCHED_FIFO priority, 0 = none
 
 
 def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
@@ -241,6 +243,10 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     if spec.pid_gains is not None and (len(spec.pid_gains) != 4 or
                                        not all(math.isfinite(g) and g >= 0.0 for g in spec.pid_gains)):
         raise DdynError(f"PID gains {spec.pid_gains!r}: expected four finite numbers >= 0 (kp, ki, kd, preview)")
+    if spec.pacing not in ("frame", "timer"):
+        raise DdynError(f"pacing {spec.pacing!r}: expected frame or timer")
+    if spec.pacing == "timer" and spec.realtime <= 0.0:
+        raise DdynError("the timer pacing runs on the clock: it needs a plant in real time (--realtime 1)")
     noise = sensor_noise(v, spec.noise_scale)
     fixed = spec.coeffs_controller is not None
     named = lambda c: {k: float(x) for k, x in zip(COEFF_NAMES, c)}  # noqa: E731
@@ -278,9 +284,9 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         "raceline": RACELINE_CSV,
         "telemetry": {"lcm_url": lcm_url, "metrics": f"{out_dir}/controller_metrics.json",
                       "log": f"{out_dir}/controller_log.csv"},
-        # the SIL's plant runs in lock-step: frame pacing; no SCHED_FIFO (the emulated guest's two
-        # processes share its CPUs), memory locked as on the car
-        "realtime": {"pacing": "frame", "priority": 0, "cpu": -1, "lock_memory": True,
+        # by default the SIL's plant runs in lock-step: frame pacing; no SCHED_FIFO (the emulated guest's
+        # two processes share its CPUs); memory locked as on the car
+        "realtime": {"pacing": spec.pacing, "priority": int(spec.rt_priority), "cpu": -1, "lock_memory": True,
                      "lockstep_silence": lockstep, "idle_exit": 3.0},
         "sil": {"die_at_step": die},
     }
@@ -706,7 +712,11 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
                              "first_safe_latency": cm["first_safe_latency"],
                              "first_stale_latency": cm.get("first_stale_latency"),
                              "status_counts": cm["status_counts"],
-                             "sensor_rejected": cm.get("sensor_rejected"), "sensor_nonfinite": cm.get("sensor_nonfinite")}
+                             "sensor_rejected": cm.get("sensor_rejected"), "sensor_nonfinite": cm.get("sensor_nonfinite"),
+                             # ddyn_controller's: the preparation's time (RTI split), overruns, the
+                             # real-time settings in effect, the network it ran
+                             "prepare_us": cm.get("prepare_us"), "overruns": cm.get("overruns"),
+                             "realtime": cm.get("realtime"), "checkpoint_hash": cm.get("checkpoint_hash")}
     # time to the safe state, where a fault required one
     f = spec.faults
     safe: dict = {}
@@ -849,6 +859,8 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin)
     if len(table) > 1024:
         raise DdynError(f"raceline of {len(table)} points; the MPC holds at most 1024")
+    if where == "inprocess" and spec.pacing != "frame":
+        raise DdynError("--where inprocess has no clock of its own: only the frame pacing")
     bins = build_binaries(export_dir)
     if spec.checkpoint_hash:
         require_network(bins / "ddyn_controller", spec.checkpoint_hash)
@@ -925,7 +937,7 @@ def _run(args: argparse.Namespace) -> int:
                    effects=parse_effects(args.effects), faults=parse_faults(args.faults),
                    noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin,
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
-                   pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash)
+                   pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing)
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
     ctl = m["controller"] or {}
@@ -972,6 +984,9 @@ def register(subparsers) -> None:
                                     "silent=imu|gnss|gnss_position|gnss_heading|wheel_speeds|steering silent_at=S "
                                     "kill_controller=S restart_plant=S")
     p.add_argument("--out", default="out/sil", help="output directory (default: %(default)s)")
+    p.add_argument("--pacing", choices=("frame", "timer"), default="frame",
+                   help="the controller's pacing (docs/deploy.md): a period per position frame (default), or "
+                        "absolute-deadline periods on its own clock (needs --realtime 1)")
     p.add_argument("--throttle", choices=("mpc", "pid"), default="mpc",
                    help="who sets the throttle: the MPC (default) or a PID on the speed error, the MPC then "
                         "planning only the steering (docs/controller.md)")
