@@ -57,7 +57,7 @@ int main(int argc, char** argv) {
     if (setup->log[0] == '\0') throw std::runtime_error("the configuration names no telemetry.log");
     std::FILE* log = std::fopen(setup->log, "w");
     if (log == nullptr) throw std::runtime_error(std::string("cannot write ") + setup->log);
-    std::fprintf(log, "step,wall,loop_us,prepare_us,status,trigger,safe,stale,overrun,throttle_cmd,steering_cmd,"
+    std::fprintf(log, "step,wall,start,loop_us,prepare_us,status,trigger,safe,stale,overrun,throttle_cmd,steering_cmd,"
                       "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7\n");
     std::vector<double> loop_us, prep_us;
     std::array<long, DDYN_CTRL_STATUS_BITS> status_count{};
@@ -88,7 +88,8 @@ int main(int argc, char** argv) {
           const bool overrun = (t1 - t0) > setup->period;
           misses += overrun ? 1 : 0;
           for (int k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) status_count[k] += (per.out.status >> k) & 1u;
-          std::fprintf(log, "%ld,%.6f,%.2f,%.2f,%u,1,%d,%d,%d,%.6f,%.6f", node->steps - 1, t1 - wall0, loop_us.back(),
+          std::fprintf(log, "%ld,%.6f,%.9f,%.2f,%.2f,%u,1,%d,%d,%d,%.6f,%.6f", node->steps - 1, t1 - wall0, t0 - wall0,
+                       loop_us.back(),
                        prep_us.back(), static_cast<unsigned>(per.out.status), per.safe, per.stale, overrun ? 1 : 0,
                        per.throttle, per.steering);
           for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", per.out.x_est[k]);

@@ -300,7 +300,7 @@ static void run_period(app_loop *L, int trigger, double start)
     L->timer_steps += trigger == 2 ? 1 : 0;
     L->timer_mode = trigger == 2;
     if (L->log != NULL) {
-        fprintf(L->log, "%ld,%.6f,%.2f,%.2f,%u,%d,%d,%d,%d,%.6f,%.6f", L->steps, t1, loop_us[i], prep_us[i],
+        fprintf(L->log, "%ld,%.6f,%.9f,%.2f,%.2f,%u,%d,%d,%d,%d,%.6f,%.6f", L->steps, t1, start, loop_us[i], prep_us[i],
                 (unsigned)per.out.status, trigger, per.safe, per.stale, overrun, per.throttle, per.steering);
         for (k = 0; k < DDYN_NX; ++k) {
             fprintf(L->log, ",%.6g", per.out.x_est[k]);
@@ -561,7 +561,8 @@ int main(int argc, char **argv)
             fprintf(stderr, "ddyn_controller: telemetry.log: cannot write %s\n", cfg.log);
             return 2;
         }
-        fprintf(L.log, "step,wall,loop_us,prepare_us,status,trigger,safe,stale,overrun,throttle_cmd,steering_cmd,"
+        /* wall: when the command went out; start: when the period began (its frame, or its deadline) */
+        fprintf(L.log, "step,wall,start,loop_us,prepare_us,status,trigger,safe,stale,overrun,throttle_cmd,steering_cmd,"
                        "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7\n");
     }
     memset(&sa, 0, sizeof sa);

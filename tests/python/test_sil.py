@@ -209,6 +209,33 @@ def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_pat
     check_live_lcm_log(m, tmp_path, orca)
 
 
+def test_timer_pacing_runs_on_absolute_deadlines_with_the_realtime_settings(orca, mobil, tmp_path, sil_bins):
+    """ddyn_controller's car pacing (realtime.pacing timer) in the guest against a real-time plant: every
+    period starts on a deadline t0 + k * period (clock_nanosleep TIMER_ABSTIME: no drift from the loop's
+    own time), deadlines missed by a late period are counted as skipped, SCHED_FIFO and mlockall are in
+    effect (root in the guest), and a CPU that does not exist is a warning, not a failure. (The emulated
+    CPU cannot hold 20 ms periods, so overruns happen and the DBW unit stops the car: the mechanics are
+    what is checked here, not the lap.)"""
+    spec = spec_for(orca, mobil, realtime=1.0, pacing="timer", rt_priority=10, rt_cpu=1023, max_time=1.5)
+    m = sil.run_sil(spec, tmp_path, None)
+    c = m["controller"]
+    assert c["realtime"] == {"pacing": "timer", "prepare": True, "memory_locked": True, "fifo_priority": 10,
+                             "cpu": -1, "warnings": 1}
+    assert "realtime.cpu: cannot pin to CPU 1023" in (tmp_path / "controller.stdout").read_text()
+    clog = sil.read_csv(tmp_path / "controller_log.csv")
+    assert c["periods"] == len(clog["step"]) >= 5
+    k = (clog["start"] - clog["start"][0]) / orca.sample_time
+    np.testing.assert_allclose(k, np.round(k), atol=1e-6)  # on the deadline grid
+    gaps = np.diff(np.round(k)).astype(int)
+    assert np.all(gaps >= 1)
+    # a period ending after the next deadline skips the deadlines it missed (the last one's are after the log)
+    assert 0 <= c["overruns"]["skipped_deadlines"] - int(np.sum(gaps - 1)) <= int(np.max(gaps)) + 1
+    assert c["overruns"]["periods"] == int(clog["overrun"].sum())
+    assert np.all(clog["trigger"] == 2)  # the clock, not the frames, runs each period
+    with pytest.raises(DdynError, match="real time"):
+        sil.controller_config(spec_for(orca, mobil, pacing="timer"), "/out")
+
+
 CHANNELS = {"DDYN_STATE": "state_estimate_t", "DDYN_COEFFS": "guard_coeffs_t", "DDYN_PLAN": "mpc_plan_t",
             "DDYN_TIMING": "loop_timing_t", "DDYN_FAULTS": "faults_t"}
 

@@ -189,6 +189,7 @@ class SilSpec:
     prepare: bool = True                       # the MPC's preparation after each command (RTI split)
     pacing: str = "frame"                      # the controller's realtime.pacing: frame, or timer (needs realtime > 0)
     rt_priority: int = 0                       # realtime.priority: SCHED_FIFO priority, 0 = none
+    rt_cpu: int = -1                           # realtime.cpu: the CPU to pin the controller to, -1 = none
 
 
 def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
@@ -286,7 +287,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
                       "log": f"{out_dir}/controller_log.csv"},
         # by default the SIL's plant runs in lock-step: frame pacing; no SCHED_FIFO (the emulated guest's
         # two processes share its CPUs); memory locked as on the car
-        "realtime": {"pacing": spec.pacing, "priority": int(spec.rt_priority), "cpu": -1, "lock_memory": True,
+        "realtime": {"pacing": spec.pacing, "priority": int(spec.rt_priority), "cpu": int(spec.rt_cpu), "lock_memory": True,
                      "lockstep_silence": lockstep, "idle_exit": 3.0},
         "sil": {"die_at_step": die},
     }
