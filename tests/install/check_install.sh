@@ -22,7 +22,9 @@ if [ -z "$toolchain" ]; then
   for f in bin/ddyn_controller share/ddyn/ddyn-controller.service share/ddyn/controller.example.json; do
     [ -f "$work/prefix/$f" ] || { echo "check_install: $f not installed" >&2; exit 1; }
   done
-  "$work/prefix/bin/ddyn_controller" --keys | grep -q '^control.period ' \
+  keys="$("$work/prefix/bin/ddyn_controller" --keys)" \
+    || { echo "check_install: the installed ddyn_controller does not run" >&2; exit 1; }
+  grep -q '^control.period ' <<<"$keys" \
     || { echo "check_install: the installed ddyn_controller does not list its configuration keys" >&2; exit 1; }
   "$work/consumer/consumer"
   # the pkg-config file alone is enough to compile and link the same consumer

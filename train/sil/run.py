@@ -250,7 +250,10 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         raise DdynError("the timer pacing runs on the clock: it needs a plant in real time (--realtime 1)")
     noise = sensor_noise(v, spec.noise_scale)
     fixed = spec.coeffs_controller is not None
-    named = lambda c: {k: float(x) for k, x in zip(COEFF_NAMES, c)}  # noqa: E731
+
+    def named(c) -> dict:
+        return {k: float(x) for k, x in zip(COEFF_NAMES, c)}
+
     die = -1
     # lock-step: the controller's timer runs only after this much wall time without any frame (a
     # plant slowed by an emulator or a loaded machine is not a silent one); when the scenario is a
