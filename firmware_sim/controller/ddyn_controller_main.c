@@ -331,12 +331,14 @@ static int done(const app_loop *L)
 /* pacing "frame": a period per position frame, the own timer when they stop */
 static void loop_frame(app_loop *L)
 {
-    double last_step_wall = now_s();
-    L->last_any_rx = last_step_wall;
+    double last_start = now_s(); /* when the last period began: its frame's arrival, or its deadline */
+    L->last_any_rx = last_start;
     while (!done(L)) {
         /* 1.5 periods of grace for the next position frame, then the nominal period on the timer:
-         * an absolute deadline from the end of the last period */
-        double deadline = last_step_wall + (L->timer_mode ? 1.0 : 1.5) * cfg.period;
+         * absolute deadlines from the start of the last period, so that neither the step's nor the
+         * preparation's time delays the timer (the safe command of a silent bus stays 2.5 periods
+         * after the last position frame, plus one step) */
+        double deadline = last_start + (L->timer_mode ? 1.0 : 1.5) * cfg.period;
         double now = now_s(), wait = deadline - now, start;
         int trigger = 0, runs = 0, r;
         struct pollfd p;
@@ -355,12 +357,19 @@ static void loop_frame(app_loop *L)
             }
         }
         now = now_s();
-        start = trigger == 1 ? L->last_any_rx : now;
+        start = L->last_any_rx;
         /* no timer before the first position frame: the sensors (or the plant) may not be up yet */
         if (!trigger && L->last_gnss_wall >= 0.0 && now >= deadline &&
             (cfg.lockstep_silence <= 0.0 || now - L->last_any_rx >= cfg.lockstep_silence)) {
             trigger = 2; /* the controller's own timer */
             runs = 1;
+            start = deadline;
+            if (now - deadline >= cfg.period) { /* woke a period or more late: from now, not back to back */
+                if (cfg.lockstep_silence <= 0.0) {
+                    L->skipped += (long)floor((now - deadline) / cfg.period);
+                }
+                start = now;
+            }
         }
         if (cfg.idle_exit > 0.0 && now - L->last_any_rx > cfg.idle_exit) {
             break; /* the bus is gone for good */
@@ -370,7 +379,7 @@ static void loop_frame(app_loop *L)
         }
         for (r = 0; r < runs && !done(L); ++r) {
             run_period(L, trigger, start);
-            last_step_wall = now_s();
+            last_start = start;
         }
     }
 }
