@@ -580,7 +580,8 @@ int main(int argc, char **argv)
     sigaction(SIGINT, &sa, NULL);
     /* after every allocation of the set-up (files, sockets, LCM): locked from here on */
     rt = ddyn_rt_setup(cfg.priority, cfg.cpu, cfg.lock_memory);
-    printf("ddyn_controller: %s on %s, period %.4f s, pacing %s, prepare %s, memory %s, SCHED_FIFO %d, cpu %d\n",
+    /* the "running" line says the bus is bound and the set-up done (the SIL starts its plant on it) */
+    printf("ddyn_controller: running %s on %s, period %.4f s, pacing %s, prepare %s, memory %s, SCHED_FIFO %d, cpu %d\n",
            cfg.vehicle, cfg.can_interface, cfg.period, cfg.pacing == DDYN_APP_PACING_TIMER ? "timer" : "frame",
            cfg.prepare ? "on" : "off", rt.memory_locked ? "locked" : "not locked", rt.fifo_priority, rt.cpu);
     fflush(stdout);

@@ -442,6 +442,19 @@ def stop_host_logger(proc: subprocess.Popen, url: str) -> int:
         raise DdynError("lcm-logger did not stop within 10 s of SIGINT") from None
 
 
+def wait_until_ready(ctl: subprocess.Popen, stdout: Path, timeout: float = 30.0) -> None:
+    """Until the controller listens on the bus (its "running" line comes after the socket is bound):
+    a position frame the plant sent before would be lost, and the lock-step plant would wait it out."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and ctl.poll() is None:
+        if stdout.is_file() and re.search(r"^ddyn_controller: running ", stdout.read_text(), re.M):
+            return
+        time.sleep(0.02)
+    if ctl.poll() is not None:
+        raise DdynError(f"the controller exited ({ctl.returncode}) before the run: {stdout.read_text()[-2000:]}")
+    raise DdynError(f"the controller did not start listening within {timeout:.0f} s ({stdout})")
+
+
 def run_host(bins: Path, work: Path, restart: bool, lcm: bool = False) -> dict:
     """Both processes on the host's vcan0; with lcm, the controller publishes its telemetry over UDP
     multicast and lcm-logger (started first) records it into controller.lcm."""
@@ -452,6 +465,7 @@ def run_host(bins: Path, work: Path, restart: bool, lcm: bool = False) -> dict:
             set_lcm_url(work / CONTROLLER_CONFIG, url)
         ctl = subprocess.Popen([str(bins / "ddyn_controller"), str(work / CONTROLLER_CONFIG)],
                                stdout=open(work / "controller.stdout", "w"), stderr=subprocess.STDOUT)
+        wait_until_ready(ctl, work / "controller.stdout")
         with open(work / "plant.stdout", "w") as out:
             rc = subprocess.call([str(bins / "ddyn_sil_plant"), str(work / "plant.json"), "--can", "vcan0"],
                                  stdout=out, stderr=subprocess.STDOUT)
@@ -502,6 +516,14 @@ mkdir -p /out
 export LD_LIBRARY_PATH={libdir}
 {lcm_start}/sil/ddyn_controller /sil/controller.json > /out/controller.stdout 2>&1 &
 cpid=$!
+# the plant starts once the controller listens (its "running" line comes after the bus is bound): a
+# position frame sent before would be lost and the lock-step plant would wait out its timeout
+n=0
+while ! grep -q '^ddyn_controller: running ' /out/controller.stdout 2>/dev/null && kill -0 $cpid 2>/dev/null; do
+  n=$((n+1))
+  if [ $n -gt 1200 ]; then echo "DDYN_GUEST: the controller is not ready after 60 s"; break; fi
+  sleep 0.05
+done
 /sil/ddyn_sil_plant /sil/plant.json --can vcan0 > /out/plant.stdout 2>&1
 rc=$?
 if [ $rc -eq 3 ] && [ -f /sil/plant_resume.json ]; then
