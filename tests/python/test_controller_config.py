@@ -221,3 +221,11 @@ def test_coefficient_names_match_the_model():
     text = (REPO / "firmware_sim" / "controller" / "controller_config.c").read_text()
     block = re.search(r"COEFF_NAMES\[DDYN_NC\] = \{([^}]*)\}", text).group(1)
     assert tuple(re.findall(r'"(\w+)"', block)) == COEFF_NAMES
+
+
+def test_a_missing_can_interface_is_named_after_the_config_passed(bins, good, tmp_path):
+    good["can"]["interface"] = "no_such_can0"
+    path = tmp_path / "controller.json"
+    path.write_text(json.dumps(good))
+    r = subprocess.run([str(bins / "ddyn_controller"), str(path)], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2 and "can.interface: no CAN interface 'no_such_can0'" in r.stderr, r.stderr
