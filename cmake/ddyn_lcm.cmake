@@ -58,6 +58,16 @@ target_include_directories(ddyn_telemetry PUBLIC "${PROJECT_SOURCE_DIR}/c_src/in
                            "${PROJECT_SOURCE_DIR}/c_src/generated")
 target_compile_options(ddyn_telemetry PRIVATE ${DDYN_WARNINGS})
 target_link_libraries(ddyn_telemetry PUBLIC lcm PRIVATE ddyn_lcmtypes m)
+# the installed controller executable (firmware_sim/CMakeLists.txt) keeps finding liblcm where it was
+# linked from (the wheel's lib/; a car without the wheel puts liblcm.so.1 on its library path instead)
+if(TARGET ddyn_controller_app)
+  get_target_property(_lcm_lib lcm IMPORTED_LOCATION_RELEASE)
+  if(NOT _lcm_lib)
+    get_target_property(_lcm_lib lcm LOCATION)
+  endif()
+  get_filename_component(_lcm_dir "${_lcm_lib}" DIRECTORY)
+  set_property(TARGET ddyn_controller_app APPEND PROPERTY INSTALL_RPATH "${_lcm_dir}")
+endif()
 
 if(DDYN_BUILD_TOOLS)
   add_executable(ddyn_telemetry_replay "${PROJECT_SOURCE_DIR}/c_src/tools/telemetry_replay.c")

@@ -1,5 +1,10 @@
 // ddyn_sil_inprocess: the same plant and controller node in ONE process, frames through memory.
-// usage: ddyn_sil_inprocess PLANT.json CONTROLLER_SETUP
+// usage: ddyn_sil_inprocess PLANT.json CONTROLLER.json
+//
+// CONTROLLER.json is ddyn_controller's configuration (controller/controller_config.h), read by the
+// same parser; its CAN, real-time and telemetry.lcm_url settings do not apply here (no socket, no
+// scheduling, no LCM), the rest does, including the checkpoint check and control.prepare (the MPC's
+// preparation after each command, as in ddyn_controller).
 //
 // Not the SIL path (that is two processes over vcan): a development and measurement aid. It runs
 // at the host's native speed with no emulator in between, so its controller loop times are those
@@ -13,7 +18,7 @@
 #include <memory>
 #include <vector>
 
-#include "controller_setup.h"
+#include "controller_config.h"
 #include "fsim/plant_app.hpp"
 
 extern "C" const ddyn_net_tables ddyn_net_weights;
@@ -28,7 +33,7 @@ double now_s() {
 
 int main(int argc, char** argv) {
   if (argc != 3) {
-    std::fprintf(stderr, "usage: %s PLANT.json CONTROLLER_SETUP\n", argv[0]);
+    std::fprintf(stderr, "usage: %s PLANT.json CONTROLLER.json\n", argv[0]);
     return 2;
   }
   try {
@@ -37,19 +42,24 @@ int main(int argc, char** argv) {
     auto cfg = fsim::PlantAppConfig::from_json(nlohmann::json::parse(in));
     if (cfg.crash_at >= 0.0) throw std::runtime_error("a restarting plant needs the two-process run");
     cfg.realtime_factor = -1.0;  // free-running: this loop drives both sides
-    auto setup = std::make_unique<ddyn_sil_setup>();
-    if (!ddyn_sil_read_setup(argv[2], setup.get())) return 2;
+    auto setup = std::make_unique<ddyn_app_config>();
+    char err[DDYN_APP_ERROR_LEN];
+    if (!ddyn_app_config_read(argv[2], setup.get(), err)) {
+      std::fprintf(stderr, "ddyn_sil_inprocess: %s\n", err);
+      return 2;
+    }
     auto node = std::make_unique<ddyn_sil_node>();
-    if (ddyn_sil_node_from_setup(node.get(), setup.get(), &ddyn_net_weights) != DDYN_OK) return 2;
+    if (ddyn_app_node_init(node.get(), setup.get(), &ddyn_net_weights) != DDYN_OK) return 2;
 
     fsim::MemoryLink link;
     fsim::MemoryBus plant_end(link, true);
     fsim::PlantApp app(cfg, plant_end);
+    if (setup->log[0] == '\0') throw std::runtime_error("the configuration names no telemetry.log");
     std::FILE* log = std::fopen(setup->log, "w");
     if (log == nullptr) throw std::runtime_error(std::string("cannot write ") + setup->log);
-    std::fprintf(log, "step,wall,loop_us,status,trigger,safe,stale,throttle_cmd,steering_cmd,"
+    std::fprintf(log, "step,wall,start,loop_us,prepare_us,status,trigger,safe,stale,overrun,throttle_cmd,steering_cmd,"
                       "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7\n");
-    std::vector<double> loop_us;
+    std::vector<double> loop_us, prep_us;
     std::array<long, DDYN_CTRL_STATUS_BITS> status_count{};
     long misses = 0;
     bool alive = true;
@@ -70,11 +80,18 @@ int main(int argc, char** argv) {
           const double t0 = now_s();
           ddyn_sil_node_period(node.get(), &per);
           const double t1 = now_s();
+          // as ddyn_controller: the preparation for the next period once the command is out
+          if (setup->prepare) (void)ddyn_ctrl_prepare(&node->ctl);
+          const double t2 = now_s();
           loop_us.push_back((t1 - t0) * 1e6);
-          misses += (t1 - t0) > setup->period ? 1 : 0;
+          prep_us.push_back((t2 - t1) * 1e6);
+          const bool overrun = (t1 - t0) > setup->period;
+          misses += overrun ? 1 : 0;
           for (int k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) status_count[k] += (per.out.status >> k) & 1u;
-          std::fprintf(log, "%ld,%.6f,%.2f,%u,1,%d,%d,%.6f,%.6f", node->steps - 1, t1 - wall0, loop_us.back(),
-                       static_cast<unsigned>(per.out.status), per.safe, per.stale, per.throttle, per.steering);
+          std::fprintf(log, "%ld,%.6f,%.9f,%.2f,%.2f,%u,1,%d,%d,%d,%.6f,%.6f", node->steps - 1, t1 - wall0, t0 - wall0,
+                       loop_us.back(),
+                       prep_us.back(), static_cast<unsigned>(per.out.status), per.safe, per.stale, overrun ? 1 : 0,
+                       per.throttle, per.steering);
           for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", per.out.x_est[k]);
           for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", node->ctl.ekf.P[k * DDYN_NX + k]);
           std::fputc('\n', log);
@@ -97,6 +114,11 @@ int main(int argc, char** argv) {
     m["loop_us"] = {{"median", n ? sorted[n / 2] : 0.0},
                     {"p99", n ? sorted[static_cast<size_t>(0.99 * static_cast<double>(n - 1))] : 0.0},
                     {"max", n ? sorted[n - 1] : 0.0}};
+    std::sort(prep_us.begin(), prep_us.end());
+    m["prepare_us"] = {{"median", n ? prep_us[n / 2] : 0.0},
+                       {"p99", n ? prep_us[static_cast<size_t>(0.99 * static_cast<double>(n - 1))] : 0.0},
+                       {"max", n ? prep_us[n - 1] : 0.0}};
+    m["overruns"] = {{"periods", misses}, {"skipped_deadlines", 0}};
     m["deadline_misses"] = misses;
     m["safe_steps"] = node->safe_steps;
     m["timer_steps"] = 0;
@@ -114,6 +136,7 @@ int main(int argc, char** argv) {
       m["sensor_nonfinite"][names[k]] = node->ctl.nonfinite_count[k];
     }
     m["fixed_coefficients"] = setup->fixed != 0;
+    m["checkpoint_hash"] = ddyn_net_weights.checkpoint_sha256 != nullptr ? ddyn_net_weights.checkpoint_sha256 : "";
     m["where"] = "in-process (host CPU, frames through memory)";
     if (alive) std::ofstream(setup->metrics) << m.dump(2) << "\n";  // a dead controller writes nothing
     std::printf("in-process: %s, %zu controller periods, loop median %.0f us\n", app.end_reason().c_str(), n,

@@ -16,6 +16,8 @@ dpkg -s libeigen3-dev >/dev/null 2>&1 || missing+=(libeigen3-dev)
 # the SIL simulator (firmware_sim/): C++ tests and its JSON metrics/config
 dpkg -s libgtest-dev >/dev/null 2>&1 || missing+=(libgtest-dev)
 dpkg -s nlohmann-json3-dev >/dev/null 2>&1 || missing+=(nlohmann-json3-dev)
+# ddyn_controller's JSON configuration (firmware_sim/controller/controller_config.c; not the runtime core)
+dpkg -s libcjson-dev >/dev/null 2>&1 || missing+=(libcjson-dev)
 # GLib: liblcm (from the pinned `lcm` wheel) links against it
 dpkg -s libglib2.0-0 >/dev/null 2>&1 || missing+=(libglib2.0-0)
 # the Cortex-M7 cross-build of the runtime (scripts/test.sh)

@@ -18,6 +18,14 @@ args=(-S "$here/consumer" -B "$work/consumer" -DCMAKE_PREFIX_PATH="$work/prefix"
 cmake "${args[@]}" >/dev/null
 cmake --build "$work/consumer" >/dev/null
 if [ -z "$toolchain" ]; then
+  # the car's controller executable and its example unit and configuration (docs/deploy.md)
+  for f in bin/ddyn_controller share/ddyn/ddyn-controller.service share/ddyn/controller.example.json; do
+    [ -f "$work/prefix/$f" ] || { echo "check_install: $f not installed" >&2; exit 1; }
+  done
+  keys="$("$work/prefix/bin/ddyn_controller" --keys)" \
+    || { echo "check_install: the installed ddyn_controller does not run" >&2; exit 1; }
+  grep -q '^control.period ' <<<"$keys" \
+    || { echo "check_install: the installed ddyn_controller does not list its configuration keys" >&2; exit 1; }
   "$work/consumer/consumer"
   # the pkg-config file alone is enough to compile and link the same consumer
   PKG_CONFIG_PATH="$work/prefix/lib/pkgconfig" cc -std=c99 "$here/consumer/consumer.c" \

@@ -5,6 +5,7 @@ The two-process runs boot the qemu guest of scripts/vcan_guest when the host has
 """
 from __future__ import annotations
 
+import io
 import json
 import re
 import subprocess
@@ -73,7 +74,7 @@ def test_raceline_table_room_matches_the_track(orca, mobil):
     np.testing.assert_allclose(wider[:, 3], table[:, 3] + margin)
 
 
-def test_plant_config_and_controller_setup(orca, mobil, tmp_path):
+def test_plant_config_and_controller_config(orca, mobil, tmp_path):
     spec = spec_for(orca, mobil, effects={"steer_delay": 0.02},
                     faults={"drop": 0.05, "silent": "imu", "silent_at": 1.5, "kill_controller": 2.0})
     pc = sil.plant_config(spec, "/tracks", "/out")
@@ -84,32 +85,31 @@ def test_plant_config_and_controller_setup(orca, mobil, tmp_path):
     assert "silent_from" not in pc["sensors"]["gnss_position"]
     assert pc["sensors"]["gnss_position"]["noise"] == [orca.sensor_noise_std["x"], orca.sensor_noise_std["y"]]
     assert pc["start"][3] == 0.1 and pc["footprint"] == {"length": 0.1, "width": 0.05}
+    cc = sil.controller_config(spec, "/out")
+    assert cc["sil"]["die_at_step"] == 100  # 2 s at 50 Hz
+    assert cc["coefficients"]["source"] == "fixed"
+    assert [cc["coefficients"]["fixed"][k] for k in COEFF_NAMES] == pytest.approx(list(orca.true_vector()))
+    assert cc["raceline"] == "raceline.csv" and cc["telemetry"]["metrics"] == "/out/controller_metrics.json"
+    # the default: the MPC sets the throttle (no PID gains), prepared after each command (RTI split)
+    assert cc["control"] == {"period": orca.sample_time, "throttle": "mpc", "prepare": True}
+    assert "checkpoint_hash" not in cc["coefficients"]
+    # the raceline file: a header, then the MPC's table row by row
     table = sil.raceline_table(mobil, orca)
-    text = sil.controller_setup(spec, table, "/out")
-    words = text.split()
-    assert words[words.index("die_at_step") + 1] == "100"  # 2 s at 50 Hz
-    assert words[words.index("fixed") + 1] == "1"
-    coeffs = [float(w) for w in words[words.index("coeffs") + 1: words.index("coeffs") + 1 + len(COEFF_NAMES)]]
-    assert coeffs == pytest.approx(list(orca.true_vector()))
-    assert int(words[words.index("track") + 1]) == len(table)
-    # the default: the MPC sets the throttle, the controller's own PID gains (unused)
-    assert words[words.index("throttle") + 1] == "mpc"
-    assert words[words.index("pid_gains") + 1] == "default"
+    rows = np.loadtxt(io.StringIO(sil.raceline_csv(table)), delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(rows, table)
 
 
-def test_controller_setup_carries_the_throttle_mode_and_gains(orca, mobil):
-    table = sil.raceline_table(mobil, orca)
-    lines = sil.controller_setup(spec_for(orca, mobil, throttle="pid"), table, "/out").splitlines()
-    # in the order the controller reads them: after the coefficients, before x0
-    i = [ln.split()[0] for ln in lines].index("throttle")
-    assert lines[i - 1].startswith("coeffs ") and lines[i] == "throttle pid"
-    assert lines[i + 1] == "pid_gains default" and lines[i + 2].startswith("x0 ")
-    text = sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(0.5, 2.0, 0.0, 0.3)), table, "/out")
-    assert "\npid_gains 0.5 2.0 0.0 0.3\n" in text
+def test_controller_config_carries_the_throttle_mode_gains_and_hash(orca, mobil):
+    cc = sil.controller_config(spec_for(orca, mobil, throttle="pid"), "/out")
+    assert cc["control"]["throttle"] == "pid" and "pid" not in cc["control"]  # the controller's gains
+    cc = sil.controller_config(spec_for(orca, mobil, throttle="pid", pid_gains=(0.5, 2.0, 0.0, 0.3),
+                                        checkpoint_hash="ab" * 32), "/out")
+    assert cc["control"]["pid"] == {"kp": 0.5, "ki": 2.0, "kd": 0.0, "preview": 0.3}
+    assert cc["coefficients"]["checkpoint_hash"] == "ab" * 32
     with pytest.raises(DdynError, match="mpc or pid"):
-        sil.controller_setup(spec_for(orca, mobil, throttle="bangbang"), table, "/out")
+        sil.controller_config(spec_for(orca, mobil, throttle="bangbang"), "/out")
     with pytest.raises(DdynError, match="four finite numbers"):
-        sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, -1.0, 0.0, 0.0)), table, "/out")
+        sil.controller_config(spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, -1.0, 0.0, 0.0)), "/out")
 
 
 def test_sil_command_line_throttle_flags():
@@ -130,30 +130,36 @@ def sil_bins():
     return sil.build_binaries(None)
 
 
-def test_the_controller_refuses_a_malformed_setup(sil_bins, tmp_path):
-    bad = tmp_path / "setup.txt"
-    bad.write_text("vehicle orca_1_43\nperiod 0.02\nfixed 1\nnominal 1 2 3\n")
-    r = subprocess.run([str(sil_bins / "ddyn_sil_controller"), str(bad)], capture_output=True, text=True)
-    assert r.returncode == 2 and "malformed" in r.stderr
+def test_the_processes_refuse_a_malformed_config(sil_bins, tmp_path):
+    bad = tmp_path / "controller.json"
+    bad.write_text('{"vehicle": "orca_1_43", "control": {"period": 0.02}')
+    r = subprocess.run([str(sil_bins / "ddyn_controller"), str(bad)], capture_output=True, text=True)
+    assert r.returncode == 2 and "not valid JSON" in r.stderr
     r = subprocess.run([str(sil_bins / "ddyn_sil_plant"), str(tmp_path / "missing.json")], capture_output=True,
                        text=True)
     assert r.returncode == 2 and "cannot read config" in r.stderr
 
 
-def test_the_controller_reads_the_throttle_setup(orca, mobil, sil_bins, tmp_path):
-    """The controller process parses what controller_setup writes: an unknown throttle mode, gains that
-    are not numbers and gains the controller refuses (negative) all stop it with exit 2 before any CAN."""
-    good = sil.controller_setup(spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, 1.0, 0.0, 0.2)),
-                                sil.raceline_table(mobil, orca), str(tmp_path))
-    for old, new, said in (("throttle pid", "throttle fast", "throttle is 'mpc' or 'pid'"),
-                           ("pid_gains 1.0 1.0 0.0 0.2", "pid_gains one 1.0 0.0 0.2", "malformed"),
-                           ("pid_gains 1.0 1.0 0.0 0.2", "pid_gains 1.0 1.0 0.0 -0.2", "refused the setup")):
-        assert old in good
-        bad = tmp_path / "setup.txt"
-        bad.write_text(good.replace(old, new))
-        r = subprocess.run([str(sil_bins / "ddyn_sil_controller"), str(bad), "--can", "no_such_can0"],
-                           capture_output=True, text=True, timeout=30)
-        assert r.returncode == 2 and said in r.stderr, (new, r.returncode, r.stderr)
+def test_the_controller_reads_the_throttle_config(orca, mobil, sil_bins, tmp_path):
+    """The controller process parses what controller_config writes: an unknown throttle mode, gains that
+    are not numbers and negative gains all stop it with exit 2 before any CAN, naming the key."""
+    spec = spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, 1.0, 0.0, 0.2))
+    path = sil.write_controller_files(spec, sil.raceline_table(mobil, orca), tmp_path, str(tmp_path))
+    good = json.loads(path.read_text())
+    r = subprocess.run([str(sil_bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["control"]["pid"] == {"kp": 1.0, "ki": 1.0, "kd": 0.0, "preview": 0.2}
+    for key, value, said in (("throttle", "fast", "control.throttle: 'fast' is not one of mpc, pid"),
+                             ("pid", {"kp": "one", "ki": 1.0, "kd": 0.0, "preview": 0.2},
+                              "control.pid.kp: expected a number, got a string"),
+                             ("pid", {"kp": 1.0, "ki": 1.0, "kd": 0.0, "preview": -0.2},
+                              "control.pid.preview: -0.2 is out of range")):
+        cfg = json.loads(json.dumps(good))
+        cfg["control"][key] = value
+        cfg["can"]["interface"] = "no_such_can0"
+        path.write_text(json.dumps(cfg))
+        r = subprocess.run([str(sil_bins / "ddyn_controller"), str(path)], capture_output=True, text=True, timeout=30)
+        assert r.returncode == 2 and said in r.stderr, (value, r.returncode, r.stderr)
 
 
 def test_controller_killed_mid_run_stops_the_car_within_the_deadline(orca, mobil, tmp_path, sil_bins):
@@ -201,6 +207,33 @@ def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_pat
     ds = load_any(tmp_path / "controller.lcm")
     assert len(ds) == m["controller"]["periods"]
     check_live_lcm_log(m, tmp_path, orca)
+
+
+def test_timer_pacing_runs_on_absolute_deadlines_with_the_realtime_settings(orca, mobil, tmp_path, sil_bins):
+    """ddyn_controller's car pacing (realtime.pacing timer) in the guest against a real-time plant: every
+    period starts on a deadline t0 + k * period (clock_nanosleep TIMER_ABSTIME: no drift from the loop's
+    own time), deadlines missed by a late period are counted as skipped, SCHED_FIFO and mlockall are in
+    effect (root in the guest), and a CPU that does not exist is a warning, not a failure. (The emulated
+    CPU cannot hold 20 ms periods, so overruns happen and the DBW unit stops the car: the mechanics are
+    what is checked here, not the lap.)"""
+    spec = spec_for(orca, mobil, realtime=1.0, pacing="timer", rt_priority=10, rt_cpu=1023, max_time=1.5)
+    m = sil.run_sil(spec, tmp_path, None)
+    c = m["controller"]
+    assert c["realtime"] == {"pacing": "timer", "prepare": True, "memory_locked": True, "fifo_priority": 10,
+                             "cpu": -1, "warnings": 1}
+    assert "realtime.cpu: cannot pin to CPU 1023" in (tmp_path / "controller.stdout").read_text()
+    clog = sil.read_csv(tmp_path / "controller_log.csv")
+    assert c["periods"] == len(clog["step"]) >= 5
+    k = (clog["start"] - clog["start"][0]) / orca.sample_time
+    np.testing.assert_allclose(k, np.round(k), atol=1e-6)  # on the deadline grid
+    gaps = np.diff(np.round(k)).astype(int)
+    assert np.all(gaps >= 1)
+    # a period ending after the next deadline skips the deadlines it missed (the last one's are after the log)
+    assert 0 <= c["overruns"]["skipped_deadlines"] - int(np.sum(gaps - 1)) <= int(np.max(gaps)) + 1
+    assert c["overruns"]["periods"] == int(clog["overrun"].sum())
+    assert np.all(clog["trigger"] == 2)  # the clock, not the frames, runs each period
+    with pytest.raises(DdynError, match="real time"):
+        sil.controller_config(spec_for(orca, mobil, pacing="timer"), "/out")
 
 
 CHANNELS = {"DDYN_STATE": "state_estimate_t", "DDYN_COEFFS": "guard_coeffs_t", "DDYN_PLAN": "mpc_plan_t",
@@ -338,7 +371,7 @@ def test_a_lap_with_pid_throttle_in_process(orca, mobil, tmp_path, sil_bins):
     spec = spec_for(orca, mobil, speed_scale=0.9, max_time=15.0, throttle="pid")
     m = sil.run_sil(spec, tmp_path, None, where="inprocess")
     assert m["throttle"] == "pid" and m["pid_gains"] == "default"
-    assert "throttle pid" in (tmp_path / "controller.txt").read_text()
+    assert json.loads((tmp_path / "controller.json").read_text())["control"]["throttle"] == "pid"
     assert m["lap_completed"], m["end_reason"]
     assert m["violations"] == 0
     assert 4.5 < m["lap_times"][0] < 8.0
@@ -380,6 +413,7 @@ def test_sil_table_drives_the_dpm_rows_with_pid_throttle(orca, mobil, tmp_path, 
 
     monkeypatch.setattr(sil_table, "dpm_fixed_coefficients", fake_dpm)
     monkeypatch.setattr(sil_table, "export_network", lambda ckpt, out: Path("/export"))
+    monkeypatch.setattr(sil_table, "_sha256", lambda ckpt: {"ddm.ckpt": "d" * 64}[ckpt])
     monkeypatch.setattr(sil_table, "run_sil", fake_run)
     monkeypatch.setattr(sil_table, "load_track", lambda name: mobil)
     args = build_parser().parse_args(["sil", "table", "--ddm", "ddm.ckpt", "--dpm", "a.ckpt", "b.ckpt", "c.ckpt",
@@ -390,6 +424,8 @@ def test_sil_table_drives_the_dpm_rows_with_pid_throttle(orca, mobil, tmp_path, 
         runs.setdefault(spec.throttle, []).append((spec, export_dir))
     assert [s.coeffs_controller is None for s, _ in runs["mpc"]] == [True, False]  # DDM (network), truth
     assert runs["mpc"][0][1] == Path("/export")
+    # the DDM's controller must run that checkpoint's network (a stale build is refused); the others run none
+    assert [s.checkpoint_hash for s, _ in runs["mpc"]] == ["d" * 64, None]
     pid = [s for s, _ in runs["pid"]]
     assert len(pid) == 4 and all(s.pid_gains is None for s in pid)  # the controller's default gains
     for s, scale in zip(pid[:3], (1.0, 1.2, 0.8)):

@@ -3,7 +3,8 @@
 The plant (firmware_sim/, `ddyn_sil_plant`) plays the car: the generated vehicle model under RK4
 sub-steps, actuators with their limits, sensors at the DBC's rates with the vehicle file's noise,
 the drive-by-wire unit with its watchdog, and the track (progress, lap times, footprint
-violations). The controller (`ddyn_sil_controller`) is the c_src runtime built as its own
+violations). The controller (`ddyn_controller`, the car's own executable, with the JSON
+configuration of docs/deploy.md written here as controller.json) is the c_src runtime built as its own
 executable: EKF -> history -> guard network -> MPC -> DBW command. The two talk ONLY through CAN
 frames (can/ddyn_dbw.dbc) on vcan0: directly on a host that has vcan, otherwise inside a small qemu
 guest (the kernel, modules and busybox of scripts/vcan_guest; the plant is static, the controller
@@ -183,6 +184,12 @@ class SilSpec:
     deadline: float = 0.08
     throttle: str = "mpc"                      # "mpc" (the MPC plans it) or "pid" (PID on the speed error)
     pid_gains: tuple | None = None             # (kp, ki, kd, preview s); None: the controller's defaults
+    checkpoint_hash: str | None = None         # sha256 of the network's checkpoint: a controller built for
+                                               # another is refused (coefficients.checkpoint_hash)
+    prepare: bool = True                       # the MPC's preparation after each command (RTI split)
+    pacing: str = "frame"                      # the controller's realtime.pacing: frame, or timer (needs realtime > 0)
+    rt_priority: int = 0                       # realtime.priority: SCHED_FIFO priority, 0 = none
+    rt_cpu: int = -1                           # realtime.cpu: the CPU to pin the controller to, -1 = none
 
 
 def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
@@ -218,16 +225,35 @@ def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
     return cfg
 
 
-def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
+CONTROLLER_CONFIG = "controller.json"
+RACELINE_CSV = "raceline.csv"
+
+
+def raceline_csv(table: np.ndarray) -> str:
+    """The raceline file ddyn_controller reads (`raceline` key): x, y, speed, width_left, width_right."""
+    rows = ["x,y,speed,width_left,width_right"] + [",".join(repr(float(c)) for c in row) for row in table]
+    return "\n".join(rows) + "\n"
+
+
+def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: str = "") -> dict:
+    """ddyn_controller's configuration for a SIL run (the car's format: docs/deploy.md). The raceline is
+    RACELINE_CSV beside it; outputs go to out_dir (the folder of the run, /out in the guest)."""
     v = spec.vehicle
     if spec.throttle not in ("mpc", "pid"):
         raise DdynError(f"throttle {spec.throttle!r}: expected mpc or pid")
     if spec.pid_gains is not None and (len(spec.pid_gains) != 4 or
                                        not all(math.isfinite(g) and g >= 0.0 for g in spec.pid_gains)):
         raise DdynError(f"PID gains {spec.pid_gains!r}: expected four finite numbers >= 0 (kp, ki, kd, preview)")
+    if spec.pacing not in ("frame", "timer"):
+        raise DdynError(f"pacing {spec.pacing!r}: expected frame or timer")
+    if spec.pacing == "timer" and spec.realtime <= 0.0:
+        raise DdynError("the timer pacing runs on the clock: it needs a plant in real time (--realtime 1)")
     noise = sensor_noise(v, spec.noise_scale)
     fixed = spec.coeffs_controller is not None
-    coeffs = spec.coeffs_controller if fixed else spec.nominal
+
+    def named(c) -> dict:
+        return {k: float(x) for k, x in zip(COEFF_NAMES, c)}
+
     die = -1
     # lock-step: the controller's timer runs only after this much wall time without any frame (a
     # plant slowed by an emulator or a loaded machine is not a silent one); when the scenario is a
@@ -235,43 +261,84 @@ def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
     lockstep = 0.0 if spec.realtime > 0.0 else (1.5 * v.sample_time if "restart_plant" in spec.faults else 0.5)
     if "kill_controller" in spec.faults:
         die = int(round(float(spec.faults["kill_controller"]) / v.sample_time))
-    lines = [
-        f"vehicle {v.name}", f"period {v.sample_time!r}", f"fixed {int(fixed)}",
-        "nominal " + " ".join(repr(float(c)) for c in spec.nominal),
-        "coeffs " + " ".join(repr(float(c)) for c in coeffs),
-        f"throttle {spec.throttle}",
-        "pid_gains " + ("default" if spec.pid_gains is None else " ".join(repr(float(g)) for g in spec.pid_gains)),
-        "x0 " + " ".join(repr(float(c)) for c in start_state(spec.track, spec.vx0, spec.vehicle.name)),
-        # the noise the filter assumes: twice the sensors' own (model error), 1 m/s^2 for the
-        # accelerometer (its model goes through the estimated coefficients), as the controller's
-        # closed-loop benchmark (train/bench/controller.py); a floor keeps R positive definite
-        "r_std " + " ".join(repr(max(FILTER_ACCEL_STD if k == "acceleration" else 2.0 * float(s), 1e-4))
-                            for k in SENSOR_ORDER for s in noise[k]),
-        "q " + " ".join(repr(q) for q in FILTER_PROCESS_NOISE),
-        "stale " + " ".join(str(FRAME_STALE_PERIODS[k]) for k in FRAME_STALE_PERIODS),
-        "max_steps 200000", "idle_exit 3.0", f"lockstep {lockstep!r}", f"die_at_step {die}",
-        f"metrics {out_dir}/controller_metrics.json", f"log {out_dir}/controller_log.csv",
-        f"track {len(table)}",
-    ]
-    lines += [" ".join(repr(float(c)) for c in row) for row in table]
-    return "\n".join(lines) + "\n"
+    coefficients: dict = {"source": "fixed" if fixed else "network"}
+    if fixed:
+        coefficients["fixed"] = named(spec.coeffs_controller)
+    if spec.checkpoint_hash:
+        coefficients["checkpoint_hash"] = spec.checkpoint_hash
+    control: dict = {"period": float(v.sample_time), "throttle": spec.throttle, "prepare": spec.prepare}
+    if spec.throttle == "pid" and spec.pid_gains is not None:
+        control["pid"] = dict(zip(("kp", "ki", "kd", "preview"), (float(g) for g in spec.pid_gains)))
+    dims = {"gnss_position": 2, "heading": 1, "yaw_rate": 1, "acceleration": 2, "wheel_speed": 2, "steering": 1}
+    return {
+        "vehicle": v.name,
+        "nominal_coefficients": named(spec.nominal),
+        "coefficients": coefficients,
+        "can": {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS)},
+        "control": control,
+        "filter": {
+            "x0": [float(c) for c in start_state(spec.track, spec.vx0, spec.vehicle.name)],
+            "process_noise": list(FILTER_PROCESS_NOISE),
+            # the noise the filter assumes: twice the sensors' own (model error), 1 m/s^2 for the
+            # accelerometer (its model goes through the estimated coefficients), as the controller's
+            # closed-loop benchmark (train/bench/controller.py); a floor keeps R positive definite
+            "sensor_std": {k: [max(FILTER_ACCEL_STD if k == "acceleration" else 2.0 * float(sd), 1e-4)
+                               for sd in noise[k][:dims[k]]] for k in SENSOR_ORDER},
+        },
+        "raceline": RACELINE_CSV,
+        "telemetry": {"lcm_url": lcm_url, "metrics": f"{out_dir}/controller_metrics.json",
+                      "log": f"{out_dir}/controller_log.csv"},
+        # by default the SIL's plant runs in lock-step: frame pacing; no SCHED_FIFO (the emulated guest's
+        # two processes share its CPUs); memory locked as on the car
+        "realtime": {"pacing": spec.pacing, "priority": int(spec.rt_priority), "cpu": int(spec.rt_cpu), "lock_memory": True,
+                     "lockstep_silence": lockstep, "idle_exit": 3.0},
+        "sil": {"die_at_step": die},
+    }
+
+
+def write_controller_files(spec: SilSpec, table: np.ndarray, work: Path, out_dir: str, lcm_url: str = "") -> Path:
+    """controller.json and raceline.csv into the run's folder; the configuration's path."""
+    (work / RACELINE_CSV).write_text(raceline_csv(table))
+    path = work / CONTROLLER_CONFIG
+    path.write_text(json.dumps(controller_config(spec, out_dir, lcm_url=lcm_url), indent=1) + "\n")
+    return path
+
+
+def set_lcm_url(path: Path, url: str) -> bytes:
+    """The configuration with telemetry.lcm_url set (the URL is known only when the run starts)."""
+    cfg = json.loads(path.read_text())
+    cfg["telemetry"]["lcm_url"] = url
+    text = json.dumps(cfg, indent=1) + "\n"
+    path.write_text(text)
+    return text.encode()
 
 
 # ---------------------------------------------------------------------------------------------- build
 
 def build_binaries(export_dir: Path | None, build_root: Path | None = None, quiet: bool = True) -> Path:
-    """Configure and build the two SIL executables (for the given network export) in their own build dir."""
+    """Configure and build the SIL executables (the plant, ddyn_controller, the in-process variant) for the
+    given network export in their own build dir."""
     net = export_dir if export_dir is not None else REPO / "tests" / "c" / "generated" / "net_fixture"
     key = hashlib.sha256(str(Path(net).resolve()).encode()).hexdigest()[:12]
     build = (build_root or REPO / "build-sil") / key
     cmd = ["cmake", "-S", str(REPO), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release", "-DDDYN_BUILD_TESTS=OFF",
            f"-DDDYN_NET_EXPORT_DIR={Path(net).resolve()}"]
-    for c in (cmd, ["cmake", "--build", str(build), "-j2", "--target", "ddyn_sil_plant", "ddyn_sil_controller",
+    for c in (cmd, ["cmake", "--build", str(build), "-j2", "--target", "ddyn_sil_plant", "ddyn_controller_app",
                     "ddyn_sil_inprocess"]):
         r = subprocess.run(c, capture_output=True, text=True)
         if r.returncode != 0:
             raise DdynError(f"building the SIL binaries failed: {' '.join(c)}\n{(r.stdout + r.stderr)[-3000:]}")
     return build / "firmware_sim"
+
+
+def require_network(controller: Path, checkpoint_hash: str) -> None:
+    """Refuse, before any run, a controller built for another checkpoint than the one named (the
+    controller itself refuses it too: coefficients.checkpoint_hash of its configuration)."""
+    r = subprocess.run([str(controller), "--checkpoint-hash"], capture_output=True, text=True)
+    built = r.stdout.strip()
+    if r.returncode != 0 or built != checkpoint_hash:
+        raise DdynError(f"{controller} was built for checkpoint {built[:12] or '(unknown)'}..., not for the one given "
+                        f"({checkpoint_hash[:12]}...): a stale build; rebuild it for the checkpoint's export")
 
 
 def export_network(ckpt: Path, out: Path) -> Path:
@@ -375,15 +442,30 @@ def stop_host_logger(proc: subprocess.Popen, url: str) -> int:
         raise DdynError("lcm-logger did not stop within 10 s of SIGINT") from None
 
 
+def wait_until_ready(ctl: subprocess.Popen, stdout: Path, timeout: float = 30.0) -> None:
+    """Until the controller listens on the bus (its "running" line comes after the socket is bound):
+    a position frame the plant sent before would be lost, and the lock-step plant would wait it out."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and ctl.poll() is None:
+        if stdout.is_file() and re.search(r"^ddyn_controller: running ", stdout.read_text(), re.M):
+            return
+        time.sleep(0.02)
+    if ctl.poll() is not None:
+        raise DdynError(f"the controller exited ({ctl.returncode}) before the run: {stdout.read_text()[-2000:]}")
+    raise DdynError(f"the controller did not start listening within {timeout:.0f} s ({stdout})")
+
+
 def run_host(bins: Path, work: Path, restart: bool, lcm: bool = False) -> dict:
     """Both processes on the host's vcan0; with lcm, the controller publishes its telemetry over UDP
     multicast and lcm-logger (started first) records it into controller.lcm."""
     t0 = time.monotonic()
     logger, url = start_host_logger(work) if lcm else (None, None)
     try:
-        ctl = subprocess.Popen([str(bins / "ddyn_sil_controller"), str(work / "controller.txt"), "--can", "vcan0"]
-                               + (["--lcm", url] if url else []),
+        if url:
+            set_lcm_url(work / CONTROLLER_CONFIG, url)
+        ctl = subprocess.Popen([str(bins / "ddyn_controller"), str(work / CONTROLLER_CONFIG)],
                                stdout=open(work / "controller.stdout", "w"), stderr=subprocess.STDOUT)
+        wait_until_ready(ctl, work / "controller.stdout")
         with open(work / "plant.stdout", "w") as out:
             rc = subprocess.call([str(bins / "ddyn_sil_plant"), str(work / "plant.json"), "--can", "vcan0"],
                                  stdout=out, stderr=subprocess.STDOUT)
@@ -414,7 +496,7 @@ def run_inprocess(bins: Path, work: Path) -> dict:
     development and host-native controller timings)."""
     t0 = time.monotonic()
     with open(work / "plant.stdout", "w") as out:
-        rc = subprocess.call([str(bins / "ddyn_sil_inprocess"), str(work / "plant.json"), str(work / "controller.txt")],
+        rc = subprocess.call([str(bins / "ddyn_sil_inprocess"), str(work / "plant.json"), str(work / CONTROLLER_CONFIG)],
                              stdout=out, stderr=subprocess.STDOUT)
     if rc != 0:
         raise DdynError(f"ddyn_sil_inprocess failed ({rc}): {(work / 'plant.stdout').read_text()[-2000:]}")
@@ -431,8 +513,17 @@ echo "DDYN_GUEST_INIT_UPTIME: $(cut -d' ' -f1 /proc/uptime)"
 for m in {modules}; do insmod /lib/modules/$m.ko || echo "DDYN_GUEST: insmod $m failed"; done
 ip link add dev vcan0 type vcan && ip link set up vcan0 || echo "DDYN_GUEST: cannot create vcan0"
 mkdir -p /out
-{lcm_start}/sil/ddyn_sil_controller /sil/controller.txt --can vcan0{lcm_arg} > /out/controller.stdout 2>&1 &
+export LD_LIBRARY_PATH={libdir}
+{lcm_start}/sil/ddyn_controller /sil/controller.json > /out/controller.stdout 2>&1 &
 cpid=$!
+# the plant starts once the controller listens (its "running" line comes after the bus is bound): a
+# position frame sent before would be lost and the lock-step plant would wait out its timeout
+n=0
+while ! grep -q '^ddyn_controller: running ' /out/controller.stdout 2>/dev/null && kill -0 $cpid 2>/dev/null; do
+  n=$((n+1))
+  if [ $n -gt 1200 ]; then echo "DDYN_GUEST: the controller is not ready after 60 s"; break; fi
+  sleep 0.05
+done
 /sil/ddyn_sil_plant /sil/plant.json --can vcan0 > /out/plant.stdout 2>&1
 rc=$?
 if [ $rc -eq 3 ] && [ -f /sil/plant_resume.json ]; then
@@ -459,8 +550,7 @@ poweroff -f
 # the port in /proc/net/udp, the group joined in /proc/net/igmp) before the controller starts; after
 # the controller has exited, the logger drains its socket and is stopped with SIGINT, which closes
 # the log cleanly; the log comes back with the other files of /out.
-GUEST_LCM_START = """export LD_LIBRARY_PATH={libdir}
-ip link set lo up && ip link set lo multicast on && ip route add {group}/32 dev lo || echo "DDYN_GUEST: cannot route {group} on lo"
+GUEST_LCM_START = """ip link set lo up && ip link set lo multicast on && ip route add {group}/32 dev lo || echo "DDYN_GUEST: cannot route {group} on lo"
 /sil/lcm-logger --lcm-url '{url}' -f /out/{log} > /out/lcm-logger.stdout 2>&1 &
 lpid=$!
 n=0
@@ -521,24 +611,23 @@ def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, ti
     if not bg.is_static_elf(p):
         raise DdynError(f"{p} is not statically linked; the guest has no libc")
     c.file("sil/ddyn_sil_plant", p.read_bytes())
-    guest_bins = [bins / "ddyn_sil_controller"] + ([lcm_logger_binary()] if lcm else [])
-    if not lcm and not bg.is_static_elf(guest_bins[0]):
-        raise DdynError(f"{guest_bins[0]} is not statically linked and has no LCM; the guest has no libc")
-    try:  # dynamically linked ones (LCM) come with their interpreter and libraries
+    guest_bins = [bins / "ddyn_controller"] + ([lcm_logger_binary()] if lcm else [])
+    try:  # dynamically linked ones (cJSON, LCM) come with their interpreter and libraries
         added = bg.add_binaries(c, "sil", guest_bins)
     except bg.GuestError as e:
         raise DdynError(f"cannot put the controller into the qemu guest: {e}") from None
     for part in ("center", "inner", "outer"):
         c.file(f"sil/tracks/{track}_{part}.txt", (track_dir / f"{track}_{part}.txt").read_bytes(), 0o644)
-    for name in ("plant.json", "plant_resume.json", "controller.txt"):
+    url = lcm_url(LCM_GUEST_PORT)
+    if lcm:
+        set_lcm_url(work / CONTROLLER_CONFIG, url)
+    for name in ("plant.json", "plant_resume.json", CONTROLLER_CONFIG, RACELINE_CSV):
         if (work / name).is_file():
             c.file(f"sil/{name}", (work / name).read_bytes(), 0o644)
-    url = lcm_url(LCM_GUEST_PORT)
     fill = dict(libdir=bg.GUEST_LIB_DIR, group=LCM_GROUP, url=url, log=LCM_LOG_NAME,
                 port_hex=f"{LCM_GUEST_PORT:04X}", group_hex="".join(f"{int(b):02X}" for b in reversed(LCM_GROUP.split("."))))
-    c.file("init", GUEST_INIT.format(modules=" ".join(meta["modules"]),
+    c.file("init", GUEST_INIT.format(modules=" ".join(meta["modules"]), libdir=bg.GUEST_LIB_DIR,
                                      lcm_start=GUEST_LCM_START.format(**fill) if lcm else "",
-                                     lcm_arg=f" --lcm '{url}'" if lcm else "",
                                      lcm_stop=GUEST_LCM_STOP.format(**fill) if lcm else "").encode())
     initramfs = work / "guest-initramfs.cpio.gz"
     import gzip
@@ -649,7 +738,11 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
                              "first_safe_latency": cm["first_safe_latency"],
                              "first_stale_latency": cm.get("first_stale_latency"),
                              "status_counts": cm["status_counts"],
-                             "sensor_rejected": cm.get("sensor_rejected"), "sensor_nonfinite": cm.get("sensor_nonfinite")}
+                             "sensor_rejected": cm.get("sensor_rejected"), "sensor_nonfinite": cm.get("sensor_nonfinite"),
+                             # ddyn_controller's: the preparation's time (RTI split), overruns, the
+                             # real-time settings in effect, the network it ran
+                             "prepare_us": cm.get("prepare_us"), "overruns": cm.get("overruns"),
+                             "realtime": cm.get("realtime"), "checkpoint_hash": cm.get("checkpoint_hash")}
     # time to the safe state, where a fault required one
     f = spec.faults
     safe: dict = {}
@@ -792,7 +885,11 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin)
     if len(table) > 1024:
         raise DdynError(f"raceline of {len(table)} points; the MPC holds at most 1024")
+    if where == "inprocess" and spec.pacing != "frame":
+        raise DdynError("--where inprocess has no clock of its own: only the frame pacing")
     bins = build_binaries(export_dir)
+    if spec.checkpoint_hash:
+        require_network(bins / "ddyn_controller", spec.checkpoint_hash)
     track_dir = plant_track_dir(spec.track, out)
     use_host = where in ("host", "inprocess") or (where == "auto" and host_has_vcan())
     inside = "/out" if not use_host else str(out.resolve())
@@ -801,7 +898,8 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     (out / "plant_resume.json").unlink(missing_ok=True)
     if "restart_plant" in spec.faults:
         (out / "plant_resume.json").write_text(json.dumps(dict(pc, resume=f"{inside}/snapshot.json"), indent=1))
-    (out / "controller.txt").write_text(controller_setup(spec, table, inside))
+    (out / "controller.txt").unlink(missing_ok=True)  # the positional format of before: gone
+    write_controller_files(spec, table, out, inside)
     # the controller publishes its telemetry live over LCM (and lcm-logger records it) wherever it
     # runs as its own process in a build with LCM; otherwise its CSV log is converted (fallback)
     live = where != "inprocess" and controller_has_lcm(bins)
@@ -822,7 +920,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
             raise DdynError(f"the live LCM log was not recorded (lcm-logger exit {run['lcm'].get('logger_exit')}, "
                             f"{lcm_path} {'exists' if lcm_path.is_file() else 'missing'}); see "
                             f"{out / ('guest.log' if 'guest' in run else 'lcm-logger.stdout')}")
-        metrics["lcm"] = dict(source="live", publisher="ddyn_sil_controller (c_src/linux/telemetry_lcm.c) over "
+        metrics["lcm"] = dict(source="live", publisher="ddyn_controller (c_src/linux/telemetry_lcm.c) over "
                               + run["lcm"]["url"], logger="lcm-logger " + ("in the guest" if "guest" in run else
                                                                              "on the host"),
                               **lcm_log_summary(lcm_path))
@@ -849,6 +947,7 @@ def _run(args: argparse.Namespace) -> int:
     track = open_track(args.track, vehicle.name)
     export_dir = None
     fixed = None
+    checkpoint_hash = None
     if args.model:
         from ddyn.learn import checkpoint
         ckpt = checkpoint.read(args.model)
@@ -856,6 +955,7 @@ def _run(args: argparse.Namespace) -> int:
             raise DdynError(f"{args.model} is a {ckpt['kind']} checkpoint: the car runs a DDM's guard network "
                             "(use --coeffs for fixed coefficients)")
         export_dir = export_network(Path(args.model), Path(args.out) / "export")
+        checkpoint_hash = checkpoint.file_sha256(Path(args.model))  # the controller refuses another network
     else:
         fixed = coefficients_from(args.coeffs, vehicle)
     spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
@@ -863,7 +963,7 @@ def _run(args: argparse.Namespace) -> int:
                    effects=parse_effects(args.effects), faults=parse_faults(args.faults),
                    noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin,
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
-                   pid_gains=args.pid_gains)
+                   pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing)
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
     ctl = m["controller"] or {}
@@ -910,6 +1010,9 @@ def register(subparsers) -> None:
                                     "silent=imu|gnss|gnss_position|gnss_heading|wheel_speeds|steering silent_at=S "
                                     "kill_controller=S restart_plant=S")
     p.add_argument("--out", default="out/sil", help="output directory (default: %(default)s)")
+    p.add_argument("--pacing", choices=("frame", "timer"), default="frame",
+                   help="the controller's pacing (docs/deploy.md): a period per position frame (default), or "
+                        "absolute-deadline periods on its own clock (needs --realtime 1)")
     p.add_argument("--throttle", choices=("mpc", "pid"), default="mpc",
                    help="who sets the throttle: the MPC (default) or a PID on the speed error, the MPC then "
                         "planning only the steering (docs/controller.md)")

@@ -56,6 +56,12 @@ FAULT_SCENARIOS = [
 ]
 
 
+def _sha256(ckpt_path: str) -> str:
+    """The checkpoint's hash: the SIL controller refuses a network built from another checkpoint."""
+    from ddyn.learn import checkpoint
+    return checkpoint.file_sha256(Path(ckpt_path))
+
+
 def dpm_fixed_coefficients(ckpt_path: Path, data: Path, vehicle) -> tuple[np.ndarray, dict]:
     """The DPM's tyre coefficients (median over the dataset's windows) on the true drivetrain, its Iz."""
     import torch
@@ -121,7 +127,8 @@ def _run_table(args: argparse.Namespace) -> int:
         spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
                        nominal=vehicle.true_vector(), laps=1, vx0=args.vx0, noise_scale=args.noise,
                        speed_scale=args.speed_scale, margin=args.margin, realtime=args.realtime,
-                       max_time=args.max_time, seed=args.seed, throttle=throttle)
+                       max_time=args.max_time, seed=args.seed, throttle=throttle,
+                       checkpoint_hash=_sha256(args.ddm) if export_dir is not None else None)
         d = out / label.lower().replace(",", "").replace(" ", "_").replace("%", "pct").replace("+", "plus")
         m = run_sil(spec, d, export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout,
                     title=f"SIL {label}: ETHZMobil from vx = {args.vx0} m/s")
@@ -163,7 +170,8 @@ def _run_faults(args: argparse.Namespace) -> int:
         spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
                        nominal=vehicle.true_vector(), laps=1, vx0=args.vx0, faults=faults, noise_scale=args.noise,
                        speed_scale=args.speed_scale, margin=args.margin, realtime=args.realtime,
-                       max_time=args.max_time, seed=args.seed)
+                       max_time=args.max_time, seed=args.seed,
+                       checkpoint_hash=_sha256(args.model) if args.model else None)
         d = out / (label.split(" ")[0] + "_" + "_".join(f"{k}" for k in faults) if faults else "none")
         m = run_sil(spec, d, export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout, title=f"SIL: {label}")
         safe = m.get("safe_state", {})
