@@ -278,9 +278,8 @@ ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl);
  * steering (u = 0), as the actuators did. */
 void ddyn_ctrl_command_not_sent(ddyn_ctrl *ctl);
 
-/* The caller sent another command than ddyn_ctrl_step's (e.g. its own safe command for a silent frame,
- * or rates its set-point bounds cut): the filter's next prediction uses u, what the actuators got.
- * Non-finite u is ignored. */
+/* The caller sent another command than ddyn_ctrl_step's (e.g. its own safe command for a silent
+ * frame): the filter's next prediction uses u, what the actuators got. Non-finite u is ignored. */
 void ddyn_ctrl_command_applied(ddyn_ctrl *ctl, const double u[DDYN_NU]);
 
 /* The frame-silence limit (periods) a caller's monitor should use for a frame normally allowed
