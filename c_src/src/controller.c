@@ -70,6 +70,16 @@ ddyn_status ddyn_ctrl_default_config(const ddyn_vehicle_model *model, ddyn_ctrl_
     cfg->max_blind_steps = 25;
     cfg->max_plan_shift = 3;
     cfg->recovery_steps = 10;
+    /* degraded-bus mode (docs/controller.md#degraded-bus-mode): the multipliers were chosen on the SIL's
+     * delayed-frame scenario with in-process runs (its noise seed 1) and scored on the fault table in
+     * the qemu guest; recovery after one clean second */
+    cfg->degraded.age_tolerance = model->sample_time;
+    cfg->degraded.max_age = 3.0 * model->sample_time;
+    cfg->degraded.recovery_periods = 50;
+    cfg->degraded.r_scale = 3.0;
+    cfg->degraded.rate_weight_scale = 1.0;
+    cfg->degraded.speed_scale = 1.0;
+    cfg->degraded.stale_extra_periods = 2;
     cfg->coeff_source = DDYN_CTRL_SOURCE_NETWORK;
     cfg->throttle_mode = DDYN_CTRL_THROTTLE_MPC;
     /* throttle PID gains (PID_DEFAULT_*: see their definition) */
@@ -86,10 +96,21 @@ static int coefficients_usable(const double c[NC])
     return ddyn_all_finite(c, NC) && c[CM1] > 0.0 && c[NC - 1] > 0.0;
 }
 
-static int config_ok(const ddyn_ctrl_config *cfg)
+static int degraded_config_ok(const ddyn_ctrl_degraded_config *d, double dt)
+{
+    return d->age_tolerance >= 0.0 && isfinite(d->age_tolerance) && d->max_age >= 0.0 &&
+           d->max_age <= DDYN_CTRL_AGE_PERIODS * dt && d->recovery_periods >= 1 && d->r_scale >= 1.0 &&
+           isfinite(d->r_scale) && d->rate_weight_scale >= 1.0 && isfinite(d->rate_weight_scale) &&
+           d->speed_scale > 0.0 && d->speed_scale <= 1.0 && d->stale_extra_periods >= 0;
+}
+
+static int config_ok(const ddyn_ctrl_config *cfg, double dt)
 {
     const ddyn_ctrl_pid_config *g = &cfg->pid;
     int i, k;
+    if (!degraded_config_ok(&cfg->degraded, dt)) {
+        return 0;
+    }
     if ((unsigned)cfg->coeff_source >= (unsigned)DDYN_CTRL_SOURCE_COUNT ||
         (unsigned)cfg->throttle_mode >= (unsigned)DDYN_CTRL_THROTTLE_MODE_COUNT ||
         (cfg->coeff_source == DDYN_CTRL_SOURCE_FIXED && !coefficients_usable(cfg->c_fixed)) ||
@@ -129,7 +150,7 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
         return DDYN_ERR_ARGUMENT;
     }
     memset(ctl, 0, sizeof *ctl);
-    if (!config_ok(cfg) || (tables == NULL && cfg->coeff_source != DDYN_CTRL_SOURCE_FIXED)) {
+    if (!config_ok(cfg, model->sample_time) || (tables == NULL && cfg->coeff_source != DDYN_CTRL_SOURCE_FIXED)) {
         return DDYN_ERR_ARGUMENT;
     }
     /* the network's outputs feed the model directly: their order must be the model's */
@@ -314,12 +335,12 @@ static int covariance_ok(const ddyn_ctrl *ctl)
 
 /* Fuse one finite reading unless the EKF refuses it or its normalised innovation squared exceeds
  * the gate (then the update is undone: x and P are restored). 0: fused, 1: refused, 2: gated. */
-static int fuse(ddyn_ctrl *ctl, int k, const double *z)
+static int fuse(ddyn_ctrl *ctl, int k, const double *z, const double *r)
 {
     double x[NX], P[NX * NX], nis = 0.0;
     memcpy(x, ctl->ekf.x, sizeof x);
     memcpy(P, ctl->ekf.P, sizeof P);
-    if (ddyn_ekf_update(&ctl->ekf, (ddyn_meas_kind)k, z, ctl->cfg.r_diag[k], ctl->coeffs, &nis) != DDYN_OK) {
+    if (ddyn_ekf_update(&ctl->ekf, (ddyn_meas_kind)k, z, r, ctl->coeffs, &nis) != DDYN_OK) {
         return 1; /* the filter is left unchanged by a refused update */
     }
     if (!(nis <= ctl->cfg.nis_gate)) {
@@ -340,25 +361,175 @@ static int count_fault(ddyn_ctrl *ctl, int k)
     return 0;
 }
 
+/* ---- degraded-bus mode (ddyn_ctrl_degraded_config) ---- */
+
+/* A reading's age relative to the period's time (>= 0: a fresher reading counts as current). NaN/inf
+ * or negative ages (a caller's bug) count as too old. */
+static double relative_age(const ddyn_ctrl_input *in, const ddyn_ctrl_reading *r)
+{
+    double latency = isfinite(in->latency) && in->latency > 0.0 ? in->latency : 0.0;
+    double a = r->age - latency;
+    if (!isfinite(r->age) || r->age < 0.0) {
+        return INFINITY;
+    }
+    return a > 0.0 ? a : 0.0;
+}
+
+/* Enter degraded mode on a faulty period, leave it after recovery_periods clean ones. Returns the
+ * status bits; sets the MPC's weights and reference speed of the mode. */
+static ddyn_ctrl_status update_degraded(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
+{
+    const ddyn_ctrl_degraded_config *d = &ctl->cfg.degraded;
+    ddyn_ctrl_status st = DDYN_CTRL_OK;
+    int k, faulty = in->bus_faults > 0u || !(in->latency <= d->age_tolerance);
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        if (in->reading[k].valid && !(relative_age(in, &in->reading[k]) <= d->age_tolerance)) {
+            faulty = 1;
+        }
+    }
+    if (faulty) {
+        ctl->clean_periods = 0;
+        ctl->degraded = 1;
+    } else if (ctl->degraded) {
+        ctl->clean_periods += 1;
+        if (ctl->clean_periods >= d->recovery_periods) {
+            ctl->degraded = 0;
+            ctl->clean_periods = 0;
+            st |= DDYN_CTRL_BUS_RECOVERED;
+        }
+    }
+    for (k = 0; k < NU; ++k) {
+        ctl->mpc.cfg.r_rate[k] = ctl->cfg.mpc.r_rate[k] * (ctl->degraded ? d->rate_weight_scale : 1.0);
+    }
+    ctl->mpc.track.speed_scale = ctl->degraded ? d->speed_scale : 1.0;
+    if (ctl->degraded) {
+        st |= DDYN_CTRL_BUS_DEGRADED;
+        ctl->degraded_periods = saturating_increment(ctl->degraded_periods);
+    }
+    return st;
+}
+
+/* The filter's own state `age` seconds before now (now = its estimate x_now), interpolated linearly
+ * between the estimates at the ends of the last periods. 0 when the history is too short. */
+static int state_at_age(const ddyn_ctrl *ctl, const double x_now[NX], double age, double x[NX])
+{
+    const double dt = ctl->model->sample_time;
+    double s = age / dt, frac;
+    int j0 = (int)s, i;
+    const double *a, *b;
+    if (!(s >= 0.0) || j0 + 1 > ctl->x_hist_n || j0 >= DDYN_CTRL_AGE_PERIODS) {
+        return 0;
+    }
+    frac = s - (double)j0;
+    a = j0 == 0 ? x_now : ctl->x_hist[j0 - 1];
+    b = ctl->x_hist[j0];
+    for (i = 0; i < NX; ++i) {
+        x[i] = (1.0 - frac) * a[i] + frac * b[i];
+    }
+    return 1;
+}
+
+/* Move a reading of relative age `age` to the period's time with the filter's trajectory:
+ * z + h(x_now) - h(x(now - age)) (a heading difference wrapped to (-pi, pi]). 0: not possible (older
+ * than max_age, or the model failed): the reading is not fused. Before the filter has a trajectory
+ * that long (the first periods) the reading is fused as it is. */
+static int age_reading(ddyn_ctrl *ctl, int k, const double *z, double age, double *z_out)
+{
+    double x_then[NX], h_now[DDYN_MEAS_MAX_DIM], h_then[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX];
+    int i, m = ddyn_meas_dim((ddyn_meas_kind)k);
+    if (!(age > 0.0)) {
+        memcpy(z_out, z, (size_t)m * sizeof *z);
+        return 1;
+    }
+    if (age > ctl->cfg.degraded.max_age) {
+        return 0;
+    }
+    if (!state_at_age(ctl, ctl->ekf.x, age, x_then)) {
+        /* the first periods: no trajectory to place it on yet, fused as it is */
+        memcpy(z_out, z, (size_t)m * sizeof *z);
+        return 1;
+    }
+    if (ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, ctl->ekf.x, ctl->coeffs, h_now, H, &ctl->ekf.work) !=
+            DDYN_OK ||
+        ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_then, ctl->coeffs, h_then, H, &ctl->ekf.work) !=
+            DDYN_OK) {
+        return 0;
+    }
+    for (i = 0; i < m; ++i) {
+        double d = h_now[i] - h_then[i];
+        if (k == DDYN_MEAS_HEADING) {
+            d = atan2(sin(d), cos(d));
+        }
+        z_out[i] = z[i] + d;
+    }
+    return ddyn_all_finite(z_out, m);
+}
+
+/* The estimate predicted over the input's latency in Euler sub-steps of at most a quarter period: the
+ * state when this period's command takes effect. The actuators are held over it (u = 0): they reached
+ * the previous set-point within its period (the SIL's in-process delayed-bus runs: with the previous
+ * rates continued, the steering overshoots its set-point in the prediction and the lap had violations). */
+static void predict_latency(ddyn_ctrl *ctl, double latency, double x[NX])
+{
+    const double dt = ctl->model->sample_time;
+    double xdot[NX], h;
+    int n, j, i;
+    memcpy(x, ctl->ekf.x, NX * sizeof *x);
+    if (!(latency > 0.0) || !ctl->started) {
+        return;
+    }
+    if (latency > ctl->cfg.degraded.max_age) {
+        latency = ctl->cfg.degraded.max_age;
+    }
+    n = (int)ceil(latency / (0.25 * dt));
+    if (n < 1) {
+        n = 1;
+    }
+    if (n > 4 * DDYN_CTRL_AGE_PERIODS) {
+        n = 4 * DDYN_CTRL_AGE_PERIODS;
+    }
+    h = latency / (double)n;
+    for (j = 0; j < n; ++j) {
+        static const double u_hold[NU] = {0.0, 0.0};
+        if (ddyn_model_derivatives(ctl->model, x, u_hold, ctl->coeffs, xdot, &ctl->ekf.work) != DDYN_OK ||
+            !ddyn_all_finite(xdot, NX)) {
+            memcpy(x, ctl->ekf.x, NX * sizeof *x); /* the model failed: the estimate as it is */
+            return;
+        }
+        for (i = 0; i < NX; ++i) {
+            x[i] += h * xdot[i];
+        }
+    }
+}
+
 /* Step 3: predict, fuse this period's readings, check the filter. */
 static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
-    int k, fused = 0, diverged = 0;
+    const double r_var_scale = ctl->degraded ? ctl->cfg.degraded.r_scale * ctl->cfg.degraded.r_scale : 1.0;
+    int k, i, fused = 0, diverged = 0;
     if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_prev, ctl->coeffs) != DDYN_OK) {
         diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
     }
     for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
         const ddyn_ctrl_reading *r = &in->reading[k];
         int m = ddyn_meas_dim((ddyn_meas_kind)k), result;
+        double z[DDYN_MEAS_MAX_DIM], rv[DDYN_MEAS_MAX_DIM];
         if (!r->valid) {
             continue; /* no new reading of this sensor: its fault count stands */
+        }
+        for (i = 0; i < DDYN_MEAS_MAX_DIM; ++i) {
+            rv[i] = ctl->cfg.r_diag[k][i] * r_var_scale;
         }
         if (!ddyn_all_finite(r->z, m)) {
             st |= DDYN_CTRL_MEAS_NONFINITE;
             ctl->nonfinite_count[k] = saturating_increment(ctl->nonfinite_count[k]);
             (void)count_fault(ctl, k);
-        } else if ((result = fuse(ctl, k, r->z)) != 0) {
+        } else if (!age_reading(ctl, k, r->z, relative_age(in, r), z)) {
+            /* too old to place in time: the bus's fault, not the sensor's (no fault count) */
+            st |= DDYN_CTRL_MEAS_REJECTED;
+            ctl->rejected_count[k] = saturating_increment(ctl->rejected_count[k]);
+        } else if ((result = fuse(ctl, k, z, rv)) != 0) {
             st |= DDYN_CTRL_MEAS_REJECTED;
             ctl->rejected_count[k] = saturating_increment(ctl->rejected_count[k]);
             if (count_fault(ctl, k)) {
@@ -450,10 +621,10 @@ static int coefficients_close(const ddyn_ctrl *ctl, const double a[NC], const do
 }
 
 /* Steps 4-5: solve the MPC and pick the command; *safe_cause set when the plan is exhausted. */
-static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_cause)
+static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctrl_output *out, int *safe_cause)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
-    double u[NU], dthrottle = 0.0, v_ref = 0.0;
+    double u[NU], dthrottle = 0.0, v_ref = 0.0, x0[NX];
     const int pid = ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID;
     ddyn_status s;
     if (ctl->mpc.prepared && !coefficients_close(ctl, ctl->mpc.c, ctl->coeffs)) {
@@ -462,17 +633,19 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, ddyn_ctrl_output *out, int *safe_ca
         ctl->mpc.prepared = 0;
     }
     s = ddyn_mpc_set_coefficients(&ctl->mpc, ctl->coeffs);
+    /* the plan starts where the car will be when this command takes effect (the input's latency) */
+    predict_latency(ctl, in->latency, x0);
     if (s == DDYN_OK && pid) {
-        s = ddyn_mpc_reference_speed(&ctl->mpc, ctl->ekf.x, ctl->cfg.pid.preview * fabs(ctl->ekf.x[VX]), &v_ref);
+        s = ddyn_mpc_reference_speed(&ctl->mpc, x0, ctl->cfg.pid.preview * fabs(x0[VX]), &v_ref);
         if (s == DDYN_OK) {
             st |= throttle_pid(ctl, v_ref, out, &dthrottle);
-            s = ddyn_mpc_solve_held_throttle(&ctl->mpc, ctl->ekf.x, dthrottle, u, &out->mpc_info);
+            s = ddyn_mpc_solve_held_throttle(&ctl->mpc, x0, dthrottle, u, &out->mpc_info);
         }
     } else if (s == DDYN_OK && ctl->mpc.prepared) {
         /* prepared after the last command (ddyn_ctrl_prepare): only the feedback phase remains */
-        s = ddyn_mpc_feedback(&ctl->mpc, ctl->ekf.x, u, &out->mpc_info);
+        s = ddyn_mpc_feedback(&ctl->mpc, x0, u, &out->mpc_info);
     } else if (s == DDYN_OK) {
-        s = ddyn_mpc_solve(&ctl->mpc, ctl->ekf.x, u, &out->mpc_info);
+        s = ddyn_mpc_solve(&ctl->mpc, x0, u, &out->mpc_info);
     }
     out->mpc_status = s;
     if (ctl->plan_horizon > 0 && ctl->plan_age < ctl->plan_horizon) {
@@ -514,8 +687,9 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
         push_history_row(ctl);
     }
     st = choose_coefficients(ctl);
+    st |= update_degraded(ctl, in);
     st |= estimate(ctl, in);
-    st |= plan(ctl, out, &safe_cause);
+    st |= plan(ctl, in, out, &safe_cause);
     if (st & (DDYN_CTRL_SENSOR_FAULT | DDYN_CTRL_NO_MEASUREMENTS | DDYN_CTRL_EKF_DIVERGED)) {
         safe_cause = 1;
     }
@@ -547,9 +721,36 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
     memcpy(out->coeffs, ctl->coeffs, sizeof out->coeffs);
     memcpy(ctl->x_prev, ctl->ekf.x, sizeof ctl->x_prev);
     memcpy(ctl->u_prev, out->u, sizeof ctl->u_prev);
+    /* the estimates that date aged readings: newest first, bounded */
+    memmove(ctl->x_hist[1], ctl->x_hist[0], (DDYN_CTRL_AGE_PERIODS - 1) * sizeof ctl->x_hist[0]);
+    memcpy(ctl->x_hist[0], ctl->ekf.x, sizeof ctl->x_hist[0]);
+    ctl->x_hist_n = ctl->x_hist_n < DDYN_CTRL_AGE_PERIODS ? ctl->x_hist_n + 1 : DDYN_CTRL_AGE_PERIODS;
     ctl->started = 1;
     out->status = st;
     return st;
+}
+
+void ddyn_ctrl_command_not_sent(ddyn_ctrl *ctl)
+{
+    if (ctl != NULL && ctl->initialised) {
+        ctl->u_prev[0] = 0.0;
+        ctl->u_prev[1] = 0.0;
+    }
+}
+
+void ddyn_ctrl_command_applied(ddyn_ctrl *ctl, const double u[DDYN_NU])
+{
+    if (ctl != NULL && ctl->initialised && u != NULL && ddyn_all_finite(u, NU)) {
+        memcpy(ctl->u_prev, u, sizeof ctl->u_prev);
+    }
+}
+
+int ddyn_ctrl_stale_limit(const ddyn_ctrl *ctl, int base)
+{
+    if (ctl == NULL || !ctl->initialised || !ctl->degraded) {
+        return base;
+    }
+    return base + ctl->cfg.degraded.stale_extra_periods;
 }
 
 ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl)
@@ -580,7 +781,8 @@ const char *ddyn_ctrl_status_name(ddyn_ctrl_status bit)
         "DDYN_CTRL_OUT_OF_RANGE",    "DDYN_CTRL_NET_FAULT",         "DDYN_CTRL_COEFF_LAST_GOOD",
         "DDYN_CTRL_COEFF_NOMINAL",   "DDYN_CTRL_EKF_DIVERGED",      "DDYN_CTRL_MPC_NOT_CONVERGED",
         "DDYN_CTRL_MPC_FAILED",      "DDYN_CTRL_PLAN_SHIFTED",      "DDYN_CTRL_SAFE_COMMAND",
-        "DDYN_CTRL_RECOVERED",       "DDYN_CTRL_COEFF_FIXED",       "DDYN_CTRL_PID_SATURATED"};
+        "DDYN_CTRL_RECOVERED",       "DDYN_CTRL_COEFF_FIXED",       "DDYN_CTRL_PID_SATURATED",
+        "DDYN_CTRL_BUS_DEGRADED",    "DDYN_CTRL_BUS_RECOVERED"};
     int i;
     if (bit == DDYN_CTRL_OK) {
         return "DDYN_CTRL_OK";

@@ -696,3 +696,120 @@ const char *ddyn_dbw_state_name(ddyn_dbw_state state)
     default: return "unknown";
     }
 }
+
+/* ---- frame ages on a degraded bus (ddyn/dbw.h) ---- */
+
+void ddyn_dbw_link_init(ddyn_dbw_link *link)
+{
+    if (link != NULL) {
+        memset(link, 0, sizeof *link);
+    }
+}
+
+ddyn_dbw_link_result ddyn_dbw_link_on_frame(ddyn_dbw_link *link, ddyn_dbw_frame frame, uint8_t counter,
+                                            unsigned *lost, double *age_s)
+{
+    const double cycle = (double)ddyn_dbw_cycle_us(frame) * 1e-6;
+    unsigned step = 1u;
+    double tau, age;
+    int f = (int)frame;
+    if (lost != NULL) {
+        *lost = 0u;
+    }
+    if (age_s != NULL) {
+        *age_s = 0.0;
+    }
+    if (link == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT) {
+        return DDYN_DBW_LINK_REPEATED;
+    }
+    counter = (uint8_t)(counter % DDYN_DBW_COUNTER_MODULO);
+    if (link->seen[f]) {
+        step = (counter + DDYN_DBW_COUNTER_MODULO - link->last_counter[f]) % DDYN_DBW_COUNTER_MODULO;
+        if (step == 0u) {
+            link->repeated += 1u;
+            return DDYN_DBW_LINK_REPEATED;
+        }
+        if (step > DDYN_DBW_COUNTER_MODULO / 2u) {
+            link->late += 1u;
+            return DDYN_DBW_LINK_LATE;
+        }
+        link->lost += step - 1u;
+        if (lost != NULL) {
+            *lost = step - 1u;
+        }
+        link->seq[f] += (int64_t)step;
+    } else {
+        /* the first frame of a stream: fresh by assumption (corrected by the window minimum) */
+        link->seq[f] = 0;
+        link->phase_s[f] = link->any_seen ? link->now_s : 0.0;
+        link->window_min_s[f] = 0.0;
+        link->window_n[f] = 0;
+        link->ticked[f] = false;
+        link->seen[f] = true;
+    }
+    link->any_seen = true;
+    link->last_counter[f] = counter;
+    tau = link->phase_s[f] + (double)link->seq[f] * cycle;
+    if (tau > link->now_s) {
+        link->now_s = tau;
+    }
+    age = link->now_s - tau;
+    if (age_s != NULL) {
+        *age_s = age;
+    }
+    return DDYN_DBW_LINK_NEW;
+}
+
+void ddyn_dbw_link_tick(ddyn_dbw_link *link)
+{
+    int f;
+    if (link == NULL) {
+        return;
+    }
+    for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
+        double age;
+        if (!link->seen[f]) {
+            continue;
+        }
+        age = ddyn_dbw_link_age(link, (ddyn_dbw_frame)f);
+        if (link->window_n[f] == 0 || age < link->window_min_s[f]) {
+            link->window_min_s[f] = age;
+        }
+        link->window_n[f] += 1;
+        /* the first window is one tick long: a stream's first frame may have come just before fresher
+         * frames of the same instant */
+        if (link->window_n[f] >= (link->ticked[f] ? DDYN_DBW_LINK_WINDOW : 1)) {
+            link->ticked[f] = true;
+            /* the window's least delayed frame is fresh by definition: move the phase by that much */
+            link->phase_s[f] += link->window_min_s[f];
+            link->window_n[f] = 0;
+        }
+    }
+}
+
+void ddyn_dbw_link_on_bad_frame(ddyn_dbw_link *link)
+{
+    if (link != NULL) {
+        link->bad += 1u;
+    }
+}
+
+double ddyn_dbw_link_age(const ddyn_dbw_link *link, ddyn_dbw_frame frame)
+{
+    int f = (int)frame;
+    if (link == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT || !link->seen[f]) {
+        return -1.0;
+    }
+    return link->now_s - (link->phase_s[f] + (double)link->seq[f] * (double)ddyn_dbw_cycle_us(frame) * 1e-6);
+}
+
+uint32_t ddyn_dbw_link_take_faults(ddyn_dbw_link *link)
+{
+    uint32_t n;
+    if (link == NULL) {
+        return 0u;
+    }
+    n = link->lost + link->late + link->repeated + link->bad;
+    link->lost = link->late = link->repeated = link->bad = 0u;
+    return n;
+}

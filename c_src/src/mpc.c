@@ -148,6 +148,7 @@ ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const doub
     }
     t->length = s;
     t->n = n;
+    t->speed_scale = 1.0;
     ddyn_mpc_reset(mpc);
     return DDYN_OK;
 }
@@ -218,7 +219,7 @@ static track_point track_at(const ddyn_mpc_track *t, int i, double u)
     p.y = t->y[i] + u * dy;
     p.tx = dx / len;
     p.ty = dy / len;
-    p.speed = t->speed[i] + u * (t->speed[j] - t->speed[i]);
+    p.speed = t->speed_scale * (t->speed[i] + u * (t->speed[j] - t->speed[i]));
     p.wl = t->width_left[i] + u * (t->width_left[j] - t->width_left[i]);
     p.wr = t->width_right[i] + u * (t->width_right[j] - t->width_right[i]);
     p.s = t->s[i] + u * len;

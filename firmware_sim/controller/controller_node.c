@@ -32,6 +32,7 @@ ddyn_status ddyn_sil_node_init(ddyn_sil_node *node, const ddyn_vehicle_model *mo
         node->stale[k] = stale[k];
         node->last_counter[k] = -1;
     }
+    ddyn_dbw_link_init(&node->link);
     return DDYN_OK;
 }
 
@@ -74,18 +75,22 @@ int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *
     ddyn_dbw_frame f;
     uint8_t counter;
     unsigned lost = 0u;
-    ddyn_dbw_decode_result r = ddyn_dbw_decode(can_id, data, len, &node->sig, &f, &counter);
+    ddyn_dbw_signals decoded = node->sig; /* a frame refused later must not touch the last values */
+    ddyn_dbw_decode_result r = ddyn_dbw_decode(can_id, data, len, &decoded, &f, &counter);
     switch (r) {
     case DDYN_DBW_DECODE_OK:
         break;
     case DDYN_DBW_DECODE_CHECKSUM:
         node->checksum += 1;
+        ddyn_dbw_link_on_bad_frame(&node->link);
         return 0;
     case DDYN_DBW_DECODE_BAD_LENGTH:
         node->bad_length += 1;
+        ddyn_dbw_link_on_bad_frame(&node->link);
         return 0;
     case DDYN_DBW_DECODE_RANGE:
         node->range += 1;
+        ddyn_dbw_link_on_bad_frame(&node->link);
         return 0;
     case DDYN_DBW_DECODE_UNKNOWN_ID:
         node->unknown_id += 1;
@@ -96,21 +101,20 @@ int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *
     if (f == DDYN_DBW_FRAME_COMMAND) {
         return 0; /* our own kind of frame (another controller's): not for us */
     }
-    if (node->last_counter[f] >= 0) {
-        /* forward by 1..8 (mod 16): new, a skip means lost frames; 0: a stuck sender; 9..15: an
-         * older frame arriving late. Neither of the last two may overwrite newer data. */
-        unsigned step = (counter + DDYN_DBW_COUNTER_MODULO - (unsigned)node->last_counter[f]) % DDYN_DBW_COUNTER_MODULO;
-        if (step == 0u) {
-            node->repeated_counter += 1;
-            return 0;
-        }
-        if (step > DDYN_DBW_COUNTER_MODULO / 2u) {
-            node->late += 1;
-            return 0;
-        }
-        node->frames_lost += (long)(step - 1u);
-        lost = step - 1u;
+    /* forward by 1..8 (mod 16): new, a skip means lost frames; 0: a stuck sender; 9..15: an older
+     * frame arriving late. Neither of the last two may overwrite newer data. */
+    switch (ddyn_dbw_link_on_frame(&node->link, f, counter, &lost, NULL)) {
+    case DDYN_DBW_LINK_REPEATED:
+        node->repeated_counter += 1;
+        return 0;
+    case DDYN_DBW_LINK_LATE:
+        node->late += 1;
+        return 0;
+    default:
+        break;
     }
+    node->sig = decoded;
+    node->frames_lost += (long)lost;
     node->last_counter[f] = counter;
     node->last_rx_step[f] = node->steps;
     node->frames_ok += 1;
@@ -119,7 +123,28 @@ int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *
         return 0;
     }
     node->catch_up = (int)(lost < (unsigned)DDYN_SIL_MAX_CATCH_UP ? lost : (unsigned)DDYN_SIL_MAX_CATCH_UP);
-    return 1 + node->catch_up;
+    return 1;
+}
+
+/* the frame each sensor reading comes from */
+static const ddyn_dbw_frame READING_FRAME[DDYN_MEAS_COUNT] = {
+    [DDYN_MEAS_GNSS_POSITION] = DDYN_DBW_FRAME_GNSS_POSITION, [DDYN_MEAS_HEADING] = DDYN_DBW_FRAME_GNSS_HEADING,
+    [DDYN_MEAS_YAW_RATE] = DDYN_DBW_FRAME_IMU,                [DDYN_MEAS_ACCELERATION] = DDYN_DBW_FRAME_IMU,
+    [DDYN_MEAS_WHEEL_SPEED] = DDYN_DBW_FRAME_WHEEL_SPEEDS,    [DDYN_MEAS_STEERING] = DDYN_DBW_FRAME_STEERING};
+
+/* the readings' ages and the period's latency on the bus clock now, and the bus faults since the last
+ * period, into the controller's input */
+static void date_input(ddyn_sil_node *node)
+{
+    int k;
+    ddyn_dbw_link_tick(&node->link);
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        double a = ddyn_dbw_link_age(&node->link, READING_FRAME[k]); /* the frame the reading came in */
+        node->in.reading[k].age = a > 0.0 ? a : 0.0;
+    }
+    node->in.latency = node->in.reading[DDYN_MEAS_GNSS_POSITION].valid ? node->in.reading[DDYN_MEAS_GNSS_POSITION].age
+                                                                        : 0.0;
+    node->in.bus_faults = ddyn_dbw_link_take_faults(&node->link);
 }
 
 void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
@@ -128,26 +153,31 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
     ddyn_dbw_signals cmd;
     int k;
     memset(p, 0, sizeof *p);
+    /* (the degraded mode's extra periods as of the last period) */
     for (k = 0; k < DDYN_DBW_FRAME_COUNT; ++k) {
-        if (node->stale[k] > 0 && node->steps - node->last_rx_step[k] > node->stale[k]) {
+        if (node->stale[k] > 0 && node->steps - node->last_rx_step[k] > ddyn_ctrl_stale_limit(&node->ctl, node->stale[k])) {
             p->stale = 1;
         }
     }
-    if (node->catch_up > 0) {
+    date_input(node);
+    while (node->catch_up > 0) {
         /* a period whose position frame was lost: run it with the other readings, keep this
-         * period's position and heading for the period they belong to */
+         * period's position and heading for the period they belong to; its command is not sent
+         * (the actuators held theirs through it) */
         ddyn_ctrl_input held = node->in;
         node->in.reading[DDYN_MEAS_GNSS_POSITION].valid = 0;
         node->in.reading[DDYN_MEAS_HEADING].valid = 0;
         ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
+        ddyn_ctrl_command_not_sent(&node->ctl);
         memset(&node->in, 0, sizeof node->in);
         node->in.reading[DDYN_MEAS_GNSS_POSITION] = held.reading[DDYN_MEAS_GNSS_POSITION];
         node->in.reading[DDYN_MEAS_HEADING] = held.reading[DDYN_MEAS_HEADING];
+        node->in.latency = held.latency;
         node->catch_up -= 1;
-    } else {
-        ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
-        memset(&node->in, 0, sizeof node->in);
+        node->steps += 1;
     }
+    ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
+    memset(&node->in, 0, sizeof node->in);
     p->safe = p->stale || (p->out.status & DDYN_CTRL_SAFE_COMMAND) != 0;
     if (p->stale) {
         ddyn_ctrl_safe_command(&node->ctl, p->out.x_est, u);
@@ -162,6 +192,17 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
      * back. */
     p->throttle = clampd(node->setpoint[0] + u[0] * node->period, node->state_lo[0], node->state_hi[0]);
     p->steering = clampd(node->setpoint[1] + u[1] * node->period, node->state_lo[1], node->state_hi[1]);
+    if (p->stale) {
+        /* the actuators get the safe command for a silent frame, not the step's command: the filter
+         * must predict with it (otherwise its throttle state drifts from the actuator's and the safe
+         * command, which reads that state, drives a stopped car back and forth). Set-points cut by their
+         * bounds are left to the steering sensor: telling the filter the cut rates made the delayed-frame
+         * laps worse (in-process seed 2: 3 violations, 67 steering readings gated, against 0 and 8). */
+        double applied[DDYN_NU];
+        applied[0] = (p->throttle - node->setpoint[0]) / node->period;
+        applied[1] = (p->steering - node->setpoint[1]) / node->period;
+        ddyn_ctrl_command_applied(&node->ctl, applied);
+    }
     node->setpoint[0] = p->throttle;
     node->setpoint[1] = p->steering;
     memset(&cmd, 0, sizeof cmd);

@@ -5,9 +5,12 @@
  *
  * Frame policy: checksum, length and range (ddyn_dbw_decode), a repeated counter and a counter up
  * to 8 behind (an older frame arriving late) reject a frame; a counter jump forward means frames
- * were lost and is counted, the frame itself is used. A monitored
- * frame missing for more than `stale[f]` periods, or the controller's own safe mode, gives the safe
- * command (ddyn_ctrl_safe_command: brake, then hold; steering held). (The strict monitor of
+ * were lost and is counted, the frame itself is used. The counters also date every frame
+ * (ddyn_dbw_link: its age against the freshest frame on the bus); the readings carry their ages,
+ * the period its latency (the position frame's age) and the bus faults since the last period into
+ * the controller's degraded-bus mode (ddyn/controller.h). A monitored frame missing for more than
+ * `stale[f]` periods (plus the degraded mode's extra periods, ddyn_ctrl_stale_limit), or the
+ * controller's own safe mode, gives the safe command (ddyn_ctrl_safe_command: brake, then hold; steering held). (The strict monitor of
  * ddyn/dbw.h, where every counter jump is a failure that needs an explicit re-enable, would stop
  * the car at the first lost frame; a lossy bus needs this tolerant policy.)
  *
@@ -36,6 +39,7 @@ typedef struct {
     int stale[DDYN_DBW_FRAME_COUNT];  /* periods a monitored frame may be missing; 0 = unmonitored */
     long last_rx_step[DDYN_DBW_FRAME_COUNT];
     int last_counter[DDYN_DBW_FRAME_COUNT];
+    ddyn_dbw_link link;        /* frame ages and bus faults (degraded-bus mode) */
     long steps;
     int catch_up;              /* periods still to run before the one of the last position frame */
     uint8_t tx_counter;
@@ -58,14 +62,18 @@ ddyn_status ddyn_sil_node_init(ddyn_sil_node *node, const ddyn_vehicle_model *mo
                                const ddyn_ctrl_config *cfg, const double x0[DDYN_NX], double period,
                                const int stale[DDYN_DBW_FRAME_COUNT]);
 
-/* One received frame. Returns the number of control periods to run now: 0 for most frames; for a
- * good GNSS_Position frame (the period's trigger) 1 plus the position frames lost just before it
- * (at most DDYN_SIL_MAX_CATCH_UP), so that the filter's clock keeps pace with the plant's. */
+/* One received frame. Returns the number of control periods to run now: 0 for most frames, 1 for a
+ * good GNSS_Position frame (the period's trigger). Position frames lost just before it (at most
+ * DDYN_SIL_MAX_CATCH_UP) are caught up inside that period (ddyn_sil_node_period) so that the
+ * filter's clock keeps pace with the plant's: their commands are not sent (the plant has moved on;
+ * in lock-step a surplus command would answer a later position frame and delay every command after
+ * it by a period), so the filter predicts them with the actuators held. */
 #define DDYN_SIL_MAX_CATCH_UP 3
 int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len);
 
-/* One control period with the readings received since the last one; the command frame is
- * encoded into p->data (identifier p->can_id). */
+/* One control period with the readings received since the last one (after the catch-up periods of
+ * lost position frames, whose commands are not sent); the command frame is encoded into p->data
+ * (identifier p->can_id). */
 void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p);
 
 #ifdef __cplusplus

@@ -143,6 +143,19 @@ PlantApp::PlantApp(const PlantAppConfig& cfg, Bus& bus)
   wall_start_ = wall_now();
 }
 
+bool PlantApp::answered_position(const CanFrame& f) {
+  // the controller answers a position frame only when it is newer than the last one it used (counter
+  // 1..8 ahead, mod 16); an older one overtaken on a delaying bus is refused, so lock-step must not
+  // wait for an answer to it (another command would then answer it, one period late)
+  const int counter = (f.data[6] >> 4) & 0x0F;
+  if (last_position_counter_ >= 0) {
+    const int step = (counter - last_position_counter_ + 16) % 16;
+    if (step == 0 || step > 8) return false;
+  }
+  last_position_counter_ = counter;
+  return true;
+}
+
 bool PlantApp::faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dropped, long& corrupted, bool* damaged) {
   // the same draws whatever the fault settings, so a run's noise does not depend on them
   const double u_drop = uni_(fault_rng_), u_corrupt = uni_(fault_rng_), u_delay = uni_(fault_rng_);
@@ -226,7 +239,7 @@ void PlantApp::emit(double t_prev, double t) {
       bus_.send(f);
       ++frames_sent_;
       // a damaged position frame gets no answer: no lock-step wait for it
-      if (f.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && !damaged) gnss_sent_ = true;
+      if (f.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && !damaged) gnss_sent_ = answered_position(f);
     }
   }
 }
@@ -270,7 +283,8 @@ bool PlantApp::step() {
       bus_.send(tx_held_[i].frame);
       ++frames_sent_;
       const CanFrame& h = tx_held_[i].frame;
-      if (h.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && dbc_checksum(h.id, h.data.data()) == h.data[7]) gnss_sent_ = true;
+      if (h.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && dbc_checksum(h.id, h.data.data()) == h.data[7])
+        gnss_sent_ = gnss_sent_ || answered_position(h);
       tx_held_.erase(tx_held_.begin() + static_cast<long>(i));
     } else {
       ++i;

@@ -81,8 +81,9 @@ TEST(SilLoop, DelayedFramesArriveLateAndAreNotApplied) {
   EXPECT_EQ(m["dbw"]["trips"].get<int>(), 0);  // 80 ms deadline: a 40 ms delay never trips it
 }
 
-// A lost position frame still gets its control period: the node asks for one period more, runs it
-// without the position reading, and fuses the reading in the period it belongs to.
+// A lost position frame still gets its control period: the next position frame's period first runs
+// the lost one without the position reading (its command is not sent: the actuators held theirs,
+// and the filter predicts it so), then its own with the reading.
 TEST(SilLoop, LostPositionFramesAreCaughtUp) {
   FSIM_REQUIRE_TRACKS();
   fsim_test::SilLoop loop(fsim_test::orca_sil_config());
@@ -92,14 +93,16 @@ TEST(SilLoop, LostPositionFramesAreCaughtUp) {
   EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 1);
   ddyn_sil_period per;
   ddyn_sil_node_period(node, &per);
+  const uint8_t counter0 = per.data[6] >> 4;
   enc.gnss_position(1.21, 0.9);  // lost on the bus: its counter is used up
   f = enc.gnss_position(1.22, 0.9);
-  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 2);
+  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 1);  // one command to send
   EXPECT_EQ(node->frames_lost, 1);
-  ddyn_sil_node_period(node, &per);  // the lost frame's period: no position reading
+  EXPECT_EQ(node->catch_up, 1);
+  ddyn_sil_node_period(node, &per);  // the lost frame's period, then this one
   EXPECT_EQ(node->catch_up, 0);
-  EXPECT_EQ(node->in.reading[DDYN_MEAS_GNSS_POSITION].valid, 1);  // kept for the next one
-  ddyn_sil_node_period(node, &per);
-  EXPECT_EQ(node->in.reading[DDYN_MEAS_GNSS_POSITION].valid, 0);
+  EXPECT_EQ(node->in.reading[DDYN_MEAS_GNSS_POSITION].valid, 0);  // fused in its own period
   EXPECT_EQ(node->steps, 3);
+  EXPECT_EQ(per.data[6] >> 4, (counter0 + 1) % 16);  // the caught-up period sent no frame
+  EXPECT_EQ(node->ctl.x_hist_n, 3);                  // but the filter ran it
 }

@@ -825,6 +825,212 @@ static void test_pid_anti_windup(void **state)
     assert_true(out.u[0] < 0.0);
 }
 
+/* ---- degraded-bus mode (ddyn_ctrl_degraded_config) ---- */
+
+static void test_degraded_config_is_checked(void **state)
+{
+    ddyn_ctrl_config bad;
+    (void)state;
+    bad = cfg;
+    bad.degraded.r_scale = 0.5; /* would trust the degraded bus more */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.degraded.speed_scale = 0.0;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.degraded.max_age = (DDYN_CTRL_AGE_PERIODS + 1) * model->sample_time; /* beyond the stored estimates */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.degraded.recovery_periods = 0;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+    bad = cfg;
+    bad.degraded.rate_weight_scale = NAN;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &bad, plant), DDYN_ERR_ARGUMENT);
+}
+
+static void test_bus_faults_enter_degraded_mode_and_recovery_has_hysteresis(void **state)
+{
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    int k;
+    (void)state;
+    cfg.degraded.rate_weight_scale = 4.0;
+    cfg.degraded.speed_scale = 0.8;
+    cfg.degraded.recovery_periods = 10;
+    start_on_circle(oracle_tables());
+    drive_healthy(20);
+    assert_false(ctl.degraded);
+    assert_int_equal(ddyn_ctrl_stale_limit(&ctl, 1), 1);
+    readings(&in, 20);
+    in.bus_faults = 3u; /* e.g. three frames lost since the last period */
+    assert_true(run(&in, &out) & DDYN_CTRL_BUS_DEGRADED);
+    assert_true(ctl.mpc.cfg.r_rate[1] == 4.0 * cfg.mpc.r_rate[1]); /* heavier input-rate weights */
+    assert_true(ctl.mpc.track.speed_scale == 0.8);                  /* a slower reference */
+    assert_int_equal(ddyn_ctrl_stale_limit(&ctl, 1), 1 + cfg.degraded.stale_extra_periods);
+    for (k = 1; k < cfg.degraded.recovery_periods; ++k) { /* clean, but not long enough */
+        assert_true(run_exact(20 + k, &out) & DDYN_CTRL_BUS_DEGRADED);
+        assert_false(out.status & DDYN_CTRL_BUS_RECOVERED);
+    }
+    readings(&in, 30);
+    in.bus_faults = 1u; /* a fault before the end: the count starts again */
+    assert_true(run(&in, &out) & DDYN_CTRL_BUS_DEGRADED);
+    for (k = 1; k < cfg.degraded.recovery_periods; ++k) {
+        assert_true(run_exact(30 + k, &out) & DDYN_CTRL_BUS_DEGRADED);
+    }
+    run_exact(40, &out);
+    assert_true(out.status & DDYN_CTRL_BUS_RECOVERED);
+    assert_false(out.status & DDYN_CTRL_BUS_DEGRADED);
+    assert_true(ctl.mpc.cfg.r_rate[1] == cfg.mpc.r_rate[1]); /* the racing weights and speed again */
+    assert_true(ctl.mpc.track.speed_scale == 1.0);
+    assert_int_equal(ddyn_ctrl_stale_limit(&ctl, 1), 1);
+    assert_int_equal((int)ctl.degraded_periods, 2 * cfg.degraded.recovery_periods);
+    assert_false(out.status & DDYN_CTRL_SAFE_COMMAND); /* degraded is not safe mode */
+}
+
+static void test_old_readings_and_latency_mark_the_bus_degraded(void **state)
+{
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    (void)state;
+    start_on_circle(oracle_tables());
+    drive_healthy(10);
+    readings(&in, 10);
+    in.reading[DDYN_MEAS_YAW_RATE].age = 0.5 * cfg.degraded.age_tolerance; /* within the tolerance */
+    assert_false(run(&in, &out) & DDYN_CTRL_BUS_DEGRADED);
+    readings(&in, 11);
+    in.reading[DDYN_MEAS_YAW_RATE].age = 2.0 * cfg.degraded.age_tolerance;
+    assert_true(run(&in, &out) & DDYN_CTRL_BUS_DEGRADED);
+    start_on_circle(oracle_tables());
+    drive_healthy(10);
+    readings(&in, 10);
+    in.latency = 2.0 * cfg.degraded.age_tolerance; /* the period itself runs late */
+    assert_true(run(&in, &out) & DDYN_CTRL_BUS_DEGRADED);
+    /* a reading as old as the period is current relative to it */
+    start_on_circle(oracle_tables());
+    drive_healthy(10);
+    readings(&in, 10);
+    in.latency = 0.5 * cfg.degraded.age_tolerance;
+    in.reading[DDYN_MEAS_YAW_RATE].age = 1.4 * cfg.degraded.age_tolerance;
+    assert_false(run(&in, &out) & DDYN_CTRL_BUS_DEGRADED);
+    readings(&in, 11);
+    in.reading[DDYN_MEAS_STEERING].age = -1.0; /* a caller's bug: not fusable, counted */
+    assert_true(run(&in, &out) & DDYN_CTRL_MEAS_REJECTED);
+}
+
+/* readings of the state x (every sensor but the accelerometer; GNSS and heading every 5th period) */
+static void readings_of(const double x[DDYN_NX], ddyn_ctrl_input *in, int period)
+{
+    double saved[DDYN_NX];
+    memcpy(saved, plant, sizeof saved);
+    memcpy(plant, x, sizeof saved);
+    readings(in, period);
+    memcpy(plant, saved, sizeof saved);
+}
+
+static void test_aged_readings_are_moved_to_the_period_time(void **state)
+{
+    /* every reading two periods old (as on a bus that delays them): the controller told their age
+     * places them on its own trajectory; a twin given the same readings as if fresh lags behind */
+    static ddyn_ctrl twin;
+    double past[3][DDYN_NX], err_aged = 0.0, err_fresh = 0.0;
+    ddyn_ctrl_output out, out_twin;
+    ddyn_ctrl_input in;
+    int k;
+    (void)state;
+    cfg.degraded.r_scale = 1.0; /* the same measurement noise in both: only the dating differs */
+    start_on_circle(oracle_tables());
+    drive_healthy(20);
+    twin = ctl;
+    for (k = 0; k < 3; ++k) {
+        memcpy(past[k], plant, sizeof plant);
+    }
+    for (k = 0; k < 100; ++k) {
+        readings_of(past[2], &in, k); /* the plant two periods ago */
+        ddyn_ctrl_step(&twin, &in, &out_twin);
+        for (int j = 0; j < DDYN_MEAS_COUNT; ++j) {
+            in.reading[j].age = 2.0 * model->sample_time;
+        }
+        run(&in, &out);
+        assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MEAS_REJECTED));
+        memcpy(twin.u_prev, ctl.u_prev, sizeof twin.u_prev); /* the plant got ctl's commands */
+        memcpy(past[2], past[1], sizeof plant);
+        memcpy(past[1], past[0], sizeof plant);
+        memcpy(past[0], plant, sizeof plant);
+        if (k >= 20) {
+            /* position error against the plant at the end of the period the estimates are for */
+            err_aged += hypot(out.x_est[0] - past[1][0], out.x_est[1] - past[1][1]);
+            err_fresh += hypot(out_twin.x_est[0] - past[1][0], out_twin.x_est[1] - past[1][1]);
+        }
+    }
+    print_message("position error over 80 periods: aged readings dated %g m, taken as fresh %g m\n",
+                  err_aged / 80, err_fresh / 80);
+    assert_true(err_aged < 0.5 * err_fresh);
+    assert_true(err_aged / 80 < 0.01);
+    /* older than max_age: not fused, not the sensor's fault */
+    readings(&in, 1);
+    in.reading[DDYN_MEAS_WHEEL_SPEED].age = cfg.degraded.max_age + model->sample_time;
+    assert_true(run(&in, &out) & DDYN_CTRL_MEAS_REJECTED);
+    assert_int_equal(ctl.sensor_fault_run[DDYN_MEAS_WHEEL_SPEED], 0);
+}
+
+static void test_the_plan_starts_after_the_latency(void **state)
+{
+    /* the same period, 40 ms late: the MPC starts from the estimate predicted 40 ms ahead (about 4 cm
+     * further along the circle at 1 m/s); a latency beyond max_age is cut there */
+    static ddyn_ctrl a, b, c;
+    ddyn_ctrl_output oa, ob, oc;
+    ddyn_ctrl_input in;
+    double lat = 0.040;
+    (void)state;
+    cfg.degraded.r_scale = 1.0; /* (a late period is degraded: the same filter in all three) */
+    start_on_circle(oracle_tables());
+    drive_healthy(30);
+    a = ctl;
+    b = ctl;
+    c = ctl;
+    readings(&in, 30);
+    ddyn_ctrl_step(&a, &in, &oa);
+    in.latency = lat;
+    ddyn_ctrl_step(&b, &in, &ob);
+    in.latency = 1.0;
+    ddyn_ctrl_step(&c, &in, &oc);
+    print_message("progress %g, %g after %g s latency, %g after 1 s\n", oa.mpc_info.progress, ob.mpc_info.progress, lat,
+                  oc.mpc_info.progress);
+    assert_true(fabs(ob.mpc_info.progress - oa.mpc_info.progress - lat * SPEED) < 0.25 * lat * SPEED);
+    assert_true(fabs(oc.mpc_info.progress - oa.mpc_info.progress - cfg.degraded.max_age * SPEED) <
+                0.25 * cfg.degraded.max_age * SPEED);
+    assert_memory_equal(oa.x_est, ob.x_est, sizeof oa.x_est); /* the estimate itself is not moved */
+}
+
+static void test_a_command_not_sent_is_predicted_held(void **state)
+{
+    static ddyn_ctrl twin;
+    ddyn_ctrl_output out, out_twin;
+    ddyn_ctrl_input in;
+    (void)state;
+    start_on_circle(oracle_tables());
+    drive_healthy(25);
+    run_exact(25, &out);
+    assert_true(fabs(out.u[1]) > 0.0);
+    twin = ctl;
+    ddyn_ctrl_command_not_sent(&ctl);
+    assert_true(ctl.u_prev[0] == 0.0 && ctl.u_prev[1] == 0.0);
+    memset(&in, 0, sizeof in); /* no readings: the estimate is the prediction alone */
+    ddyn_ctrl_step(&ctl, &in, &out);
+    ddyn_ctrl_step(&twin, &in, &out_twin);
+    assert_true(out.x_est[7] == ctl.x_hist[1][7]);        /* steering held */
+    assert_true(out_twin.x_est[7] != twin.x_hist[1][7]); /* the twin assumed the command applied */
+    /* another command went out (the caller's safe command): the filter predicts with it */
+    {
+        const double sent[DDYN_NU] = {-1.0, 0.25}, bad[DDYN_NU] = {NAN, 0.0};
+        ddyn_ctrl_command_applied(&ctl, sent);
+        ddyn_ctrl_command_applied(&ctl, bad); /* ignored */
+        assert_true(ctl.u_prev[0] == sent[0] && ctl.u_prev[1] == sent[1]);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_true(fabs(out.x_est[7] - (ctl.x_hist[1][7] + model->sample_time * sent[1])) < 1e-12);
+    }
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -851,6 +1057,12 @@ int main(void)
         cmocka_unit_test_setup(test_pid_throttle_follows_the_law_and_the_plan_holds_it, setup),
         cmocka_unit_test_setup(test_pid_closed_loop_reaches_and_holds_the_speed, setup),
         cmocka_unit_test_setup(test_pid_anti_windup, setup),
+        cmocka_unit_test_setup(test_degraded_config_is_checked, setup),
+        cmocka_unit_test_setup(test_bus_faults_enter_degraded_mode_and_recovery_has_hysteresis, setup),
+        cmocka_unit_test_setup(test_old_readings_and_latency_mark_the_bus_degraded, setup),
+        cmocka_unit_test_setup(test_aged_readings_are_moved_to_the_period_time, setup),
+        cmocka_unit_test_setup(test_the_plan_starts_after_the_latency, setup),
+        cmocka_unit_test_setup(test_a_command_not_sent_is_predicted_held, setup),
     };
     return cmocka_run_group_tests_name("controller", tests, NULL, NULL);
 }

@@ -462,6 +462,97 @@ static void test_fault_bits_for_the_status_frame(void **state)
     assert_string_equal(ddyn_dbw_frame_name(DDYN_DBW_FRAME_IMU), "IMU");
 }
 
+/* ---- frame ages on a degraded bus (ddyn_dbw_link) ---- */
+
+static ddyn_dbw_link_result link_frame(ddyn_dbw_link *l, ddyn_dbw_frame f, unsigned counter, unsigned *lost, double *age)
+{
+    return ddyn_dbw_link_on_frame(l, f, (uint8_t)(counter % 16u), lost, age);
+}
+
+static void test_link_counts_lost_late_repeated_and_bad_frames(void **state)
+{
+    ddyn_dbw_link l;
+    unsigned lost = 99u;
+    double age = -1.0;
+    (void)state;
+    ddyn_dbw_link_init(&l);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 14u, &lost, &age), DDYN_DBW_LINK_NEW);
+    assert_int_equal(lost, 0u);
+    assert_true(age == 0.0);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 15u, &lost, &age), DDYN_DBW_LINK_NEW);
+    assert_int_equal(ddyn_dbw_link_take_faults(&l), 0u); /* a clean bus */
+    /* 15 -> 2 (wrapping): frames 0 and 1 were lost */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 2u, &lost, &age), DDYN_DBW_LINK_NEW);
+    assert_int_equal(lost, 2u);
+    /* frame 1 arrives after all: older than the newest, refused */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 1u, &lost, &age), DDYN_DBW_LINK_LATE);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 2u, &lost, &age), DDYN_DBW_LINK_REPEATED);
+    ddyn_dbw_link_on_bad_frame(&l);
+    assert_int_equal(l.lost, 2u);
+    assert_int_equal(l.late, 1u);
+    assert_int_equal(l.repeated, 1u);
+    assert_int_equal(ddyn_dbw_link_take_faults(&l), 5u);
+    assert_int_equal(ddyn_dbw_link_take_faults(&l), 0u); /* read and cleared */
+    assert_int_equal(link_frame(NULL, DDYN_DBW_FRAME_IMU, 3u, &lost, &age), DDYN_DBW_LINK_REPEATED);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_COUNT, 3u, NULL, NULL), DDYN_DBW_LINK_REPEATED);
+    assert_true(ddyn_dbw_link_age(&l, DDYN_DBW_FRAME_GNSS_POSITION) == -1.0); /* never received */
+}
+
+static void test_link_measures_the_age_of_a_delayed_frame(void **state)
+{
+    /* IMU (10 ms) and GNSS position (20 ms) sampled together; the GNSS frame of 20 ms arrives only
+     * after the IMU frames of 30 and 40 ms: it is 20 ms older than the freshest data */
+    ddyn_dbw_link l;
+    double age = -1.0;
+    unsigned lost;
+    (void)state;
+    ddyn_dbw_link_init(&l);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 0u, &lost, &age), DDYN_DBW_LINK_NEW); /* t = 0 */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_GNSS_POSITION, 0u, &lost, &age), DDYN_DBW_LINK_NEW);
+    assert_true(age == 0.0);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 1u, &lost, &age), DDYN_DBW_LINK_NEW); /* 10 ms */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 2u, &lost, &age), DDYN_DBW_LINK_NEW); /* 20 ms */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 3u, &lost, &age), DDYN_DBW_LINK_NEW); /* 30 ms */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 4u, &lost, &age), DDYN_DBW_LINK_NEW); /* 40 ms */
+    assert_true(fabs(age) < 1e-12);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_GNSS_POSITION, 1u, &lost, &age), DDYN_DBW_LINK_NEW);
+    assert_true(fabs(age - 0.020) < 1e-12);
+    assert_true(fabs(ddyn_dbw_link_age(&l, DDYN_DBW_FRAME_GNSS_POSITION) - 0.020) < 1e-12);
+    assert_true(fabs(ddyn_dbw_link_age(&l, DDYN_DBW_FRAME_IMU)) < 1e-12);
+    /* the next one on time: fresh again; a lost frame in between does not age the stream */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 5u, &lost, &age), DDYN_DBW_LINK_NEW);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 6u, &lost, &age), DDYN_DBW_LINK_NEW); /* 60 ms */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_GNSS_POSITION, 3u, &lost, &age), DDYN_DBW_LINK_NEW);
+    assert_int_equal(lost, 1u);
+    assert_true(fabs(age) < 1e-12);
+}
+
+static void test_link_tick_aligns_a_stream_whose_first_frame_looked_old(void **state)
+{
+    /* the heading frame of 20 ms arrives just before the IMU frame of the same instant: taken as
+     * sampled at 10 ms, it looks 10 ms old at the period; the first tick moves its phase, and from
+     * then on frames of that instant are fresh */
+    ddyn_dbw_link l;
+    double age;
+    unsigned lost, k;
+    (void)state;
+    ddyn_dbw_link_init(&l);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 0u, &lost, &age), DDYN_DBW_LINK_NEW); /* 0 */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 1u, &lost, &age), DDYN_DBW_LINK_NEW); /* 10 ms */
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_GNSS_HEADING, 0u, &lost, &age), DDYN_DBW_LINK_NEW);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 2u, &lost, &age), DDYN_DBW_LINK_NEW); /* 20 ms */
+    assert_true(fabs(ddyn_dbw_link_age(&l, DDYN_DBW_FRAME_GNSS_HEADING) - 0.010) < 1e-12);
+    ddyn_dbw_link_tick(&l);
+    assert_true(fabs(ddyn_dbw_link_age(&l, DDYN_DBW_FRAME_GNSS_HEADING)) < 1e-12);
+    for (k = 1u; k < 40u; ++k) { /* the same order for 40 more periods: stays fresh */
+        assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 2u * k + 1u, &lost, &age), DDYN_DBW_LINK_NEW);
+        assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_GNSS_HEADING, k, &lost, &age), DDYN_DBW_LINK_NEW);
+        assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 2u * k + 2u, &lost, &age), DDYN_DBW_LINK_NEW);
+        ddyn_dbw_link_tick(&l);
+        assert_true(fabs(ddyn_dbw_link_age(&l, DDYN_DBW_FRAME_GNSS_HEADING)) < 1e-9);
+    }
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -485,6 +576,9 @@ int main(void)
         cmocka_unit_test_setup(test_bad_frame_keeps_last_good_values, setup),
         cmocka_unit_test_setup(test_stale_is_counted_once_per_lapse, setup),
         cmocka_unit_test_setup(test_fault_bits_for_the_status_frame, setup),
+        cmocka_unit_test(test_link_counts_lost_late_repeated_and_bad_frames),
+        cmocka_unit_test(test_link_measures_the_age_of_a_delayed_frame),
+        cmocka_unit_test(test_link_tick_aligns_a_stream_whose_first_frame_looked_old),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -47,7 +47,7 @@ def test_closed_loop_tool_reports_timing_and_every_status_bit():
     s = r["controller_step"]
     assert s["n"] == 300 and 0 < s["median_us"] <= s["p99_us"] <= s["max_us"]
     bits = [k for k in r if k.startswith("steps_DDYN_CTRL_")]
-    assert len(bits) == 18  # DDYN_CTRL_STATUS_BITS (ddyn/controller.h)
+    assert len(bits) == 20  # DDYN_CTRL_STATUS_BITS (ddyn/controller.h)
     assert r["steps_DDYN_CTRL_ERR_ARGUMENT"] == 0
     # the first tau periods fill the history (the fixture network reads 3 rows)
     assert r["steps_DDYN_CTRL_HISTORY_FILLING"] == 3

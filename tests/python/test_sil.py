@@ -279,12 +279,12 @@ def check_live_lcm_log(m: dict, work: Path, vehicle) -> None:
     # fixed coefficients: the vehicle's true ones, every period
     np.testing.assert_allclose(np.array([c.coeffs for c in msgs["DDYN_COEFFS"]]),
                                np.tile(vehicle.true_vector(), (periods, 1)), rtol=0, atol=1e-12)
-    # fault bits: the controller's 18 status bits, then missing frames (18) and the safe command (19)
+    # fault bits: the controller's 20 status bits, then missing frames (20) and the safe command (21)
     active = np.array([f.active for f in msgs["DDYN_FAULTS"]])
-    np.testing.assert_array_equal(active & 0x3FFFF, clog["status"].astype(int))
+    np.testing.assert_array_equal(active & 0xFFFFF, clog["status"].astype(int))
     assert np.all(active & 0x10000)  # DDYN_CTRL_COEFF_FIXED: this run's coefficients are fixed
-    np.testing.assert_array_equal((active >> 18) & 1, clog["stale"].astype(int))
-    np.testing.assert_array_equal((active >> 19) & 1, clog["safe"].astype(int))
+    np.testing.assert_array_equal((active >> 20) & 1, clog["stale"].astype(int))
+    np.testing.assert_array_equal((active >> 21) & 1, clog["safe"].astype(int))
     # each plan starts at that period's estimate; timing is the step's time in the CSV (%.2f us)
     for p in msgs["DDYN_PLAN"]:
         if p.status == 0:

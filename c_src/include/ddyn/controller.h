@@ -78,7 +78,12 @@ extern "C" {
                                                   network is not run (every period of such a controller) */
 #define DDYN_CTRL_PID_SATURATED (1ul << 17)    /* throttle PID: the throttle's range or rate bound cut the
                                                   PID's output; the integral is held (anti-windup) */
-#define DDYN_CTRL_STATUS_BITS 18
+#define DDYN_CTRL_BUS_DEGRADED (1ul << 18)   /* degraded-bus mode (ddyn_ctrl_degraded_config): the bus lost,
+                                                  refused or delayed frames recently; heavier input-rate
+                                                  weights, slower reference, inflated R, aged readings
+                                                  moved to the period's time */
+#define DDYN_CTRL_BUS_RECOVERED (1ul << 19)  /* degraded-bus mode left this period (recovery_periods clean) */
+#define DDYN_CTRL_STATUS_BITS 20
 
 typedef uint32_t ddyn_ctrl_status;
 
@@ -115,6 +120,30 @@ typedef struct {
     double preview; /* s (>= 0): the reference speed is read this many seconds ahead at the car's speed */
 } ddyn_ctrl_pid_config;
 
+/* Degraded-bus mode (docs/controller.md#degraded-bus-mode). A period is FAULTY when the caller reports
+ * bus faults (ddyn_ctrl_input.bus_faults: frames lost, late, repeated or refused since the last period)
+ * or a reading older than age_tolerance relative to the period's time. A faulty period enters the mode
+ * at once; recovery_periods consecutive clean periods leave it (hysteresis: DDYN_CTRL_BUS_RECOVERED).
+ * While degraded: every reading's measurement noise std is scaled by r_scale, the MPC's input-rate
+ * weights by rate_weight_scale and its reference speed by speed_scale, and the caller's frame-silence
+ * limit may grow by stale_extra_periods (ddyn_ctrl_stale_limit). In every mode, a reading of age a
+ * (relative to the period's time, at most max_age) is moved to the period's time with the filter's own
+ * trajectory, z += h(x_now) - h(x(now - a)), and the MPC starts from the estimate predicted over the
+ * input's latency with the model (bounded by max_age). Defaults: ddyn_ctrl_default_config. */
+typedef struct {
+    double age_tolerance;    /* s (>= 0): an older reading makes the period faulty */
+    double max_age;          /* s (>= 0): older readings are not fused (counted as rejected), and the
+                                latency prediction is cut here; at most DDYN_CTRL_AGE_PERIODS periods */
+    int recovery_periods;    /* >= 1 */
+    double r_scale;          /* >= 1 */
+    double rate_weight_scale; /* >= 1 */
+    double speed_scale;      /* (0, 1] */
+    int stale_extra_periods; /* >= 0 */
+} ddyn_ctrl_degraded_config;
+
+/* estimates kept to date aged readings (periods) */
+#define DDYN_CTRL_AGE_PERIODS 4
+
 typedef struct {
     ddyn_discretisation ekf_disc; /* the filter's prediction model (default Euler, as the network trains) */
     /* EKF: initial covariance (also used when the filter is reset), process noise per period,
@@ -145,6 +174,7 @@ typedef struct {
     int max_plan_shift;     /* periods the shifted plan replaces a non-converged QP, then safe
                                (0 .. horizon - 1) */
     int recovery_steps;     /* consecutive healthy periods that end safe mode (>= 1) */
+    ddyn_ctrl_degraded_config degraded; /* degraded-bus mode (above) */
     ddyn_mpc_config mpc;    /* the MPC's configuration (its bounds also define the safe command) */
 } ddyn_ctrl_config;
 
@@ -152,10 +182,17 @@ typedef struct {
 typedef struct {
     int valid;
     double z[DDYN_MEAS_MAX_DIM]; /* ddyn_meas_dim(kind) components */
+    double age; /* s (>= 0): how much older the reading is than the freshest data on the bus (its frame's
+                   age, ddyn_dbw_link); 0 = fresh. A zeroed input means fresh readings. */
 } ddyn_ctrl_reading;
 
 typedef struct {
     ddyn_ctrl_reading reading[DDYN_MEAS_COUNT]; /* indexed by ddyn_meas_kind */
+    /* the period's time relative to the bus (s, >= 0): how much older the period's own time is than the
+     * freshest data, i.e. how late this period's command goes out (the age of the frame that triggered
+     * it). A reading's age relative to the period is age - latency (a fresher one counts as current). */
+    double latency;
+    uint32_t bus_faults; /* frames lost, late, repeated or refused since the last period (ddyn_dbw_link) */
 } ddyn_ctrl_input;
 
 typedef struct {
@@ -197,6 +234,11 @@ typedef struct {
     double pid_integral;                          /* throttle PID: integral term I (throttle units) */
     double pid_vx_prev;                           /* estimated vx of the PID's previous period */
     int pid_started;                              /* 0: no previous period (derivative 0) */
+    int degraded;                                 /* degraded-bus mode */
+    int clean_periods;                            /* consecutive periods without a bus fault */
+    uint32_t degraded_periods;                    /* periods in degraded mode since init (saturating) */
+    double x_hist[DDYN_CTRL_AGE_PERIODS][DDYN_NX]; /* estimates at the end of the last periods, newest first */
+    int x_hist_n;                                 /* valid rows of x_hist */
     int initialised;
 } ddyn_ctrl;
 
@@ -230,6 +272,19 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
  * output of the next period), DDYN_ERR_ARGUMENT before the first step; the next step then does
  * the whole iteration. */
 ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl);
+
+/* The last command of ddyn_ctrl_step never reached the actuators (e.g. a period run late to catch up
+ * with lost trigger frames, whose command is not sent): the filter's next prediction holds throttle and
+ * steering (u = 0), as the actuators did. */
+void ddyn_ctrl_command_not_sent(ddyn_ctrl *ctl);
+
+/* The caller sent another command than ddyn_ctrl_step's (e.g. its own safe command for a silent
+ * frame): the filter's next prediction uses u, what the actuators got. Non-finite u is ignored. */
+void ddyn_ctrl_command_applied(ddyn_ctrl *ctl, const double u[DDYN_NU]);
+
+/* The frame-silence limit (periods) a caller's monitor should use for a frame normally allowed
+ * `base` periods: base, plus cfg.degraded.stale_extra_periods while in degraded-bus mode. */
+int ddyn_ctrl_stale_limit(const ddyn_ctrl *ctl, int base);
 
 /* The safe command in state x under cfg's bounds and the model's sample time (see the top). */
 void ddyn_ctrl_safe_command(const ddyn_ctrl *ctl, const double x[DDYN_NX], double u[DDYN_NU]);

@@ -250,6 +250,67 @@ uint32_t ddyn_dbw_take_failures(ddyn_dbw *dbw);
 /* The DBW_Status.Faults bits a DBW unit reports for the failures in `failure_mask` (command side). */
 uint8_t ddyn_dbw_fault_bits(uint32_t failure_mask);
 
+/* ---- frame ages on a degraded bus (the controller side) ----
+ *
+ * The frames carry no time stamp, only the 4-bit rolling counter. With the DBC's cycle time the
+ * counter still dates a frame: unwrapped into a sequence number n (a step of 1..8 forward is new,
+ * n advancing by the step; 0 a repeat; 9..15 an older frame overtaken by a newer one, "late"), the
+ * frame was sampled at tau = phase + n * cycle. The link's bus clock `now_s` is the sample time of
+ * the freshest frame of any stream, and a frame's AGE is now_s - tau: how much older it is than the
+ * freshest data on the bus. That is the delay the controller can measure without a shared clock
+ * (it is relative: a bus that delays every frame by the same amount shows age 0).
+ *
+ * Phases: a stream's first frame is taken as fresh (phase = now_s - n * cycle). A stream whose
+ * first frame was itself delayed (or arrived just before fresher frames of the same instant) would
+ * look old for ever, so the caller ticks the link once per control period (ddyn_dbw_link_tick), and
+ * every DDYN_DBW_LINK_WINDOW ticks (the first window: one tick) the smallest age the stream's newest frame showed at them is added
+ * to its phase: its least delayed frame is fresh by definition. Phases only move forward, by measured
+ * amounts.
+ *
+ * Lost frames (counter jumps), late frames, repeats and bad frames (checksum, length, range) are
+ * counted since the last ddyn_dbw_link_take_faults(): the controller's degraded-bus detection. */
+#define DDYN_DBW_LINK_WINDOW 16
+
+typedef enum {
+    DDYN_DBW_LINK_NEW = 0,      /* a newer frame: use it (age and lost frames are set) */
+    DDYN_DBW_LINK_REPEATED = 1, /* counter equal to the last one: a stuck sender, do not use */
+    DDYN_DBW_LINK_LATE = 2      /* older than a frame already received: do not use */
+} ddyn_dbw_link_result;
+
+typedef struct {
+    double now_s;                              /* bus clock: sample time of the freshest frame */
+    double phase_s[DDYN_DBW_FRAME_COUNT];      /* sample time of sequence number 0 */
+    double window_min_s[DDYN_DBW_FRAME_COUNT]; /* smallest age at the ticks of the current window */
+    int64_t seq[DDYN_DBW_FRAME_COUNT];         /* unwrapped sequence number of the newest frame */
+    int window_n[DDYN_DBW_FRAME_COUNT];
+    uint8_t last_counter[DDYN_DBW_FRAME_COUNT];
+    bool seen[DDYN_DBW_FRAME_COUNT];
+    bool ticked[DDYN_DBW_FRAME_COUNT];         /* its first window (one tick) is over */
+    bool any_seen;
+    /* since the last ddyn_dbw_link_take_faults() */
+    uint32_t lost, late, repeated, bad;
+} ddyn_dbw_link;
+
+void ddyn_dbw_link_init(ddyn_dbw_link *link);
+
+/* One good frame (decoded with a good checksum) of `frame` with `counter`. On NEW, *lost (may be
+ * NULL) is the number of frames of this stream skipped before it and *age_s (may be NULL) its age
+ * in seconds (>= 0). DDYN_DBW_FRAME_COUNT or a NULL link: REPEATED (ignored). */
+ddyn_dbw_link_result ddyn_dbw_link_on_frame(ddyn_dbw_link *link, ddyn_dbw_frame frame, uint8_t counter,
+                                            unsigned *lost, double *age_s);
+
+/* Once per control period, after the period's frames: the phase correction above. */
+void ddyn_dbw_link_tick(ddyn_dbw_link *link);
+
+/* A frame refused by its checksum, length or range: counted as bad. */
+void ddyn_dbw_link_on_bad_frame(ddyn_dbw_link *link);
+
+/* The age now (s) of the newest frame received of `frame` (-1 when none yet). */
+double ddyn_dbw_link_age(const ddyn_dbw_link *link, ddyn_dbw_frame frame);
+
+/* Lost + late + repeated + bad frames since the last call, and clear those counts. */
+uint32_t ddyn_dbw_link_take_faults(ddyn_dbw_link *link);
+
 const char *ddyn_dbw_failure_name(ddyn_dbw_failure kind);
 const char *ddyn_dbw_frame_name(ddyn_dbw_frame frame);
 const char *ddyn_dbw_state_name(ddyn_dbw_state state);

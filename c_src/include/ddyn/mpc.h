@@ -97,6 +97,8 @@ typedef struct {
     double speed[DDYN_MPC_MAX_TRACK_POINTS];    /* reference speed (m/s), > 0 */
     double width_left[DDYN_MPC_MAX_TRACK_POINTS];  /* usable room along the left normal (m) */
     double width_right[DDYN_MPC_MAX_TRACK_POINTS]; /* usable room along the right normal (m) */
+    double speed_scale;  /* the reference speed is speed * speed_scale: 1 after ddyn_mpc_set_track; a
+                            caller may lower it at run time (the controller's degraded-bus mode), (0, 1] */
 } ddyn_mpc_track;
 
 /* What one solve did. */

@@ -81,6 +81,7 @@ class PlantApp {
     CanFrame frame;
   };
   // the bus faults on one frame: false when it is dropped or held back; *damaged when its checksum was hit
+  bool answered_position(const CanFrame& f);  // a position frame the controller will answer (lock-step)
   bool faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dropped, long& corrupted, bool* damaged = nullptr);
   void handle_command(const CanFrame& f, double t);
   void emit(double t_prev, double t);
@@ -105,6 +106,7 @@ class PlantApp {
   long rx_dropped_ = 0, rx_corrupted_ = 0, tx_dropped_ = 0, tx_corrupted_ = 0;
   std::array<long, 7> rejected_{};
   bool gnss_sent_ = false, ended_ = false, controller_quiet_ = false;
+  int last_position_counter_ = -1;  // the last position frame lock-step waited for (answered_position)
   std::string end_reason_;
   double wall_start_ = 0.0, t_start_ = 0.0, last_log_ = -1e9, last_snapshot_ = -1e9, wall_elapsed_ = 0.0;
   double sum_speed_dt_ = 0.0, time_driving_ = 0.0;
