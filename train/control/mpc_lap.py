@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ddyn.control.mpc_setup import MpcSettings, perturbed_start, raceline_table, start_state
-from ddyn.control.raceline import line_for
+from ddyn.control.mpc_setup import MpcSettings, perturbed_start, raceline_table, settings_for, start_state
+from ddyn.control.raceline import is_flying, line_for
 from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.track_files import open_track
@@ -39,7 +39,7 @@ def sweep(vehicle_name: str = "orca_1_43", track_name: str = "ethzMobil", steps:
           settings: MpcSettings | None = None, speeds=SWEEP_SPEEDS, offsets=SWEEP_OFFSETS,
           tool: Path = DEFAULT_TOOL) -> list[dict]:
     """Robustness: the long closed loop from every start speed x start perturbation, scored each."""
-    settings = settings or MpcSettings()
+    settings = settings or settings_for(vehicle_name)
     track = open_track(track_name, vehicle_name)
     table = raceline_table(track, vehicle_name, settings)
     rows = []
@@ -81,7 +81,9 @@ def run_c(vehicle_name: str, track: Track, settings: MpcSettings, steps: int, co
     v = vehicle_mod.load(vehicle_name)
     table = raceline_table(track, vehicle_name, settings)
     true = v.true_vector()
-    x0 = start_state(table) if x0 is None else np.asarray(x0, float)
+    if x0 is None:  # a flying line: a rolling start at the reference's speed; else from near standstill
+        x0 = start_state(table, float(table["speed"][0]) if is_flying(track, vehicle_name) else 0.1)
+    x0 = np.asarray(x0, float)
     text = setup_text(vehicle_name, table, settings, true if coeffs is None else coeffs, true, x0, steps)
     proc = subprocess.run([str(tool)], input=text, capture_output=True, text=True)
     if proc.returncode != 0 or not proc.stdout.rstrip().endswith("done"):
@@ -165,7 +167,7 @@ def plot_lap(track: Track, runs: dict[str, np.ndarray], path: Path, vehicle_name
 def lap(vehicle_name: str = "orca_1_43", track_name: str = "ethzMobil", seconds: float = 7.0,
         settings: MpcSettings | None = None, reference: bool = True, out: Path | None = None,
         tool: Path = DEFAULT_TOOL) -> dict:
-    settings = settings or MpcSettings()
+    settings = settings or settings_for(vehicle_name)
     track = open_track(track_name, vehicle_name)
     v = vehicle_mod.load(vehicle_name)
     steps = int(round(seconds / v.sample_time))
@@ -249,7 +251,7 @@ def _run_grid(args, settings: MpcSettings) -> int:
 
 
 def _run(args) -> int:
-    settings = MpcSettings(horizon=args.horizon, disc=args.disc)
+    settings = settings_for(args.vehicle, horizon=args.horizon, disc=args.disc)
     if args.speed_scale is not None:
         settings = replace(settings, speed_scale=args.speed_scale)
     settings = replace(settings, **_parse_assignments(args.set, multi=False))

@@ -44,6 +44,19 @@ class MpcSettings:
         return asdict(self)
 
 
+def settings_for(vehicle_name: str, **given) -> MpcSettings:
+    """The defaults (the 1:43 car's), the vehicle's own settings over them (train/vehicles/mpc/), then
+    `given` (None: not given)."""
+    from ddyn.control.vehicle_settings import overrides
+    from ddyn.errors import DdynError
+
+    fields = {**overrides(vehicle_name, "mpc"), **{k: v for k, v in given.items() if v is not None}}
+    try:
+        return MpcSettings(**fields)
+    except TypeError as e:
+        raise DdynError(f"MPC settings of {vehicle_name!r}: {e}") from None
+
+
 def raceline_table(track: Track, vehicle_name: str, settings: MpcSettings) -> dict[str, np.ndarray]:
     """The closed raceline table for ddyn_mpc_set_track: x, y, speed, room_left, room_right.
 
