@@ -113,14 +113,19 @@ def score(track: Track, x: np.ndarray, dt: float, vehicle_name: str) -> dict:
     s_hint = np.repeat(s[:, None], 4, axis=1)
     depth = track.boundary_distance(corners[..., 0], corners[..., 1], s_hint=s_hint, window=1.0)
     worst = depth.min(axis=1)
-    done = np.nonzero(progress >= track.length)[0]
-    lap_time = None
-    if len(done):
-        k = int(done[0])
-        frac = (track.length - progress[k - 1]) / (progress[k] - progress[k - 1])
-        lap_time = float((k - 1 + frac) * dt)
+    crossings = []  # times at which the progress passes 1, 2, ... lengths (interpolated)
+    for lap in range(1, int(progress[-1] // track.length) + 1):
+        k = int(np.nonzero(progress >= lap * track.length)[0][0])
+        frac = (lap * track.length - progress[k - 1]) / (progress[k] - progress[k - 1])
+        crossings.append(float((k - 1 + frac) * dt))
+    lap_times = list(np.diff([0.0] + crossings))
+    # violation steps per lap (a step belongs to the lap its time falls in; the last entry: the unfinished rest)
+    bounds = np.concatenate(([0.0], crossings, [np.inf]))
+    t = np.arange(len(x)) * dt
+    per_lap = [int(np.sum((worst < 0.0) & (t >= a) & (t < b))) for a, b in zip(bounds[:-1], bounds[1:])]
     return {"violation_steps": int(np.sum(worst < 0.0)), "min_boundary_distance_m": float(worst.min()),
-            "lap_time_s": lap_time, "progress_m": float(progress[-1]), "steps": int(len(x) - 1)}
+            "lap_time_s": lap_times[0] if lap_times else None, "lap_times_s": [float(v) for v in lap_times],
+            "violation_steps_per_lap": per_lap, "progress_m": float(progress[-1]), "steps": int(len(x) - 1)}
 
 
 def _summary(run: dict, track: Track, vehicle_name: str) -> dict:
@@ -251,7 +256,7 @@ def _run_grid(args, settings: MpcSettings) -> int:
 
 
 def _run(args) -> int:
-    settings = settings_for(args.vehicle, horizon=args.horizon, disc=args.disc)
+    settings = settings_for(args.vehicle, horizon=args.horizon, disc=args.disc, line=args.line)
     if args.speed_scale is not None:
         settings = replace(settings, speed_scale=args.speed_scale)
     settings = replace(settings, **_parse_assignments(args.set, multi=False))
@@ -261,7 +266,8 @@ def _run(args) -> int:
         return _run_sweep(args, settings)
     r = lap(args.vehicle, args.track, args.seconds, settings, not args.no_reference, Path(args.out), Path(args.tool))
     c = r["c_mpc"]
-    print(f"C MPC: lap {c['lap_time_s']} s, violations {c['violation_steps']} steps "
+    laps = ", ".join(f"{v:.3f}" for v in c["lap_times_s"]) or "none"
+    print(f"C MPC: laps {laps} s, violations {c['violation_steps']} steps "
           f"(min distance to bounds {c['min_boundary_distance_m'] * 1000:.1f} mm), QP iterations median "
           f"{c['qp_iterations_median']:.0f} max {c['qp_iterations_max']}, status {c['status_counts']}")
     if "ipopt_mpc" in r:
@@ -282,6 +288,9 @@ def register(subparsers) -> None:
     p.add_argument("--disc", default="rk4_single", choices=("rk4_single", "euler", "rk4"),
                    help="prediction model (default %(default)s)")
     p.add_argument("--no-reference", action="store_true", help="skip the CasADi + IPOPT reference lap")
+    p.add_argument("--line", choices=("default", "flying", "standing"), default=None,
+                   help="the racing line the table is made of: the vehicle's own (default), or its flying-lap or "
+                        "standing-start line (computed with ddyn mpc raceline [--flying])")
     p.add_argument("--out", default="out/mpc_lap", help="directory for mpc_lap.json and mpc_lap.png")
     p.add_argument("--tool", default=str(DEFAULT_TOOL), help="ddyn_mpc_lap binary (default: %(default)s)")
     p.add_argument("--speed-scale", type=float, default=None,

@@ -88,13 +88,20 @@ def resolved(settings: RacelineSettings, track: Track) -> RacelineSettings:
     return replace(settings, intervals=max(50, int(round(track.length / settings.spacing))))
 
 
-def default_path(vehicle_name: str, track: str | Track) -> Path:
+def default_flying(vehicle_name: str) -> bool:
+    """Whether the vehicle's own line is a flying lap (its settings file; the 1:43 car: a standing start)."""
+    return settings_for(vehicle_name).flying
+
+
+def default_path(vehicle_name: str, track: str | Track, flying: bool | None = None) -> Path:
     """Where a vehicle's line on a track is kept: train/racelines/ (committed) for the shared data's
-    tracks, out/racelines/ for a user's or a random track (computed on demand, never committed)."""
+    tracks, out/racelines/ for a user's or a random track (computed on demand, never committed).
+    flying None: the vehicle's own kind of line; the other kind gets a suffix (_flying, _standing)."""
+    suffix = "" if flying is None or flying == default_flying(vehicle_name) else ("_flying" if flying else "_standing")
     if isinstance(track, str) or (is_named(track.name) and not track.files):
         name = track if isinstance(track, str) else track.name
-        return RACELINE_DIR / f"{vehicle_name}_{name}.npz"
-    return USER_RACELINE_DIR / f"{vehicle_name}_{track.name}.npz"
+        return RACELINE_DIR / f"{vehicle_name}_{name}{suffix}.npz"
+    return USER_RACELINE_DIR / f"{vehicle_name}_{track.name}{suffix}.npz"
 
 
 def _footprint(vehicle_name: str) -> tuple[float, float]:
@@ -270,9 +277,9 @@ def save(path: Path, arrays: dict) -> Path:
     return path
 
 
-def load_for(vehicle_name: str, track: Track) -> Raceline | None:
+def load_for(vehicle_name: str, track: Track, flying: bool | None = None) -> Raceline | None:
     """The computed line of this vehicle on this track, if one is committed; else None."""
-    path = default_path(vehicle_name, track)
+    path = default_path(vehicle_name, track, flying)
     if not path.is_file():
         return None
     digest = meta_of(path).get("track_digest")
@@ -282,9 +289,14 @@ def load_for(vehicle_name: str, track: Track) -> Raceline | None:
         return Raceline(z["x"], z["y"], z["time"], z["speed"], z["inputs"], str(path))
 
 
-def line_for(track: Track, vehicle_name: str) -> Raceline:
-    """The line a vehicle races on a track: its computed line when committed, else the data's line."""
-    line = load_for(vehicle_name, track)
+def line_for(track: Track, vehicle_name: str, flying: bool | None = None) -> Raceline:
+    """The line a vehicle races on a track: its computed line when committed, else the data's line
+    (flying: the flying-lap line, which must have been computed: ddyn mpc raceline --flying)."""
+    line = load_for(vehicle_name, track, flying)
+    if line is None and flying is not None and flying != default_flying(vehicle_name):
+        raise DdynError(f"no {'flying' if flying else 'standing'}-lap line of {vehicle_name!r} on {track.name!r} "
+                        f"(compute it: ddyn mpc raceline --vehicle {vehicle_name} --track ... "
+                        f"--{'' if flying else 'no-'}flying)")
     if line is None:
         line = track.raceline
     if line is None:
@@ -293,11 +305,15 @@ def line_for(track: Track, vehicle_name: str) -> Raceline:
 
 
 def is_flying(track: Track, vehicle_name: str) -> bool:
-    """Whether the line a vehicle races on a track is a flying lap (then a closed loop starts rolling,
-    at the line's speed, as the full-scale car's races do)."""
+    """Whether the vehicle's own line on a track is a flying lap: then a closed loop starts rolling, at
+    the line's speed, as the full-scale car's races do (a 1:43 car on its flying line still starts from
+    standstill: the flying line is for the laps after the first)."""
     if load_for(vehicle_name, track) is None:
         return False
     return bool(meta_of(default_path(vehicle_name, track)).get("settings", {}).get("flying", False))
+
+
+LINES = {"default": None, "flying": True, "standing": False}  # --line: the vehicle's own, or a kind
 
 
 def meta_of(path: Path) -> dict:
@@ -313,7 +329,7 @@ def _run(args: argparse.Namespace) -> int:
                                      flying=args.flying, grip=args.grip, max_sideslip=args.max_sideslip), track)
     result = solve(vehicle, track, settings, verbose=args.verbose)
     arrays = raceline_arrays(vehicle, track, result, settings)
-    out = Path(args.out) if args.out else default_path(vehicle.name, track)
+    out = Path(args.out) if args.out else default_path(vehicle.name, track, settings.flying)
     save(out, arrays)
     worst = float(np.min(track.boundary_distance(arrays["x"], arrays["y"])))
     start = "flying" if settings.flying else f"from vx0 = {settings.vx0} m/s"

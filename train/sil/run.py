@@ -123,7 +123,7 @@ def parse_faults(text: str | None) -> dict:
 # ---------------------------------------------------------------------------------------------- track
 
 def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float | None = None,
-                   margin: float | None = None) -> np.ndarray:
+                   margin: float | None = None, line: str | None = None) -> np.ndarray:
     """Rows x, y, speed, room_left, room_right of the raceline the MPC tracks.
 
     The MPC's own table (train/control/mpc_setup.py, what ddyn mpc lap tunes with): the raceline's first lap,
@@ -133,17 +133,20 @@ def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float | None = N
     from ddyn.control.mpc_setup import raceline_table as mpc_table
     from ddyn.control.mpc_setup import settings_for
     # the vehicle's own table settings (spacing, margin, speed floor and scale: train/vehicles/mpc/), then the options
-    t = mpc_table(track, vehicle.name, settings_for(vehicle.name, speed_scale=speed_scale, margin=margin))
+    t = mpc_table(track, vehicle.name, settings_for(vehicle.name, speed_scale=speed_scale, margin=margin,
+                                                                 line=line))
     return np.column_stack([t["x"], t["y"], t["speed"], t["room_left"], t["room_right"]])
 
 
-def start_state(track: Track, vx0: float | None, vehicle_name: str, table: np.ndarray | None = None) -> list[float]:
+def start_state(track: Track, vx0: float | None, vehicle_name: str, table: np.ndarray | None = None,
+                line: str | None = None) -> list[float]:
     """The car at the raceline's first point, heading along it, at vx0 (None: a flying line's rolling
     start at the reference speed of the table's first row, else 0.1 m/s)."""
     if vx0 is None:
         from ddyn.control.raceline import is_flying
         vx0 = float(table[0, 2]) if table is not None and is_flying(track, vehicle_name) else 0.1
-    rl = line_for(track, vehicle_name)
+    from ddyn.control.raceline import LINES
+    rl = line_for(track, vehicle_name, LINES[line or "default"])
     x0, y0 = float(rl.x[0]), float(rl.y[0])
     k = 1
     while np.hypot(rl.x[k] - x0, rl.y[k] - y0) < 1e-6:
@@ -183,6 +186,7 @@ class SilSpec:
     noise_scale: float = 1.0
     speed_scale: float | None = None           # None: the vehicle's (train/vehicles/mpc/), else 1.0
     margin: float | None = None                # None: the vehicle's, else 0.03 m
+    line: str | None = None                    # the racing line: None the vehicle's own, "flying", "standing"
     realtime: float = 0.0
     max_time: float | None = None
     seed: int = 1
@@ -222,9 +226,12 @@ def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray 
         "substep": min(1e-3, v.sample_time / 20.0),
         "track_dir": track_dir, "track": spec.track.name,
         "footprint": {"length": length, "width": width},
-        "start": start_state(spec.track, spec.vx0, spec.vehicle.name, table),
+        "start": start_state(spec.track, spec.vx0, spec.vehicle.name, table, spec.line),
         "laps": spec.laps, "max_time": float(max_time),
         "realtime_factor": spec.realtime, "lockstep_timeout": 3.0,
+        # the first command may take this long (wall s): an emulated guest starts the controller slowly, and
+        # the AV-21's rolling start coasted off Putnam in 1.7 s before it came
+        "start_timeout": 60.0,
         "sensors": sensors, "status_rate": 100.0, "seed": spec.seed,
         "dbw": {"deadline": dbw_deadline(spec), "rearm_count": 0},
         "faults": {"drop": f.get("drop", 0.0), "delay_max": f.get("delay", 0.0), "corrupt": f.get("corrupt", 0.0)},
@@ -242,7 +249,7 @@ def controller_start(spec: SilSpec, table: np.ndarray) -> list[float]:
     in its first period. From 0.1 m/s that is 2 mm (1:43 car, 20 ms); on the AV-21's rolling start
     at 30 m/s it was 1.2 m, 30 standard deviations of the position reading: every reading was gated
     and the car braked in its safe state."""
-    x = start_state(spec.track, spec.vx0, spec.vehicle.name, table)
+    x = start_state(spec.track, spec.vx0, spec.vehicle.name, table, spec.line)
     dt = spec.vehicle.sample_time
     x[0] += x[3] * math.cos(x[2]) * dt
     x[1] += x[3] * math.sin(x[2]) * dt
@@ -280,7 +287,9 @@ def controller_setup(spec: SilSpec, table: np.ndarray, out_dir: str) -> str:
                             for k in SENSOR_ORDER for s in noise[k]),
         "q " + " ".join(repr(q) for q in FILTER_PROCESS_NOISE),
         "stale " + " ".join(str(FRAME_STALE_PERIODS[k]) for k in FRAME_STALE_PERIODS),
-        "max_steps 200000", "idle_exit 3.0", f"lockstep {lockstep!r}", f"die_at_step {die}",
+        # idle_exit: the plant may take seconds to start in the emulated guest (Putnam's 2,877-point track:
+        # the controller had left after 3 s without a frame); the run's end stops the controller anyway
+        "max_steps 200000", "idle_exit 60.0", f"lockstep {lockstep!r}", f"die_at_step {die}",
         f"metrics {out_dir}/controller_metrics.json", f"log {out_dir}/controller_log.csv",
         f"track {len(table)}",
     ]
@@ -821,7 +830,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     for stale in ("plant_metrics.json", "controller_metrics.json", "trajectory.csv", "controller_log.csv",
                   "snapshot.json", "sil_metrics.json"):
         (out / stale).unlink(missing_ok=True)
-    table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin)
+    table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin, line=spec.line)
     if len(table) > 1024:
         raise DdynError(f"raceline of {len(table)} points; the MPC holds at most 1024")
     bins = build_binaries(export_dir)
@@ -893,7 +902,7 @@ def _run(args: argparse.Namespace) -> int:
     spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
                    nominal=vehicle.true_vector(), laps=args.laps, vx0=args.vx0,
                    effects=parse_effects(args.effects), faults=parse_faults(args.faults),
-                   noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin,
+                   noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin, line=args.line,
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
                    pid_gains=args.pid_gains)
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
@@ -920,6 +929,9 @@ def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--margin", type=float, default=None,
                    help="room the MPC keeps between the car's side and the bounds, m (default: 0.03, or the "
                         "vehicle's)")
+    p.add_argument("--line", choices=("default", "flying", "standing"), default=None,
+                   help="the racing line: the vehicle's own (default), or its flying-lap line (for --laps > 1: the "
+                        "laps after the first start at speed) or standing-start line")
     p.add_argument("--realtime", type=float, default=0.0,
                    help="pace the plant at this multiple of real time (default 0: lock-step with the controller)")
     p.add_argument("--max-time", type=float, default=None, help="simulated seconds before giving up")
