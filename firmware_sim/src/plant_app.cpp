@@ -90,6 +90,7 @@ PlantAppConfig PlantAppConfig::from_json(const nlohmann::json& j) {
   get_if(j, "max_off_track", c.max_off_track);
   get_if(j, "realtime_factor", c.realtime_factor);
   get_if(j, "lockstep_timeout", c.lockstep_timeout);
+  get_if(j, "start_timeout", c.start_timeout);
   get_if(j, "status_rate", c.status_rate);
   get_if(j, "seed", c.seed);
   get_if(j, "out_dir", c.out_dir);
@@ -233,10 +234,12 @@ void PlantApp::emit(double t_prev, double t) {
   }
   // the position frame goes last: the controller's step follows it
   if (gnss) out.push_back(encoder_.gnss_position(gnss->value[0], gnss->value[1]));
+  last_sent_.clear();
   for (auto& f : out) {
     bool damaged = false;
     if (faulty(f, tx_held_, t, tx_dropped_, tx_corrupted_, &damaged)) {
       bus_.send(f);
+      last_sent_.push_back(f);
       ++frames_sent_;
       // a damaged position frame gets no answer: no lock-step wait for it
       if (f.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && !damaged) gnss_sent_ = answered_position(f);
@@ -320,11 +323,29 @@ bool PlantApp::step() {
     const double now = wall_now();
     if (due > now) std::this_thread::sleep_for(std::chrono::duration<double>(due - now));
   } else if (cfg_.realtime_factor == 0.0 && gnss_sent_ && !controller_quiet_) {
-    const double deadline = wall_now() + cfg_.lockstep_timeout;
+    // until the first command the controller may still be starting (seconds in an emulated guest) and
+    // may have missed this period's frames: a car on a rolling start would coast off the track if the
+    // plant went on without it, so the first wait is up to start_timeout and the frames are sent again
+    // every half second (a controller that got them counts a repeated counter and ignores them)
+    const bool starting = commands_ok_ == 0 && cfg_.start_timeout > 0.0;
+    const double deadline = wall_now() + (starting ? std::max(cfg_.lockstep_timeout, cfg_.start_timeout)
+                                                   : cfg_.lockstep_timeout);
+    double resend = wall_now() + 0.5;
     bool got = false;
     while (!got) {
-      const double left = deadline - wall_now();
-      if (left <= 0.0 || !bus_.receive(f, static_cast<long>(left * 1e6))) break;
+      const double now = wall_now();
+      const double left = deadline - now;
+      if (left <= 0.0) break;
+      const double slice = starting ? std::min(left, std::max(resend - now, 0.0)) : left;
+      if (!bus_.receive(f, static_cast<long>(slice * 1e6))) {
+        if (!starting) break;
+        if (wall_now() >= resend) {
+          for (const auto& g : last_sent_) bus_.send(g);
+          frames_sent_ += static_cast<long>(last_sent_.size());
+          resend = wall_now() + 0.5;
+        }
+        continue;
+      }
       ++frames_received_;
       got = f.id == DDYN_CAN_DBW_COMMAND_FRAME_ID;
       // handled at the start of the next period, like any frame that arrived during this one

@@ -103,7 +103,7 @@ def test_commands_are_grouped_and_say_what_they_do():
             sub_helps = {a.dest: a.help for act in parser._actions
                          if act.__class__.__name__ == "_SubParsersAction" for a in act._choices_actions}
             assert sub_helps.get(sub), f"ddyn {name} {sub} has no help"
-    assert set(_commands(top["sil"])) == {"run", "table", "faults", "pid-sweep"}
+    assert set(_commands(top["sil"])) == {"run", "table", "faults", "pid-sweep", "tracks"}
     assert set(_commands(top["can"])) == {"codegen", "export", "import", "replay", "record", "bench"}
     assert set(_commands(top["study"])) >= {"ddm", "fthd", "denoise", "gap"}
 

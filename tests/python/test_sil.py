@@ -415,7 +415,7 @@ def test_sil_table_drives_the_dpm_rows_with_pid_throttle(orca, mobil, tmp_path, 
     monkeypatch.setattr(sil_table, "export_network", lambda ckpt, out: Path("/export"))
     monkeypatch.setattr(sil_table, "_sha256", lambda ckpt: {"ddm.ckpt": "d" * 64}[ckpt])
     monkeypatch.setattr(sil_table, "run_sil", fake_run)
-    monkeypatch.setattr(sil_table, "load_track", lambda name: mobil)
+    monkeypatch.setattr(sil_table, "open_track", lambda name, vehicle_name: mobil)
     args = build_parser().parse_args(["sil", "table", "--ddm", "ddm.ckpt", "--dpm", "a.ckpt", "b.ckpt", "c.ckpt",
                                       "--data", "train.csv", "--out", str(tmp_path)])
     assert sil_table._run_table(args) == 0

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ddyn.control.mpc_setup import MpcSettings, perturbed_start, raceline_table, start_state
-from ddyn.control.raceline import line_for
+from ddyn.control.mpc_setup import MpcSettings, perturbed_start, raceline_table, settings_for, start_state
+from ddyn.control.raceline import is_flying, line_for
 from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.track_files import open_track
@@ -39,7 +39,7 @@ def sweep(vehicle_name: str = "orca_1_43", track_name: str = "ethzMobil", steps:
           settings: MpcSettings | None = None, speeds=SWEEP_SPEEDS, offsets=SWEEP_OFFSETS,
           tool: Path = DEFAULT_TOOL) -> list[dict]:
     """Robustness: the long closed loop from every start speed x start perturbation, scored each."""
-    settings = settings or MpcSettings()
+    settings = settings or settings_for(vehicle_name)
     track = open_track(track_name, vehicle_name)
     table = raceline_table(track, vehicle_name, settings)
     rows = []
@@ -81,7 +81,9 @@ def run_c(vehicle_name: str, track: Track, settings: MpcSettings, steps: int, co
     v = vehicle_mod.load(vehicle_name)
     table = raceline_table(track, vehicle_name, settings)
     true = v.true_vector()
-    x0 = start_state(table) if x0 is None else np.asarray(x0, float)
+    if x0 is None:  # a flying line: a rolling start at the reference's speed; else from near standstill
+        x0 = start_state(table, float(table["speed"][0]) if is_flying(track, vehicle_name) else 0.1)
+    x0 = np.asarray(x0, float)
     text = setup_text(vehicle_name, table, settings, true if coeffs is None else coeffs, true, x0, steps)
     proc = subprocess.run([str(tool)], input=text, capture_output=True, text=True)
     if proc.returncode != 0 or not proc.stdout.rstrip().endswith("done"):
@@ -111,14 +113,19 @@ def score(track: Track, x: np.ndarray, dt: float, vehicle_name: str) -> dict:
     s_hint = np.repeat(s[:, None], 4, axis=1)
     depth = track.boundary_distance(corners[..., 0], corners[..., 1], s_hint=s_hint, window=1.0)
     worst = depth.min(axis=1)
-    done = np.nonzero(progress >= track.length)[0]
-    lap_time = None
-    if len(done):
-        k = int(done[0])
-        frac = (track.length - progress[k - 1]) / (progress[k] - progress[k - 1])
-        lap_time = float((k - 1 + frac) * dt)
+    crossings = []  # times at which the progress passes 1, 2, ... lengths (interpolated)
+    for lap in range(1, int(progress[-1] // track.length) + 1):
+        k = int(np.nonzero(progress >= lap * track.length)[0][0])
+        frac = (lap * track.length - progress[k - 1]) / (progress[k] - progress[k - 1])
+        crossings.append(float((k - 1 + frac) * dt))
+    lap_times = list(np.diff([0.0] + crossings))
+    # violation steps per lap (a step belongs to the lap its time falls in; the last entry: the unfinished rest)
+    bounds = np.concatenate(([0.0], crossings, [np.inf]))
+    t = np.arange(len(x)) * dt
+    per_lap = [int(np.sum((worst < 0.0) & (t >= a) & (t < b))) for a, b in zip(bounds[:-1], bounds[1:])]
     return {"violation_steps": int(np.sum(worst < 0.0)), "min_boundary_distance_m": float(worst.min()),
-            "lap_time_s": lap_time, "progress_m": float(progress[-1]), "steps": int(len(x) - 1)}
+            "lap_time_s": lap_times[0] if lap_times else None, "lap_times_s": [float(v) for v in lap_times],
+            "violation_steps_per_lap": per_lap, "progress_m": float(progress[-1]), "steps": int(len(x) - 1)}
 
 
 def _summary(run: dict, track: Track, vehicle_name: str) -> dict:
@@ -165,7 +172,7 @@ def plot_lap(track: Track, runs: dict[str, np.ndarray], path: Path, vehicle_name
 def lap(vehicle_name: str = "orca_1_43", track_name: str = "ethzMobil", seconds: float = 7.0,
         settings: MpcSettings | None = None, reference: bool = True, out: Path | None = None,
         tool: Path = DEFAULT_TOOL) -> dict:
-    settings = settings or MpcSettings()
+    settings = settings or settings_for(vehicle_name)
     track = open_track(track_name, vehicle_name)
     v = vehicle_mod.load(vehicle_name)
     steps = int(round(seconds / v.sample_time))
@@ -249,7 +256,7 @@ def _run_grid(args, settings: MpcSettings) -> int:
 
 
 def _run(args) -> int:
-    settings = MpcSettings(horizon=args.horizon, disc=args.disc)
+    settings = settings_for(args.vehicle, horizon=args.horizon, disc=args.disc, line=args.line)
     if args.speed_scale is not None:
         settings = replace(settings, speed_scale=args.speed_scale)
     settings = replace(settings, **_parse_assignments(args.set, multi=False))
@@ -259,7 +266,8 @@ def _run(args) -> int:
         return _run_sweep(args, settings)
     r = lap(args.vehicle, args.track, args.seconds, settings, not args.no_reference, Path(args.out), Path(args.tool))
     c = r["c_mpc"]
-    print(f"C MPC: lap {c['lap_time_s']} s, violations {c['violation_steps']} steps "
+    laps = ", ".join(f"{v:.3f}" for v in c["lap_times_s"]) or "none"
+    print(f"C MPC: laps {laps} s, violations {c['violation_steps']} steps "
           f"(min distance to bounds {c['min_boundary_distance_m'] * 1000:.1f} mm), QP iterations median "
           f"{c['qp_iterations_median']:.0f} max {c['qp_iterations_max']}, status {c['status_counts']}")
     if "ipopt_mpc" in r:
@@ -280,6 +288,9 @@ def register(subparsers) -> None:
     p.add_argument("--disc", default="rk4_single", choices=("rk4_single", "euler", "rk4"),
                    help="prediction model (default %(default)s)")
     p.add_argument("--no-reference", action="store_true", help="skip the CasADi + IPOPT reference lap")
+    p.add_argument("--line", choices=("default", "flying", "standing"), default=None,
+                   help="the racing line the table is made of: the vehicle's own (default), or its flying-lap or "
+                        "standing-start line (computed with ddyn mpc raceline [--flying])")
     p.add_argument("--out", default="out/mpc_lap", help="directory for mpc_lap.json and mpc_lap.png")
     p.add_argument("--tool", default=str(DEFAULT_TOOL), help="ddyn_mpc_lap binary (default: %(default)s)")
     p.add_argument("--speed-scale", type=float, default=None,

@@ -39,9 +39,23 @@ class MpcSettings:
     speed_floor: float = 0.5    # m/s, lowest reference speed
     speed_scale: float = 1.0    # reference speed = raceline speed * this (docs/mpc.md, tuning)
     spacing: float = 0.025      # m, raceline table spacing
+    line: str = "default"       # the vehicle's own line, or "flying" / "standing" (ddyn.control.raceline.LINES)
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def settings_for(vehicle_name: str, **given) -> MpcSettings:
+    """The defaults (the 1:43 car's), the vehicle's own settings over them (train/vehicles/mpc/), then
+    `given` (None: not given)."""
+    from ddyn.control.vehicle_settings import overrides
+    from ddyn.errors import DdynError
+
+    fields = {**overrides(vehicle_name, "mpc"), **{k: v for k, v in given.items() if v is not None}}
+    try:
+        return MpcSettings(**fields)
+    except TypeError as e:
+        raise DdynError(f"MPC settings of {vehicle_name!r}: {e}") from None
 
 
 def raceline_table(track: Track, vehicle_name: str, settings: MpcSettings) -> dict[str, np.ndarray]:
@@ -50,7 +64,10 @@ def raceline_table(track: Track, vehicle_name: str, settings: MpcSettings) -> di
     The speed profile is the raceline's own (a standing-start lap: low at the start line, floored
     at settings.speed_floor), so later laps slow down through the start area as the first did.
     """
-    rl = line_for(track, vehicle_name)
+    from ddyn.control.raceline import LINES
+    if settings.line not in LINES:
+        raise ValueError(f"line {settings.line!r}: expected one of {', '.join(LINES)}")
+    rl = line_for(track, vehicle_name, LINES[settings.line])
     pts = np.column_stack([rl.x, rl.y])
     speed_rl = np.asarray(rl.speed, float)
     # The raceline files run on past one lap (ethzMobil's "long" line: a standing-start lap plus

@@ -45,23 +45,27 @@ def parse_seeds(text: str) -> list[int]:
     return out
 
 
-def optimum(vehicle_name: str, track) -> float:
-    """The vehicle's optimal standing-start lap on the track: its line, computed once if missing."""
-    path = R.default_path(vehicle_name, track)
-    if R.load_for(vehicle_name, track) is None:
+def optimum(vehicle_name: str, track, flying: bool = False) -> float:
+    """The vehicle's optimal standing-start (or flying) lap on the track: its line, computed once if missing."""
+    path = R.default_path(vehicle_name, track, flying)
+    if R.load_for(vehicle_name, track, flying) is None:
         v = load_vehicle(vehicle_name)
-        settings = R.resolved(R.RacelineSettings(), track)
+        settings = R.resolved(replace(R.settings_for(vehicle_name), flying=flying), track)
         R.save(path, R.raceline_arrays(v, track, R.solve(v, track, settings), settings))
     return float(R.meta_of(path)["lap_time_s"])
 
 
-def evaluate(vehicle_name: str, seeds: list[int], settings: MpcSettings, tool: Path = DEFAULT_TOOL) -> list[dict]:
+def evaluate(vehicle_name: str, seeds: list[int], settings: MpcSettings, tool: Path = DEFAULT_TOOL,
+             laps: int = 1) -> list[dict]:
+    """Per seed, the first lap (and with laps > 1 the next ones, scored against the flying-lap optimum)."""
     dt = load_vehicle(vehicle_name).sample_time
     rows = []
     for seed in seeds:
         track = open_track(f"random:{seed}", vehicle_name)
         best = optimum(vehicle_name, track)
-        steps = int(np.ceil((1.5 * best + 1.0) / dt))
+        fly = optimum(vehicle_name, track, True) if laps > 1 or settings.line == "flying" else None
+        steps = int(np.ceil((1.5 * best + 1.0) / dt)) if laps == 1 else \
+            int(np.ceil((1.2 * best + 1.2 * (laps - 1) * fly + 1.0) / dt))
         run = run_c(vehicle_name, track, settings, steps, tool=tool)
         m = _summary(run, track, vehicle_name)
         lap = m["lap_time_s"]
@@ -75,6 +79,11 @@ def evaluate(vehicle_name: str, seeds: list[int], settings: MpcSettings, tool: P
                      "closest_corner_mm": 1000 * first["min_boundary_distance_m"],
                      "violation_steps_run": m["violation_steps"], "run_s": steps * dt,
                      "qp_iterations_max": m["qp_iterations_max"], "status_counts": m["status_counts"]})
+        if laps > 1:
+            later = m["lap_times_s"][1:laps]
+            rows[-1].update({"flying_optimal_lap_s": fly, "lap_times_s": m["lap_times_s"][:laps],
+                             "violation_steps_per_lap": m["violation_steps_per_lap"][:laps],
+                             "flying_ratios": [t / fly for t in later], "laps_completed": len(m["lap_times_s"][:laps])})
     return rows
 
 
@@ -83,7 +92,17 @@ def summary(rows: list[dict]) -> dict:
     n = len(rows)
     clean = [r for r in rows if r["violation_steps"] == 0 and r["lap_s"] is not None]
     ratios = [r["ratio"] for r in rows if r["ratio"] is not None]
-    return {"tracks": n, "clean": len(clean), "clean_share": len(clean) / n if n else 0.0,
+    out = {}
+    multi = [r for r in rows if "lap_times_s" in r]
+    if multi:  # the laps after the first: all completed and clean, within 5 % of the flying optimum
+        laps = max(len(r["violation_steps_per_lap"]) for r in multi)
+        ok = [r for r in multi if r["laps_completed"] == laps and sum(r["violation_steps_per_lap"]) == 0]
+        fr = [x for r in multi for x in r["flying_ratios"]]
+        out = {"laps": laps, "all_laps_clean": len(ok),
+               "later_laps_within_5pct": sum(1 for r in ok if all(x <= 1 + WITHIN for x in r["flying_ratios"])),
+               "flying_ratio_median": float(np.median(fr)) if fr else None,
+               "flying_ratio_max": float(np.max(fr)) if fr else None}
+    return {**out, "tracks": n, "clean": len(clean), "clean_share": len(clean) / n if n else 0.0,
             "within_5pct": sum(1 for r in clean if r["ratio"] <= 1 + WITHIN),
             "runs_clean": sum(1 for r in rows if r.get("violation_steps_run", 0) == 0),
             "ratio_median": float(np.median(ratios)) if ratios else None,
@@ -97,19 +116,28 @@ def _print_rows(rows: list[dict]) -> None:
     for r in rows:
         lap = f"{r['lap_s']:.3f}" if r["lap_s"] is not None else "-"
         ratio = f"{r['ratio']:.3f}" if r["ratio"] is not None else "-"
+        extra = ""
+        if "lap_times_s" in r:
+            extra = (f" flying optimum {r['flying_optimal_lap_s']:.3f}; laps " + ", ".join(f"{t:.3f}" for t in r["lap_times_s"])
+                     + "; per lap violation steps " + ", ".join(str(v) for v in r["violation_steps_per_lap"]) + " |")
         print(f"| {r['seed']} | {r['length_m']:.2f} | {r['width_m']:.3f} | {r['optimal_lap_s']:.3f} | {lap} | {ratio} "
-              f"| {r['violation_steps']} | {r['closest_corner_mm']:.1f} | {r['violation_steps_run']} |")
+              f"| {r['violation_steps']} | {r['closest_corner_mm']:.1f} | {r['violation_steps_run']} |{extra}")
 
 
 def _line(s: dict) -> str:
-    return (f"{s['clean']}/{s['tracks']} clean, {s['within_5pct']}/{s['tracks']} clean and within 5 %, "
+    text = (f"{s['clean']}/{s['tracks']} clean, {s['within_5pct']}/{s['tracks']} clean and within 5 %, "
             f"lap/optimum median {s['ratio_median']:.3f} max {s['ratio_max']:.3f}; whole runs clean "
             f"{s['runs_clean']}/{s['tracks']}")
+    if "laps" in s:
+        text += (f"; {s['laps']} laps: all clean {s['all_laps_clean']}/{s['tracks']}, and laps 2-{s['laps']} "
+                 f"within 5 % of the flying optimum {s['later_laps_within_5pct']}/{s['tracks']} (lap/flying optimum "
+                 f"median {s['flying_ratio_median']:.3f} max {s['flying_ratio_max']:.3f})")
+    return text
 
 
 def _run(args) -> int:
     seeds = parse_seeds(args.seeds)
-    base = replace(MpcSettings(), **_parse_assignments(args.set, multi=False))
+    base = replace(MpcSettings(), line=args.line, **_parse_assignments(args.set, multi=False))
     grid = _parse_assignments(args.grid, multi=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -117,7 +145,7 @@ def _run(args) -> int:
     keys = list(grid)
     for values in itertools.product(*(grid[k] for k in keys)) if keys else [()]:
         st = replace(base, **dict(zip(keys, values)))
-        rows = evaluate(args.vehicle, seeds, st, Path(args.tool))
+        rows = evaluate(args.vehicle, seeds, st, Path(args.tool), laps=args.laps)
         s = summary(rows)
         results.append({"settings": st.as_dict(), "grid_point": dict(zip(keys, values)), "summary": s, "rows": rows})
         if keys:
@@ -138,6 +166,10 @@ def register(subparsers) -> None:
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override an MpcSettings value (repeatable)")
     p.add_argument("--grid", action="append", metavar="KEY=V1,V2,...",
                    help="evaluate every combination of these values (tuning seeds only)")
+    p.add_argument("--laps", type=int, default=1,
+                   help="laps to drive; with more than one the later laps are scored against the flying-lap optimum")
+    p.add_argument("--line", choices=("default", "flying", "standing"), default="default",
+                   help="the MPC's table: the vehicle's own line (default), or its flying-lap line")
     p.add_argument("--out", default="out/mpc_tracks")
     p.add_argument("--tool", default=str(DEFAULT_TOOL))
     p.set_defaults(func=_run)

@@ -62,9 +62,23 @@ class RacelineSettings:
     max_iterations: int = 3000
     start_substeps: int = 1       # x the plant's RK4 sub-steps in the standing start's intervals
     expand: bool = False          # SX-expand the NLP: faster per iteration, but ETHZ at 400 intervals took 2.7 GB
+    flying: bool = False          # a flying lap: every state periodic (the lap after the first), no standing start
+    grip: float = 1.0             # x the tyres' peak forces Df, Dr in the line's model: a reserve the MPC can use
+    max_sideslip: float = 0.0     # rad, |atan(vy / vx)| bound (0: none); keeps the line out of drifts the MPC cannot track
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def settings_for(vehicle_name: str, **given) -> RacelineSettings:
+    """The defaults, the vehicle's own settings over them (train/vehicles/mpc/), then `given` (None: not given)."""
+    from ddyn.control.vehicle_settings import overrides
+
+    fields = {**overrides(vehicle_name, "raceline"), **{k: v for k, v in given.items() if v is not None}}
+    try:
+        return RacelineSettings(**fields)
+    except TypeError as e:
+        raise DdynError(f"raceline settings of {vehicle_name!r}: {e}") from None
 
 
 def resolved(settings: RacelineSettings, track: Track) -> RacelineSettings:
@@ -74,13 +88,20 @@ def resolved(settings: RacelineSettings, track: Track) -> RacelineSettings:
     return replace(settings, intervals=max(50, int(round(track.length / settings.spacing))))
 
 
-def default_path(vehicle_name: str, track: str | Track) -> Path:
+def default_flying(vehicle_name: str) -> bool:
+    """Whether the vehicle's own line is a flying lap (its settings file; the 1:43 car: a standing start)."""
+    return settings_for(vehicle_name).flying
+
+
+def default_path(vehicle_name: str, track: str | Track, flying: bool | None = None) -> Path:
     """Where a vehicle's line on a track is kept: train/racelines/ (committed) for the shared data's
-    tracks, out/racelines/ for a user's or a random track (computed on demand, never committed)."""
+    tracks, out/racelines/ for a user's or a random track (computed on demand, never committed).
+    flying None: the vehicle's own kind of line; the other kind gets a suffix (_flying, _standing)."""
+    suffix = "" if flying is None or flying == default_flying(vehicle_name) else ("_flying" if flying else "_standing")
     if isinstance(track, str) or (is_named(track.name) and not track.files):
         name = track if isinstance(track, str) else track.name
-        return RACELINE_DIR / f"{vehicle_name}_{name}.npz"
-    return USER_RACELINE_DIR / f"{vehicle_name}_{track.name}.npz"
+        return RACELINE_DIR / f"{vehicle_name}_{name}{suffix}.npz"
+    return USER_RACELINE_DIR / f"{vehicle_name}_{track.name}{suffix}.npz"
 
 
 def _footprint(vehicle_name: str) -> tuple[float, float]:
@@ -91,7 +112,7 @@ def _footprint(vehicle_name: str) -> tuple[float, float]:
     return FOOTPRINT[vehicle_name]
 
 
-def speed_profile(vehicle: Vehicle, kappa: np.ndarray, ds: float, vx0: float) -> np.ndarray:
+def speed_profile(vehicle: Vehicle, kappa: np.ndarray, ds: float, vx0: float | None, grip: float = 1.0) -> np.ndarray:
     """A curvature-limited speed at the m frame points plus the closing point (the warm start).
 
     v <= sqrt(a_lat / |kappa|) with a_lat a fraction of the tyres' peak force over the mass, under
@@ -100,18 +121,24 @@ def speed_profile(vehicle: Vehicle, kappa: np.ndarray, ds: float, vx0: float) ->
     drive instead of a constant speed that leaves the track in the first hairpin.
     """
     c, mass = vehicle.true_coefficients, float(vehicle.known.mass)
-    a_lat = 0.6 * (c["Df"] + c["Dr"]) / mass
+    a_lat = 0.6 * grip * (c["Df"] + c["Dr"]) / mass
     a, b, k = c["Cd"], c["Cm2"], c["Cm1"] - c["Cr0"]
     top = (-b + np.sqrt(b * b + 4 * a * k)) / (2 * a)
     v = np.minimum(0.9 * top, np.sqrt(a_lat / np.maximum(np.abs(kappa), 1e-6)))
     v = np.append(v, v[0])
     a_acc = 0.5 * k / mass
-    v[0] = vx0
-    for i in range(len(v) - 1):
-        v[i + 1] = min(v[i + 1], np.sqrt(v[i] ** 2 + 2 * a_acc * ds))
-    for i in range(len(v) - 2, -1, -1):
-        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * a_lat * ds))
-    return np.maximum(v, vx0)
+    if vx0 is not None:
+        v[0] = vx0
+    for _ in range(1 if vx0 is not None else 2):
+        if vx0 is None:
+            v[0] = min(v[0], v[-1])
+        for i in range(len(v) - 1):
+            v[i + 1] = min(v[i + 1], np.sqrt(v[i] ** 2 + 2 * a_acc * ds))
+        if vx0 is None:
+            v[-1] = min(v[-1], v[0])
+        for i in range(len(v) - 2, -1, -1):
+            v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * a_lat * ds))
+    return np.maximum(v, vx0 if vx0 is not None else 0.0)
 
 
 def solve(vehicle: Vehicle, track: Track, settings: RacelineSettings = RacelineSettings(),
@@ -128,7 +155,9 @@ def solve(vehicle: Vehicle, track: Track, settings: RacelineSettings = RacelineS
     fr = frame(track, N)
     ds = fr.length / N
     kap = fr.kappa  # each interval is an arc: a constant, not a function of s
-    coeffs = [float(c) for c in vehicle.true_vector()]
+    from ddyn.model.single_track import COEFF_NAMES
+    coeffs = [float(c) * (settings.grip if name in ("Df", "Dr") else 1.0)
+              for name, c in zip(COEFF_NAMES, vehicle.true_vector())]
 
     X = ca.SX.sym("X", 8)  # (s, n, mu, vx, vy, omega, throttle, steering); s counts from the interval's start
     U = ca.SX.sym("U", 2)
@@ -155,7 +184,7 @@ def solve(vehicle: Vehicle, track: Track, settings: RacelineSettings = RacelineS
     # that is inaccurate in the low-speed tyre dynamics; start_substeps multiplies the sub-steps of
     # the intervals whose warm-start speed is below START_SPEED (docs/tracks.md: 1 by default,
     # 2 fixes random track 201's start but fails on random track 3 and finds a slower ETHZ optimum).
-    v_guess = speed_profile(vehicle, fr.kappa, ds, settings.vx0)
+    v_guess = speed_profile(vehicle, fr.kappa, ds, None if settings.flying else settings.vx0, settings.grip)
     fast = np.nonzero(v_guess[:-1] >= START_SPEED)[0]
     n_start = N if settings.start_substeps == 1 else max(1, int(fast[0]) if len(fast) else N)
     pieces = [(0, n_start, settings.start_substeps * vehicle.rk4_substeps), (n_start, N, vehicle.rk4_substeps)]
@@ -179,6 +208,10 @@ def solve(vehicle: Vehicle, track: Track, settings: RacelineSettings = RacelineS
     opti.subject_to(opti.bounded(lim["dthrottle"][0], Uv[0, :], lim["dthrottle"][1]))
     opti.subject_to(opti.bounded(lim["dsteering"][0], Uv[1, :], lim["dsteering"][1]))
     opti.subject_to(Xv[2, :] >= settings.vx_min)
+    if settings.max_sideslip > 0.0:
+        tb = float(np.tan(settings.max_sideslip))
+        opti.subject_to(Xv[3, :] <= tb * Xv[2, :])
+        opti.subject_to(Xv[3, :] >= -tb * Xv[2, :])
     opti.subject_to(opti.bounded(-1.2, Xv[1, :], 1.2))  # heading error: keeps the curvilinear frame valid
     opti.subject_to(opti.bounded(1e-4, H, 2.0 * ds / settings.vx_min))
     wl = ca.DM(np.append(fr.wl, fr.wl[0])).T - settings.margin
@@ -188,9 +221,12 @@ def solve(vehicle: Vehicle, track: Track, settings: RacelineSettings = RacelineS
         across = 0.5 * width_fp * ca.cos(Xv[1, :])
         opti.subject_to(Xv[0, :] + along + across <= wl)
         opti.subject_to(Xv[0, :] + along - across >= -wr)
-    opti.subject_to(Xv[2:, 0] == ca.DM([settings.vx0, 0, 0, 0, 0]))
-    opti.subject_to(Xv[0, N] == Xv[0, 0])  # the line closes in position and heading
-    opti.subject_to(Xv[1, N] == Xv[1, 0])
+    if settings.flying:  # the lap after the first: it ends in the state it started in
+        opti.subject_to(Xv[:, N] == Xv[:, 0])
+    else:
+        opti.subject_to(Xv[2:, 0] == ca.DM([settings.vx0, 0, 0, 0, 0]))
+        opti.subject_to(Xv[0, N] == Xv[0, 0])  # the line closes in position and heading
+        opti.subject_to(Xv[1, N] == Xv[1, 0])
     opti.minimize(ca.sum2(H) + settings.regularisation * ca.sum2(ca.sum1(Uv ** 2) * H))
 
     # warm start: the centre line at a curvature-limited speed
@@ -241,9 +277,9 @@ def save(path: Path, arrays: dict) -> Path:
     return path
 
 
-def load_for(vehicle_name: str, track: Track) -> Raceline | None:
+def load_for(vehicle_name: str, track: Track, flying: bool | None = None) -> Raceline | None:
     """The computed line of this vehicle on this track, if one is committed; else None."""
-    path = default_path(vehicle_name, track)
+    path = default_path(vehicle_name, track, flying)
     if not path.is_file():
         return None
     digest = meta_of(path).get("track_digest")
@@ -253,14 +289,31 @@ def load_for(vehicle_name: str, track: Track) -> Raceline | None:
         return Raceline(z["x"], z["y"], z["time"], z["speed"], z["inputs"], str(path))
 
 
-def line_for(track: Track, vehicle_name: str) -> Raceline:
-    """The line a vehicle races on a track: its computed line when committed, else the data's line."""
-    line = load_for(vehicle_name, track)
+def line_for(track: Track, vehicle_name: str, flying: bool | None = None) -> Raceline:
+    """The line a vehicle races on a track: its computed line when committed, else the data's line
+    (flying: the flying-lap line, which must have been computed: ddyn mpc raceline --flying)."""
+    line = load_for(vehicle_name, track, flying)
+    if line is None and flying is not None and flying != default_flying(vehicle_name):
+        raise DdynError(f"no {'flying' if flying else 'standing'}-lap line of {vehicle_name!r} on {track.name!r} "
+                        f"(compute it: ddyn mpc raceline --vehicle {vehicle_name} --track ... "
+                        f"--{'' if flying else 'no-'}flying)")
     if line is None:
         line = track.raceline
     if line is None:
         raise DdynError(f"track {track.name!r} has no raceline for {vehicle_name!r} (compute one: ddyn mpc raceline --vehicle {vehicle_name} --track with the same track)")
     return line
+
+
+def is_flying(track: Track, vehicle_name: str) -> bool:
+    """Whether the vehicle's own line on a track is a flying lap: then a closed loop starts rolling, at
+    the line's speed, as the full-scale car's races do (a 1:43 car on its flying line still starts from
+    standstill: the flying line is for the laps after the first)."""
+    if load_for(vehicle_name, track) is None:
+        return False
+    return bool(meta_of(default_path(vehicle_name, track)).get("settings", {}).get("flying", False))
+
+
+LINES = {"default": None, "flying": True, "standing": False}  # --line: the vehicle's own, or a kind
 
 
 def meta_of(path: Path) -> dict:
@@ -271,14 +324,16 @@ def meta_of(path: Path) -> dict:
 def _run(args: argparse.Namespace) -> int:
     vehicle = load_vehicle(args.vehicle)
     track = open_track(args.track, vehicle.name)
-    settings = resolved(RacelineSettings(intervals=args.intervals, margin=args.margin, vx0=args.vx0,
-                                         start_substeps=args.start_substeps), track)
+    settings = resolved(settings_for(vehicle.name, intervals=args.intervals, spacing=args.spacing,
+                                     margin=args.margin, vx0=args.vx0, start_substeps=args.start_substeps,
+                                     flying=args.flying, grip=args.grip, max_sideslip=args.max_sideslip), track)
     result = solve(vehicle, track, settings, verbose=args.verbose)
     arrays = raceline_arrays(vehicle, track, result, settings)
-    out = Path(args.out) if args.out else default_path(vehicle.name, track)
+    out = Path(args.out) if args.out else default_path(vehicle.name, track, settings.flying)
     save(out, arrays)
     worst = float(np.min(track.boundary_distance(arrays["x"], arrays["y"])))
-    print(f"raceline: {vehicle.name} on {track.name}: lap {result['T']:.3f} s from vx0 = {settings.vx0} m/s, "
+    start = "flying" if settings.flying else f"from vx0 = {settings.vx0} m/s"
+    print(f"raceline: {vehicle.name} on {track.name}: lap {result['T']:.3f} s {start}, "
           f"top speed {arrays['speed'].max():.2f} m/s, {result['iterations']} IPOPT iterations "
           f"({result['status']}, {result['solve_seconds']:.1f} s); centre of gravity >= {worst * 1000:.0f} mm "
           f"inside the bounds; wrote {out}")
@@ -291,11 +346,22 @@ def register(subparsers) -> None:
     d = RacelineSettings()
     p.add_argument("--vehicle", default="orca_1_43")
     p.add_argument("--track", default="ethzMobil")
-    p.add_argument("--intervals", type=int, default=d.intervals, help="shooting intervals (default: one per 3 cm of centre line)")
-    p.add_argument("--margin", type=float, default=d.margin, help="m between footprint and bounds")
-    p.add_argument("--vx0", type=float, default=d.vx0)
-    p.add_argument("--start-substeps", type=int, default=d.start_substeps,
-                   help="x the RK4 sub-steps in the standing start's intervals (default %(default)s; docs/tracks.md)")
+    p.add_argument("--intervals", type=int, default=None,
+                   help="shooting intervals (default: one per --spacing of centre line)")
+    p.add_argument("--margin", type=float, default=None,
+                   help=f"m between footprint and bounds (default {d.margin}, or the vehicle's: train/vehicles/mpc/)")
+    p.add_argument("--vx0", type=float, default=None, help=f"start speed of a standing start (default {d.vx0})")
+    p.add_argument("--spacing", type=float, default=None,
+                   help=f"m of centre line per interval when --intervals is 0 (default {d.spacing}, or the vehicle's)")
+    p.add_argument("--flying", action=argparse.BooleanOptionalAction, default=None,
+                   help="a flying lap (every state periodic: the laps after the first) instead of a standing "
+                        "start (default: standing, or the vehicle's)")
+    p.add_argument("--grip", type=float, default=None,
+                   help=f"x the tyres' peak forces in the line's model (default {d.grip}, or the vehicle's)")
+    p.add_argument("--max-sideslip", type=float, default=None,
+                   help=f"rad, bound on the line's sideslip atan(vy/vx) (default {d.max_sideslip}: none; or the vehicle's)")
+    p.add_argument("--start-substeps", type=int, default=None,
+                   help=f"x the RK4 sub-steps in the standing start's intervals (default {d.start_substeps}; docs/tracks.md)")
     p.add_argument("--out", default=None, help="npz to write (default: the committed train/racelines/ file)")
     p.add_argument("--verbose", action="store_true", help="IPOPT's iteration log")
     p.set_defaults(func=_run)

@@ -123,22 +123,31 @@ def parse_faults(text: str | None) -> dict:
 
 # ---------------------------------------------------------------------------------------------- track
 
-def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float = 1.0, margin: float = 0.03) -> np.ndarray:
+def raceline_table(track: Track, vehicle: Vehicle, speed_scale: float | None = None,
+                   margin: float | None = None, line: str | None = None) -> np.ndarray:
     """Rows x, y, speed, room_left, room_right of the raceline the MPC tracks.
 
     The MPC's own table (train/control/mpc_setup.py, what ddyn mpc lap tunes with): the raceline's first lap,
     closed, resampled every 2.5 cm, its speed profile times speed_scale floored at 0.5 m/s, the room
     to the bounds less half the car's width and `margin`.
     """
-    from ddyn.control.mpc_setup import MpcSettings
     from ddyn.control.mpc_setup import raceline_table as mpc_table
-    t = mpc_table(track, vehicle.name, MpcSettings(speed_scale=speed_scale, margin=margin))
+    from ddyn.control.mpc_setup import settings_for
+    # the vehicle's own table settings (spacing, margin, speed floor and scale: train/vehicles/mpc/), then the options
+    t = mpc_table(track, vehicle.name, settings_for(vehicle.name, speed_scale=speed_scale, margin=margin,
+                                                                 line=line))
     return np.column_stack([t["x"], t["y"], t["speed"], t["room_left"], t["room_right"]])
 
 
-def start_state(track: Track, vx0: float, vehicle_name: str) -> list[float]:
-    """The car at the raceline's first point, heading along it, at vx0."""
-    rl = line_for(track, vehicle_name)
+def start_state(track: Track, vx0: float | None, vehicle_name: str, table: np.ndarray | None = None,
+                line: str | None = None) -> list[float]:
+    """The car at the raceline's first point, heading along it, at vx0 (None: a flying line's rolling
+    start at the reference speed of the table's first row, else 0.1 m/s)."""
+    if vx0 is None:
+        from ddyn.control.raceline import is_flying
+        vx0 = float(table[0, 2]) if table is not None and is_flying(track, vehicle_name) else 0.1
+    from ddyn.control.raceline import LINES
+    rl = line_for(track, vehicle_name, LINES[line or "default"])
     x0, y0 = float(rl.x[0]), float(rl.y[0])
     k = 1
     while np.hypot(rl.x[k] - x0, rl.y[k] - y0) < 1e-6:
@@ -172,16 +181,17 @@ class SilSpec:
     coeffs_controller: np.ndarray | None       # fixed coefficients (None: the network's)
     nominal: np.ndarray
     laps: int = 1
-    vx0: float = 0.1
+    vx0: float | None = None                   # None: 0.1 m/s, or a flying line's rolling start
     effects: dict = field(default_factory=dict)
     faults: dict = field(default_factory=dict)
     noise_scale: float = 1.0
-    speed_scale: float = 1.0
-    margin: float = 0.03
+    speed_scale: float | None = None           # None: the vehicle's (train/vehicles/mpc/), else 1.0
+    margin: float | None = None                # None: the vehicle's, else 0.03 m
+    line: str | None = None                    # the racing line: None the vehicle's own, "flying", "standing"
     realtime: float = 0.0
     max_time: float | None = None
     seed: int = 1
-    deadline: float = 0.08
+    deadline: float | None = None              # DBW watchdog, s; None: the vehicle's periods (4: 80 ms at 50 Hz)
     throttle: str = "mpc"                      # "mpc" (the MPC plans it) or "pid" (PID on the speed error)
     pid_gains: tuple | None = None             # (kp, ki, kd, preview s); None: the controller's defaults
     checkpoint_hash: str | None = None         # sha256 of the network's checkpoint: a controller built for
@@ -192,17 +202,28 @@ class SilSpec:
     rt_cpu: int = -1                           # realtime.cpu: the CPU to pin the controller to, -1 = none
 
 
-def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
+def dbw_deadline(spec: SilSpec) -> float:
+    from ddyn.control.vehicle_settings import overrides
+    if spec.deadline is not None:
+        return spec.deadline
+    return overrides(spec.vehicle.name, "sil").get("dbw_deadline_periods", 4) * spec.vehicle.sample_time
+
+
+def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray | None = None) -> dict:
     v = spec.vehicle
     lim = v.input_limits
     noise = sensor_noise(v, spec.noise_scale)
-    sensors = {k: {"rate": SENSOR_RATES[k], "noise": noise[k]} for k in SENSOR_ORDER}
+    # a position frame starts a control period (firmware_sim/controller): GNSS comes once a period, 50 Hz
+    # for the 1:43 car as the DBC's cycle time, 25 Hz for the AV-21 (at 50 Hz its controller ran two
+    # 40 ms periods per 40 ms and its filter, ahead of the car, rejected every position)
+    rates = dict(SENSOR_RATES, gnss_position=1.0 / v.sample_time, heading=1.0 / v.sample_time)
+    sensors = {k: {"rate": rates[k], "noise": noise[k]} for k in SENSOR_ORDER}
     f = spec.faults
     if "silent" in f:
         for k in SENSOR_OF_FRAME[f["silent"]]:
             sensors[k]["silent_from"] = float(f["silent_at"])
     length, width = FOOTPRINT.get(v.name, (0.0, 0.0))
-    max_time = spec.max_time or max(20.0, 6.0 * spec.laps * spec.track.length / max(0.5, 0.5 * spec.speed_scale * 2.0))
+    max_time = spec.max_time or max(20.0, 6.0 * spec.laps * spec.track.length / max(0.5, spec.speed_scale or 1.0))
     cfg = {
         "vehicle": v.name, "coefficients": [float(c) for c in spec.coeffs_plant],
         "limits": {"throttle_min": lim["throttle"][0], "throttle_max": lim["throttle"][1],
@@ -212,17 +233,34 @@ def plant_config(spec: SilSpec, track_dir: str, out_dir: str) -> dict:
         "substep": min(1e-3, v.sample_time / 20.0),
         "track_dir": track_dir, "track": spec.track.name,
         "footprint": {"length": length, "width": width},
-        "start": start_state(spec.track, spec.vx0, spec.vehicle.name),
+        "start": start_state(spec.track, spec.vx0, spec.vehicle.name, table, spec.line),
         "laps": spec.laps, "max_time": float(max_time),
         "realtime_factor": spec.realtime, "lockstep_timeout": 3.0,
+        # the first command may take this long (wall s): an emulated guest starts the controller slowly, and
+        # the AV-21's rolling start coasted off Putnam in 1.7 s before it came
+        "start_timeout": 60.0,
         "sensors": sensors, "status_rate": 100.0, "seed": spec.seed,
-        "dbw": {"deadline": spec.deadline, "rearm_count": 0},
+        "dbw": {"deadline": dbw_deadline(spec), "rearm_count": 0},
         "faults": {"drop": f.get("drop", 0.0), "delay_max": f.get("delay", 0.0), "corrupt": f.get("corrupt", 0.0)},
         "out_dir": out_dir, "log_period": 0.01, "snapshot_period": 0.05,
     }
     if "restart_plant" in f:
         cfg["crash_at"] = float(f["restart_plant"])
     return cfg
+
+
+def controller_start(spec: SilSpec, table: np.ndarray) -> list[float]:
+    """The filter's initial state: the plant's start moved one period along its heading. The
+    controller's first period comes with the first position frame, one period after the start (the
+    plant samples when the time crosses a multiple of the period), and the filter does not predict
+    in its first period. From 0.1 m/s that is 2 mm (1:43 car, 20 ms); on the AV-21's rolling start
+    at 30 m/s it was 1.2 m, 30 standard deviations of the position reading: every reading was gated
+    and the car braked in its safe state."""
+    x = start_state(spec.track, spec.vx0, spec.vehicle.name, table, spec.line)
+    dt = spec.vehicle.sample_time
+    x[0] += x[3] * math.cos(x[2]) * dt
+    x[1] += x[3] * math.sin(x[2]) * dt
+    return x
 
 
 CONTROLLER_CONFIG = "controller.json"
@@ -235,9 +273,13 @@ def raceline_csv(table: np.ndarray) -> str:
     return "\n".join(rows) + "\n"
 
 
-def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: str = "") -> dict:
+def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: str = "",
+                      table: np.ndarray | None = None) -> dict:
     """ddyn_controller's configuration for a SIL run (the car's format: docs/deploy.md). The raceline is
-    RACELINE_CSV beside it; outputs go to out_dir (the folder of the run, /out in the guest)."""
+    RACELINE_CSV beside it; outputs go to out_dir (the folder of the run, /out in the guest). table: the
+    raceline the run uses (computed from the spec when not given), for the filter's start."""
+    if table is None:
+        table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin, line=spec.line)
     v = spec.vehicle
     if spec.throttle not in ("mpc", "pid"):
         raise DdynError(f"throttle {spec.throttle!r}: expected mpc or pid")
@@ -277,7 +319,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         "can": {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS)},
         "control": control,
         "filter": {
-            "x0": [float(c) for c in start_state(spec.track, spec.vx0, spec.vehicle.name)],
+            "x0": [float(c) for c in controller_start(spec, table)],
             "process_noise": list(FILTER_PROCESS_NOISE),
             # the noise the filter assumes: twice the sensors' own (model error), 1 m/s^2 for the
             # accelerometer (its model goes through the estimated coefficients), as the controller's
@@ -291,7 +333,10 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         # by default the SIL's plant runs in lock-step: frame pacing; no SCHED_FIFO (the emulated guest's
         # two processes share its CPUs); memory locked as on the car
         "realtime": {"pacing": spec.pacing, "priority": int(spec.rt_priority), "cpu": int(spec.rt_cpu), "lock_memory": True,
-                     "lockstep_silence": lockstep, "idle_exit": 3.0},
+                     "lockstep_silence": lockstep,
+                     # the plant may take seconds to start in the emulated guest (Putnam's 2,877-point
+                     # track: a controller that left after 3 s without a frame); the run's end stops it anyway
+                     "idle_exit": 60.0},
         "sil": {"die_at_step": die},
     }
 
@@ -300,7 +345,7 @@ def write_controller_files(spec: SilSpec, table: np.ndarray, work: Path, out_dir
     """controller.json and raceline.csv into the run's folder; the configuration's path."""
     (work / RACELINE_CSV).write_text(raceline_csv(table))
     path = work / CONTROLLER_CONFIG
-    path.write_text(json.dumps(controller_config(spec, out_dir, lcm_url=lcm_url), indent=1) + "\n")
+    path.write_text(json.dumps(controller_config(spec, out_dir, lcm_url=lcm_url, table=table), indent=1) + "\n")
     return path
 
 
@@ -870,8 +915,9 @@ def plant_track_dir(track: Track, out: Path) -> Path:
     """The folder the plant reads <name>_center/_inner/_outer.txt from: the shared data's for its
     own tracks, else the track as loaded here written into the run's folder (a user's files or a
     CSV with widths, a random track: the plant reads only the three-file format)."""
-    if is_named(track.name) and not track.files:
-        return shared_data_dir() / "tracks"
+    shared = shared_data_dir() / "tracks"
+    if is_named(track.name) and not track.files and (shared / f"{track.name}_center.txt").is_file():
+        return shared  # putnam's are bounds in CSV (x, y, z): written like a user's track
     write_track(track, out / "track" / track.name)
     return out / "track"
 
@@ -882,7 +928,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     for stale in ("plant_metrics.json", "controller_metrics.json", "trajectory.csv", "controller_log.csv",
                   "snapshot.json", "sil_metrics.json"):
         (out / stale).unlink(missing_ok=True)
-    table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin)
+    table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin, line=spec.line)
     if len(table) > 1024:
         raise DdynError(f"raceline of {len(table)} points; the MPC holds at most 1024")
     if where == "inprocess" and spec.pacing != "frame":
@@ -893,7 +939,7 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     track_dir = plant_track_dir(spec.track, out)
     use_host = where in ("host", "inprocess") or (where == "auto" and host_has_vcan())
     inside = "/out" if not use_host else str(out.resolve())
-    pc = plant_config(spec, "/sil/tracks" if not use_host else str(track_dir), inside)
+    pc = plant_config(spec, "/sil/tracks" if not use_host else str(track_dir), inside, table)
     (out / "plant.json").write_text(json.dumps(pc, indent=1) + "\n")
     (out / "plant_resume.json").unlink(missing_ok=True)
     if "restart_plant" in spec.faults:
@@ -961,7 +1007,7 @@ def _run(args: argparse.Namespace) -> int:
     spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
                    nominal=vehicle.true_vector(), laps=args.laps, vx0=args.vx0,
                    effects=parse_effects(args.effects), faults=parse_faults(args.faults),
-                   noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin,
+                   noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin, line=args.line,
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing)
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
@@ -979,13 +1025,18 @@ def _run(args: argparse.Namespace) -> int:
 def add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicle", default="orca_1_43", help="vehicle file name (default: %(default)s)")
     p.add_argument("--track", default="ethzMobil", help="track (default: %(default)s)")
-    p.add_argument("--vx0", type=float, default=0.1, help="initial speed, m/s (default: %(default)s)")
+    p.add_argument("--vx0", type=float, default=None,
+                   help="initial speed, m/s (default: 0.1, or a flying line's rolling start at its reference speed)")
     p.add_argument("--noise", type=float, default=1.0, help="sensor noise scale (default: %(default)s)")
-    p.add_argument("--speed-scale", type=float, default=1.0,
-                   help="reference speed = raceline speed x this (default %(default)s: the vehicle's own "
-                        "time-optimal line, train/racelines/, is drivable at full speed)")
-    p.add_argument("--margin", type=float, default=0.03,
-                   help="room the MPC keeps between the car's side and the bounds, m (default: %(default)s)")
+    p.add_argument("--speed-scale", type=float, default=None,
+                   help="reference speed = raceline speed x this (default 1.0: the vehicle's own time-optimal "
+                        "line, train/racelines/, is drivable at full speed; or the vehicle's, train/vehicles/mpc/)")
+    p.add_argument("--margin", type=float, default=None,
+                   help="room the MPC keeps between the car's side and the bounds, m (default: 0.03, or the "
+                        "vehicle's)")
+    p.add_argument("--line", choices=("default", "flying", "standing"), default=None,
+                   help="the racing line: the vehicle's own (default), or its flying-lap line (for --laps > 1: the "
+                        "laps after the first start at speed) or standing-start line")
     p.add_argument("--realtime", type=float, default=0.0,
                    help="pace the plant at this multiple of real time (default 0: lock-step with the controller)")
     p.add_argument("--max-time", type=float, default=None, help="simulated seconds before giving up")

@@ -28,7 +28,7 @@ import numpy as np
 
 from ddyn.errors import DdynError
 from ddyn.model.single_track import COEFF_NAMES
-from ddyn.model.tracks import load_track
+from ddyn.model.track_files import open_track
 from ddyn.model.vehicle import load as load_vehicle
 from ddyn.sil.run import SilSpec, add_common, coefficients_from, export_network, run_sil
 
@@ -98,13 +98,17 @@ def _row(label: str, m: dict) -> dict:
             "loop_us": ctl.get("loop_us"), "deadline_misses": ctl.get("deadline_misses")}
 
 
+def _vx0(args: argparse.Namespace) -> str:
+    return "the line's start speed (0.1 m/s from standstill)" if args.vx0 is None else f"{args.vx0} m/s"
+
+
 def _fmt(v, spec: str) -> str:
     return "-" if v is None else format(v, spec)
 
 
 def _run_table(args: argparse.Namespace) -> int:
     vehicle = load_vehicle(args.vehicle)
-    track = load_track(args.track)
+    track = open_track(args.track, vehicle.name)  # a named track, random:SEED or a user's files
     out = Path(args.out)
     # (label, fixed coefficients or None for the network, network export, throttle)
     runs: list[tuple[str, np.ndarray | None, Path | None, str]] = []
@@ -126,17 +130,17 @@ def _run_table(args: argparse.Namespace) -> int:
     for label, fixed, export_dir, throttle in runs:
         spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
                        nominal=vehicle.true_vector(), laps=1, vx0=args.vx0, noise_scale=args.noise,
-                       speed_scale=args.speed_scale, margin=args.margin, realtime=args.realtime,
+                       speed_scale=args.speed_scale, margin=args.margin, line=args.line, realtime=args.realtime,
                        max_time=args.max_time, seed=args.seed, throttle=throttle,
                        checkpoint_hash=_sha256(args.ddm) if export_dir is not None else None)
         d = out / label.lower().replace(",", "").replace(" ", "_").replace("%", "pct").replace("+", "plus")
         m = run_sil(spec, d, export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout,
-                    title=f"SIL {label}: ETHZMobil from vx = {args.vx0} m/s")
+                    title=f"SIL {label}: {track.name} from vx = {_vx0(args)}")
         rows.append(_row(label, m))
         print(f"sil-table: {label} (throttle: {throttle}): lap {_fmt(rows[-1]['lap_time'], '.2f')} s, "
               f"{_fmt(rows[-1]['average_speed'], '.3f')} m/s, {rows[-1]['violations']} violation(s), "
               f"{rows[-1]['end_reason']}")
-    lines = [f"SIL closed loop on {track.name} (one lap from vx = {args.vx0} m/s, two processes over vcan; "
+    lines = [f"SIL closed loop on {track.name} (one lap from vx = {_vx0(args)}, two processes over vcan; "
              f"{PAPER_NOTE})", "", f"{THROTTLE_NOTE}.", "",
              "| run | throttle | lap time (s) | average speed (m/s) | violations | mean distance to raceline (m) | "
              "controller loop median / p99 / max (us) | paper: lap time, violations |",
@@ -161,7 +165,7 @@ def _run_table(args: argparse.Namespace) -> int:
 
 def _run_faults(args: argparse.Namespace) -> int:
     vehicle = load_vehicle(args.vehicle)
-    track = load_track(args.track)
+    track = open_track(args.track, vehicle.name)  # a named track, random:SEED or a user's files
     out = Path(args.out)
     export_dir = export_network(Path(args.model), out / "export") if args.model else None
     fixed = None if args.model else coefficients_from(args.coeffs, vehicle)
@@ -169,7 +173,7 @@ def _run_faults(args: argparse.Namespace) -> int:
     for label, faults in FAULT_SCENARIOS:
         spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
                        nominal=vehicle.true_vector(), laps=1, vx0=args.vx0, faults=faults, noise_scale=args.noise,
-                       speed_scale=args.speed_scale, margin=args.margin, realtime=args.realtime,
+                       speed_scale=args.speed_scale, margin=args.margin, line=args.line, realtime=args.realtime,
                        max_time=args.max_time, seed=args.seed,
                        checkpoint_hash=_sha256(args.model) if args.model else None)
         d = out / (label.split(" ")[0] + "_" + "_".join(f"{k}" for k in faults) if faults else "none")
@@ -247,16 +251,16 @@ def sweep_choice(rows: list[dict]) -> dict | None:
 def _run_pid_sweep(args: argparse.Namespace) -> int:
     from ddyn.sil.run import raceline_table, read_csv
     vehicle = load_vehicle(args.vehicle)
-    track = load_track(args.track)
+    track = open_track(args.track, vehicle.name)  # a named track, random:SEED or a user's files
     out = Path(args.out)
-    table = raceline_table(track, vehicle, args.speed_scale, margin=args.margin)
+    table = raceline_table(track, vehicle, args.speed_scale, margin=args.margin, line=args.line)
     rows = []
     for kp, ki, preview in itertools.product(args.kp, args.ki, args.preview):
         gains = (float(kp), float(ki), float(args.kd), float(preview))
         spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(),
                        coeffs_controller=coefficients_from("true", vehicle), nominal=vehicle.true_vector(),
                        laps=1, vx0=args.vx0, noise_scale=args.noise, speed_scale=args.speed_scale,
-                       margin=args.margin, realtime=args.realtime, max_time=args.max_time, seed=args.seed,
+                       margin=args.margin, line=args.line, realtime=args.realtime, max_time=args.max_time, seed=args.seed,
                        throttle="pid", pid_gains=gains)
         d = out / f"kp{kp:g}_ki{ki:g}_kd{args.kd:g}_preview{preview:g}"
         m = run_sil(spec, d, None, where=args.where, kvm=args.kvm, timeout=args.timeout,
@@ -271,7 +275,7 @@ def _run_pid_sweep(args: argparse.Namespace) -> int:
               f"violation(s), speed error rms {_fmt(row['speed_error_rms'], '.3f')} m/s, max "
               f"{_fmt(row['speed_error_max'], '.3f')} m/s, {row['end_reason']}")
     best = sweep_choice(rows)
-    lines = [f"PID gain sweep: true coefficients, throttle by PID, one lap of {track.name} from vx = {args.vx0} m/s "
+    lines = [f"PID gain sweep: true coefficients, throttle by PID, one lap of {track.name} from vx = {_vx0(args)} "
              f"(speed scale {args.speed_scale}); chosen: among the laps completed without a violation whose grid "
              "neighbours (next kp, ki, preview) were too, the shortest lap (speed error: true vx against the "
              "table's reference speed at the nearest table point)", "",

@@ -39,6 +39,7 @@ struct PlantAppConfig {
   double max_off_track = 0.5; // m: a corner this far outside ends the run
   double realtime_factor = 1.0;    // > 0: paced at this multiple of real time; 0: lock-step;
                                    // < 0: free-running (in-process tests drive both sides)
+  double start_timeout = 0.0;      // s (wall): the same wait before the first command (a starting controller); 0: lockstep_timeout
   double lockstep_timeout = 3.0;   // s (wall): lock-step wait for a command after a GNSS frame; after
                                    // one timeout no more waits until a command arrives again
   std::array<SensorConfig, DDYN_MEAS_COUNT> sensors{};
@@ -107,6 +108,7 @@ class PlantApp {
   std::array<long, 7> rejected_{};
   bool gnss_sent_ = false, ended_ = false, controller_quiet_ = false;
   int last_position_counter_ = -1;  // the last position frame lock-step waited for (answered_position)
+  std::vector<CanFrame> last_sent_;  // this period's frames, sent again while the controller is starting
   std::string end_reason_;
   double wall_start_ = 0.0, t_start_ = 0.0, last_log_ = -1e9, last_snapshot_ = -1e9, wall_elapsed_ = 0.0;
   double sum_speed_dt_ = 0.0, time_driving_ = 0.0;
