@@ -573,6 +573,8 @@ def real_markdown(summary: dict) -> str:
 def _run_commonroad(args, out: Path) -> int:
     """--plant commonroad: the independent plant (gap_independent.py)."""
     G = gap_independent
+    if getattr(args, "case_set", "putnam") != "putnam":
+        return _run_case_set(args, out)
     if args.rescore:
         path = out / "results.json"
         if not path.is_file():
@@ -599,6 +601,26 @@ def _run_commonroad(args, out: Path) -> int:
     if doc["settings"]["calibration_seed"]:
         print(f"leaving <= {100 * G.TARGET_FALSE_ALARMS:.0f} % false alarms on these effect-free logs: gate ratio "
               f"{G.calibrate(doc['results'])}, or evidence margin {G.calibrate_margin(doc['results'])}")
+    print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
+    return 0
+
+
+def _run_case_set(args, out: Path) -> int:
+    """--case-set oval|drivetrain: the bank profile and the drivetrain candidates (gap_sets.py)."""
+    from ddyn.analysis import gap_sets
+
+    if args.rescore:
+        raise DdynError("--rescore applies to the Putnam case set only")
+    if args.gate is not None:
+        D.NO_GAP_GATE = None if args.gate <= 0 else args.gate
+    if args.min_evidence is not None:
+        D.MIN_EVIDENCE = args.min_evidence
+    seed = gap_independent.DEFAULT_SEED if args.seed is None else args.seed
+    doc = gap_sets.run(args.case_set, args.cases or 8, seed, args.jobs, progress=not args.no_progress, hold=args.hold)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
+    (out / "results.md").write_text(doc["markdown"])
+    print(doc["markdown"])
     print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
     return 0
 
@@ -650,6 +672,10 @@ def register(subparsers) -> None:
                    help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
                         "single-track drift model (an independent plant, docs/gap_independent.md)")
     p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
+    p.add_argument("--case-set", choices=("putnam", "oval", "drivetrain"), default="putnam",
+                   help="commonroad: putnam (default: every effect on the road course), oval (the banked oval: bank "
+                        "profile from a flat-road nominal) or drivetrain (throttle map, brake gain, power limit); "
+                        "docs/gap_independent.md")
     p.add_argument("--nominal", choices=("mapped", "identified"), default="mapped",
                    help="commonroad: the nominal model: the plant's parameters mapped onto the model "
                         "(commonroad_vehicle2.json, default) or identified on an effect-free log of the plant")
