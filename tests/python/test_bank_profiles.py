@@ -209,3 +209,19 @@ def test_case_sets_plan_and_score():
     assert sc["summary"]["top1"] == 1.0 and sc["summary"]["false_alarm_rate"] == 1.0
     assert sc["per_group"]["bank_angle"]["within_target"] == 0.5
     assert sc["per_group"]["bank_angle"]["turn_error_deg_max"] == 4.0
+
+
+def test_plant_tyre_wear_and_yaw_rate_bias():
+    """Tyre wear takes grip away as the log goes on (the same commands turn the car less late in the log than
+    without wear); a yaw-rate bias moves the logged omega only."""
+    from ddyn.model.tracks import load_track
+
+    t = load_track("putnam")
+    settings = CP.LogSettings(duration=8.0, noise_scale=0.0)
+    base = CP.make_log(t, CP.PlantEffects(), 2, settings)
+    biased = CP.make_log(t, CP.PlantEffects(yaw_rate_bias=0.02), 2, settings)
+    assert np.allclose(biased.states[:, 5] - base.states[:, 5], 0.02)
+    assert np.array_equal(biased.states[:, [0, 1, 3, 4, 6, 7]], base.states[:, [0, 1, 3, 4, 6, 7]])
+    worn = CP.make_log(t, CP.PlantEffects(tire_wear=0.05), 2, settings)
+    assert np.array_equal(worn.states[:2], base.states[:2])               # t = 0: the same grip
+    assert not np.allclose(worn.states[-50:, 4:6], base.states[-50:, 4:6], atol=1e-3)   # later: less grip

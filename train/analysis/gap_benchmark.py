@@ -180,7 +180,9 @@ def run_case(case: dict, vehicle: Vehicle, nominal_coeffs: np.ndarray, tries: in
     if ds is None:
         return out | {"status": "simulation failed", "error": err}
     t0 = time.perf_counter()
-    diag = D.diagnose(ds, D.nominal_from_vehicle(vehicle, ds, nominal_coeffs))
+    # the eleven candidates its figures (docs/diagnosis.md) were measured with: the drivetrain and profile
+    # candidates added for the independent plant (ddyn.analysis.candidates) are scored there (gap_sets.py)
+    diag = D.diagnose(ds, D.nominal_from_vehicle(vehicle, ds, nominal_coeffs), candidates=E.EFFECT_NAMES)
     seconds = time.perf_counter() - t0
     top1 = diag["selected"][0] if diag["selected"] else NONE
     est = None

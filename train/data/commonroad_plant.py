@@ -30,6 +30,8 @@ How a log is made (the way a car with a drive-by-wire unit is logged):
     log on it, on top of a drawn bank_angle effect; LogSettings.roll_channel logs an EKF-like roll
     (extras "roll": the road's bank minus the body's roll on its springs, ROLL_GRADIENT per g of lateral
     acceleration, plus ROLL_NOISE);
+  - tyre wear scales CommonRoad's friction coefficients p_dx1, p_dy1 by exp(-rate t); a yaw-rate bias is
+    added to the logged omega only (a sensor effect; the driver steers on the true state);
   - drivetrain effects: throttle_map (the pedal reaches the engine as T^gamma, a power law, not the
     project's quadratic candidate; the effect's value is the quadratic's shape that matches it best in least
     squares, equivalent_gamma), brake_gain (the braking force (1 + g) times the nominal), power_limit (the
@@ -75,7 +77,7 @@ ROLLING = 161.0              # N: 1.5 % of the weight, the usual rolling-resista
 NOMINAL_VEHICLE = Path(__file__).resolve().parents[1] / "vehicles" / "plants" / "commonroad_vehicle2.json"
 NOISY = ("x", "y", "yaw", "vx", "vy", "omega")
 PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce", "bank_angle", "grade",
-                 "throttle_map", "brake_gain", "power_limit")
+                 "throttle_map", "brake_gain", "power_limit", "tire_wear", "yaw_rate_bias")
 ROLL_GRADIENT = 0.05         # rad of body roll per g of lateral acceleration (a saloon's springs: ~3 deg/g)
 ROLL_NOISE = 0.003           # rad: an EKF's roll noise
 
@@ -101,6 +103,8 @@ class PlantEffects:
     throttle_map: float = 0.0    # -: shape of the quadratic map closest to the plant's T^gamma (equivalent_gamma)
     brake_gain: float = 0.0      # fraction: braking force (1 + g) times the nominal
     power_limit: float = 0.0     # W: drive power limit replacing CommonRoad's (0: CommonRoad's own)
+    tire_wear: float = 0.0       # 1/s: the tyres' friction (p_dx1, p_dy1) scaled by exp(-rate t), t from the log's start
+    yaw_rate_bias: float = 0.0   # rad/s: the logged omega reads the true one plus this (the dynamics are unchanged)
 
     def active(self) -> dict[str, float]:
         return {k: v for k, v in asdict(self).items() if k in PLANT_EFFECTS and v != 0.0}
@@ -237,6 +241,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     if effects.power_limit:
         # CommonRoad caps the acceleration at a_max v_switch / v above v_switch: the power a_max v_switch m
         p.longitudinal.v_switch = effects.power_limit / (env.m_true * p.longitudinal.a_max)
+    grip = (p.tire.p_dx1, p.tire.p_dy1)     # tyre wear scales the friction coefficients from these
     bank = bank_profile(track, effects.bank_angle) if effects.bank_angle else None
     world = getattr(track, "bank", None)          # the track's own banking (the oval)
     if world is not None:
@@ -317,6 +322,9 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         # ---- plant: n_sub RK4 steps with the held (possibly delayed) commands
         if bank is not None:
             env.bank = road_bank[k]
+        if effects.tire_wear:   # held over the sample, like the bank: wear is slow
+            w = math.exp(-effects.tire_wear * k * Ts)
+            p.tire.p_dx1, p.tire.p_dy1 = grip[0] * w, grip[1] * w
         if grade is not None:
             env.grade = float(track.interpolate(grade, s))
         for j in range(n_sub):
@@ -347,6 +355,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             for k in range(1, n):
                 w[k] = rho * w[k - 1] + math.sqrt(1 - rho * rho) * w[k]
         noisy[:, :6] += w * std
+    noisy[:, 5] += effects.yaw_rate_bias      # a sensor bias: the driver and the dynamics see the true omega
     active = effects.active()
     metadata = {
         "plant": "commonroad vehicle_dynamics_std, parameters_vehicle2, RK4 at 1 kHz, DBW hold",
