@@ -611,8 +611,17 @@ def _run_case_set(args, out: Path) -> int:
     """--case-set oval|drivetrain: the bank profile and the drivetrain candidates (gap_sets.py)."""
     from ddyn.analysis import gap_sets
 
-    if args.rescore:
-        raise DdynError("--rescore applies to the Putnam case set only")
+    if args.rescore:   # score and tabulate the recorded cases again
+        path = out / "results.json"
+        if not path.is_file():
+            raise DdynError(f"--rescore: {path} not found")
+        doc = json.loads(path.read_text())
+        doc.update(gap_sets.score(doc["results"]))
+        doc["markdown"] = gap_sets.markdown({k: doc[k] for k in ("summary", "per_group")}, doc["settings"], doc["seconds"])
+        (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
+        (out / "results.md").write_text(doc["markdown"])
+        print(doc["markdown"])
+        return 0
     if args.gate is not None:
         D.NO_GAP_GATE = None if args.gate <= 0 else args.gate
     if args.min_evidence is not None:

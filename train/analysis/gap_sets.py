@@ -164,6 +164,9 @@ def score(results: list[dict]) -> dict:
                     "top1_or_false_alarm": float(np.mean([r["correct"] if r["effect"] != NONE else bool(r["selected"])
                                                           for r in rows])),
                     "picked": sorted({r["top1"] for r in rows}),
+                    # the drawn effect anywhere among the selected (after CommonRoad's own power limit, say)
+                    "selected_at_all": (float(np.mean([r["effect"] in {C.FAMILY.get(e, e) for e in r["selected"]}
+                                                       for r in rows])) if rows[0]["effect"] != NONE else None),
                     "median_param_error": _median([r["param_error"] for r in found]),
                     "turn_error_deg_max": max((r["turn_error_deg_max"] for r in rows
                                                if r.get("turn_error_deg_max") is not None), default=None),
@@ -197,10 +200,11 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                 f"{_f(s['false_alarm_rate_beyond_own_power_limit'], True)}; power_limit fitted alone on them: median "
                 f"{_f(s['power_limit_alone_on_none_w'])} W (CommonRoad's own limit: {OWN_POWER:.4g} W)."
                 if settings["case_set"] == "drivetrain" else ""), "",
-             "| cases | n | top-1 (effect) / false alarms (none) | picked first | param error (found) | "
-             f"turn bank error max / median (deg) | max within {TURN_TARGET_DEG:g} deg |", "|---|---|---|---|---|---|---|"]
+             "| cases | n | top-1 (effect) / false alarms (none) | selected at all | picked first | param error (found) | "
+             f"turn bank error max / median (deg) | max within {TURN_TARGET_DEG:g} deg |", "|---|---|---|---|---|---|---|---|"]
     for key, p in sc["per_group"].items():
-        lines.append(f"| {key} | {p['cases']} | {_f(p['top1_or_false_alarm'], True)} | {', '.join(p['picked'])} | "
+        lines.append(f"| {key} | {p['cases']} | {_f(p['top1_or_false_alarm'], True)} | {_f(p['selected_at_all'], True)} | "
+                     f"{', '.join(p['picked'])} | "
                      f"{_f(p['median_param_error'], True)} | {_f(p['turn_error_deg_max'])} / "
                      f"{_f(p['turn_error_deg_median'])} | {_f(p['within_target'], True)} |")
     return "\n".join(lines) + "\n"
