@@ -68,7 +68,7 @@ def test_profile_candidate_keys_and_effect_set():
     fx = C.effect_set({keys[0]: 0.1, "steer_delay": 0.02}, lay)
     assert fx.steer_delay == 0.02 and fx.bank.kind == "linear" and fx.bank.at(0.0) == pytest.approx(0.1)
     val, _, prof = C.summary("bank_profile", {k: -0.2 if i == 1 else 0.05 for i, k in enumerate(keys)}, {}, lay)
-    assert val == -0.2 and C.profile_at(prof["profile"], lay.knots[1]) == pytest.approx(-0.2)
+    assert val == -0.2 and C.profile_at(prof, lay.knots[1]) == pytest.approx(-0.2)
 
 
 # ---------------------------------------------------------------------------------------------- the plant

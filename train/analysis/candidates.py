@@ -9,12 +9,8 @@ has both signs. So:
                                 (periodic along the lap when the track is known; otherwise along the distance
                                 the log travelled), sign free; one parameter per knot the fit rows visit
                                 (knots the fit part never reaches stay at zero: nothing could fit them);
-  bank_from_roll                bank = gain x the log's roll channel + roll gradient x the lateral
-                                acceleration vx omega in g, per row: an EKF's roll is the road's bank plus
-                                the body's roll on its springs, which leans out of the turn by a roll gradient
-                                (rad/g); two parameters (keys "bank_from_roll" for the gain, its main value,
-                                and "bank_from_roll@gradient"); tried only when the channel passes
-                                ddyn.data.roll_check (the verdict is reported either way).
+  bank_from_roll                bank = gain x the log's roll channel, per row; tried only when the channel
+                                passes ddyn.data.roll_check (the verdict is reported either way).
 
 Their parameters enter ddyn.analysis.diagnose.fit as scalar keys "NAME@i" (knot i), so the fit, the
 held-out score (dk = the number of keys) and the greedy step treat them like any effect's. The profile
@@ -40,9 +36,8 @@ MAIN_PARAM = {**E.MAIN_PARAM, "bank_profile": "peak", "grade_profile": "peak", "
 UNITS = {**E.UNITS, "bank_profile": "rad", "grade_profile": "rad", "bank_from_roll": "-"}
 UNIT = {"bank_profile": 0.01, "grade_profile": 0.01, "bank_from_roll": 0.1}           # fit scaling
 BOUNDS = {"bank_profile": (-0.6, 0.6), "grade_profile": (-0.3, 0.3), "bank_from_roll": (-2.0, 2.0)}
-GRID = {"bank_from_roll": (2.5, 5, 7.5, 10, 12.5)}   # in units: gains 0.25-1.25 (the roll gradient starts at 0)
+GRID = {"bank_from_roll": (2.5, 5, 7.5, 10, 12.5)}   # in units: gains 0.25-1.25
 
-LATERAL_G = "lateral_acceleration_g"   # vx omega / g from the logged states (bank_from_roll's body roll)
 KNOT_SPACING = 50.0      # m between knots: a bank changes over a turn entry (tens of metres), not faster
 MIN_KNOTS, MAX_KNOTS = 4, 40
 
@@ -106,8 +101,6 @@ def keys(name: str, lay: Layout | None) -> tuple[str, ...]:
     """The fit's scalar parameter keys of a candidate."""
     if name in PROFILE_OF:
         return tuple(f"{name}@{i}" for i in lay.free)
-    if name in ROLL_OF:
-        return (name, f"{name}@gradient")
     return (name,)
 
 
@@ -137,8 +130,7 @@ def effect_set(values: dict, lay: Layout | None) -> E.EffectSet:
         if name in values:
             specs = [sp for sp in specs if sp["effect"] != effect]
             specs.append({"effect": effect, "params": {"profile": "channel", "channel": channel,
-                                                       "amplitude": float(values[name]), "channel2": LATERAL_G,
-                                                       "amplitude2": float(values.get(f"{name}@gradient", 0.0))}})
+                                                       "amplitude": float(values[name])}})
     return E.EffectSet.of(specs)
 
 
@@ -146,15 +138,10 @@ def attach(lm: E.LogModel, lay: Layout | None) -> None:
     """Give the log predictor the rows' track positions (for profiles)."""
     if lay is not None:
         lm.position, lm.track_length = lay.position, lay.length
-        lm.extras[LATERAL_G] = lm.states[:, 3] * lm.states[:, 5] / E.G
 
 
 def summary(name: str, values: dict, std: dict, lay: Layout | None) -> tuple[float, float, dict | None]:
-    """(main value, its std, more to report or None: {"profile": ...} or {"roll_gradient": ...})."""
-    if name in ROLL_OF:
-        g = f"{name}@gradient"
-        return float(values[name]), float(std.get(name, float("nan"))), {
-            "roll_gradient": {"rad_per_g": float(values.get(g, 0.0)), "std": float(std.get(g, float("nan")))}}
+    """(main value, its std, the full profile or None) of a fitted candidate."""
     if name not in PROFILE_OF:
         return float(values[name]), float(std.get(name, float("nan"))), None
     ks = keys(name, lay)
@@ -166,13 +153,13 @@ def summary(name: str, values: dict, std: dict, lay: Layout | None) -> tuple[flo
         j = int(k.split("@")[1])
         angle[j], sd[j] = values.get(k, 0.0), std.get(k, float("nan"))
     peak = float(vals[i]) if len(vals) else 0.0
-    return peak, float(std.get(ks[i], float("nan"))) if ks else float("nan"), {"profile": {
+    return peak, float(std.get(ks[i], float("nan"))) if ks else float("nan"), {
         "knots_m": lay.knots.tolist(), "angle_rad": angle.tolist(), "std_rad": sd.tolist(),
-        "free": list(lay.free), "periodic_length_m": lay.length, "position_from": lay.source}}
+        "free": list(lay.free), "periodic_length_m": lay.length, "position_from": lay.source}
 
 
 def profile_at(profile: dict, s) -> np.ndarray:
-    """A reported profile (summary's third value's "profile") evaluated at positions s."""
+    """A reported profile (summary's third value) evaluated at positions s."""
     knots, angle = np.asarray(profile["knots_m"]), np.asarray(profile["angle_rad"])
     L = profile["periodic_length_m"]
     if L:

@@ -559,7 +559,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         val, sd, prof = C.summary(name, f.values, f.std, prob.layout)
         return {"effect": name, "params": {C.MAIN_PARAM[name]: val}, "uncertainty": {C.MAIN_PARAM[name]: sd},
                 "unit": C.UNITS[name], "at_bound": at_bound(name, val, prob.ctx),
-                **(prof or {})}
+                **({"profile": prof} if prof is not None else {})}
 
     def entry(name: str, f: Fit, ev: dict) -> dict:
         h = ev["heldout"]

@@ -102,9 +102,7 @@ def bank_estimate(entry: dict, ds, rows: np.ndarray, position: np.ndarray) -> np
     if entry["effect"] == "bank_profile":
         return C.profile_at(entry["profile"], position[rows])
     if entry["effect"] == "bank_from_roll":
-        lateral_g = ds.states[rows, 3] * ds.states[rows, 5] / 9.81
-        return (entry["params"]["gain"] * np.asarray(ds.extras["roll"])[rows]
-                + entry["roll_gradient"]["rad_per_g"] * lateral_g)
+        return entry["params"]["gain"] * np.asarray(ds.extras["roll"])[rows]
     return np.full(len(rows), entry["params"]["angle"])
 
 

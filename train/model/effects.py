@@ -27,9 +27,8 @@ wavelength defaults to the track length), "piecewise" (`breaks` [[s0, a0], [s1, 
 angle a_i from s_i to the next break, periodic along the lap), "linear" (the same breaks as
 knots, linearly interpolated between them: periodic along the lap when the track length is
 known, held beyond the first and last knot otherwise; what the diagnosis fits) or "channel"
-(angle = `amplitude` x a logged channel, `channel` (e.g. "roll"), per row, plus optionally
-`amplitude2` x `channel2`: bank from the log's roll channel when that is plausible, less the body's
-roll; the predictor on a log only).
+(angle = `amplitude` x a logged channel, `channel` (e.g. "roll"), per row: bank from the log's
+roll channel when that is plausible; the predictor on a log only).
 
 A spec is {"effect": name, "params": {...}}; parse_effects reads JSON (a list of specs, one
 spec, or {name: value-or-params}) or key=value strings ("steer_delay=0.04",
@@ -84,7 +83,7 @@ MAIN_PARAM = {"steer_delay": "delay", "throttle_delay": "delay", "steer_lag": "t
 UNITS = {"steer_delay": "s", "throttle_delay": "s", "steer_lag": "s", "bank_angle": "rad", "grade": "rad",
          "downforce": "s2/m2", "combined_slip": "-", "tire_relaxation": "m", "tire_wear": "1/s",
          "yaw_rate_bias": "rad/s", "mass_offset": "-", "throttle_map": "-", "brake_gain": "-", "power_limit": "W"}
-PROFILE_PARAMS = ("profile", "amplitude", "wavelength", "phase", "breaks", "channel", "channel2", "amplitude2")
+PROFILE_PARAMS = ("profile", "amplitude", "wavelength", "phase", "breaks", "channel")
 PROFILES = ("constant", "sinusoid", "piecewise", "linear", "channel")
 
 
@@ -111,7 +110,7 @@ def _check(e: Effect) -> Effect:
     if bad:
         raise DdynError(f"effect {e.effect}: unknown parameter(s) {', '.join(bad)}; expected {', '.join(sorted(allowed))}")
     for k, v in e.params.items():
-        if k in ("profile", "breaks", "channel", "channel2"):
+        if k in ("profile", "breaks", "channel"):
             continue
         if not isinstance(v, (int, float)) or not math.isfinite(float(v)):
             raise DdynError(f"effect {e.effect}: parameter {k} must be a finite number, got {v!r}")
@@ -206,8 +205,6 @@ class Profile:
     phase: float = 0.0
     breaks: tuple = ()
     channel: str | None = None
-    channel2: str | None = None
-    amplitude2: float = 0.0
 
     @classmethod
     def of(cls, params: dict) -> "Profile":
@@ -216,7 +213,7 @@ class Profile:
                    None if params.get("wavelength") is None else float(params["wavelength"]),
                    float(params.get("phase", 0.0)),
                    tuple(sorted((float(a), float(b)) for a, b in params.get("breaks", ()))),
-                   params.get("channel"), params.get("channel2"), float(params.get("amplitude2", 0.0)))
+                   params.get("channel"))
 
     def active(self) -> bool:
         return self.angle != 0.0 or (self.kind in ("sinusoid", "channel") and self.amplitude != 0.0) or \
@@ -572,13 +569,9 @@ class LogModel:
             if prof is None:
                 continue
             if prof.kind == "channel":
-                missing = [c for c in (prof.channel, prof.channel2) if c is not None and c not in self.extras]
-                if missing:
-                    raise DdynError(f"{name} from the logged channel {missing[0]!r}: the log has no such channel")
-                value = prof.amplitude * np.asarray(self.extras[prof.channel], float)[rows]
-                if prof.channel2 is not None:
-                    value = value + prof.amplitude2 * np.asarray(self.extras[prof.channel2], float)[rows]
-                setattr(aux, name, value)
+                if prof.channel not in self.extras:
+                    raise DdynError(f"{name} from the logged channel {prof.channel!r}: the log has no such channel")
+                setattr(aux, name, prof.amplitude * np.asarray(self.extras[prof.channel], float)[rows])
             elif prof.needs_position():
                 if self.position is None:
                     raise DdynError(f"a {prof.kind} {name} profile needs the track position of each row")
