@@ -32,26 +32,22 @@ TRANSITION = 60.0      # m
 SPACING = 2.0          # m between centre-line points
 
 
-def _centre(straight: float, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """Centre-line points and each point's section (0 front straight, 1 turns 1-2, 2 back straight, 3 turns 3-4)."""
-    pts, sec = [], []
+def _centre(straight: float, radius: float) -> np.ndarray:
+    """Centre-line points: front straight, turns 1-2, back straight, turns 3-4."""
+    pts = []
     n_s = max(2, int(round(straight / SPACING)))
     n_t = max(8, int(round(math.pi * radius / SPACING)))
     for i in range(n_s):
         pts.append((straight * i / n_s, -radius))
-        sec.append(0)
     for i in range(n_t):
         a = -math.pi / 2 + math.pi * i / n_t
         pts.append((straight + radius * math.cos(a), radius * math.sin(a)))
-        sec.append(1)
     for i in range(n_s):
         pts.append((straight * (1 - i / n_s), radius))
-        sec.append(2)
     for i in range(n_t):
         a = math.pi / 2 + math.pi * i / n_t
         pts.append((radius * math.cos(a), radius * math.sin(a)))
-        sec.append(3)
-    return np.array(pts), np.array(sec)
+    return np.array(pts)
 
 
 def bank_along(s: np.ndarray, straight: float, radius: float, turns: float, front: float, back: float,
@@ -80,7 +76,7 @@ def oval_track(straight: float = STRAIGHT, radius: float = RADIUS, bank_turns_de
                transition: float = TRANSITION, width: float = WIDTH, name: str = "oval") -> Track:
     """The oval with its banking (Track.bank, rad per centre-line point; Track.turns: a mask of the points in
     the turns' constant-bank part, where the issue's 3-degree target is scored)."""
-    centre, sec = _centre(straight, radius)
+    centre = _centre(straight, radius)
     half = np.full(len(centre), 0.5 * width)
     left, right = bounds_from_widths(centre, half, half)
     track = Track(name, centre, left, right, None,
