@@ -23,7 +23,8 @@ STATE = (0.0, 0.0, 0.0, 2.0, 0.05, 1.5, 0.4, 0.15)
 INPUTS = (0.0, 0.0)
 MAGNITUDE = {"steer_delay": 0.03, "throttle_delay": 0.05, "steer_lag": 0.03, "bank_angle": 0.05, "grade": 0.05,
              "downforce": 0.05, "combined_slip": 0.5, "tire_relaxation": 0.01, "tire_wear": 0.01,
-             "yaw_rate_bias": 0.1, "mass_offset": 0.15}
+             "yaw_rate_bias": 0.1, "mass_offset": 0.15, "throttle_map": 0.5, "brake_gain": 0.5,
+             "power_limit": 0.05}
 
 
 def _d(effects=None, aux=None):
@@ -67,9 +68,34 @@ def test_profiles():
 def test_zero_effects_are_the_nominal_derivative():
     nominal = np.array(nominal_derivatives(mathns.NUMPY, STATE, INPUTS, C, P))
     assert np.array_equal(_d(), nominal)
-    zero = {k: 0.0 for k in E.EFFECT_NAMES}
+    zero = {k: 0.0 for k in E.ALL_EFFECTS}
     assert not E.EffectSet.of(zero).active()
     assert np.array_equal(_d(zero), nominal)
+
+
+def test_drivetrain_terms():
+    """Each drivetrain effect changes only vx's derivative, by the drive-term change its docstring states."""
+    Cm1, Cm2 = C[12], C[13]
+    vx = STATE[3]
+    d0 = _d()
+
+    def at(T, spec):
+        s = list(STATE)
+        s[6] = T
+        return (np.array(E.derivatives(mathns.NUMPY, s, INPUTS, C, P, E.EffectSet.of(spec), E.Aux()))
+                - np.array(E.derivatives(mathns.NUMPY, s, INPUTS, C, P, E.EffectSet(), E.Aux())))
+
+    gain = Cm1 - Cm2 * vx
+    assert at(0.4, "throttle_map=0.5")[3] == pytest.approx(gain * 0.5 * 0.4 * 0.6 / P.mass)
+    assert at(1.0, "throttle_map=0.5")[3] == pytest.approx(0.0, abs=1e-12)       # full throttle unchanged
+    assert at(-0.3, "throttle_map=0.5")[3] == pytest.approx(0.0, abs=1e-12)      # braking unchanged
+    assert at(-0.3, "brake_gain=0.5")[3] == pytest.approx(gain * 0.5 * -0.3 / P.mass)
+    assert at(0.3, "brake_gain=0.5")[3] == pytest.approx(0.0, abs=1e-12)
+    cap = 0.5 * gain * 0.6 * vx          # a power that caps the drive force at half its value at T = 0.6
+    assert at(0.6, {"power_limit": cap})[3] == pytest.approx(-0.5 * gain * 0.6 / P.mass)
+    assert at(0.2, {"power_limit": cap})[3] == pytest.approx(0.0, abs=1e-12)     # below the cap
+    assert np.array_equal(np.delete(at(0.6, {"power_limit": cap}), 3), np.zeros(7))
+    assert np.array_equal(_d({"power_limit": 0.0}), d0)
 
 
 def test_gravity_terms():
@@ -155,7 +181,7 @@ def nominal_run(track):
     return simulate(ORCA, track, duration=1.5, seed=5, noise_scale=1.0, progress=False)
 
 
-@pytest.mark.parametrize("name", E.EFFECT_NAMES)
+@pytest.mark.parametrize("name", E.ALL_EFFECTS)
 def test_zero_effect_simulation_is_bit_identical(name, track, nominal_run):
     from ddyn.data.simulate import simulate
 
@@ -165,13 +191,15 @@ def test_zero_effect_simulation_is_bit_identical(name, track, nominal_run):
 
 
 @pytest.mark.parametrize("method", ["euler", "rk4"])
-@pytest.mark.parametrize("name", E.EFFECT_NAMES)
+@pytest.mark.parametrize("name", E.ALL_EFFECTS)
 def test_log_predictor_reproduces_the_simulator(name, method, track):
     """The same memory rules in the simulator's plant and in the predictor on the recorded log."""
     from ddyn.data.simulate import simulate
 
     eff = {name: MAGNITUDE[name]}
-    ds = simulate(ORCA, track, duration=1.5, seed=2, method=method, progress=False, effects=eff)
+    # the first braking of this drive comes at 8.3 s: the brake gain needs a log that reaches it
+    ds = simulate(ORCA, track, duration=9.0 if name == "brake_gain" else 1.5, seed=2, method=method, progress=False,
+                  effects=eff)
     assert json.loads(ds.metadata["effects"]) == [{"effect": name, "params": {E.MAIN_PARAM[name]: MAGNITUDE[name]}}]
     sub = ORCA.rk4_substeps if method == "rk4" else 1
     lm = E.LogModel.of(ds, P, method, sub)

@@ -3,6 +3,7 @@ documented, and every kind of bad input is a DataError naming file, row and colu
 from __future__ import annotations
 
 import io
+import json
 import zipfile
 from contextlib import redirect_stdout
 from pathlib import Path
@@ -380,7 +381,8 @@ def test_racecar_mapping(racecar_file):
     rate = np.diff(expected_throttle) / ds.sample_time
     assert np.array_equal(ds.column("dthrottle"), np.r_[rate, rate[-1]])
     assert np.allclose(ds.extras["wheel_fl_mps"], raw[:, 10] / 3.6, rtol=1e-15)
-    assert "roll" not in ds.extras and "roll" in ds.metadata["dropped_columns"]
+    # roll is kept (rad), with the plausibility check's verdict in the metadata
+    assert np.array_equal(ds.extras["roll"], raw[:, 14]) and "roll_check" in ds.metadata
     assert ds.vehicle == "av21" and ds.sample_time == pytest.approx(RACECAR_TS, rel=1e-6)
 
 
@@ -551,7 +553,10 @@ def test_putnam_import(putnam_csv):
     assert np.all(ds.column("vx") >= 5.0)
     assert len(ds) == int(np.sum(raw[:, 3] >= 5.0))   # the log has no 1-row fast runs
     assert np.all(np.abs(ds.column("throttle")) <= 1)
-    assert "roll" not in ds.extras and "roll" in ds.metadata["dropped_columns"]
+    # the roll column is imported, and the plausibility check rejects it (shared/data/README.md: not trustworthy)
+    verdict = json.loads(ds.metadata["roll_check"])
+    assert len(ds.extras["roll"]) == len(ds) and not verdict["plausible"]
+    assert {"range", "rate"} <= set(verdict["failed"]), verdict
     assert {"ax", "deltadelta", "wheel_fl_mps", "throttle_ped_cmd_pct", "brake_ped_cmd_kpa"} <= set(ds.extras)
     segments = np.unique(ds.segment)
     assert list(segments) == list(range(len(segments)))

@@ -61,6 +61,7 @@ from pathlib import Path
 import numpy as np
 from scipy import optimize, stats
 
+from ddyn.analysis import candidates as C
 from ddyn.data.dataset import Dataset
 from ddyn.errors import DdynError
 from ddyn.model import effects as E
@@ -149,18 +150,24 @@ def nominal_from_checkpoint(path: str | Path, ds: Dataset) -> Nominal:
 
 def _param_unit(name: str, ctx: dict) -> float:
     """Typical magnitude of an effect's main parameter on this log (the fit's scaling unit)."""
+    if C.unit(name) is not None:
+        return C.unit(name)
     dt, v, T = ctx["dt"], ctx["v_ref"], ctx["duration"]
     return {"steer_delay": dt, "throttle_delay": dt, "steer_lag": dt, "bank_angle": 0.01, "grade": 0.01,
             "downforce": 0.1 / v ** 2, "combined_slip": 0.1, "tire_relaxation": v * dt, "tire_wear": 0.1 / T,
-            "yaw_rate_bias": 0.01, "mass_offset": 0.01}[name]
+            "yaw_rate_bias": 0.01, "mass_offset": 0.01, "throttle_map": 0.1, "brake_gain": 0.05,
+            "power_limit": 10.0 * ctx.get("mass", 1000.0)}[name]
 
 
 def _bounds(name: str, ctx: dict) -> tuple[float, float]:
+    if C.bounds(name) is not None:
+        return C.bounds(name)
     dt, vmax, T = ctx["dt"], ctx["v_max"], ctx["duration"]
     return {"steer_delay": (0.0, 12 * dt), "throttle_delay": (0.0, 12 * dt), "steer_lag": (0.0, 12 * dt),
             "bank_angle": (-0.3, 0.3), "grade": (-0.3, 0.3), "downforce": (0.0, 3.0 / vmax ** 2),
             "combined_slip": (0.0, 5.0), "tire_relaxation": (0.0, 12 * dt * vmax), "tire_wear": (0.0, 3.0 / T),
-            "yaw_rate_bias": (-0.5, 0.5), "mass_offset": (-0.5, 1.0)}[name]
+            "yaw_rate_bias": (-0.5, 0.5), "mass_offset": (-0.5, 1.0), "throttle_map": (-1.0, 1.0),
+            "brake_gain": (-0.8, 2.0), "power_limit": (0.0, 1000.0 * ctx.get("mass", 1000.0))}[name]
 
 
 def at_bound(name: str, value: float, ctx: dict) -> bool:
@@ -173,7 +180,10 @@ def at_bound(name: str, value: float, ctx: dict) -> bool:
 
 GRID_UNITS = {"steer_delay": (0.5, 1, 2, 3, 5, 8), "throttle_delay": (0.5, 1, 2, 3, 5, 8),
               "steer_lag": (0.5, 1, 2, 3, 5, 8), "downforce": (0.5, 1, 2, 4), "combined_slip": (1, 3, 6, 12),
-              "tire_relaxation": (0.1, 0.2, 0.3, 0.5, 0.75, 1, 1.5, 2, 3, 5, 8), "tire_wear": (0.5, 1, 2, 4)}
+              "tire_relaxation": (0.1, 0.2, 0.3, 0.5, 0.75, 1, 1.5, 2, 3, 5, 8), "tire_wear": (0.5, 1, 2, 4),
+              # power in 10 W/kg: 20-500 W/kg (a city car to a race car); throttle map and brake gain both ways
+              "power_limit": (2, 4, 6, 8, 10, 14, 20, 30, 50), "throttle_map": (-5, -2, 2, 5),
+              "brake_gain": (-6, -3, 3, 6, 12), **C.GRID}
 
 
 class Problem:
@@ -200,7 +210,8 @@ class Problem:
         self.refit = tuple(refit)
         self.refit_idx = [COEFF_NAMES.index(n) for n in self.refit]
         vx = np.abs(ds.states[k, 3])
-        self.ctx = {"dt": ds.sample_time, "v_ref": max(float(np.mean(vx)), 1e-3),
+        self.layout: C.Layout | None = None    # track positions for profile candidates (set by diagnose)
+        self.ctx = {"dt": ds.sample_time, "v_ref": max(float(np.mean(vx)), 1e-3), "mass": float(p.mass),
                     "v_max": max(float(np.max(vx)), 1e-3), "duration": max(float(ds.time[-1] - ds.time[0]), 1.0)}
         res = self.target[self.rows_fit + 1] - self.predict({}, np.zeros(0), self.rows_fit)
         rms = np.sqrt(np.mean(res ** 2, axis=0))
@@ -220,7 +231,7 @@ class Problem:
         """The effects of a hypothesis, with the command hold's half-sample delays added when hold is on."""
         if self._hold_values:
             values = {**values, **{k: values.get(k, 0.0) + v for k, v in self._hold_values.items()}}
-        return E.EffectSet.from_values(values)
+        return C.effect_set(values, self.layout)
 
     def predict(self, values: dict, rho: np.ndarray, rows: np.ndarray) -> np.ndarray:
         return self.lm.one_step(self.effects(values), rows, self.coeffs(rho))
@@ -519,7 +530,7 @@ def _score(prob: Problem, base: dict, cand: dict, dk: int, m: int) -> dict:
 
 
 def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FRACTION,
-             candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
+             candidates=C.ALL, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
              max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False,
              min_evidence: float | None = None) -> dict:
     """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
@@ -529,6 +540,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     margin = MIN_EVIDENCE if min_evidence is None else float(min_evidence)
     t0 = _time.perf_counter()
     prob = Problem(ds, nominal, fit_fraction, refit, hold=hold)
+    prob.layout = C.layout(ds, track, prob.rows_fit)
+    C.attach(prob.lm, prob.layout)
+    candidates = tuple(c for c in candidates if C.available(c, prob.layout))
     v = nominal.vehicle
     steps = max(1, int(round(v.evaluation_horizon / ds.sample_time)))
     starts = _starts(prob, prob.rows_held, steps, max_starts)
@@ -537,15 +551,19 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     base_fit = fit(prob, ())
     base = heldout_summary(prob, {}, base_fit.rho, starts, steps)
 
-    def evaluate(f: Fit, ref: dict, m: int) -> dict:
+    def evaluate(f: Fit, ref: dict, m: int, dk: int = 1) -> dict:
         h = heldout_summary(prob, f.values, f.rho, starts, steps)
-        return {"heldout": h, **_score(prob, ref, h, 1, m)}
+        return {"heldout": h, **_score(prob, ref, h, dk, m)}
+
+    def described(name: str, f: Fit) -> dict:
+        val, sd, prof = C.summary(name, f.values, f.std, prob.layout)
+        return {"effect": name, "params": {C.MAIN_PARAM[name]: val}, "uncertainty": {C.MAIN_PARAM[name]: sd},
+                "unit": C.UNITS[name], "at_bound": at_bound(name, val, prob.ctx),
+                **({"profile": prof} if prof is not None else {})}
 
     def entry(name: str, f: Fit, ev: dict) -> dict:
         h = ev["heldout"]
-        return {"effect": name, "params": {E.MAIN_PARAM[name]: f.values[name]},
-                "uncertainty": {E.MAIN_PARAM[name]: f.std[name]}, "unit": E.UNITS[name],
-                "at_bound": at_bound(name, f.values[name], prob.ctx),
+        return {**described(name, f),
                 "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, f.rho)},
                 "heldout": {"rmse_before": _chan(before["rmse"]), "rmse_refit_only": _chan(base["rmse"]),
                             "rmse_after": _chan(h["rmse"]), "ade_before": before["ade"], "ade_after": h["ade"],
@@ -558,9 +576,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     first = []
     fits = {}
     for name in candidates:
-        f = fit(prob, (name,), start_rho=base_fit.rho, scan=name if name in GRID_UNITS else None)
+        f = fit(prob, C.keys(name, prob.layout), start_rho=base_fit.rho, scan=name if name in GRID_UNITS else None)
         fits[name] = f
-        first.append(entry(name, f, evaluate(f, base, len(candidates))))
+        first.append(entry(name, f, evaluate(f, base, len(candidates), len(f.names))))
         if progress:
             progress(name)
     first.sort(key=lambda c: c["delta_bic"])
@@ -570,7 +588,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     current, current_h = base_fit, base
     steps_log = []
     while len(selected) < max_effects:
-        pool = [c for c in candidates if c not in selected]
+        pool = [c for c in candidates if C.FAMILY[c] not in {C.FAMILY[n] for n in selected}]
         if not pool:
             break
         trials = []
@@ -578,9 +596,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
             if not selected:
                 f = fits[name]
             else:
-                f = fit(prob, tuple(selected) + (name,), start={**current.values, name: fits[name].values[name]},
+                f = fit(prob, current.names + C.keys(name, prob.layout), start={**current.values, **fits[name].values},
                         start_rho=current.rho)
-            ev = evaluate(f, current_h, len(pool))
+            ev = evaluate(f, current_h, len(pool), len(C.keys(name, prob.layout)))
             trials.append((ev["delta_bic"], name, f, ev))
         trials.sort(key=lambda t: t[0])
         dbic, name, f, ev = trials[0]
@@ -607,9 +625,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     for c in first:
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
-    final = {"effects": [{"effect": n, "params": {E.MAIN_PARAM[n]: current.values[n]},
-                          "uncertainty": {E.MAIN_PARAM[n]: current.std[n]}, "unit": E.UNITS[n],
-                          "at_bound": at_bound(n, current.values[n], prob.ctx)} for n in selected],
+    final = {"effects": [described(n, current) for n in selected],
              "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, current.rho)},
              "heldout": {"rmse_before": _chan(before["rmse"]), "rmse_after": _chan(current_h["rmse"]),
                          "ade_before": before["ade"], "ade_after": current_h["ade"],
@@ -650,7 +666,10 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                    "gap_closed": "share of the held-out normalised one-step MSE above an estimated noise floor removed",
                    "noise_floor": _chan(floor), "channel_scale": _chan(prob.scale)},
         "data": {"source": ds.source, "rows": len(ds), "sample_time": ds.sample_time,
-                 "effects_in_metadata": ds.metadata.get("effects")},
+                 "effects_in_metadata": ds.metadata.get("effects"),
+                 # track positions of the bank/grade profiles; the roll channel's plausibility (bank_from_roll)
+                 "positions_from": prob.layout.source, "profile_knots": len(prob.layout.knots),
+                 "roll_channel": prob.layout.roll},
         "seconds": _time.perf_counter() - t0,
         "_series": series,
     }
@@ -668,6 +687,14 @@ def _fmt(x) -> str:
     return f"{x:.3g}" if 1e-2 <= abs(x) < 1e4 or x == 0 else f"{x:.3e}"
 
 
+def _roll_line(d: dict) -> str:
+    r = d["data"].get("roll_channel")
+    if r is None:
+        return "Roll channel: none logged (bank only from the fitted profiles)."
+    return (f"Roll channel: {'plausible, bank_from_roll tried' if r['plausible'] else 'NOT plausible, not used'} "
+            f"({r['reason']}).")
+
+
 def markdown(d: dict, figures: list[str]) -> str:
     m = d["model"]
     h = m["heldout"]
@@ -676,6 +703,7 @@ def markdown(d: dict, figures: list[str]) -> str:
              f"fit on {d['split']['fit_rows']}, held out {d['split']['heldout_rows']} (from t = "
              f"{d['split']['heldout_from_time']:.1f} s).", "",
              f"**Selected: {', '.join(d['selected']) if d['selected'] else 'none'}** — {d['verdict']}", "",
+             _roll_line(d), "",
              "## How far (held-out)", "",
              "| | vx (m/s) | vy (m/s) | omega (rad/s) | ADE (m) | FDE (m) |", "|---|---|---|---|---|---|",
              "| nominal | " + " | ".join(_fmt(h["rmse_before"][c]) for c in CHANNELS)
@@ -825,6 +853,8 @@ def _track(name: str | None, ds: Dataset):
     if name:  # asked for on the command line: a name or a user's files, errors shown
         return open_track(name)
     name = ds.metadata.get("track")
+    if name == "oval":   # the banked oval (ddyn.model.track_oval): made, not read
+        return open_track(name)
     if name in (None, "", "none") or name not in TRACK_NAMES:
         return None
     try:
@@ -835,10 +865,10 @@ def _track(name: str | None, ds: Dataset):
 
 def _run(args) -> int:
     ds, nominal = load_inputs(args)
-    cands = E.EFFECT_NAMES if not args.candidates else tuple(c.strip() for c in args.candidates.split(","))
-    bad = [c for c in cands if c not in E.EFFECT_NAMES]
+    cands = C.ALL if not args.candidates else tuple(c.strip() for c in args.candidates.split(","))
+    bad = [c for c in cands if c not in C.ALL]
     if bad:
-        raise DdynError(f"unknown candidate effect(s) {', '.join(bad)}; expected {', '.join(E.EFFECT_NAMES)}")
+        raise DdynError(f"unknown candidate effect(s) {', '.join(bad)}; expected {', '.join(C.ALL)}")
     refit = () if args.refit in ("", "none") else tuple(x.strip() for x in args.refit.split(","))
     bad = [c for c in refit if c not in COEFF_NAMES]
     if bad:

@@ -180,7 +180,9 @@ def run_case(case: dict, vehicle: Vehicle, nominal_coeffs: np.ndarray, tries: in
     if ds is None:
         return out | {"status": "simulation failed", "error": err}
     t0 = time.perf_counter()
-    diag = D.diagnose(ds, D.nominal_from_vehicle(vehicle, ds, nominal_coeffs))
+    # the eleven candidates its figures (docs/diagnosis.md) were measured with: the drivetrain and profile
+    # candidates added for the independent plant (ddyn.analysis.candidates) are scored there (gap_sets.py)
+    diag = D.diagnose(ds, D.nominal_from_vehicle(vehicle, ds, nominal_coeffs), candidates=E.EFFECT_NAMES)
     seconds = time.perf_counter() - t0
     top1 = diag["selected"][0] if diag["selected"] else NONE
     est = None
@@ -573,6 +575,8 @@ def real_markdown(summary: dict) -> str:
 def _run_commonroad(args, out: Path) -> int:
     """--plant commonroad: the independent plant (gap_independent.py)."""
     G = gap_independent
+    if getattr(args, "case_set", "putnam") != "putnam":
+        return _run_case_set(args, out)
     if args.rescore:
         path = out / "results.json"
         if not path.is_file():
@@ -599,6 +603,35 @@ def _run_commonroad(args, out: Path) -> int:
     if doc["settings"]["calibration_seed"]:
         print(f"leaving <= {100 * G.TARGET_FALSE_ALARMS:.0f} % false alarms on these effect-free logs: gate ratio "
               f"{G.calibrate(doc['results'])}, or evidence margin {G.calibrate_margin(doc['results'])}")
+    print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
+    return 0
+
+
+def _run_case_set(args, out: Path) -> int:
+    """--case-set oval|drivetrain: the bank profile and the drivetrain candidates (gap_sets.py)."""
+    from ddyn.analysis import gap_sets
+
+    if args.rescore:   # score and tabulate the recorded cases again
+        path = out / "results.json"
+        if not path.is_file():
+            raise DdynError(f"--rescore: {path} not found")
+        doc = json.loads(path.read_text())
+        doc.update(gap_sets.score(doc["results"]))
+        doc["markdown"] = gap_sets.markdown({k: doc[k] for k in ("summary", "per_group")}, doc["settings"], doc["seconds"])
+        (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
+        (out / "results.md").write_text(doc["markdown"])
+        print(doc["markdown"])
+        return 0
+    if args.gate is not None:
+        D.NO_GAP_GATE = None if args.gate <= 0 else args.gate
+    if args.min_evidence is not None:
+        D.MIN_EVIDENCE = args.min_evidence
+    seed = gap_independent.DEFAULT_SEED if args.seed is None else args.seed
+    doc = gap_sets.run(args.case_set, args.cases or 8, seed, args.jobs, progress=not args.no_progress, hold=args.hold)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
+    (out / "results.md").write_text(doc["markdown"])
+    print(doc["markdown"])
     print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
     return 0
 
@@ -650,6 +683,10 @@ def register(subparsers) -> None:
                    help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
                         "single-track drift model (an independent plant, docs/gap_independent.md)")
     p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
+    p.add_argument("--case-set", choices=("putnam", "oval", "drivetrain"), default="putnam",
+                   help="commonroad: putnam (default: every effect on the road course), oval (the banked oval: bank "
+                        "profile from a flat-road nominal) or drivetrain (throttle map, brake gain, power limit); "
+                        "docs/gap_independent.md")
     p.add_argument("--nominal", choices=("mapped", "identified"), default="mapped",
                    help="commonroad: the nominal model: the plant's parameters mapped onto the model "
                         "(commonroad_vehicle2.json, default) or identified on an effect-free log of the plant")

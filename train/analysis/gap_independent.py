@@ -28,6 +28,7 @@ import time
 
 import numpy as np
 
+from ddyn.analysis import candidates as C
 from ddyn.analysis import diagnose as D
 from ddyn.analysis.parallel import run_cases
 from ddyn.data import commonroad_plant as CP
@@ -120,8 +121,10 @@ def run_case(case: dict) -> dict:
     diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), hold=bool(case.get("hold", False)))
     seconds = time.perf_counter() - t0
     g = diag["gate"]
-    top1 = diag["selected"][0] if diag["selected"] else NONE
-    top1_ungated = g["selected_without_gate"][0] if g["selected_without_gate"] else NONE
+    # a bank or grade found as a profile along the track (or from the roll channel) is that effect found
+    top1 = C.FAMILY.get(diag["selected"][0], diag["selected"][0]) if diag["selected"] else NONE
+    top1_ungated = (C.FAMILY.get(g["selected_without_gate"][0], g["selected_without_gate"][0])
+                    if g["selected_without_gate"] else NONE)
     est = perr = None
     if case["effect"] != NONE:
         pick = next(c for c in diag["candidates"] if c["effect"] == case["effect"])
@@ -170,7 +173,7 @@ def with_gate(results: list[dict], threshold: float | None, margin: float = 0.0)
         sel = r["selected_without_gate"]
         weak = bool(sel) and not r["delta_bic_top"] < -margin
         gated = threshold is not None and bool(sel) and r["gate_ratio"] <= threshold
-        top1 = NONE if gated or weak or not sel else sel[0]
+        top1 = NONE if gated or weak or not sel else C.FAMILY.get(sel[0], sel[0])
         out.append(r | {"selected": [] if gated or weak else sel, "top1": top1, "correct": top1 == r["effect"],
                         "gate_threshold": threshold, "min_evidence": margin})
     return out

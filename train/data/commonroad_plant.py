@@ -25,7 +25,17 @@ How a log is made (the way a car with a drive-by-wire unit is logged):
   - downforce raises the tyre loads without adding inertia: CommonRoad is called with a mass
     m (1 + k v^2) (its normal loads scale with it) and the accelerations it returns are
     scaled back by (1 + k v^2), the drive force is passed unchanged;
-  - every logged state (x, y, yaw, vx, vy, omega) gets noise: white, or AR(1)-coloured.
+  - every logged state (x, y, yaw, vx, vy, omega) gets noise: white, or AR(1)-coloured;
+  - a track with its own banking (Track.bank: the oval of ddyn.model.track_oval) banks the road for every
+    log on it, on top of a drawn bank_angle effect; LogSettings.roll_channel logs an EKF-like roll
+    (extras "roll": the road's bank minus the body's roll on its springs, ROLL_GRADIENT per g of lateral
+    acceleration, plus ROLL_NOISE);
+  - tyre wear scales CommonRoad's friction coefficients p_dx1, p_dy1 by exp(-rate t); a yaw-rate bias is
+    added to the logged omega only (a sensor effect; the driver steers on the true state);
+  - drivetrain effects: throttle_map (the pedal reaches the engine as T^gamma, a power law, not the
+    project's quadratic candidate; the effect's value is the quadratic's shape that matches it best in least
+    squares, equivalent_gamma), brake_gain (the braking force (1 + g) times the nominal), power_limit (the
+    drive power in W instead of CommonRoad's own limit, a_max v_switch = 84 m^2/s^3 times the mass: 92 kW).
 
 State mapping (CommonRoad -> canonical): x, y; yaw = psi; vx = v cos(beta), vy = v sin(beta);
 omega = psi_dot. The noise-free values and the actual wheel angle are kept as extras true_*.
@@ -66,7 +76,10 @@ ROLLING = 161.0              # N: 1.5 % of the weight, the usual rolling-resista
 # iterates: C code generation, LCM import's sample-time match, fidelity) and loaded by path like any user's file
 NOMINAL_VEHICLE = Path(__file__).resolve().parents[1] / "vehicles" / "plants" / "commonroad_vehicle2.json"
 NOISY = ("x", "y", "yaw", "vx", "vy", "omega")
-PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce", "bank_angle", "grade")
+PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce", "bank_angle", "grade",
+                 "throttle_map", "brake_gain", "power_limit", "tire_wear", "yaw_rate_bias")
+ROLL_GRADIENT = 0.05         # rad of body roll per g of lateral acceleration (a saloon's springs: ~3 deg/g)
+ROLL_NOISE = 0.003           # rad: an EKF's roll noise
 
 
 def require_commonroad() -> None:
@@ -87,12 +100,35 @@ class PlantEffects:
     bank_angle: float = 0.0      # rad: peak bank; the profile follows the curvature (banked into turns)
     grade: float = 0.0           # rad: peak grade; sinusoid along the lap (GRADE_WAVES per lap)
     grade_phase: float = 0.0     # rad
+    throttle_map: float = 0.0    # -: shape of the quadratic map closest to the plant's T^gamma (equivalent_gamma)
+    brake_gain: float = 0.0      # fraction: braking force (1 + g) times the nominal
+    power_limit: float = 0.0     # W: drive power limit replacing CommonRoad's (0: CommonRoad's own)
+    tire_wear: float = 0.0       # 1/s: the tyres' friction (p_dx1, p_dy1) scaled by exp(-rate t), t from the log's start
+    yaw_rate_bias: float = 0.0   # rad/s: the logged omega reads the true one plus this (the dynamics are unchanged)
 
     def active(self) -> dict[str, float]:
         return {k: v for k, v in asdict(self).items() if k in PLANT_EFFECTS and v != 0.0}
 
 
 GRADE_WAVES = 3
+
+
+def shape_of_gamma(gamma: float) -> float:
+    """The shape c of T + c T (1 - T) (the diagnosis's throttle_map) closest to T^gamma on [0, 1] in least
+    squares: c = int (T^g - T) T (1 - T) dT / int T^2 (1 - T)^2 dT = 30 (1/(g+2) - 1/(g+3) - 1/12)."""
+    return 30.0 * (1.0 / (gamma + 2.0) - 1.0 / (gamma + 3.0) - 1.0 / 12.0)
+
+
+def equivalent_gamma(shape: float) -> float:
+    """The power law T^gamma whose closest quadratic map has this shape (bisection; shape_of_gamma decreases)."""
+    lo, hi = 0.05, 20.0
+    if not shape_of_gamma(hi) <= shape <= shape_of_gamma(lo):
+        raise DdynError(f"throttle_map shape {shape} is outside what a power-law pedal map gives "
+                        f"({shape_of_gamma(hi):.2f} to {shape_of_gamma(lo):.2f})")
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if shape_of_gamma(mid) > shape else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 def bank_profile(track: Track, peak: float) -> np.ndarray:
@@ -130,6 +166,8 @@ class _Env:
     servo_tau: float
     bank: float = 0.0            # rad at the current position (held over a log sample)
     grade: float = 0.0
+    gamma: float = 1.0           # pedal map T^gamma (throttle)
+    brake_gain: float = 0.0
 
 
 def plant_rhs(x: list, steer_target: float, throttle: float, env: _Env) -> list:
@@ -138,7 +176,8 @@ def plant_rhs(x: list, steer_target: float, throttle: float, env: _Env) -> list:
     q = 1.0 + env.downforce * v * v                  # tyre-load factor of downforce
     env.p.m = env.m_true * q
     steer_rate = (steer_target - x[2]) / env.servo_tau
-    accel = env.m_nominal * ACCEL_SCALE * throttle / env.p.m   # the drive force, whatever the mass
+    pedal = throttle ** env.gamma if throttle > 0 else (1.0 + env.brake_gain) * throttle
+    accel = env.m_nominal * ACCEL_SCALE * pedal / env.p.m   # the drive force, whatever the mass
     f = _std_module.vehicle_dynamics_std(list(x), [steer_rate, accel], env.p)
     # undo the downforce mass: forces / (m q) -> forces / m (yaw and wheel dynamics have no mass)
     f[3] *= q
@@ -172,6 +211,7 @@ class LogSettings:
     excitation: float = 1.0
     start_s: float = 0.0
     extra: dict = field(default_factory=dict)
+    roll_channel: bool = False   # log extras "roll" (bank minus body roll, plus noise)
 
 
 def _command_at(history: list, t: float, delay: float, Ts: float) -> float:
@@ -195,8 +235,18 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     m_nom = veh.known.mass
     p.I_z = p.I_z * (1.0 + effects.mass_offset)
     env = _Env(p=p, m_true=m_nom * (1.0 + effects.mass_offset), m_nominal=m_nom, downforce=effects.downforce,
-               servo_tau=max(SERVO_TAU, effects.steer_lag))
+               servo_tau=max(SERVO_TAU, effects.steer_lag),
+               gamma=equivalent_gamma(effects.throttle_map) if effects.throttle_map else 1.0,
+               brake_gain=effects.brake_gain)
+    if effects.power_limit:
+        # CommonRoad caps the acceleration at a_max v_switch / v above v_switch: the power a_max v_switch m
+        p.longitudinal.v_switch = effects.power_limit / (env.m_true * p.longitudinal.a_max)
+    grip = (p.tire.p_dx1, p.tire.p_dy1)     # tyre wear scales the friction coefficients from these
     bank = bank_profile(track, effects.bank_angle) if effects.bank_angle else None
+    world = getattr(track, "bank", None)          # the track's own banking (the oval)
+    if world is not None:
+        world = np.asarray(world, float)
+        bank = world if bank is None else world + bank
     grade = grade_profile(track, effects.grade, effects.grade_phase) if effects.grade else None
 
     ds_settings = driver_settings(veh, settings.target_speed)
@@ -221,6 +271,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     n = int(round(settings.duration / Ts)) + 1
     rows = np.empty((n, 6))
     true_delta = np.empty(n)
+    road_bank = np.zeros(n)
     T_hist: list[float] = []
     D_hist: list[float] = []
     T_cmd, D_cmd = 0.0, delta0
@@ -238,6 +289,8 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         s_arr, lat_arr = track.project(X, Y, s_hint=s_prev, window=window)
         s, lat = float(s_arr), float(lat_arr)
         s_prev = s
+        if bank is not None:
+            road_bank[k] = float(track.interpolate(bank, s))
         wl, wr = track.half_widths(s)
         if max(lat - float(wl), -lat - float(wr)) > 0.5 * track.width:
             raise DdynError(f"the driver lost the CommonRoad car at t = {k * Ts:.2f} s, s = {s:.0f} m "
@@ -268,7 +321,10 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             break
         # ---- plant: n_sub RK4 steps with the held (possibly delayed) commands
         if bank is not None:
-            env.bank = float(track.interpolate(bank, s))
+            env.bank = road_bank[k]
+        if effects.tire_wear:   # held over the sample, like the bank: wear is slow
+            w = math.exp(-effects.tire_wear * k * Ts)
+            p.tire.p_dx1, p.tire.p_dy1 = grip[0] * w, grip[1] * w
         if grade is not None:
             env.grade = float(track.interpolate(grade, s))
         for j in range(n_sub):
@@ -284,6 +340,11 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     inputs[:-1, 1] = np.diff(D) / Ts
     extras = {f"true_{c}": rows[:, i].copy() for i, c in enumerate(NOISY)}
     extras["true_steering"] = true_delta
+    extras["true_bank"] = road_bank
+    if settings.roll_channel:
+        # bank minus body roll (the body leans out of the turn: against the lateral acceleration vx omega)
+        roll_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[4])
+        extras["roll"] = road_bank - ROLL_GRADIENT * rows[:, 3] * rows[:, 5] / G + ROLL_NOISE * roll_rng.standard_normal(n)
     noisy = states.copy()
     if settings.noise_scale > 0:
         std = np.array([settings.noise_scale * veh.sensor_noise_std[c] for c in NOISY])
@@ -294,6 +355,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             for k in range(1, n):
                 w[k] = rho * w[k - 1] + math.sqrt(1 - rho * rho) * w[k]
         noisy[:, :6] += w * std
+    noisy[:, 5] += effects.yaw_rate_bias      # a sensor bias: the driver and the dynamics see the true omega
     active = effects.active()
     metadata = {
         "plant": "commonroad vehicle_dynamics_std, parameters_vehicle2, RK4 at 1 kHz, DBW hold",

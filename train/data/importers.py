@@ -15,12 +15,13 @@ column; nothing else escapes for a bad file.
 """
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
 import numpy as np
 
-from ddyn.data import lcm_import, vehicle_ref
+from ddyn.data import lcm_import, roll_check, vehicle_ref
 from ddyn.data.dataset import COLUMNS, FORMAT_MAGIC, SAMPLE_TIME_RTOL, Dataset, write_canonical
 from ddyn.errors import DataError, DdynError
 from ddyn.model import vehicle as vehicle_mod
@@ -405,9 +406,9 @@ _RACECAR_EXTRAS = {
     "wheel_rr": ("wheel_rr_mps", 1 / 3.6, "m/s"),
     "throttle_ped_cmd": ("throttle_ped_cmd_pct", 1.0, "%"),
     "brake_ped_cmd": ("brake_ped_cmd_kpa", 1.0, "kPa"),
+    # kept, but checked before anything reads the bank from it (ddyn.data.roll_check; the Putnam log's fails)
+    "roll": ("roll", 1.0, "rad"),
 }
-_ROLL_NOTE = ("roll dropped: the RACECAR roll channel is not trustworthy "
-              "(it spans -1.9 to 2.3 rad in the Putnam Park log)")
 _HEADER_FIELD = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*(?:\((.*)\))?$")
 
 
@@ -440,6 +441,9 @@ def read_racecar_csv(path: str | Path, vehicle: str = "av21", min_vx: float = DE
     ds = _racecar_dataset(col, keep, segment, ts, brake_full_scale_kpa)
     ds.vehicle, ds.source = vehicle_name, path.name
     ds.metadata = _racecar_metadata(names, ignored, len(table), len(keep), segment, min_vx, brake_full_scale_kpa)
+    verdict = roll_check.check_dataset(ds)
+    if verdict is not None:
+        ds.metadata["roll_check"] = json.dumps(verdict)
     return _require_finite_result(path, ds, line_of[keep])
 
 
@@ -516,8 +520,6 @@ def _racecar_metadata(names: list[str], ignored: list[str], n_file: int, n_kept:
         "extra_units": " ".join(f"{new}={unit}" for src, (new, _, unit) in _RACECAR_EXTRAS.items()
                                 if src in names),
     }
-    if "roll" in names:
-        meta["dropped_columns"] = _ROLL_NOTE
     if ignored:
         meta["ignored_columns"] = ", ".join(ignored)
     return meta

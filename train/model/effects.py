@@ -13,11 +13,22 @@ Each effect is off by default and has one main parameter (zero means off):
   tire_wear        rate       1/s    tyre peak forces Df, Dr scaled by exp(-rate t), t since the log's start
   yaw_rate_bias    bias       rad/s  the yaw-rate sensor reads omega + bias (the dynamics are unchanged)
   mass_offset      fraction   -      the mass is m (1 + fraction) (Iz, lf, lr unchanged)
+  throttle_map     shape      -      pedal map shape: the drive force sees T + shape T (1 - T) for T in [0, 1]
+                                     (shape > 0: more force at part throttle; full and zero throttle unchanged)
+  brake_gain       fraction   -      the braking force (T < 0) is (1 + fraction) times the nominal's
+  power_limit      power      W      the drive force is capped at power / vx (an engine's power limit; 0: off)
+
+Drivetrain effects (the last three) act on the drive term (Cm1 - Cm2 vx) T of the drivetrain force only;
+rolling resistance and drag are unchanged.
 
 bank_angle and grade may vary along the track (position s): params `profile` "constant"
 (default: `angle`), "sinusoid" (angle + amplitude sin(2 pi s / wavelength + phase);
-wavelength defaults to the track length) or "piecewise" (`breaks` [[s0, a0], [s1, a1], ...]:
-angle a_i from s_i to the next break, periodic along the lap).
+wavelength defaults to the track length), "piecewise" (`breaks` [[s0, a0], [s1, a1], ...]:
+angle a_i from s_i to the next break, periodic along the lap), "linear" (the same breaks as
+knots, linearly interpolated between them: periodic along the lap when the track length is
+known, held beyond the first and last knot otherwise; what the diagnosis fits) or "channel"
+(angle = `amplitude` x a logged channel, `channel` (e.g. "roll"), per row: bank from the log's
+roll channel when that is plausible; the predictor on a log only).
 
 A spec is {"effect": name, "params": {...}}; parse_effects reads JSON (a list of specs, one
 spec, or {name: value-or-params}) or key=value strings ("steer_delay=0.04",
@@ -62,14 +73,18 @@ G = 9.81
 ELLIPSE_FLOOR = 0.1          # the friction ellipse never takes away more than 90 % of Fry
 EFFECT_NAMES = ("steer_delay", "throttle_delay", "steer_lag", "bank_angle", "grade", "downforce",
                 "combined_slip", "tire_relaxation", "tire_wear", "yaw_rate_bias", "mass_offset")
+# drivetrain effects for vx gaps (issue 14); kept out of EFFECT_NAMES, the own-model benchmark's effect set
+DRIVETRAIN = ("throttle_map", "brake_gain", "power_limit")
+ALL_EFFECTS = EFFECT_NAMES + DRIVETRAIN
 MAIN_PARAM = {"steer_delay": "delay", "throttle_delay": "delay", "steer_lag": "tau", "bank_angle": "angle",
               "grade": "angle", "downforce": "k", "combined_slip": "coupling", "tire_relaxation": "length",
-              "tire_wear": "rate", "yaw_rate_bias": "bias", "mass_offset": "fraction"}
+              "tire_wear": "rate", "yaw_rate_bias": "bias", "mass_offset": "fraction",
+              "throttle_map": "shape", "brake_gain": "fraction", "power_limit": "power"}
 UNITS = {"steer_delay": "s", "throttle_delay": "s", "steer_lag": "s", "bank_angle": "rad", "grade": "rad",
          "downforce": "s2/m2", "combined_slip": "-", "tire_relaxation": "m", "tire_wear": "1/s",
-         "yaw_rate_bias": "rad/s", "mass_offset": "-"}
-PROFILE_PARAMS = ("profile", "amplitude", "wavelength", "phase", "breaks")
-PROFILES = ("constant", "sinusoid", "piecewise")
+         "yaw_rate_bias": "rad/s", "mass_offset": "-", "throttle_map": "-", "brake_gain": "-", "power_limit": "W"}
+PROFILE_PARAMS = ("profile", "amplitude", "wavelength", "phase", "breaks", "channel")
+PROFILES = ("constant", "sinusoid", "piecewise", "linear", "channel")
 
 
 # ----------------------------------------------------------------------------------------------- specs
@@ -89,28 +104,32 @@ class Effect:
 
 def _check(e: Effect) -> Effect:
     if e.effect not in MAIN_PARAM:
-        raise DdynError(f"unknown effect {e.effect!r}; expected one of {', '.join(EFFECT_NAMES)}")
+        raise DdynError(f"unknown effect {e.effect!r}; expected one of {', '.join(ALL_EFFECTS)}")
     allowed = {MAIN_PARAM[e.effect]} | (set(PROFILE_PARAMS) if e.effect in ("bank_angle", "grade") else set())
     bad = sorted(set(e.params) - allowed)
     if bad:
         raise DdynError(f"effect {e.effect}: unknown parameter(s) {', '.join(bad)}; expected {', '.join(sorted(allowed))}")
     for k, v in e.params.items():
-        if k in ("profile", "breaks"):
+        if k in ("profile", "breaks", "channel"):
             continue
         if not isinstance(v, (int, float)) or not math.isfinite(float(v)):
             raise DdynError(f"effect {e.effect}: parameter {k} must be a finite number, got {v!r}")
     if e.params.get("profile", "constant") not in PROFILES:
         raise DdynError(f"effect {e.effect}: profile must be one of {', '.join(PROFILES)}")
-    if e.params.get("profile") == "piecewise":
+    if e.params.get("profile") in ("piecewise", "linear"):
         br = e.params.get("breaks")
         try:
             ok = len(br) >= 1 and all(len(b) == 2 and all(math.isfinite(float(x)) for x in b) for b in br)
         except TypeError:
             ok = False
         if not ok:
-            raise DdynError(f"effect {e.effect}: a piecewise profile needs breaks [[s0, angle0], [s1, angle1], ...]")
-    if e.effect in ("steer_delay", "throttle_delay", "steer_lag", "tire_relaxation") and e.value < 0:
+            raise DdynError(f"effect {e.effect}: a piecewise or linear profile needs breaks [[s0, angle0], [s1, angle1], ...]")
+    if e.params.get("profile") == "channel" and not isinstance(e.params.get("channel"), str):
+        raise DdynError(f"effect {e.effect}: a channel profile needs the logged channel's name (channel=roll)")
+    if e.effect in ("steer_delay", "throttle_delay", "steer_lag", "tire_relaxation", "power_limit") and e.value < 0:
         raise DdynError(f"effect {e.effect}: {MAIN_PARAM[e.effect]} must be non-negative, got {e.value}")
+    if e.effect == "brake_gain" and not e.value > -1:
+        raise DdynError(f"effect brake_gain: fraction must exceed -1, got {e.value}")
     if e.effect == "mass_offset" and not e.value > -1:
         raise DdynError(f"effect mass_offset: fraction must exceed -1, got {e.value}")
     return e
@@ -161,7 +180,7 @@ def parse_effects(spec) -> list[Effect]:
         key, val = token.split("=", 1)
         name, _, param = key.partition(".")
         if name not in MAIN_PARAM:
-            raise DdynError(f"unknown effect {name!r}; expected one of {', '.join(EFFECT_NAMES)}")
+            raise DdynError(f"unknown effect {name!r}; expected one of {', '.join(ALL_EFFECTS)}")
         slot = params.setdefault(name, {})
         if (param or MAIN_PARAM[name]) in slot:
             raise DdynError(f"--effects: {key} given twice")
@@ -185,6 +204,7 @@ class Profile:
     wavelength: float | None = None
     phase: float = 0.0
     breaks: tuple = ()
+    channel: str | None = None
 
     @classmethod
     def of(cls, params: dict) -> "Profile":
@@ -192,18 +212,21 @@ class Profile:
                    float(params.get("amplitude", 0.0)),
                    None if params.get("wavelength") is None else float(params["wavelength"]),
                    float(params.get("phase", 0.0)),
-                   tuple(sorted((float(a), float(b)) for a, b in params.get("breaks", ()))))
+                   tuple(sorted((float(a), float(b)) for a, b in params.get("breaks", ()))),
+                   params.get("channel"))
 
     def active(self) -> bool:
-        return self.angle != 0.0 or (self.kind == "sinusoid" and self.amplitude != 0.0) or \
-            (self.kind == "piecewise" and any(b != 0.0 for _, b in self.breaks))
+        return self.angle != 0.0 or (self.kind in ("sinusoid", "channel") and self.amplitude != 0.0) or \
+            (self.kind in ("piecewise", "linear") and any(b != 0.0 for _, b in self.breaks))
 
     def needs_position(self) -> bool:
-        return self.kind != "constant"
+        return self.kind not in ("constant", "channel")
 
     def at(self, s, track_length: float | None = None):
         if self.kind == "constant":
             return self.angle
+        if self.kind == "channel":
+            raise DdynError(f"a bank/grade profile from the logged channel {self.channel!r} exists on a log only")
         if s is None:
             raise DdynError(f"a {self.kind} bank/grade profile needs the track position s")
         s = np.asarray(s, dtype=float)
@@ -214,6 +237,10 @@ class Profile:
             return self.angle + self.amplitude * np.sin(2.0 * np.pi * s / lam + self.phase)
         starts = np.array([b[0] for b in self.breaks])
         angles = np.array([b[1] for b in self.breaks])
+        if self.kind == "linear":
+            if track_length:
+                return np.interp(np.mod(s, track_length), starts, angles, period=track_length)
+            return np.interp(s, starts, angles)
         if track_length:
             s = np.mod(s, track_length)
         i = np.searchsorted(starts, s, side="right") - 1   # before the first break: the last one (periodic)
@@ -237,13 +264,17 @@ class EffectSet:
     wear: float = 0.0
     yaw_bias: float = 0.0
     mass_offset: float = 0.0
+    throttle_map: float = 0.0
+    brake_gain: float = 0.0
+    power_limit: float = 0.0
 
     @classmethod
     def of(cls, effects) -> "EffectSet":
         kw: dict[str, Any] = {}
         field_of = {"steer_delay": "steer_delay", "throttle_delay": "throttle_delay", "steer_lag": "steer_lag",
                     "downforce": "downforce", "combined_slip": "combined_slip", "tire_relaxation": "relaxation",
-                    "tire_wear": "wear", "yaw_rate_bias": "yaw_bias", "mass_offset": "mass_offset"}
+                    "tire_wear": "wear", "yaw_rate_bias": "yaw_bias", "mass_offset": "mass_offset",
+                    "throttle_map": "throttle_map", "brake_gain": "brake_gain", "power_limit": "power_limit"}
         for e in parse_effects(effects) if not isinstance(effects, EffectSet) else []:
             if e.effect in ("bank_angle", "grade"):
                 prof = Profile.of(e.params)
@@ -259,7 +290,8 @@ class EffectSet:
 
     def active(self) -> bool:
         return any((self.steer_delay, self.throttle_delay, self.steer_lag, self.bank, self.grade, self.downforce,
-                    self.combined_slip, self.relaxation, self.wear, self.yaw_bias, self.mass_offset))
+                    self.combined_slip, self.relaxation, self.wear, self.yaw_bias, self.mass_offset,
+                    self.throttle_map, self.brake_gain, self.power_limit))
 
     def shapes_inputs(self) -> bool:
         return bool(self.steer_delay or self.throttle_delay or self.steer_lag)
@@ -293,17 +325,34 @@ def derivatives(ns: mathns.MathNamespace, state: Sequence, inputs: Sequence, coe
     if aux.slip_offset is not None:
         c[4], c[10] = c[4] + aux.slip_offset[0], c[10] + aux.slip_offset[1]
     f = model.forces(ns, state, c, p)
+    Frx = f.Frx
+    if fx.throttle_map or fx.brake_gain or fx.power_limit:
+        Frx = Frx + _drive_change(ns, state[6], vx, c[12], c[13], fx, p)
     Fry = f.Fry
     if fx.combined_slip:
-        x = fx.combined_slip * f.Frx / c[8]
+        x = fx.combined_slip * Frx / c[8]
         Fry = Fry * ns.sqrt(ns.fmax(1.0 - x * x, ELLIPSE_FLOOR ** 2))
     q = p._replace(mass=p.mass * (1.0 + fx.mass_offset)) if fx.mass_offset else p
-    d = list(model.rigid_body(ns, state, inputs, f.Ffy, Fry, f.Frx, c[16], q))
+    d = list(model.rigid_body(ns, state, inputs, f.Ffy, Fry, Frx, c[16], q))
     if aux.grade is not None:
         d[3] = d[3] - G * ns.sin(aux.grade)
     if aux.bank is not None:
         d[4] = d[4] + G * ns.sin(aux.bank)
     return tuple(d)
+
+
+def _drive_change(ns: mathns.MathNamespace, T, vx, Cm1, Cm2, fx: EffectSet, p: KnownParams):
+    """Change of the drive term (Cm1 - Cm2 vx) T under the drivetrain effects (written with fmax only, so that
+    numpy, torch and CasADi all take it)."""
+    gain = Cm1 - Cm2 * vx
+    Tp = ns.fmax(T, 0.0)                 # throttle part
+    Tb = T - Tp                          # brake part (<= 0)
+    Teff = Tp * (1.0 + fx.throttle_map * (1.0 + ns.fmax(-Tp, -1.0))) + (1.0 + fx.brake_gain) * Tb   # T (1 - min(T, 1))
+    drive = gain * Teff
+    if fx.power_limit:
+        cap = fx.power_limit / ns.fmax(vx, p.v_min)
+        drive = drive - ns.fmax(drive - cap, 0.0)
+    return drive - gain * T
 
 
 @dataclass
@@ -452,8 +501,13 @@ class LogModel:
     """
 
     def __init__(self, time, segment, states, inputs, p: KnownParams, dt: float, method: str = "euler",
-                 substeps: int = 1):
+                 substeps: int = 1, extras: dict | None = None):
         self.time, self.segment = np.asarray(time, float), np.asarray(segment)
+        # track position per row (bank/grade profiles along the track) and the lap length (None: not periodic);
+        # set by the caller that knows the track (ddyn.analysis.diagnose)
+        self.position: np.ndarray | None = None
+        self.track_length: float | None = None
+        self.extras = dict(extras or {})   # logged channels a "channel" profile reads (roll)
         self.states, self.inputs = np.asarray(states, float), np.asarray(inputs, float)
         self.p, self.dt, self.method, self.substeps = p, dt, method, substeps
         n = len(self.time)
@@ -466,7 +520,7 @@ class LogModel:
 
     @classmethod
     def of(cls, ds, p: KnownParams, method: str = "euler", substeps: int = 1) -> "LogModel":
-        return cls(ds.time, ds.segment, ds.states, ds.inputs, p, ds.sample_time, method, substeps)
+        return cls(ds.time, ds.segment, ds.states, ds.inputs, p, ds.sample_time, method, substeps, ds.extras)
 
     def channels(self, fx: EffectSet) -> Channels | None:
         if not fx.shapes_inputs():
@@ -512,9 +566,17 @@ class LogModel:
     def _aux(self, fx: EffectSet, rows, offset=None) -> Aux:
         aux = Aux(time=self.t_log[rows] if fx.wear else None, slip_offset=offset)
         for name, prof in (("bank", fx.bank), ("grade", fx.grade)):
-            if prof is not None:
-                if prof.needs_position():
-                    raise DdynError(f"the log predictor takes a constant {name} only, not a {prof.kind} profile")
+            if prof is None:
+                continue
+            if prof.kind == "channel":
+                if prof.channel not in self.extras:
+                    raise DdynError(f"{name} from the logged channel {prof.channel!r}: the log has no such channel")
+                setattr(aux, name, prof.amplitude * np.asarray(self.extras[prof.channel], float)[rows])
+            elif prof.needs_position():
+                if self.position is None:
+                    raise DdynError(f"a {prof.kind} {name} profile needs the track position of each row")
+                setattr(aux, name, prof.at(self.position[rows], self.track_length))
+            else:
                 setattr(aux, name, prof.angle)
         return aux
 

@@ -4,6 +4,7 @@
 
     ethz | ethzMobil | putnam        the shared data's tracks (ddyn.model.tracks.load_track)
     random:SEED                      a seeded random 1:43 track (ddyn.model.track_random)
+    oval                             the banked oval of ddyn.model.track_oval (full scale, banking in Track.bank)
     path/prefix                      prefix_center.txt, prefix_inner.txt, prefix_outer.txt in the shared
                                      data's format (two comma-separated rows, x then y, metres)
     path/dir/                        a directory holding exactly one such triple
@@ -40,6 +41,10 @@ def open_track(spec: str, vehicle_name: str | None = None) -> Track:
     spec = str(spec)
     if is_named(spec):
         return load_track(spec)
+    if spec == "oval":   # the banked oval of ddyn.model.track_oval (its banking comes with it)
+        from ddyn.model.track_oval import oval_track
+
+        return oval_track()
     if spec.startswith("random:"):
         from ddyn.model.track_random import random_track
 

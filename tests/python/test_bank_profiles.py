@@ -1,0 +1,227 @@
+"""Bank and grade as profiles along the track, the roll channel's plausibility check, the banked oval on the
+independent plant, and the drivetrain effects (issue 14)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ddyn.analysis import candidates as C
+from ddyn.data import roll_check
+from ddyn.model import effects as E
+from ddyn.model.track_oval import bank_at, oval_track
+
+
+# ---------------------------------------------------------------------------------------------- no plant
+
+def test_oval_banking():
+    t = oval_track()
+    deg = np.degrees(bank_at(t, t.s))
+    assert deg[t.turns] == pytest.approx(20.0)                     # the issue's oval: 20 deg in the turns
+    assert np.degrees(bank_at(t, 150.0)) == pytest.approx(9.0)     # 9 on the front straight (s = 0-300 m)
+    assert np.degrees(bank_at(t, 300 + 100 * math.pi + 150)) == pytest.approx(5.0)
+    into = (t.s > 40) & (t.s < 340)                                # the front straight into turn 1
+    assert np.all(np.diff(deg[into]) >= -1e-9) and np.max(np.abs(np.diff(deg))) < 1.0   # ramps, never jumps
+    assert t.curvature[t.turns].min() > 0                          # counter-clockwise: the turns go left,
+    assert 0.4 < t.turns.mean() < 0.5                              # banked to the left (into them)
+
+
+def test_linear_profile_is_periodic_and_interpolates():
+    p = E.Profile.of({"profile": "linear", "breaks": [[0, 0.0], [10, 0.2], [20, 0.1]]})
+    assert p.at(np.array([5.0, 15.0, 25.0, 35.0]), 30.0) == pytest.approx([0.1, 0.15, 0.05, 0.1])
+    assert p.at(np.array([-5.0, 40.0])) == pytest.approx([0.0, 0.1])          # no lap: held at the ends
+    with pytest.raises(Exception, match="breaks"):
+        E.parse_effects({"effect": "bank_angle", "params": {"profile": "linear"}})
+
+
+def _roll(n=3000, ts=0.04, bank=0.3, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * ts
+    ay = 6.0 * np.clip(np.sin(2 * np.pi * t / 50.0) * 3, -1, 1)   # turns and straights
+    return t, bank * ay / 6.0 - 0.05 * ay / 9.81 + 0.003 * rng.standard_normal(n), ay
+
+
+def test_roll_check_accepts_a_road_and_names_each_failure():
+    t, roll, ay = _roll()
+    assert roll_check.check(roll, t, ay)["plausible"]
+    assert roll_check.check(roll * 0, t, ay)["plausible"]          # a flat road: roll ~ 0 is fine
+    wrapped = roll + np.where(np.sin(t) > 0.9, 2.0, 0.0)           # jumps of 2 rad
+    assert set(roll_check.check(wrapped, t, ay)["failed"]) >= {"range", "rate"}
+    drifting = roll + 0.4 * t / t[-1]
+    assert roll_check.check(drifting, t, ay)["failed"] == ["drift"]
+    unrelated = 0.2 * np.sin(2 * np.pi * t / 7.3)                  # smooth, in range, but not the car's roll
+    assert roll_check.check(unrelated, t, ay)["failed"] == ["lateral"]
+
+
+def test_profile_candidate_keys_and_effect_set():
+    class DS:   # a log driving 0-400 m in a straight line, nothing logged beyond the states
+        states = np.column_stack([np.linspace(0, 400, 401), np.zeros(401)] + [np.zeros(401)] * 6)
+        segment = np.zeros(401, int)
+        extras: dict = {}
+
+    lay = C.layout(DS, None, np.arange(200))                  # fit rows: the first 200 m
+    assert lay.length is None and lay.knots[0] == 0 and lay.knots[-1] == pytest.approx(400)
+    keys = C.keys("bank_profile", lay)
+    assert 0 < len(keys) < len(lay.knots)                     # knots beyond the fit part are not fitted
+    assert not C.available("bank_from_roll", lay)             # no roll channel
+    fx = C.effect_set({keys[0]: 0.1, "steer_delay": 0.02}, lay)
+    assert fx.steer_delay == 0.02 and fx.bank.kind == "linear" and fx.bank.at(0.0) == pytest.approx(0.1)
+    val, _, prof = C.summary("bank_profile", {k: -0.2 if i == 1 else 0.05 for i, k in enumerate(keys)}, {}, lay)
+    assert val == -0.2 and C.profile_at(prof, lay.knots[1]) == pytest.approx(-0.2)
+
+
+# ---------------------------------------------------------------------------------------------- the plant
+
+vehiclemodels = pytest.importorskip("vehiclemodels", reason="COMMONROAD MISSING: pip install "
+                                    "commonroad-vehicle-models (requirements.in); CI installs it")
+
+from ddyn.analysis import diagnose as D  # noqa: E402
+from ddyn.data import commonroad_plant as CP  # noqa: E402
+from ddyn.model.vehicle import load as load_vehicle  # noqa: E402
+
+NOMINAL = load_vehicle(CP.NOMINAL_VEHICLE)
+# a 703 m lap at 18 m/s: 70 s cover 1.8 laps, the fit part (60 %) the whole lap
+SMALL_OVAL = dict(straight=100.0, radius=80.0, transition=40.0)
+
+
+@pytest.fixture(scope="module")
+def oval_logs():
+    t = oval_track(**SMALL_OVAL)
+    ds = CP.make_log(t, CP.PlantEffects(), 3, CP.LogSettings(duration=70.0, target_speed=18.0, roll_channel=True))
+    return t, ds
+
+
+def _oval_log(oval_logs, roll_channel: bool):
+    t, ds = oval_logs
+    extras = dict(ds.extras)
+    if not roll_channel:
+        extras.pop("roll")
+    from dataclasses import replace
+
+    return t, replace(ds, extras=extras)
+
+
+@pytest.mark.parametrize("roll_channel", [False, True])
+def test_flat_nominal_gets_bank_first_on_the_banked_oval(roll_channel, oval_logs):
+    """The issue's target on the independent plant: a model from a flat track gets bank first, with the bank in
+    the turns within 3 degrees of the true one (from the fitted profile, or from the plausible roll channel)."""
+    from ddyn.analysis.gap_sets import bank_estimate
+
+    t, ds = _oval_log(oval_logs, roll_channel)
+    assert np.degrees(ds.extras["true_bank"].max()) == pytest.approx(20.0)
+    cands = ("bank_angle", "bank_profile", "bank_from_roll", "mass_offset", "steer_delay", "power_limit")
+    d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), candidates=cands, track=t, max_effects=1, hold=True)
+    assert d["selected"] == ["bank_from_roll" if roll_channel else "bank_profile"], d["verdict"]
+    assert (d["data"]["roll_channel"] is not None) == roll_channel
+    true = ds.extras["true_bank"]
+    rows = np.flatnonzero(np.abs(true - math.radians(20.0)) < 1e-9)
+    assert len(rows) > 300
+    pos, _ = t.project(ds.states[:, 0], ds.states[:, 1])
+    err = np.degrees(np.abs(bank_estimate(d["model"]["effects"][0], ds, rows, pos) - true[rows]))
+    assert err.max() < 3.0, err.max()
+    # a constant bank is a worse explanation than the profile (it cannot be 20 deg in the turns and 9 on the
+    # straight)
+    by = {c["effect"]: c["delta_bic"] for c in d["candidates"]}
+    assert by["bank_angle"] > by[d["selected"][0]]
+
+
+def test_an_implausible_roll_channel_is_reported_and_not_used(oval_logs):
+    from dataclasses import replace
+
+    t, ds = oval_logs
+    rng = np.random.default_rng(1)
+    ds = replace(ds, extras={**ds.extras, "roll": np.cumsum(rng.standard_normal(len(ds))) * 0.05})   # drifts, jumps
+    d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), candidates=("bank_from_roll", "bank_angle"), track=t,
+                   max_effects=1, hold=True)
+    assert not d["data"]["roll_channel"]["plausible"]
+    assert "bank_from_roll" not in {c["effect"] for c in d["candidates"]}
+    assert "NOT plausible" in D.markdown(d, [])
+
+
+def _drive(effects=CP.PlantEffects(), throttle=0.0, v0=25.0, seconds=0.5):
+    """Open loop, straight ahead: the plant's speed after `seconds` (as test_commonroad_plant's drive)."""
+    p = CP.commonroad_parameters()
+    if effects.power_limit:
+        p.longitudinal.v_switch = effects.power_limit / (NOMINAL.known.mass * p.longitudinal.a_max)
+    env = CP._Env(p=p, m_true=NOMINAL.known.mass, m_nominal=NOMINAL.known.mass, downforce=0.0,
+                  servo_tau=CP.SERVO_TAU, brake_gain=effects.brake_gain,
+                  gamma=CP.equivalent_gamma(effects.throttle_map) if effects.throttle_map else 1.0)
+    x = CP.init_std([0.0, 0.0, 0.0, v0, 0.0, 0.0, 0.0], p)
+    for _ in range(int(seconds * CP.PLANT_RATE)):
+        x = CP.rk4_step(x, 1.0 / CP.PLANT_RATE, 0.0, throttle, env)
+    return x[3]
+
+
+def test_plant_drivetrain_effects_act_physically():
+    coast = _drive()
+    gain = lambda fx, T: _drive(fx, T) - coast   # noqa: E731  speed gained by the pedal alone
+    # brake gain: 40 % more braking force
+    assert gain(CP.PlantEffects(brake_gain=0.4), -0.5) / gain(CP.PlantEffects(), -0.5) == pytest.approx(1.4, rel=0.03)
+    # throttle map: a power law whose best quadratic has shape 0.5 gives more at part throttle, the same at full
+    g = CP.equivalent_gamma(0.5)
+    assert CP.shape_of_gamma(g) == pytest.approx(0.5) and g < 1
+    assert gain(CP.PlantEffects(throttle_map=0.5), 0.3) / gain(CP.PlantEffects(), 0.3) == pytest.approx(
+        0.3 ** g / 0.3, rel=0.03)
+    # power limit: at 25 m/s a full pedal (6 m/s^2) is capped at P / (m v): 40 kW gives 1.46 m/s^2; without the
+    # effect CommonRoad's own limit caps it at a_max v_switch / v = 3.4 m/s^2
+    a40 = gain(CP.PlantEffects(power_limit=40e3), 1.0) / 0.5
+    assert a40 == pytest.approx(40e3 / (NOMINAL.known.mass * 25.0), rel=0.08)
+    assert gain(CP.PlantEffects(), 1.0) / 0.5 == pytest.approx(
+        11.5 * 7.319 / 25.0, rel=0.08)                              # CommonRoad's a_max v_switch / v
+
+
+def test_power_limit_candidate_finds_commonroads_own_limit():
+    """The drivetrain candidate on an effect-free plant log: the vx gap is CommonRoad's own power limit
+    (a_max v_switch m = 92 kW), which the mapped nominal cannot carry; fitted alone it comes out near it."""
+    from ddyn.analysis.gap_sets import OWN_POWER
+    from ddyn.model.tracks import load_track
+
+    t = load_track("putnam")
+    ds = CP.make_log(t, CP.PlantEffects(), 7, CP.LogSettings(duration=60.0, target_speed=24.0, start_s=0.3 * t.length))
+    d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), candidates=("power_limit", "throttle_map", "brake_gain"),
+                   max_effects=1, hold=True)
+    best = d["candidates"][0]
+    assert best["effect"] == "power_limit" and best["delta_bic"] < 0
+    assert best["params"]["power"] == pytest.approx(OWN_POWER, rel=0.1)
+    assert OWN_POWER == pytest.approx(11.5 * 7.319 * NOMINAL.known.mass)
+
+
+def test_case_sets_plan_and_score():
+    from ddyn.analysis import gap_sets as S
+
+    oval = S.plan("oval", 8, 11)
+    assert [(c["effect"], c["roll_channel"]) for c in oval[:4]] == list(S.OVAL_SLOTS)
+    assert all(15 <= c["oval_bank_deg"]["turns"] <= 24 for c in oval if c["effect"] != "none")
+    assert all(c["oval_bank_deg"]["turns"] == 0 for c in oval if c["effect"] == "none")
+    assert S.plan("oval", 8, 11) == oval and S.plan("oval", 8, 4242) != oval
+    drive = S.plan("drivetrain", 8, 11)
+    assert {c["effect"] for c in drive} == set(S.DRIVETRAIN_RANGES) | {"none"}
+    rows = [{"status": "ok", "effect": "bank_angle", "roll_channel": False, "correct": True, "top1": "bank_profile",
+             "selected": ["bank_profile"], "param_error": None, "turn_error_deg_max": 2.0, "turn_error_deg_median": 1.0,
+             "diagnose_seconds": 1.0},
+            {"status": "ok", "effect": "bank_angle", "roll_channel": False, "correct": True, "top1": "bank_profile",
+             "selected": ["bank_profile"], "param_error": None, "turn_error_deg_max": 4.0, "turn_error_deg_median": 2.0,
+             "diagnose_seconds": 1.0},
+            {"status": "ok", "effect": "none", "roll_channel": False, "correct": False, "top1": "steer_delay",
+             "selected": ["steer_delay"], "param_error": None, "diagnose_seconds": 1.0}]
+    sc = S.score(rows)
+    assert sc["summary"]["top1"] == 1.0 and sc["summary"]["false_alarm_rate"] == 1.0
+    assert sc["per_group"]["bank_angle"]["within_target"] == 0.5
+    assert sc["per_group"]["bank_angle"]["turn_error_deg_max"] == 4.0
+
+
+def test_plant_tyre_wear_and_yaw_rate_bias():
+    """Tyre wear takes grip away as the log goes on (the same commands turn the car less late in the log than
+    without wear); a yaw-rate bias moves the logged omega only."""
+    from ddyn.model.tracks import load_track
+
+    t = load_track("putnam")
+    settings = CP.LogSettings(duration=8.0, noise_scale=0.0)
+    base = CP.make_log(t, CP.PlantEffects(), 2, settings)
+    biased = CP.make_log(t, CP.PlantEffects(yaw_rate_bias=0.02), 2, settings)
+    assert np.allclose(biased.states[:, 5] - base.states[:, 5], 0.02)
+    assert np.array_equal(biased.states[:, [0, 1, 3, 4, 6, 7]], base.states[:, [0, 1, 3, 4, 6, 7]])
+    worn = CP.make_log(t, CP.PlantEffects(tire_wear=0.05), 2, settings)
+    assert np.array_equal(worn.states[:2], base.states[:2])               # t = 0: the same grip
+    assert not np.allclose(worn.states[-50:, 4:6], base.states[-50:, 4:6], atol=1e-3)   # later: less grip

@@ -1,0 +1,167 @@
+"""The diagnosis's candidates beyond the one-parameter effects: bank and grade as profiles along the track,
+and the bank read from a plausible logged roll channel.
+
+Why: a constant bank or grade cannot stand for a road that is banked in the turns and flatter on the
+straights (the issue's real oval: about 20 degrees in the turns, 9 on the front straight), and a road course
+has both signs. So:
+
+  bank_profile, grade_profile   the angle at KNOTS along the track, linearly interpolated between them
+                                (periodic along the lap when the track is known; otherwise along the distance
+                                the log travelled), sign free; one parameter per knot the fit rows visit
+                                (knots the fit part never reaches stay at zero: nothing could fit them);
+  bank_from_roll                bank = gain x the log's roll channel, per row; tried only when the channel
+                                passes ddyn.data.roll_check (the verdict is reported either way).
+
+Their parameters enter ddyn.analysis.diagnose.fit as scalar keys "NAME@i" (knot i), so the fit, the
+held-out score (dk = the number of keys) and the greedy step treat them like any effect's. The profile
+is reported by its peak (the signed knot of largest magnitude) and, in full, as `profile`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ddyn.data import roll_check
+from ddyn.model import effects as E
+
+PROFILE_OF = {"bank_profile": "bank_angle", "grade_profile": "grade"}
+ROLL_OF = {"bank_from_roll": ("bank_angle", "roll")}
+EXTRA = tuple(PROFILE_OF) + tuple(ROLL_OF)
+ALL = E.ALL_EFFECTS + EXTRA
+# what a candidate stands for (so two candidates of one family are never selected together)
+FAMILY = {**{n: n for n in E.ALL_EFFECTS}, **PROFILE_OF, **{k: v[0] for k, v in ROLL_OF.items()}}
+MAIN_PARAM = {**E.MAIN_PARAM, "bank_profile": "peak", "grade_profile": "peak", "bank_from_roll": "gain"}
+UNITS = {**E.UNITS, "bank_profile": "rad", "grade_profile": "rad", "bank_from_roll": "-"}
+UNIT = {"bank_profile": 0.01, "grade_profile": 0.01, "bank_from_roll": 0.1}           # fit scaling
+BOUNDS = {"bank_profile": (-0.6, 0.6), "grade_profile": (-0.3, 0.3), "bank_from_roll": (-2.0, 2.0)}
+GRID = {"bank_from_roll": (2.5, 5, 7.5, 10, 12.5)}   # in units: gains 0.25-1.25
+
+KNOT_SPACING = 50.0      # m between knots: a bank changes over a turn entry (tens of metres), not faster
+MIN_KNOTS, MAX_KNOTS = 4, 40
+
+
+def base(key: str) -> str:
+    """The candidate a fit key belongs to ("bank_profile@3" -> "bank_profile")."""
+    return key.split("@", 1)[0]
+
+
+@dataclass
+class Layout:
+    """Where each row is along the track and where the knots sit."""
+
+    position: np.ndarray            # (N,) m
+    length: float | None            # lap length (periodic) or None
+    knots: np.ndarray               # (K,) m
+    free: list                      # knot indices the fit rows inform
+    source: str                     # "track NAME" or "distance travelled"
+    roll: dict | None               # roll_check verdict of the log's roll channel (None: none logged)
+
+
+def _distance(ds) -> np.ndarray:
+    """Distance travelled along the logged path, continuing across segments."""
+    xy = ds.states[:, :2]
+    step = np.r_[0.0, np.hypot(*np.diff(xy, axis=0).T)]
+    step[np.r_[False, ds.segment[1:] != ds.segment[:-1]]] = 0.0
+    return np.cumsum(step)
+
+
+def layout(ds, track, rows_fit: np.ndarray) -> Layout:
+    if track is not None:
+        s, _ = track.project(ds.states[:, 0], ds.states[:, 1])
+        length, src = float(track.length), f"track {track.name}"
+        span = length
+    else:
+        s, length, src = _distance(ds), None, "distance travelled"
+        span = max(float(s[-1]), 1.0)
+    k = int(min(MAX_KNOTS, max(MIN_KNOTS, math.ceil(span / KNOT_SPACING))))
+    knots = np.linspace(0.0, span, k, endpoint=length is None)   # periodic: the last knot wraps to the first
+    # a knot is free when fit rows lie on either of its two intervals
+    sf = np.asarray(s)[rows_fit]
+    h = span / (k if length is not None else max(k - 1, 1))
+    d = np.abs(sf[None, :] - knots[:, None])
+    if length is not None:
+        d = np.minimum(d, length - d)
+    free = [i for i in range(k) if np.any(d[i] < h)]
+    roll = roll_check.check_dataset(ds) if "roll" in ds.extras else None
+    return Layout(np.asarray(s, float), length, knots, free, src, roll)
+
+
+def available(name: str, lay: Layout | None) -> bool:
+    """Whether the candidate can be tried on this log."""
+    if name in PROFILE_OF:
+        return lay is not None and len(lay.free) > 0
+    if name in ROLL_OF:
+        return lay is not None and lay.roll is not None and bool(lay.roll["plausible"])
+    return True
+
+
+def keys(name: str, lay: Layout | None) -> tuple[str, ...]:
+    """The fit's scalar parameter keys of a candidate."""
+    if name in PROFILE_OF:
+        return tuple(f"{name}@{i}" for i in lay.free)
+    return (name,)
+
+
+def unit(key: str) -> float | None:
+    return UNIT.get(base(key))
+
+
+def bounds(key: str) -> tuple[float, float] | None:
+    return BOUNDS.get(base(key))
+
+
+def effect_set(values: dict, lay: Layout | None) -> E.EffectSet:
+    """The EffectSet of fit values keyed as above (plain effects by name)."""
+    plain = {k: v for k, v in values.items() if k in E.MAIN_PARAM}
+    specs = [{"effect": k, "params": {E.MAIN_PARAM[k]: float(v)}} for k, v in plain.items()]
+    for name, effect in PROFILE_OF.items():
+        ks = [k for k in values if base(k) == name]
+        if not ks:
+            continue
+        angle = np.zeros(len(lay.knots))
+        for k in ks:
+            angle[int(k.split("@")[1])] = float(values[k])
+        specs = [sp for sp in specs if sp["effect"] != effect]   # one family is never selected twice
+        specs.append({"effect": effect, "params": {"profile": "linear",
+                                                   "breaks": [[float(a), float(b)] for a, b in zip(lay.knots, angle)]}})
+    for name, (effect, channel) in ROLL_OF.items():
+        if name in values:
+            specs = [sp for sp in specs if sp["effect"] != effect]
+            specs.append({"effect": effect, "params": {"profile": "channel", "channel": channel,
+                                                       "amplitude": float(values[name])}})
+    return E.EffectSet.of(specs)
+
+
+def attach(lm: E.LogModel, lay: Layout | None) -> None:
+    """Give the log predictor the rows' track positions (for profiles)."""
+    if lay is not None:
+        lm.position, lm.track_length = lay.position, lay.length
+
+
+def summary(name: str, values: dict, std: dict, lay: Layout | None) -> tuple[float, float, dict | None]:
+    """(main value, its std, the full profile or None) of a fitted candidate."""
+    if name not in PROFILE_OF:
+        return float(values[name]), float(std.get(name, float("nan"))), None
+    ks = keys(name, lay)
+    vals = np.array([values.get(k, 0.0) for k in ks])
+    i = int(np.argmax(np.abs(vals))) if len(vals) else 0
+    angle = np.zeros(len(lay.knots))
+    sd = np.full(len(lay.knots), float("nan"))
+    for k in ks:
+        j = int(k.split("@")[1])
+        angle[j], sd[j] = values.get(k, 0.0), std.get(k, float("nan"))
+    peak = float(vals[i]) if len(vals) else 0.0
+    return peak, float(std.get(ks[i], float("nan"))) if ks else float("nan"), {
+        "knots_m": lay.knots.tolist(), "angle_rad": angle.tolist(), "std_rad": sd.tolist(),
+        "free": list(lay.free), "periodic_length_m": lay.length, "position_from": lay.source}
+
+
+def profile_at(profile: dict, s) -> np.ndarray:
+    """A reported profile (summary's third value) evaluated at positions s."""
+    knots, angle = np.asarray(profile["knots_m"]), np.asarray(profile["angle_rad"])
+    L = profile["periodic_length_m"]
+    if L:
+        return np.interp(np.mod(s, L), knots, angle, period=L)
+    return np.interp(s, knots, angle)
