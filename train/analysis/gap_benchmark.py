@@ -573,6 +573,14 @@ def real_markdown(summary: dict) -> str:
 def _run_commonroad(args, out: Path) -> int:
     """--plant commonroad: the independent plant (gap_independent.py)."""
     G = gap_independent
+    if args.eiv_check:
+        doc = G.eiv_check(args.cases or 10, G.EIV_SEED if args.seed is None else args.seed, args.jobs,
+                          hold=args.hold, progress=not args.no_progress)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "eiv.json").write_text(json.dumps(doc, indent=2, default=float))
+        print(doc["markdown"])
+        print(f"wrote {out / 'eiv.json'}")
+        return 0
     if args.rescore:
         path = out / "results.json"
         if not path.is_file():
@@ -659,6 +667,9 @@ def register(subparsers) -> None:
                    help="commonroad: the evidence margin for this run or --rescore (default diagnose's)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
+    p.add_argument("--eiv-check", action="store_true",
+                   help="commonroad: the errors-in-variables check instead of the benchmark: the mass offset fitted "
+                        "on --cases effect-free logs from logged, noise-free and smoothed states and by output error")
     p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")
     p.add_argument("--real", action="store_true", help="diagnose the Putnam log: nominal from its first half "
                                                        "(or --model), diagnosis on the rest")
