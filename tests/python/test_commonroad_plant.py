@@ -263,3 +263,5 @@ def test_scoring_thresholds_and_delay_vs_lag():
     dl = s["delay_vs_lag"]
     assert dl["named_either"] == 6 and dl["told_apart"] == pytest.approx(4 / 6) and dl["delay_named_lag"] == 2
     assert s["false_alarm_rate"] == pytest.approx(0.5)
+    # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
+    assert G.plan(30, 4242) == G.plan(50, 4242)[:30]

@@ -586,6 +586,9 @@ def _run_commonroad(args, out: Path) -> int:
         if not path.is_file():
             raise DdynError(f"--rescore: {path} not found")
         doc = json.loads(path.read_text())
+        if args.cases:      # the first N cases: the same cases a run with --cases N makes (plan() draws in order)
+            doc["results"] = doc["results"][:args.cases]
+            doc["settings"]["cases"] = len(doc["results"])
         gate = doc["settings"].get("gate") if args.gate is None else (None if args.gate <= 0 else args.gate)
         margin = doc["settings"].get("min_evidence", 0.0) if args.min_evidence is None else args.min_evidence
         doc["results"] = G.with_gate(doc["results"], gate, margin)
