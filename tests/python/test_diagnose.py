@@ -333,3 +333,19 @@ def test_leave_out_smoother():
     assert np.var(sm[10:-10, 3]) == pytest.approx(gain * 0.05 ** 2, rel=0.1)
     # the sample one ahead is left out: the smoothed state does not correlate with it
     assert abs(np.corrcoef(sm[10:-11, 3], noise[11:-10, 3])[0, 1]) < 0.05
+
+
+def test_cli_dbw_preset(delay_log, tmp_path):
+    """--dbw: the hold, output error and the calibrated margin, recorded in diagnosis.json; an explicit
+    --min-evidence wins."""
+    data = write_canonical(delay_log, tmp_path / "log.csv")
+    parser = argparse.ArgumentParser()
+    D.register(parser.add_subparsers())
+    out = tmp_path / "diag"
+    args = parser.parse_args(["diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out),
+                              "--candidates", "steer_delay,mass_offset", "--no-plots", "--dbw", "--min-evidence", "2"])
+    assert args.func(args) == 0
+    d = json.loads((out / "diagnosis.json").read_text())
+    assert d["method"]["fit_mode"] == D.DBW_PRESET["fit"] == "output-error"
+    assert d["nominal"]["command_hold_delay"] == pytest.approx(0.5 * delay_log.sample_time)
+    assert d["gate"]["min_evidence"] == 2.0

@@ -91,6 +91,12 @@ MIN_EVIDENCE = 0.0
 FIT_MODES = ("one-step", "smoothed", "output-error")
 DEFAULT_FIT = "one-step"
 OE_STEPS = 10
+# `diagnose --dbw`: the settings for drive-by-wire logs (commands held between samples), chosen on the
+# independent plant's calibration seed 11 only (docs/gap_independent.md): the hold modelled, output error, and the
+# evidence margin that left none of seed 11's effect-free logs with a selection. Not the default: logs whose
+# commands ramp (the project's simulator, the own-model benchmark) must not get the hold, and output error costs
+# about four times the one-step diagnosis.
+DBW_PRESET = {"hold": True, "fit": "output-error", "min_evidence": 13.013}
 SCHEMA = "ddyn-diagnosis 1"
 
 
@@ -908,6 +914,10 @@ def _run(args) -> int:
     if bad:
         raise DdynError(f"--refit: unknown coefficient(s) {', '.join(bad)}")
     gate = "default" if args.gate is None else (None if args.gate <= 0 else args.gate)
+    if args.dbw:        # the preset fills what was not given explicitly
+        args.hold = True
+        args.fit = args.fit or DBW_PRESET["fit"]
+        args.min_evidence = DBW_PRESET["min_evidence"] if args.min_evidence is None else args.min_evidence
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
                  hold=args.hold, min_evidence=args.min_evidence, fit_mode=args.fit)
     paths = write_report(d, args.out, not args.no_plots)
@@ -947,6 +957,9 @@ def register(subparsers) -> None:
     p.add_argument("--hold", action="store_true",
                    help="the log's throttle and steering were held between samples (a drive-by-wire unit): the "
                         "nominal gets half a sample of delay on both, delay estimates are on top of it")
+    p.add_argument("--dbw", action="store_true",
+                   help="a drive-by-wire log: --hold --fit {fit} --min-evidence {min_evidence:g} (calibrated on the "
+                        "independent plant; explicit --fit/--min-evidence win)".format(**DBW_PRESET))
     p.add_argument("--fit", choices=FIT_MODES, default=None,
                    help=f"what the fit compares (default {DEFAULT_FIT}): one-step predictions from the logged states, "
                         "from smoothed states (errors in variables), or output-error rollouts of "
