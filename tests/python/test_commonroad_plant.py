@@ -227,3 +227,41 @@ def test_identified_nominal_fits_the_plant_better(monkeypatch):
         return float(np.sum(p.residuals({}, np.zeros(0), p.rows_all) ** 2))
 
     assert err(c) < err(NOMINAL.true_vector())
+
+
+def test_the_spurious_mass_offset_is_not_errors_in_variables(monkeypatch):
+    """On a short effect-free plant log (command hold modelled), the mass offset a candidate fit finds is not an
+    errors-in-variables bias: one-step steps from the noise-free states find it too (it is the plant's own
+    mismatch, weighed through the lateral channels); the output-error fit, which weighs the longitudinal drift
+    over ten steps, finds a much smaller one."""
+    monkeypatch.setattr(G, "DURATION", 30.0)
+    case = G.plan(12, G.EIV_SEED)[4] | {"effect": G.NONE, "magnitude": 0.0, "hold": True}
+    r = G.eiv_case(case)
+    m = {k: v["mass_offset"] for k, v in r["fits"].items()}
+    assert m["one-step (logged states)"] < -0.1 and m["one-step from the noise-free states"] < -0.1
+    assert abs(m["output-error"]) < 0.5 * abs(m["one-step (logged states)"])
+
+
+def test_scoring_thresholds_and_delay_vs_lag():
+    """Measured thresholds, top-1 above thresholds given from another run, steering delay vs lag."""
+    def row(e, mag, top1):
+        return {"status": "ok", "effect": e, "magnitude": mag, "top1": top1, "correct": top1 == e,
+                "selected": [] if top1 == G.NONE else [top1], "selected_without_gate": [] if top1 == G.NONE else [top1],
+                "correct_without_gate": top1 == e, "param_error": 0.1, "gate_ratio": 1.2,
+                "gap_closed_pct": 50.0, "error_reduction_pct": 5.0, "gap_closed_pct_top_candidate": 1.0,
+                "error_reduction_pct_top_candidate": 1.0, "gate_threshold": None, "min_evidence": 0.0,
+                "diagnose_seconds": 1.0}
+    rows = [row("steer_delay", m, "steer_delay" if m >= 0.05 else "steer_lag") for m in (0.02, 0.04, 0.06, 0.1)]
+    rows += [row("steer_lag", m, "steer_lag" if m >= 0.1 else G.NONE) for m in (0.05, 0.1, 0.15)]
+    rows += [row(G.NONE, 0.0, G.NONE), row(G.NONE, 0.0, "mass_offset")]
+    assert G.reliable_threshold([r for r in rows if r["effect"] == "steer_delay"]) == pytest.approx(0.06)
+    sc = G.score(rows, {"steer_delay": 0.04, "steer_lag": 0.1})
+    s = sc["summary"]
+    assert sc["per_effect"]["steer_lag"]["measured_threshold"] == pytest.approx(0.1)
+    assert s["above_threshold_cases"] == 5 and s["top1_above_thresholds"] == pytest.approx(4 / 5)
+    assert s["below_threshold_cases"] == 2 and s["any_selected_below_thresholds"] == pytest.approx(0.5)
+    dl = s["delay_vs_lag"]
+    assert dl["named_either"] == 6 and dl["told_apart"] == pytest.approx(4 / 6) and dl["delay_named_lag"] == 2
+    assert s["false_alarm_rate"] == pytest.approx(0.5)
+    # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
+    assert G.plan(30, 4242) == G.plan(50, 4242)[:30]

@@ -284,3 +284,68 @@ def test_benchmark_real_log(shared_data, tmp_path):
     assert np.all(c >= lo - 1e-9) and np.all(c <= hi + 1e-9)
     assert (tmp_path / "identified" / "diagnosis.json").is_file() and (tmp_path / "real.json").is_file()
     assert "Nominal: identified" in GB.real_markdown(summary)
+
+
+def test_an_estimate_on_a_range_edge_is_never_the_verdict(delay_log, monkeypatch):
+    """The 30 ms steering delay, with the delay's search range cut to 10 ms: the delay still pays for itself, but
+    only from the range's edge, so the verdict is "not explained by the effect library", nothing is selected."""
+    kw = dict(candidates=("steer_delay",), max_effects=1, max_starts=50)
+    assert _diagnose(delay_log, **kw)["selected"] == ["steer_delay"]
+    bounds = D._bounds
+    monkeypatch.setattr(D, "_bounds", lambda n, ctx: (0.0, 0.01) if n == "steer_delay" else bounds(n, ctx))
+    d = _diagnose(delay_log, **kw)
+    assert d["selected"] == [] and d["model"]["effects"] == []
+    assert d["verdict"].startswith("none: not explained by the effect library")
+    assert d["unexplained"]["effect"] == "steer_delay" and d["unexplained"]["delta_bic"] < 0
+    assert d["unexplained"]["params"]["delay"] == pytest.approx(0.01, abs=1e-4)
+    assert d["greedy"][0]["at_bound"] and d["greedy"][0]["added"] is None
+
+
+@pytest.mark.parametrize("mode", ["smoothed", "output-error"])
+def test_every_fit_mode_finds_the_delay(delay_log, mode):
+    """The errors-in-variables fits find the same hidden 30 ms delay; held-out scores stay one-step."""
+    d = _diagnose(delay_log, candidates=("steer_delay", "mass_offset"), max_effects=1, max_starts=50, fit_mode=mode)
+    assert d["selected"] == ["steer_delay"] and d["method"]["fit_mode"] == mode
+    assert d["model"]["effects"][0]["params"]["delay"] == pytest.approx(0.03, rel=0.15)
+    with pytest.raises(Exception, match="unknown fit"):
+        _diagnose(delay_log, fit_mode="two-step")
+
+
+def test_leave_out_smoother():
+    """The smoother reproduces a quadratic exactly (edges included), leaves the predicted sample out, and cuts
+    white noise's variance to sum(w^2) of it."""
+    from ddyn.analysis import eiv
+
+    t = np.arange(60.0)
+    states = np.zeros((60, 8))
+    states[:, 3] = 1 + 0.1 * t - 0.002 * t ** 2
+    seg = np.r_[np.zeros(30), np.ones(30)]
+    sm, gain = eiv.smooth_states(states, seg)
+    assert np.allclose(sm[:, 3], states[:, 3], atol=1e-9) and 0.1 < gain < 0.35
+    w = eiv.loo_weights(np.array([-2, -1, 0, 2]))
+    assert w @ np.array([4.0, 1, 0, 4]) == pytest.approx(0.0)       # y = t^2 at 0
+    rng = np.random.default_rng(0)
+    noise = np.zeros((4000, 8))
+    noise[:, 3:6] = rng.normal(0, [0.05, 0.02, 0.005], (4000, 3))
+    est = np.sqrt(eiv.noise_variance(noise, np.zeros(4000)))
+    assert est == pytest.approx([0.05, 0.02, 0.005], rel=0.05)
+    sm, gain = eiv.smooth_states(noise, np.zeros(4000))
+    assert np.var(sm[10:-10, 3]) == pytest.approx(gain * 0.05 ** 2, rel=0.1)
+    # the sample one ahead is left out: the smoothed state does not correlate with it
+    assert abs(np.corrcoef(sm[10:-11, 3], noise[11:-10, 3])[0, 1]) < 0.05
+
+
+def test_cli_dbw_preset(delay_log, tmp_path):
+    """--dbw: the hold, output error and the calibrated margin, recorded in diagnosis.json; an explicit
+    --min-evidence wins."""
+    data = write_canonical(delay_log, tmp_path / "log.csv")
+    parser = argparse.ArgumentParser()
+    D.register(parser.add_subparsers())
+    out = tmp_path / "diag"
+    args = parser.parse_args(["diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out),
+                              "--candidates", "steer_delay,mass_offset", "--no-plots", "--dbw", "--min-evidence", "2"])
+    assert args.func(args) == 0
+    d = json.loads((out / "diagnosis.json").read_text())
+    assert d["method"]["fit_mode"] == D.DBW_PRESET["fit"] == "output-error"
+    assert d["nominal"]["command_hold_delay"] == pytest.approx(0.5 * delay_log.sample_time)
+    assert d["gate"]["min_evidence"] == 2.0

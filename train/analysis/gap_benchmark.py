@@ -577,16 +577,29 @@ def _run_commonroad(args, out: Path) -> int:
     G = gap_independent
     if getattr(args, "case_set", "putnam") != "putnam":
         return _run_case_set(args, out)
+    if args.eiv_check:
+        doc = G.eiv_check(args.cases or 10, G.EIV_SEED if args.seed is None else args.seed, args.jobs,
+                          hold=args.hold, progress=not args.no_progress)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "eiv.json").write_text(json.dumps(doc, indent=2, default=float))
+        print(doc["markdown"])
+        print(f"wrote {out / 'eiv.json'}")
+        return 0
     if args.rescore:
         path = out / "results.json"
         if not path.is_file():
             raise DdynError(f"--rescore: {path} not found")
         doc = json.loads(path.read_text())
+        if args.cases:      # the first N cases: the same cases a run with --cases N makes (plan() draws in order)
+            doc["results"] = doc["results"][:args.cases]
+            doc["settings"]["cases"] = len(doc["results"])
         gate = doc["settings"].get("gate") if args.gate is None else (None if args.gate <= 0 else args.gate)
         margin = doc["settings"].get("min_evidence", 0.0) if args.min_evidence is None else args.min_evidence
         doc["results"] = G.with_gate(doc["results"], gate, margin)
         doc["settings"]["gate"], doc["settings"]["min_evidence"] = gate, margin
-        doc.update(G.score(doc["results"]))
+        if args.thresholds_from:
+            doc["settings"]["thresholds"] = G.thresholds_of(args.thresholds_from)
+        doc.update(G.score(doc["results"], doc["settings"].get("thresholds")))
         doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"], doc["seconds"])
     else:
         if args.gate is not None:
@@ -595,7 +608,8 @@ def _run_commonroad(args, out: Path) -> int:
             D.MIN_EVIDENCE = args.min_evidence
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
         doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
-                    nominal=args.nominal)
+                    nominal=args.nominal, fit=args.fit,
+                    thresholds=G.thresholds_of(args.thresholds_from) if args.thresholds_from else None)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -696,6 +710,13 @@ def register(subparsers) -> None:
                    help="commonroad: the evidence margin for this run or --rescore (default diagnose's)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
+    p.add_argument("--fit", choices=D.FIT_MODES, default=None,
+                   help=f"commonroad: the diagnosis's fit (diagnose --fit; default {D.DEFAULT_FIT})")
+    p.add_argument("--thresholds-from", default=None, metavar="RESULTS_JSON",
+                   help="commonroad: score top-1 above the detection thresholds measured in this (calibration) run")
+    p.add_argument("--eiv-check", action="store_true",
+                   help="commonroad: the errors-in-variables check instead of the benchmark: the mass offset fitted "
+                        "on --cases effect-free logs from logged, noise-free and smoothed states and by output error")
     p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")
     p.add_argument("--real", action="store_true", help="diagnose the Putnam log: nominal from its first half "
                                                        "(or --model), diagnosis on the rest")

@@ -113,7 +113,8 @@ def run_case(case: dict) -> dict:
         return out | {"status": "simulation failed", "error": err}
     veh = load_vehicle(CP.NOMINAL_VEHICLE)
     t0 = time.perf_counter()
-    diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds), track=track, hold=bool(case.get("hold", False)))
+    diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds), candidates=C.ALL, track=track,
+                      hold=bool(case.get("hold", False)))
     seconds = time.perf_counter() - t0
     top1 = diag["selected"][0] if diag["selected"] else NONE
     family = C.FAMILY.get(top1, top1)
