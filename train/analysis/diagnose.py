@@ -653,11 +653,12 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         dbic, name, f, ev = trials[0]
         # an estimate on an edge of its range is a bound, not an estimate: the effect stands in for a mismatch
         # the library does not hold, so it is never the verdict (and the greedy step stops there)
-        edge = bool(dbic < -margin) and at_bound(name, f.values[name], prob.ctx)
+        main_value = C.summary(name, f.values, f.std, prob.layout)[0]   # a profile: its peak
+        edge = bool(dbic < -margin) and at_bound(name, main_value, prob.ctx)
         steps_log.append({"added": name if dbic < -margin and not edge else None, "best_candidate": name,
                           "delta_bic": dbic, "at_bound": edge, "after": selected + [name]})
         if edge:
-            unexplained = {"effect": name, "params": {E.MAIN_PARAM[name]: f.values[name]}, "delta_bic": dbic}
+            unexplained = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic}
             break
         if not dbic < -margin:
             break
