@@ -44,6 +44,10 @@ def check(roll, time, lateral_acceleration=None) -> dict:
     out["abs_p999_rad"] = float(np.percentile(np.abs(r), 99.9))
     if out["abs_p999_rad"] > MAX_ABS:
         failed.append("range")
+    if np.max(np.abs(r)) > 1e3:
+        # not an angle in radians at all: the rate, drift and regression below would only overflow
+        return out | {"plausible": False, "failed": failed or ["range"],
+                      "reason": f"roll reaches {np.max(np.abs(r)):.3g} rad: not an angle (range limit {MAX_ABS} rad)"}
     dt = np.diff(t)
     good = dt > 0
     rate = np.abs(np.diff(r))[good] / dt[good]
@@ -54,8 +58,10 @@ def check(roll, time, lateral_acceleration=None) -> dict:
     out["drift_rad"] = slope * float(np.ptp(t))
     if abs(out["drift_rad"]) > MAX_DRIFT:
         failed.append("drift")
-    if lateral_acceleration is not None:
-        ay = np.asarray(lateral_acceleration, float)[ok]
+    ay = None if lateral_acceleration is None else np.asarray(lateral_acceleration, float)[ok]
+    fin = None if ay is None else np.isfinite(ay) & (np.abs(ay) < 1e3)   # an acceleration a car can have
+    if ay is not None and fin.sum() >= 10:
+        ay, r = ay[fin], r[fin]
         A = np.column_stack([np.ones_like(ay), ay])
         coef, *_ = np.linalg.lstsq(A, r, rcond=None)
         spread = float(np.std(r))
@@ -79,5 +85,6 @@ def check_dataset(ds, channel: str = "roll") -> dict | None:
     acceleration."""
     if channel not in ds.extras:
         return None
-    ay = ds.states[:, 3] * ds.states[:, 5]
+    with np.errstate(over="ignore", invalid="ignore"):   # a corrupt log's states: the check reports them
+        ay = ds.states[:, 3] * ds.states[:, 5]
     return {"channel": channel, **check(ds.extras[channel], ds.time, ay)}
