@@ -651,6 +651,18 @@ def _run_case_set(args, out: Path) -> int:
 
 
 def _run(args) -> int:
+    if not getattr(args, "scheduler", None):
+        return _run_here(args)
+    from ddyn.analysis.parallel import use_scheduler
+
+    use_scheduler(args.scheduler)
+    try:
+        return _run_here(args)
+    finally:
+        use_scheduler(None)
+
+
+def _run_here(args) -> int:
     out = Path(args.out)
     if args.plant == "commonroad":
         return _run_commonroad(args, out)
@@ -697,6 +709,9 @@ def register(subparsers) -> None:
                    help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
                         "single-track drift model (an independent plant, docs/gap_independent.md)")
     p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the cases on this Dask distributed scheduler (e.g. tcp://HOST:8786; its workers need "
+                        "this package installed) instead of local processes; --jobs is then ignored")
     p.add_argument("--case-set", choices=("putnam", "oval", "drivetrain"), default="putnam",
                    help="commonroad: putnam (default: every effect on the road course), oval (the banked oval: bank "
                         "profile from a flat-road nominal) or drivetrain (throttle map, brake gain, power limit); "
