@@ -670,15 +670,9 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         if (!mpc->have_warm_start) {
             ddyn_mpc_qp_daqp_reset(&mpc->daqp);
         }
+        /* a capped solve, cold ones included, is not solved again here: its cost per period is the
+         * cap's (docs/m7.md), and the next period goes on from the working set it reached */
         qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
-        if (qst == DDYN_ERR_QP_NOT_CONVERGED && mpc->daqp.cold) {
-            /* A cold active-set start can need more iterations than the cap (the first QPs from a
-             * standstill, the first after a recovery: up to ~90). With no plan to shift the controller
-             * would go safe and, after recovery, start cold again: on a lossy bus that repeated (87 safe
-             * periods of a lap). The interior point's iteration count does not depend on a start, so it
-             * solves this period's QP (same cap); DAQP continues from the working set it reached. */
-            qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
-        }
     } else {
         qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
     }

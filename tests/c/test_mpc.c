@@ -607,6 +607,48 @@ static void test_daqp_refusals_and_crossing_bounds_start_cold(void **state)
     assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_ERR_ARGUMENT);
 }
 
+static void test_daqp_cold_start_goes_on_over_capped_periods(void **state)
+{
+    /* 40 bounds active at the optimum: a cold start adds one per iteration and cannot finish within a
+     * cap of 30; the next solve goes on from the working set it reached and finishes (the M7's
+     * bounded cost per period, docs/m7.md) */
+    const int h = 20, n = 2 * h;
+    int i, k, last = 0;
+    (void)state;
+    qp_clear(h);
+    open_bounds(n);
+    for (i = 0; i < n; ++i) {
+        qp.hess[i + i * DDYN_QP_NV] = 1.0 + 0.05 * i;
+        qp.grad[i] = (i % 2 == 0 ? -5.0 : 4.0) * qp.hess[i + i * DDYN_QP_NV];
+        qp.lb[i] = -1.0;
+        qp.ub[i] = 2.0;
+    }
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_true(daqp.cold && qp.iterations == 30 && daqp.warm_n == 30);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(!daqp.cold && qp.iterations <= 11);
+    for (i = 0; i < n; ++i) {
+        assert_true(fabs(qp.z[i] - (i % 2 == 0 ? 2.0 : -1.0)) < 1e-9);
+    }
+    /* a cold chain keeps its working set for DDYN_DAQP_COLD_PERIODS capped solves, then starts cold */
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    for (k = 1; k < DDYN_DAQP_COLD_PERIODS; ++k) {
+        assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 3, 0), DDYN_ERR_QP_NOT_CONVERGED);
+        assert_true(daqp.warm_n > last && daqp.capped == k && daqp.chain_cold);
+        last = daqp.warm_n;
+    }
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 3, 0), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_true(daqp.warm_n == 0 && daqp.capped == 0);
+    /* a chain that began warm (a wrong working set) continues once, as before */
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 50, 0), DDYN_OK);
+    ddyn_mpc_qp_daqp_adversarial_start(&daqp, h);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 1, 0), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_true(!daqp.cold && !daqp.chain_cold && daqp.capped == 1 && daqp.warm_n > 0);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 1, 0), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_true(daqp.warm_n == 0);
+}
+
 static void test_daqp_warm_start_shifts_and_the_cap_is_defined(void **state)
 {
     /* closed loop on the ring with DAQP (the default): every QP, re-solved cold from the same problem,
@@ -805,6 +847,7 @@ int main(void)
         cmocka_unit_test(test_closed_loop_stays_on_the_ring),
         cmocka_unit_test(test_daqp_solves_the_structured_qps),
         cmocka_unit_test(test_daqp_refusals_and_crossing_bounds_start_cold),
+        cmocka_unit_test(test_daqp_cold_start_goes_on_over_capped_periods),
         cmocka_unit_test(test_daqp_warm_start_shifts_and_the_cap_is_defined),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
