@@ -632,7 +632,7 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
 {
     ddyn_mpc_info local;
     ddyn_status qst;
-    int k, j, h, hold, moved = 0;
+    int k, j, h, hold, moved = 0, round, no_plan;
     double u0;
     if (info == NULL) {
         info = &local;
@@ -670,9 +670,19 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         if (!mpc->have_warm_start) {
             ddyn_mpc_qp_daqp_reset(&mpc->daqp);
         }
-        /* a capped solve, cold ones included, is not solved again here: its cost per period is the
-         * cap's (docs/m7.md), and the next period goes on from the working set it reached */
+        /* A capped solve goes on from the working set it reached in the next period (mpc_qp_daqp.c).
+         * Without a plan (the first QP, the first after a reset) a capped one leaves the controller
+         * nothing to shift: it goes safe. So a cold start without a plan goes on at once from what it
+         * reached, up to DDYN_MPC_COLD_ROUNDS caps in all: its cost is measured on the M7 (pass 4 of
+         * tests/m7/m7_controller.c forces it every period, docs/m7.md). */
+        no_plan = !mpc->have_warm_start;
         qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
+        for (round = 1; round < DDYN_MPC_COLD_ROUNDS && no_plan && qst == DDYN_ERR_QP_NOT_CONVERGED &&
+                        mpc->daqp.exitflag == DDYN_DAQP_EXIT_ITERLIMIT && mpc->daqp.warm_n > 0;
+             ++round) {
+            mpc->daqp.factored_h = mpc->cfg.horizon; /* the same QP: its factorisation still holds */
+            qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 0);
+        }
     } else {
         qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
     }

@@ -16,6 +16,7 @@
 #include <math.h>
 #include <string.h>
 
+typedef char daqp_iterlimit_matches[DDYN_DAQP_EXIT_ITERLIMIT == DAQP_EXIT_ITERLIMIT ? 1 : -1];
 typedef char daqp_real_matches[sizeof(c_float) == sizeof(ddyn_qp_real) ? 1 : -1];
 
 /* packed upper-triangular row-major storage of an n x n matrix: start of row i */

@@ -62,7 +62,6 @@
 #define M7_MAX_STEPS 5000 /* pass 1 replays min(this, the segment's periods) */
 #endif
 #define INSN_PER_TICK 40u /* 1 ns per instruction (-icount shift=0) / 25 MHz SysTick clock */
-#define DAQP_EXIT_ITERLIMIT_M7 (-4) /* DAQP's DAQP_EXIT_ITERLIMIT (constants.h, 0.11.0) */
 #define STACK_PAINT 0xA5A5A5A5u
 
 extern const ddyn_net_tables ddyn_net_weights;
@@ -458,7 +457,7 @@ int main(void)
             ddyn_ctrl_step(&ctl, &in, &out);
             insn[i] = ticks_since(t0) * INSN_PER_TICK;
             capped += out.mpc_status == DDYN_ERR_QP_NOT_CONVERGED;
-            daqp_capped += ctl.mpc.daqp.exitflag == DAQP_EXIT_ITERLIMIT_M7;
+            daqp_capped += ctl.mpc.daqp.exitflag == DDYN_DAQP_EXIT_ITERLIMIT;
             failed += out.mpc_status != DDYN_OK && out.mpc_status != DDYN_ERR_QP_NOT_CONVERGED;
             worst_cold = insn[i] > worst_cold ? insn[i] : worst_cold;
             memcpy(ctl.u_prev, m7_seg_periods[i].u, sizeof ctl.u_prev);

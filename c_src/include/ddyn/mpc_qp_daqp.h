@@ -35,6 +35,8 @@ typedef double ddyn_qp_real;
 /* capped periods a cold start may take before it starts cold again (each period: the cap's iterations
  * from the working set the last one reached, shifted one stage) */
 #define DDYN_DAQP_COLD_PERIODS 4
+/* DAQP's exit flag at the iteration cap (DAQP_EXIT_ITERLIMIT of its constants.h, 0.11.0) */
+#define DDYN_DAQP_EXIT_ITERLIMIT (-4)
 
 typedef struct {
     /* the QP in DAQP's form (row-major), rebuilt every solve */
