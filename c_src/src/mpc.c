@@ -632,7 +632,7 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
 {
     ddyn_mpc_info local;
     ddyn_status qst;
-    int k, j, h, hold, moved = 0, round, no_plan;
+    int k, j, h, hold, moved = 0, round, started_cold;
     double u0;
     if (info == NULL) {
         info = &local;
@@ -670,14 +670,15 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         if (!mpc->have_warm_start) {
             ddyn_mpc_qp_daqp_reset(&mpc->daqp);
         }
-        /* A capped solve goes on from the working set it reached in the next period (mpc_qp_daqp.c).
-         * Without a plan (the first QP, the first after a reset) a capped one leaves the controller
-         * nothing to shift: it goes safe. So a cold start without a plan goes on at once from what it
-         * reached, up to DDYN_MPC_COLD_ROUNDS caps in all: its cost is measured on the M7 (pass 4 of
-         * tests/m7/m7_controller.c forces it every period, docs/m7.md). */
-        no_plan = !mpc->have_warm_start;
+        /* A solve that started cold and hit the cap goes on at once from the working set it reached,
+         * up to DDYN_MPC_COLD_ROUNDS caps in all (a cold start can need more than one cap: the first QP
+         * from a standstill, the first after a reset or a failed period, up to ~90 iterations). Its
+         * cost is the rounds' iterations, measured on the M7 (pass 4 of tests/m7/m7_controller.c forces
+         * a cold start every period, docs/m7.md); a warm-started capped solve goes on in the next
+         * period instead (mpc_qp_daqp.c). */
         qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
-        for (round = 1; round < DDYN_MPC_COLD_ROUNDS && no_plan && qst == DDYN_ERR_QP_NOT_CONVERGED &&
+        started_cold = mpc->daqp.cold;
+        for (round = 1; round < DDYN_MPC_COLD_ROUNDS && qst == DDYN_ERR_QP_NOT_CONVERGED && started_cold &&
                         mpc->daqp.exitflag == DDYN_DAQP_EXIT_ITERLIMIT && mpc->daqp.warm_n > 0;
              ++round) {
             mpc->daqp.factored_h = mpc->cfg.horizon; /* the same QP: its factorisation still holds */

@@ -69,6 +69,9 @@ extern uint32_t __stack_bottom, __stack_top;
 
 static ddyn_ctrl ctl;
 static uint32_t insn[5000], sorted[5000];
+#ifdef M7_EKF_SHADOW
+static uint32_t ekf_d[5000], ekf_f[5000];
+#endif
 static double track_col[5][DDYN_MPC_MAX_TRACK_POINTS];
 
 /* ---- console output without stdio (semihosting SYS_WRITE0) ---- */
@@ -169,6 +172,84 @@ void m7_systick(void)
 }
 #endif
 
+#ifdef M7_EKF_SHADOW
+/* scripts/m7_ekf_f32.sh: every EKF call of the controller also runs in float32 (ekf.c built with
+ * DDYN_EKF_FLOAT32 as ddyn_ekf32_*) from a copy of the double filter's state, with the same inputs */
+ddyn_status __real_ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC]);
+ddyn_status __real_ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z, const double *r_diag,
+                                   const double c[DDYN_NC], double *nis);
+ddyn_status __wrap_ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC]);
+ddyn_status __wrap_ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z, const double *r_diag,
+                                   const double c[DDYN_NC], double *nis);
+ddyn_status ddyn_ekf32_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC]);
+ddyn_status ddyn_ekf32_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z, const double *r_diag,
+                              const double c[DDYN_NC], double *nis);
+static ddyn_ekf shadow;
+static uint32_t ekf_ticks_d, ekf_ticks_f; /* this period's EKF calls, double and float32 */
+static double ekf_dx_max[DDYN_NX], ekf_dp_rel_max, ekf_nis_rel_max;
+static unsigned long ekf_calls, ekf_status_differs;
+static uint32_t ticks_since(uint32_t start);
+static uint32_t systick_now(void);
+
+static void ekf_compare(ddyn_status sd, ddyn_status sf, const ddyn_ekf *d, const ddyn_ekf *f)
+{
+    int i;
+    ++ekf_calls;
+    if (sd != sf) {
+        ++ekf_status_differs;
+        return;
+    }
+    if (sd != DDYN_OK) {
+        return;
+    }
+    for (i = 0; i < DDYN_NX; ++i) {
+        double dx = fabs(d->x[i] - f->x[i]);
+        double dp = fabs(d->P[i * DDYN_NX + i] - f->P[i * DDYN_NX + i]) / d->P[i * DDYN_NX + i];
+        ekf_dx_max[i] = dx > ekf_dx_max[i] ? dx : ekf_dx_max[i];
+        ekf_dp_rel_max = dp > ekf_dp_rel_max ? dp : ekf_dp_rel_max;
+    }
+}
+
+ddyn_status __wrap_ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC])
+{
+    ddyn_status sd, sf;
+    uint32_t t0;
+    memcpy(&shadow, ekf, sizeof shadow);
+    t0 = systick_now();
+    sd = __real_ddyn_ekf_predict(ekf, u, c);
+    ekf_ticks_d += ticks_since(t0);
+    t0 = systick_now();
+    sf = ddyn_ekf32_predict(&shadow, u, c);
+    ekf_ticks_f += ticks_since(t0);
+    ekf_compare(sd, sf, ekf, &shadow);
+    return sd;
+}
+
+ddyn_status __wrap_ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z, const double *r_diag,
+                                   const double c[DDYN_NC], double *nis)
+{
+    ddyn_status sd, sf;
+    double nis_f = 0.0, nis_d = 0.0;
+    uint32_t t0;
+    memcpy(&shadow, ekf, sizeof shadow);
+    t0 = systick_now();
+    sd = __real_ddyn_ekf_update(ekf, kind, z, r_diag, c, &nis_d);
+    ekf_ticks_d += ticks_since(t0);
+    t0 = systick_now();
+    sf = ddyn_ekf32_update(&shadow, kind, z, r_diag, c, &nis_f);
+    ekf_ticks_f += ticks_since(t0);
+    ekf_compare(sd, sf, ekf, &shadow);
+    if (sd == DDYN_OK && sf == DDYN_OK && nis_d > 0.0) {
+        double e = fabs(nis_f - nis_d) / nis_d;
+        ekf_nis_rel_max = e > ekf_nis_rel_max ? e : ekf_nis_rel_max;
+    }
+    if (nis != NULL) {
+        *nis = nis_d;
+    }
+    return sd;
+}
+#endif
+
 /* ---- SysTick: 24-bit down-counter on the processor clock ---- */
 #define SYST_CSR (*(volatile uint32_t *)0xE000E010u)
 #define SYST_RVR (*(volatile uint32_t *)0xE000E014u)
@@ -178,6 +259,13 @@ static uint32_t ticks_since(uint32_t start)
 {
     return (start - SYST_CVR) & 0xFFFFFFu;
 }
+
+#ifdef M7_EKF_SHADOW
+static uint32_t systick_now(void)
+{
+    return SYST_CVR;
+}
+#endif
 
 /* 1 + 2n instructions (subs, bne per round) */
 static uint32_t count_loop(uint32_t n)
@@ -308,9 +396,16 @@ int main(void)
         ddyn_ctrl_output out;
         uint32_t t0;
         input_of(rec, &in);
+#ifdef M7_EKF_SHADOW
+        ekf_ticks_d = ekf_ticks_f = 0u;
+#endif
         t0 = SYST_CVR;
         ddyn_ctrl_step(&ctl, &in, &out);
         insn[i] = ticks_since(t0) * INSN_PER_TICK;
+#ifdef M7_EKF_SHADOW
+        ekf_d[i] = ekf_ticks_d * INSN_PER_TICK;
+        ekf_f[i] = ekf_ticks_f * INSN_PER_TICK;
+#endif
         worst = insn[i] > worst ? insn[i] : worst;
         if (insn[i] == worst) {
             worst_step = i;
@@ -379,6 +474,33 @@ int main(void)
         }
     }
     return 0;
+#endif
+#ifdef M7_EKF_SHADOW
+    {
+        uint32_t wd = 0, wf = 0;
+        for (i = 0; i < steps; ++i) {
+            wd = ekf_d[i] > wd ? ekf_d[i] : wd;
+            wf = ekf_f[i] > wf ? ekf_f[i] : wf;
+        }
+        kv("ekf_calls", ekf_calls);
+        kv("ekf_double_insn_per_step_median", (unsigned long)median_of(ekf_d, steps));
+        kv("ekf_double_insn_per_step_max", (unsigned long)wd);
+        kv("ekf_float32_insn_per_step_median", (unsigned long)median_of(ekf_f, steps));
+        kv("ekf_float32_insn_per_step_max", (unsigned long)wf);
+        kv("ekf_status_differs", ekf_status_differs);
+        put_str("m7: ekf_float32_max_abs_dx_per_call");
+        for (k = 0; k < DDYN_NX; ++k) {
+            put_str(" ");
+            put_sci(ekf_dx_max[k]);
+        }
+        flush();
+        put_str("m7: ekf_float32_max_rel_dP_diag_per_call ");
+        put_sci(ekf_dp_rel_max);
+        put_str(" max_rel_dnis ");
+        put_sci(ekf_nis_rel_max);
+        flush();
+        return 0; /* the step counts of this build include the shadow: not the figures */
+    }
 #endif
     kv("periods", (unsigned long)steps);
     kv("insn_per_step_median", (unsigned long)median_of(insn, steps));
@@ -452,7 +574,11 @@ int main(void)
             ddyn_ctrl_output out;
             uint32_t t0;
             input_of(&m7_seg_periods[i], &in);
-            ddyn_mpc_reset(&ctl.mpc);
+            if (i % 2 == 0) {
+                ddyn_mpc_reset(&ctl.mpc); /* no plan: linearised along zero rates, working set empty */
+            } else {
+                ddyn_mpc_qp_daqp_reset(&ctl.mpc.daqp); /* along the last plan, working set empty */
+            }
             t0 = SYST_CVR;
             ddyn_ctrl_step(&ctl, &in, &out);
             insn[i] = ticks_since(t0) * INSN_PER_TICK;

@@ -50,8 +50,8 @@ extern "C" {
 #define DDYN_MPC_DEFAULT_HORIZON 20
 #define DDYN_MPC_NV (DDYN_MPC_MAX_HORIZON * DDYN_NU)       /* QP variables: input rates */
 #define DDYN_MPC_MAX_QP_ITERATIONS 50
-/* DAQP: a cold start without a plan to fall back on may take this many caps of iterations in its
- * period (mpc.c feedback; measured on the M7, docs/m7.md) */
+/* DAQP: a solve that started cold may take this many caps of iterations in its period (mpc.c
+ * feedback; measured on the M7, docs/m7.md) */
 #define DDYN_MPC_COLD_ROUNDS 2
 
 /* The prediction model's discretisation. */
