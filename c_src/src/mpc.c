@@ -681,8 +681,10 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         for (round = 1; round < DDYN_MPC_COLD_ROUNDS && qst == DDYN_ERR_QP_NOT_CONVERGED && started_cold &&
                         mpc->daqp.exitflag == DDYN_DAQP_EXIT_ITERLIMIT && mpc->daqp.warm_n > 0;
              ++round) {
+            const int used = mpc->qp.iterations;
             mpc->daqp.factored_h = mpc->cfg.horizon; /* the same QP: its factorisation still holds */
             qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 0);
+            mpc->qp.iterations += used; /* reported: the period's iterations, up to the rounds' caps */
         }
     } else {
         qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);

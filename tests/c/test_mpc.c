@@ -649,6 +649,41 @@ static void test_daqp_cold_start_goes_on_over_capped_periods(void **state)
     assert_true(daqp.warm_n == 0);
 }
 
+static void test_cold_start_takes_its_rounds_in_the_same_period(void **state)
+{
+    /* A cold DAQP start that hits the cap goes on at once from the working set it reached, up to
+     * DDYN_MPC_COLD_ROUNDS caps (mpc.c feedback). From standstill off the line (steering hard over,
+     * full throttle: track, rate and integrator rows bind) the cold QP needs `need` iterations; with a
+     * cap just above need / 2 it converges in its period, with a smaller one it is capped after the
+     * rounds' caps; a warm-started capped solve gets no rounds. */
+    static ddyn_mpc saved;
+    double x[DDYN_NX] = {RADIUS + 0.1, 0.0, PI / 2.0, 0.3, 0.0, 0.0, 0.9, 0.3}, u[DDYN_NU];
+    ddyn_mpc_info info;
+    int need;
+    (void)state;
+    ring_mpc(50);
+    memcpy(&saved, &mpc, sizeof saved);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+    need = info.qp_iterations;
+    print_message("cold start off the line: %d iterations\n", need);
+    assert_true(need >= 6 && need <= 50);
+    memcpy(&mpc, &saved, sizeof mpc);
+    mpc.cfg.qp_max_iterations = need / 2 + 1;
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+    assert_true(info.converged && info.qp_iterations > mpc.cfg.qp_max_iterations);
+    assert_true(info.qp_iterations <= DDYN_MPC_COLD_ROUNDS * mpc.cfg.qp_max_iterations);
+    memcpy(&mpc, &saved, sizeof mpc);
+    mpc.cfg.qp_max_iterations = need / 4;
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_int_equal(info.qp_iterations, DDYN_MPC_COLD_ROUNDS * mpc.cfg.qp_max_iterations);
+    assert_true(mpc.daqp.warm_n > 0); /* the next period goes on from there */
+    /* warm-started (a wrong working set), capped: one cap only */
+    ddyn_mpc_qp_daqp_adversarial_start(&mpc.daqp, mpc.cfg.horizon);
+    mpc.cfg.qp_max_iterations = 2;
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_int_equal(info.qp_iterations, 2);
+}
+
 static void test_daqp_warm_start_shifts_and_the_cap_is_defined(void **state)
 {
     /* closed loop on the ring with DAQP (the default): every QP, re-solved cold from the same problem,
@@ -848,6 +883,7 @@ int main(void)
         cmocka_unit_test(test_daqp_solves_the_structured_qps),
         cmocka_unit_test(test_daqp_refusals_and_crossing_bounds_start_cold),
         cmocka_unit_test(test_daqp_cold_start_goes_on_over_capped_periods),
+        cmocka_unit_test(test_cold_start_takes_its_rounds_in_the_same_period),
         cmocka_unit_test(test_daqp_warm_start_shifts_and_the_cap_is_defined),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
