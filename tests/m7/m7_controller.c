@@ -23,8 +23,8 @@
  * cost of a cold start at its cap and beyond (mpc.c gives it DDYN_MPC_COLD_ROUNDS caps), which the
  * interior-point fallback this replaced left unmeasured.
  *
- * Prints "m7: key value" lines; exits 0 when the commands agree, the worst case of passes 1 and 2 is at
- * most M7_BOUND_INSN instructions (passes 1, 2, 4 and 5) (the issue's target M7_MAX_INSN, 3 M: met since the QP runs on DAQP)
+ * Prints "m7: key value" lines; exits 0 when the commands agree, the worst case of passes 1, 2, 4 and 5 is
+ * at most M7_BOUND_INSN instructions (the issue's target M7_MAX_INSN, 3 M: met since the QP runs on DAQP)
  * and the stack did not overflow, else 1 (qemu exits with that code).
  * With DAQP (the default solver; it has no tolerance to tighten) pass 2 starts every QP from a wrong
  * working set (ddyn_mpc_qp_daqp_adversarial_start), which it takes apart one constraint per iteration.
