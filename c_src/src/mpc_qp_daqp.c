@@ -521,8 +521,8 @@ ddyn_status ddyn_mpc_qp_daqp_solve_factored(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w
      * the next period goes on from there (a cold start would need as many iterations again). A capped
      * chain that began warm continues once: if that continuation is capped too, it is no guide and the
      * next solve starts cold. A chain that began cold continues for up to DDYN_DAQP_COLD_PERIODS capped
-     * periods: starting cold again would throw away what it reached (after a recovery that looped:
-     * cold, capped, cold again, ...), and the cost per period stays the cap's. */
+     * solves (the MPC's rounds within the cold period count): starting cold again would throw away what
+     * it reached (after a recovery that looped: cold, capped, cold again, ...). */
     if (exitflag == DAQP_EXIT_ITERLIMIT) {
         if (w->capped == 0) {
             w->chain_cold = w->cold;

@@ -32,8 +32,9 @@ typedef double ddyn_qp_real;
 #define DDYN_DAQP_MG (DDYN_QP_NV + DDYN_QP_NS)         /* general rows: integrators, soft rows */
 #define DDYN_DAQP_M (DDYN_DAQP_N + DDYN_DAQP_MG)       /* all constraints */
 #define DDYN_DAQP_WS (DDYN_DAQP_N + DDYN_QP_NS + 1)    /* working set capacity (DAQP: n + soft + 1) */
-/* capped periods a cold start may take before it starts cold again (each period: the cap's iterations
- * from the working set the last one reached, shifted one stage) */
+/* capped solves a chain that began cold may take before it starts cold again (each from the working set
+ * the last one reached: shifted one stage in the next period, unshifted in the MPC's rounds within the
+ * cold period, mpc.c) */
 #define DDYN_DAQP_COLD_PERIODS 4
 /* DAQP's exit flag at the iteration cap (DAQP_EXIT_ITERLIMIT of its constants.h, 0.11.0) */
 #define DDYN_DAQP_EXIT_ITERLIMIT (-4)
