@@ -12,9 +12,41 @@
 #ifdef DDYN_EKF_FLOAT32
 typedef float real;
 #define REAL_SQRT sqrtf
+#define CONV(n) (n) /* conversion buffers: only the float build needs them */
+/* src in real: converted into buf */
+static const real *to_real(const double *src, real *buf, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        buf[i] = (real)src[i];
+    }
+    return buf;
+}
+static const double *to_double(const real *src, double *buf, int n)
+{
+    int i;
+    for (i = 0; i < n; ++i) {
+        buf[i] = (double)src[i];
+    }
+    return buf;
+}
 #else
 typedef double real;
 #define REAL_SQRT sqrt
+#define CONV(n) 1
+/* the double build reads the double arrays themselves: no copies (its answers and cost unchanged) */
+static const real *to_real(const double *src, real *buf, int n)
+{
+    (void)buf;
+    (void)n;
+    return src;
+}
+static const double *to_double(const real *src, double *buf, int n)
+{
+    (void)buf;
+    (void)n;
+    return src;
+}
 #endif
 
 #define N DDYN_NX
@@ -106,8 +138,10 @@ ddyn_status ddyn_ekf_init(ddyn_ekf *ekf, const ddyn_vehicle_model *model, ddyn_d
 
 ddyn_status ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC])
 {
-    double xn[N], Ad[N * N], Pd[N * N];
-    real A[N * N], P[N * N], AP[N * N], Pn[N * N];
+    double xn[N], Ad[N * N], Pd_buf[CONV(N * N)];
+    real A_buf[CONV(N * N)], P_buf[CONV(N * N)], AP[N * N], Pn[N * N];
+    const real *A, *P;
+    const double *Pd;
     int r, col, k;
     ddyn_status s;
     if (ekf == NULL || ekf->model == NULL) {
@@ -121,10 +155,8 @@ ddyn_status ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const doubl
     if (s != DDYN_OK) {
         return s;
     }
-    for (k = 0; k < N * N; ++k) {
-        A[k] = (real)Ad[k];
-        P[k] = (real)ekf->P[k];
-    }
+    A = to_real(Ad, A_buf, N * N);
+    P = to_real(ekf->P, P_buf, N * N);
     /* Pn = A P A' + diag(q) */
     for (col = 0; col < N; ++col) {
         for (r = 0; r < N; ++r) {
@@ -144,14 +176,12 @@ ddyn_status ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const doubl
             AT(Pn, r, col, N) = v + (r == col ? (real)ekf->q[r] : 0);
         }
     }
-    for (k = 0; k < N * N; ++k) {
-        Pd[k] = (double)Pn[k];
-    }
+    Pd = to_double(Pn, Pd_buf, N * N);
     if (!ddyn_all_finite(Pd, N * N)) {
         return DDYN_ERR_NONFINITE_OUTPUT;
     }
     memcpy(ekf->x, xn, sizeof xn);
-    memcpy(ekf->P, Pd, sizeof Pd);
+    memcpy(ekf->P, Pd, N * N * sizeof(double));
     symmetrise(ekf->P);
     return DDYN_OK;
 }
@@ -160,9 +190,11 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
                             const double c[DDYN_NC], double *nis)
 {
     /* zero-initialised: only the first m (dimension of the sensor) entries are used */
-    double h[MMAX] = {0}, Hd[MMAX * N] = {0}, y[MMAX] = {0}, Pd[N * N], xn[N];
-    real H[MMAX * N] = {0}, yr[MMAX] = {0}, S[MMAX * MMAX] = {0}, w[MMAX] = {0}, R[MMAX] = {0};
-    real P[N * N], PHt[N * MMAX], K[N * MMAX], IKH[N * N], T[N * N], Pn[N * N];
+    double h[MMAX] = {0}, Hd[MMAX * N] = {0}, y[MMAX] = {0}, Pd_buf[CONV(N * N)], xn[N];
+    real H_buf[CONV(MMAX * N)], y_buf[CONV(MMAX)] = {0}, R_buf[CONV(MMAX)] = {0}, P_buf[CONV(N * N)];
+    real S[MMAX * MMAX] = {0}, w[MMAX] = {0}, PHt[N * MMAX], K[N * MMAX], IKH[N * N], T[N * N], Pn[N * N];
+    const real *H, *yr, *R, *P;
+    const double *Pd;
     int m = ddyn_meas_dim(kind);
     int r, col, k, i;
     real nis_value = 0;
@@ -189,16 +221,10 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
         y[0] = fmod(y[0] + PI, 2.0 * PI);
         y[0] = (y[0] < 0.0 ? y[0] + 2.0 * PI : y[0]) - PI;
     }
-    for (k = 0; k < m * N; ++k) {
-        H[k] = (real)Hd[k];
-    }
-    for (k = 0; k < N * N; ++k) {
-        P[k] = (real)ekf->P[k];
-    }
-    for (i = 0; i < m; ++i) {
-        yr[i] = (real)y[i];
-        R[i] = (real)r_diag[i];
-    }
+    H = to_real(Hd, H_buf, m * N);
+    P = to_real(ekf->P, P_buf, N * N);
+    yr = to_real(y, y_buf, m);
+    R = to_real(r_diag, R_buf, m);
     /* PHt = P H' (N x m), S = H P H' + R (m x m) */
     for (col = 0; col < m; ++col) {
         for (r = 0; r < N; ++r) {
@@ -276,14 +302,12 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
             AT(Pn, r, col, N) = v;
         }
     }
-    for (k = 0; k < N * N; ++k) {
-        Pd[k] = (double)Pn[k];
-    }
+    Pd = to_double(Pn, Pd_buf, N * N);
     if (!ddyn_all_finite(xn, N) || !ddyn_all_finite(Pd, N * N)) {
         return DDYN_ERR_NONFINITE_OUTPUT;
     }
     memcpy(ekf->x, xn, sizeof xn);
-    memcpy(ekf->P, Pd, sizeof Pd);
+    memcpy(ekf->P, Pd, N * N * sizeof(double));
     symmetrise(ekf->P);
     if (nis != NULL) {
         *nis = (double)nis_value;
