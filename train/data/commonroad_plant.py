@@ -426,6 +426,9 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             s_arr, lat_arr = track.project(X, Y, s_hint=s_prev, window=window)
             s, lat = float(s_arr), float(lat_arr)
             s_prev = s
+        if log_row == 0:
+            # the excitation is drawn once per log sample whatever the DBW rate (the same driving spectrum)
+            ex = (ex_steer.next(), ex_speed.next(), ex_throttle.next())
         if i % n_dbw == 0:
             # ---- driver (on the true state, once per DBW tick)
             look = max(ds_settings.lookahead_min, ds_settings.lookahead_time * vx)
@@ -436,13 +439,13 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             v_yaw = max(vx, ds_settings.lookahead_min / ds_settings.lookahead_time)
             d_new += ds_settings.yaw_gain * wheelbase * (kappa_cmd - psi_dot / v_yaw)
             amp = ds_settings.steer_excitation * min(1.0, (ds_settings.excitation_speed / max(vx, 1e-6)) ** 2)
-            d_new += settings.excitation * amp * ex_steer.next()
-            scale = 1.0 + settings.excitation * ds_settings.speed_excitation * ex_speed.next()
+            d_new += settings.excitation * amp * ex[0]
+            scale = 1.0 + settings.excitation * ds_settings.speed_excitation * ex[1]
             v_ref = scale * float(np.min(track.interpolate(profile, s + preview * ds_settings.speed_preview
                                                            * max(vx, 0))))
             err = v_ref - vx
             t_new = (ds_settings.kp * err + ds_settings.ki * integ) / ACCEL_SCALE \
-                + settings.excitation * ds_settings.throttle_excitation * ex_throttle.next()
+                + settings.excitation * ds_settings.throttle_excitation * ex[2]
             if t_lo < t_new < t_hi:
                 integ += err * dbw
             # the DBW unit's rate and range limits (the log's rates stay inside the vehicle's input limits)
