@@ -81,6 +81,7 @@ PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "d
                  "gear_step")
 ROLL_GRADIENT = 0.05         # rad of body roll per g of lateral acceleration (a saloon's springs: ~3 deg/g)
 ROLL_NOISE = 0.003           # rad: an EKF's roll noise
+MIN_RELAXATION = 0.05        # m: sigma / v stays above the RK4 step up to 50 m/s (RK4 is stable down to 0.36 steps)
 
 
 def require_commonroad() -> None:
@@ -367,6 +368,9 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
                gamma=equivalent_gamma(effects.throttle_map) if effects.throttle_map else 1.0,
                brake_gain=effects.brake_gain, model=model)
     if effects.tire_relaxation:
+        if effects.tire_relaxation < MIN_RELAXATION:
+            raise DdynError(f"tyre relaxation length {effects.tire_relaxation} m: below {MIN_RELAXATION} m the "
+                            f"relaxed slip angles are too fast for the {PLANT_RATE:g} Hz RK4 step (and for any tyre)")
         env.hook, env.relaxation = _TyreHook(), effects.tire_relaxation
     if effects.power_limit:
         # CommonRoad caps the acceleration at a_max v_switch / v above v_switch: the power a_max v_switch m
