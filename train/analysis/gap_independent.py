@@ -106,7 +106,8 @@ def make_case_log(case: dict, tries: int = 3):
     for _ in range(tries):
         try:
             settings = CP.LogSettings(duration=DURATION, target_speed=case["target_speed"],
-                                      start_s=case["start_fraction"] * track.length)
+                                      start_s=case["start_fraction"] * track.length,
+                                      driver_grip=case.get("driver_grip"))
             if case.get("plant") == "mb":   # the multi-body plant (gap_mb.py)
                 return MB.make_log(track, effects, seed, settings), seed, None
             return CP.make_log(track, effects, seed, settings), seed, None

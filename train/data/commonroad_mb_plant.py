@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 
 from ddyn.data import commonroad_plant as CP
+from ddyn.errors import DdynError
 
 try:
     from vehiclemodels import vehicle_dynamics_mb as _mb_module
@@ -68,10 +69,13 @@ class MbModel:
 
     def rhs(self, x, u, env) -> tuple[list, list]:
         p = env.p
-        if env.hook is None:
-            f, kin = _mb_module.vehicle_dynamics_mb(list(x), u, p), []
-        else:
-            f, kin = env.hook.call(_mb_module.vehicle_dynamics_mb, list(x), u, p, env.alpha_eff)
+        try:
+            if env.hook is None:
+                f, kin = _mb_module.vehicle_dynamics_mb(list(x), u, p), []
+            else:
+                f, kin = env.hook.call(_mb_module.vehicle_dynamics_mb, list(x), u, p, env.alpha_eff)
+        except ArithmeticError as e:    # a spinning car reaches a wheel speed of zero (the package divides by it)
+            raise DdynError(f"the multi-body plant diverged (the car spun: vx {x[3]:.2f}, vy {x[10]:.2f} m/s): {e}")
         vx = x[3]
         v2 = vx * vx + x[10] * x[10]
         if env.downforce:

@@ -334,6 +334,7 @@ class LogSettings:
     extra: dict = field(default_factory=dict)
     roll_channel: bool = False   # log extras "roll" (bank minus body roll, plus noise)
     dbw_period: float | None = None   # s between the DBW unit's commands (None: the log's sample time)
+    driver_grip: float | None = None  # share of the nominal's grip the driver's speed profile uses (None: simulate's)
 
 
 def _command_at(history: list, t: float, delay: float, period: float) -> float:
@@ -383,7 +384,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         bank = world if bank is None else world + bank
     grade = grade_profile(track, effects.grade, effects.grade_phase) if effects.grade else None
 
-    ds_settings = driver_settings(veh, settings.target_speed)
+    ds_settings = driver_settings(veh, settings.target_speed, settings.driver_grip)
     profile = speed_profile(track, veh, veh.true_vector(), ds_settings)
     wheelbase = veh.known.lf + veh.known.lr
     t_lo, t_hi = veh.input_limits["throttle"]
