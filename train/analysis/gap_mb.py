@@ -107,7 +107,7 @@ def hold_check(periods=HOLD_PERIODS, seeds=HOLD_SEEDS, duration: float = 60.0) -
              "step structure (s) |", "|---|---|---|---|---|"]
     for period in periods:
         rs = [r for r in rows if r["dbw_period"] == period]
-        lines.append(f"| {period:g} | {period / 2:g} | {', '.join(f'{r['hold']:.4f}' for r in rs)} | "
-                     f"{sum(r['at_bound'] for r in rs)}/{len(rs)} | "
-                     f"{', '.join(f'{r['detected_period']:g}' for r in rs)} |")
+        holds = ", ".join(f"{r['hold']:.4f}" for r in rs)
+        found = ", ".join(f"{r['detected_period']:g}" for r in rs)
+        lines.append(f"| {period:g} | {period / 2:g} | {holds} | {sum(r['at_bound'] for r in rs)}/{len(rs)} | {found} |")
     return {"rows": rows, "markdown": "\n".join(lines) + "\n"}

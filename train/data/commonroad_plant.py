@@ -172,7 +172,7 @@ class _Env:
     grade: float = 0.0
     gamma: float = 1.0           # pedal map T^gamma (throttle)
     brake_gain: float = 0.0
-    model: object = None         # StdModel or ddyn.data.commonroad_mb_plant.MbModel
+    model: object = field(default_factory=lambda: StdModel())   # or ddyn.data.commonroad_mb_plant.MbModel
     n_model: int = 9             # the model's own states (relaxed slip angles follow them)
     hook: object = None          # _TyreHook when tyre relaxation is on
     relaxation: float = 0.0      # m
