@@ -170,3 +170,16 @@ def test_mb_case_plan_covers_the_new_effects():
     assert set(gap_mb.EFFECT_RANGES) - {"none"} <= set(effects)
     assert all(c["plant"] == "mb" and "gear_step" in c["candidates"] for c in cases)
     assert len({c["seed"] for c in cases}) == 12
+
+
+def test_cli_hold_takes_estimate():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    D.register(parser.add_subparsers())
+    base = ["diagnose", "--vehicle", "x", "--data", "y", "--out", "z"]
+    assert parser.parse_args(base).hold is False
+    assert parser.parse_args(base + ["--hold"]).hold is True
+    assert parser.parse_args(base + ["--hold", "estimate"]).hold == "estimate"
+    with pytest.raises(SystemExit):
+        parser.parse_args(base + ["--hold", "0.02"])
