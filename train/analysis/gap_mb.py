@@ -111,3 +111,30 @@ def hold_check(periods=HOLD_PERIODS, seeds=HOLD_SEEDS, duration: float = 60.0) -
         found = ", ".join(f"{r['detected_period']:g}" for r in rs)
         lines.append(f"| {period:g} | {period / 2:g} | {holds} | {sum(r['at_bound'] for r in rs)}/{len(rs)} | {found} |")
     return {"rows": rows, "markdown": "\n".join(lines) + "\n"}
+
+
+# ----------------------------------------------------------------------------------------------- gear steps
+
+GEAR_CHECK = ((0.0, 41), (0.15, 42), (0.25, 43), (0.35, 44))      # (step, seed) on the single-track plant
+GEAR_CANDIDATES = ("gear_step", "throttle_map", "brake_gain", "mass_offset", "throttle_delay")
+
+
+def gear_check(cases=GEAR_CHECK, duration: float = 60.0) -> dict:
+    """The gear_step candidate on single-track plant logs with a stepped gearbox (and one without): the
+    one-step diagnosis with the hold, the vx-related candidates only (the power limit left out: CommonRoad's own
+    92 kW limit is in every log, docs/gap_independent.md)."""
+    from ddyn.model.vehicle import load as load_vehicle
+
+    veh = load_vehicle(CP.NOMINAL_VEHICLE)
+    rows = []
+    for step, seed in cases:
+        ds = CP.make_log(G.TRACK, CP.PlantEffects(gear_step=step), seed, CP.LogSettings(duration=duration))
+        d = D.diagnose(ds, D.nominal_from_vehicle(veh, ds), candidates=GEAR_CANDIDATES, gate=None, hold=True)
+        g = next(c for c in d["candidates"] if c["effect"] == "gear_step")
+        shifts = int(np.sum(np.diff(ds.extras["true_gear"]) != 0)) if step else None
+        rows.append({"step": step, "seed": seed, "selected": d["selected"], "estimate": g["params"]["step"],
+                     "dbic": g["delta_bic"], "shifts": shifts})
+    lines = ["| gear step (plant) | shifts in the log | selected | gear_step estimate | its dBIC |", "|---|---|---|---|---|"]
+    lines += [f"| {r['step']:g} | {r['shifts'] if r['shifts'] is not None else '-'} | {', '.join(r['selected']) or 'none'} "
+              f"| {r['estimate']:.3f} | {r['dbic']:.1f} |" for r in rows]
+    return {"rows": rows, "markdown": "\n".join(lines) + "\n"}
