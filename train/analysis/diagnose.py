@@ -1012,7 +1012,8 @@ def register(subparsers) -> None:
     p.add_argument("--hold", nargs="?", const=True, default=False, type=_hold_arg, metavar="estimate",
                    help="the log's throttle and steering were held between samples (a drive-by-wire unit): the "
                         "nominal gets half a sample of delay on both, delay estimates are on top of it; "
-                        "'--hold estimate': the hold delay fitted from the log instead (at most half a sample)")
+                        "'--hold estimate': the hold delay fitted from the log instead (at most half a sample; "
+                        "on the independent plant it does not resolve the DBW rate: docs/gap_independent.md)")
     p.add_argument("--dbw", action="store_true",
                    help="a drive-by-wire log: --hold --fit {fit} --min-evidence {min_evidence:g} (calibrated on the "
                         "independent plant; explicit --fit/--min-evidence win)".format(**DBW_PRESET))
