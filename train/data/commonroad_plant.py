@@ -37,6 +37,14 @@ How a log is made (the way a car with a drive-by-wire unit is logged):
     squares, equivalent_gamma), brake_gain (the braking force (1 + g) times the nominal), power_limit (the
     drive power in W instead of CommonRoad's own limit, a_max v_switch = 84 m^2/s^3 times the mass: 92 kW).
 
+  - tire_relaxation: each tyre's slip angle relaxes to the kinematic one over the relaxation length (extra
+    plant states; CommonRoad's own tyre formulas are evaluated at the relaxed angles, _TyreHook);
+  - gear_step: a five-speed gearbox (GEAR_SHIFTS), drive force (1 + step)^(GEAR_REF - gear), SHIFT_TIME of
+    torque interruption at each shift;
+  - LogSettings.dbw_period: a DBW unit at another rate than the log (the driver decides at each DBW tick, the
+    log records the command in force at each row);
+  - the model is pluggable (StdModel here; ddyn.data.commonroad_mb_plant.MbModel: the multi-body model).
+
 State mapping (CommonRoad -> canonical): x, y; yaw = psi; vx = v cos(beta), vy = v sin(beta);
 omega = psi_dot. The noise-free values and the actual wheel angle are kept as extras true_*.
 """
