@@ -24,7 +24,7 @@ INPUTS = (0.0, 0.0)
 MAGNITUDE = {"steer_delay": 0.03, "throttle_delay": 0.05, "steer_lag": 0.03, "bank_angle": 0.05, "grade": 0.05,
              "downforce": 0.05, "combined_slip": 0.5, "tire_relaxation": 0.01, "tire_wear": 0.01,
              "yaw_rate_bias": 0.1, "mass_offset": 0.15, "throttle_map": 0.5, "brake_gain": 0.5,
-             "power_limit": 0.05}
+             "power_limit": 0.05, "gear_step": 0.2}
 
 
 def _d(effects=None, aux=None):

@@ -34,9 +34,11 @@ ALL = E.ALL_EFFECTS + EXTRA
 FAMILY = {**{n: n for n in E.ALL_EFFECTS}, **PROFILE_OF, **{k: v[0] for k, v in ROLL_OF.items()}}
 MAIN_PARAM = {**E.MAIN_PARAM, "bank_profile": "peak", "grade_profile": "peak", "bank_from_roll": "gain"}
 UNITS = {**E.UNITS, "bank_profile": "rad", "grade_profile": "rad", "bank_from_roll": "-"}
-UNIT = {"bank_profile": 0.01, "grade_profile": 0.01, "bank_from_roll": 0.1}           # fit scaling
-BOUNDS = {"bank_profile": (-0.6, 0.6), "grade_profile": (-0.3, 0.3), "bank_from_roll": (-2.0, 2.0)}
-GRID = {"bank_from_roll": (2.5, 5, 7.5, 10, 12.5)}   # in units: gains 0.25-1.25
+UNIT = {"bank_profile": 0.01, "grade_profile": 0.01, "bank_from_roll": 0.1, "gear_step": 0.05}   # fit scaling
+BOUNDS = {"bank_profile": (-0.6, 0.6), "grade_profile": (-0.3, 0.3), "bank_from_roll": (-2.0, 2.0),
+          "gear_step": (-0.5, 1.0)}
+GRID = {"bank_from_roll": (2.5, 5, 7.5, 10, 12.5),   # in units: gains 0.25-1.25
+        "gear_step": (-4, 2, 4, 8)}                  # force steps -0.2 to 0.4 between gears
 
 KNOT_SPACING = 50.0      # m between knots: a bank changes over a turn entry (tens of metres), not faster
 MIN_KNOTS, MAX_KNOTS = 4, 40

@@ -55,6 +55,7 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
 """
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import time as _time
@@ -65,7 +66,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from ddyn.analysis import candidates as C
-from ddyn.analysis import eiv
+from ddyn.analysis import eiv, hold_estimate
 from ddyn.data.dataset import Dataset
 from ddyn.errors import DdynError
 from ddyn.model import effects as E
@@ -214,8 +215,9 @@ class Problem:
         # commands held between samples (a drive-by-wire unit) while the model ramps them: on average the held
         # command lags the ramp by half a sample, so every hypothesis gets that delay on both commands and the
         # delay candidates estimate what comes on top of the hold
-        self.hold = 0.5 * ds.sample_time if hold else 0.0
-        self._hold_values = {"steer_delay": self.hold, "throttle_delay": self.hold} if hold else {}
+        # (hold: True for the half sample, or the hold delay in seconds: hold_estimate)
+        self.hold = 0.5 * ds.sample_time if hold is True else float(hold or 0.0)
+        self._hold_values = {"steer_delay": self.hold, "throttle_delay": self.hold} if self.hold else {}
         p = nominal.vehicle.known
         self.lm = E.LogModel.of(ds, p, nominal.method, nominal.substeps)
         # the fit's predictor (fit_residuals); held-out scores, the noise floor and "where" stay one-step from
@@ -587,6 +589,12 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     margin = MIN_EVIDENCE if min_evidence is None else float(min_evidence)
     fit_mode = fit_mode or DEFAULT_FIT
     t0 = _time.perf_counter()
+    hold_info = None
+    if hold == "estimate":      # the hold delay fitted on the nominal (ddyn.analysis.hold_estimate)
+        hold_info = hold_estimate.estimate(lambda h: Problem(ds, nominal, fit_fraction, refit, hold=h),
+                                           lambda pr: fit(pr, ()), ds.sample_time)
+        hold_info["dbw_period_from_steps"] = hold_estimate.detect_period(ds)
+        hold = hold_info["hold"]
     prob = Problem(ds, nominal, fit_fraction, refit, hold=hold, fit_mode=fit_mode)
     prob.layout = C.layout(ds, track, prob.rows_fit)
     C.attach(prob.lm, prob.layout)
@@ -712,7 +720,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "where": w,
         "nominal": {"source": nominal.label, "vehicle": v.name, "method": nominal.method,
                     "substeps": nominal.substeps, "refit_under_every_hypothesis": list(prob.refit),
-                    "command_hold_delay": prob.hold,
+                    "command_hold_delay": prob.hold, "hold_estimate": hold_info,
                     "refit_only": {"rmse": _chan(base["rmse"]), "factors": {n: 1.0 + float(r) for n, r in
                                                                              zip(prob.refit, base_fit.rho)}}},
         "split": {"fit_fraction": fit_fraction, "fit_rows": int(len(prob.rows_fit)),
@@ -934,6 +942,12 @@ def _track(name: str | None, ds: Dataset):
         return None
 
 
+def _hold_arg(text: str):
+    if text != "estimate":
+        raise argparse.ArgumentTypeError("--hold takes no value or 'estimate'")
+    return text
+
+
 def _run(args) -> int:
     ds, nominal = load_inputs(args)
     # the default library is the eleven one-parameter effects the benchmarks calibrated and scored;
@@ -954,7 +968,7 @@ def _run(args) -> int:
         raise DdynError(f"--refit: unknown coefficient(s) {', '.join(bad)}")
     gate = "default" if args.gate is None else (None if args.gate <= 0 else args.gate)
     if args.dbw:        # the preset fills what was not given explicitly
-        args.hold = True
+        args.hold = args.hold or True
         args.fit = args.fit or DBW_PRESET["fit"]
         args.min_evidence = DBW_PRESET["min_evidence"] if args.min_evidence is None else args.min_evidence
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
@@ -995,9 +1009,11 @@ def register(subparsers) -> None:
     p.add_argument("--refit", default=",".join(DEFAULT_REFIT),
                    help="nominal coefficients refitted (as factors) under every hypothesis (default Df,Dr; 'none')")
     p.add_argument("--max-effects", type=int, default=3)
-    p.add_argument("--hold", action="store_true",
+    p.add_argument("--hold", nargs="?", const=True, default=False, type=_hold_arg, metavar="estimate",
                    help="the log's throttle and steering were held between samples (a drive-by-wire unit): the "
-                        "nominal gets half a sample of delay on both, delay estimates are on top of it")
+                        "nominal gets half a sample of delay on both, delay estimates are on top of it; "
+                        "'--hold estimate': the hold delay fitted from the log instead (at most half a sample; "
+                        "on the independent plant it does not resolve the DBW rate: docs/gap_independent.md)")
     p.add_argument("--dbw", action="store_true",
                    help="a drive-by-wire log: --hold --fit {fit} --min-evidence {min_evidence:g} (calibrated on the "
                         "independent plant; explicit --fit/--min-evidence win)".format(**DBW_PRESET))

@@ -575,6 +575,10 @@ def real_markdown(summary: dict) -> str:
 def _run_commonroad(args, out: Path) -> int:
     """--plant commonroad: the independent plant (gap_independent.py)."""
     G = gap_independent
+    if args.plant == "commonroad-mb" and (getattr(args, "case_set", "putnam") != "putnam" or args.eiv_check
+                                          or args.nominal != "mapped"):
+        raise DdynError("--plant commonroad-mb: the Putnam cases with the mapped nominal only (--case-set, "
+                        "--eiv-check and --nominal identified are the single-track plant's)")
     if getattr(args, "case_set", "putnam") != "putnam":
         return _run_case_set(args, out)
     if args.eiv_check:
@@ -607,9 +611,15 @@ def _run_commonroad(args, out: Path) -> int:
         if args.min_evidence is not None:
             D.MIN_EVIDENCE = args.min_evidence
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
-        doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
-                    nominal=args.nominal, fit=args.fit,
-                    thresholds=G.thresholds_of(args.thresholds_from) if args.thresholds_from else None)
+        thresholds = G.thresholds_of(args.thresholds_from) if args.thresholds_from else None
+        if args.plant == "commonroad-mb":     # the multi-body plant (gap_mb.py)
+            from ddyn.analysis import gap_mb
+
+            doc = gap_mb.run(args.cases or 20, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
+                             fit=args.fit, thresholds=thresholds)
+        else:
+            doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
+                        nominal=args.nominal, fit=args.fit, thresholds=thresholds)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -664,7 +674,7 @@ def _run(args) -> int:
 
 def _run_here(args) -> int:
     out = Path(args.out)
-    if args.plant == "commonroad":
+    if args.plant in ("commonroad", "commonroad-mb"):
         return _run_commonroad(args, out)
     if args.seed is None:
         args.seed = DEFAULT_SEED
@@ -705,9 +715,11 @@ def register(subparsers) -> None:
                    help=f"benchmark seed (default {DEFAULT_SEED}, commonroad {gap_independent.DEFAULT_SEED}; "
                         f"{', '.join(map(str, DEVELOPMENT_SEEDS))} were used to choose the own plant's settings, "
                         f"{', '.join(map(str, gap_independent.CALIBRATION_SEEDS))} the no-gap gate)")
-    p.add_argument("--plant", choices=("own", "commonroad"), default="own",
+    p.add_argument("--plant", choices=("own", "commonroad", "commonroad-mb"), default="own",
                    help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
-                        "single-track drift model (an independent plant, docs/gap_independent.md)")
+                        "single-track drift model (an independent plant, docs/gap_independent.md); commonroad-mb: "
+                        "its multi-body model (Putnam cases with tyre relaxation and gear steps; --case-set, "
+                        "--nominal identified and --eiv-check are the single-track plant's)")
     p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the cases on this Dask distributed scheduler (e.g. tcp://HOST:8786; its workers need "

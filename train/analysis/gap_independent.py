@@ -31,8 +31,10 @@ import numpy as np
 from ddyn.analysis import candidates as C
 from ddyn.analysis import diagnose as D
 from ddyn.analysis.parallel import run_cases
+from ddyn.data import commonroad_mb_plant as MB
 from ddyn.data import commonroad_plant as CP
 from ddyn.errors import DdynError
+from ddyn.model import effects as E
 from ddyn.model.vehicle import load as load_vehicle
 
 NONE = "none"
@@ -104,7 +106,10 @@ def make_case_log(case: dict, tries: int = 3):
     for _ in range(tries):
         try:
             settings = CP.LogSettings(duration=DURATION, target_speed=case["target_speed"],
-                                      start_s=case["start_fraction"] * track.length)
+                                      start_s=case["start_fraction"] * track.length,
+                                      driver_grip=case.get("driver_grip"))
+            if case.get("plant") == "mb":   # the multi-body plant (gap_mb.py)
+                return MB.make_log(track, effects, seed, settings), seed, None
             return CP.make_log(track, effects, seed, settings), seed, None
         except DdynError as e:
             err, seed = str(e), seed + 7919
@@ -116,11 +121,11 @@ def run_case(case: dict) -> dict:
     out = dict(case)
     if ds is None:
         return out | {"status": "simulation failed", "error": err}
-    veh = load_vehicle(CP.NOMINAL_VEHICLE)
+    veh = load_vehicle(MB.NOMINAL_VEHICLE if case.get("plant") == "mb" else CP.NOMINAL_VEHICLE)
     t0 = time.perf_counter()
     coeffs = np.asarray(case["coefficients"]) if case.get("coefficients") is not None else None
     diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), hold=bool(case.get("hold", False)),
-                      fit_mode=case.get("fit"))
+                      fit_mode=case.get("fit"), candidates=tuple(case.get("candidates") or E.EFFECT_NAMES))
     seconds = time.perf_counter() - t0
     g = diag["gate"]
     # a bank or grade found as a profile along the track (or from the roll channel) is that effect found
@@ -298,7 +303,7 @@ def score(results: list[dict], thresholds: dict | None = None) -> dict:
     none = [r for r in ok if r["effect"] == NONE]
     eff = [r for r in ok if r["effect"] != NONE]
     per = {}
-    for e in EFFECT_RANGES:
+    for e in dict.fromkeys([*EFFECT_RANGES, *(r["effect"] for r in eff)]):   # and the MB set's (gap_mb.py)
         rows = [r for r in eff if r["effect"] == e]
         if not rows:
             continue
@@ -388,7 +393,7 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
     s = sc["summary"]
     gate = s["gate_threshold"]
     seen = settings["seed"] in SEEN_SEEDS
-    lines = [f"Independent plant (CommonRoad vehicle_dynamics_std, parameters_vehicle2) on {TRACK}, "
+    lines = [f"Independent plant (CommonRoad {settings.get('plant_model', 'vehicle_dynamics_std')}, parameters_vehicle2) on {TRACK}, "
              f"{DURATION:.0f} s logs; seed {settings['seed']} "
              + ("(a calibration seed: chooses the gate, not a blind test)" if settings["calibration_seed"]
                 else "(seen: scored before and looked at since, not blind)" if seen else "(blind: chose nothing)")

@@ -37,6 +37,14 @@ How a log is made (the way a car with a drive-by-wire unit is logged):
     squares, equivalent_gamma), brake_gain (the braking force (1 + g) times the nominal), power_limit (the
     drive power in W instead of CommonRoad's own limit, a_max v_switch = 84 m^2/s^3 times the mass: 92 kW).
 
+  - tire_relaxation: each tyre's slip angle relaxes to the kinematic one over the relaxation length (extra
+    plant states; CommonRoad's own tyre formulas are evaluated at the relaxed angles, _TyreHook);
+  - gear_step: a five-speed gearbox (GEAR_SHIFTS), drive force (1 + step)^(GEAR_REF - gear), SHIFT_TIME of
+    torque interruption at each shift;
+  - LogSettings.dbw_period: a DBW unit at another rate than the log (the driver decides at each DBW tick, the
+    log records the command in force at each row);
+  - the model is pluggable (StdModel here; ddyn.data.commonroad_mb_plant.MbModel: the multi-body model).
+
 State mapping (CommonRoad -> canonical): x, y; yaw = psi; vx = v cos(beta), vy = v sin(beta);
 omega = psi_dot. The noise-free values and the actual wheel angle are kept as extras true_*.
 """
@@ -77,9 +85,11 @@ ROLLING = 161.0              # N: 1.5 % of the weight, the usual rolling-resista
 NOMINAL_VEHICLE = Path(__file__).resolve().parents[1] / "vehicles" / "plants" / "commonroad_vehicle2.json"
 NOISY = ("x", "y", "yaw", "vx", "vy", "omega")
 PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce", "bank_angle", "grade",
-                 "throttle_map", "brake_gain", "power_limit", "tire_wear", "yaw_rate_bias")
+                 "throttle_map", "brake_gain", "power_limit", "tire_wear", "yaw_rate_bias", "tire_relaxation",
+                 "gear_step")
 ROLL_GRADIENT = 0.05         # rad of body roll per g of lateral acceleration (a saloon's springs: ~3 deg/g)
 ROLL_NOISE = 0.003           # rad: an EKF's roll noise
+MIN_RELAXATION = 0.05        # m: sigma / v stays above the RK4 step up to 50 m/s (RK4 is stable down to 0.36 steps)
 
 
 def require_commonroad() -> None:
@@ -105,6 +115,8 @@ class PlantEffects:
     power_limit: float = 0.0     # W: drive power limit replacing CommonRoad's (0: CommonRoad's own)
     tire_wear: float = 0.0       # 1/s: the tyres' friction (p_dx1, p_dy1) scaled by exp(-rate t), t from the log's start
     yaw_rate_bias: float = 0.0   # rad/s: the logged omega reads the true one plus this (the dynamics are unchanged)
+    tire_relaxation: float = 0.0  # m: the tyres' slip angles lag the kinematic ones by the time sigma / v
+    gear_step: float = 0.0       # -: a stepped gearbox (GEAR_SHIFTS), drive force (1 + step) more per lower gear
 
     def active(self) -> dict[str, float]:
         return {k: v for k, v in asdict(self).items() if k in PLANT_EFFECTS and v != 0.0}
@@ -168,37 +180,154 @@ class _Env:
     grade: float = 0.0
     gamma: float = 1.0           # pedal map T^gamma (throttle)
     brake_gain: float = 0.0
+    model: object = field(default_factory=lambda: StdModel())   # or ddyn.data.commonroad_mb_plant.MbModel
+    n_model: int = 9             # the model's own states (relaxed slip angles follow them)
+    hook: object = None          # _TyreHook when tyre relaxation is on
+    relaxation: float = 0.0      # m
+    alpha_eff: list = field(default_factory=list)
+    gear_factor: float = 1.0     # drive force factor of the current gear (0 during a shift)
 
 
-def plant_rhs(x: list, steer_target: float, throttle: float, env: _Env) -> list:
-    """d/dt of CommonRoad's 9-state std model under the held commands, with the additions above."""
-    v, beta, psi_dot = x[3], x[6], x[5]
-    q = 1.0 + env.downforce * v * v                  # tyre-load factor of downforce
-    env.p.m = env.m_true * q
-    steer_rate = (steer_target - x[2]) / env.servo_tau
-    pedal = throttle ** env.gamma if throttle > 0 else (1.0 + env.brake_gain) * throttle
-    accel = env.m_nominal * ACCEL_SCALE * pedal / env.p.m   # the drive force, whatever the mass
-    f = _std_module.vehicle_dynamics_std(list(x), [steer_rate, accel], env.p)
-    # undo the downforce mass: forces / (m q) -> forces / m (yaw and wheel dynamics have no mass)
-    f[3] *= q
-    f[6] = -psi_dot + (f[6] + psi_dot) * q
-    # drag and rolling resistance act along the velocity; gravity of bank (+: to the left) and grade (+: uphill)
-    a_x = -G * math.sin(env.grade)
-    a_y = G * math.sin(env.bank)
-    cb, sb = math.cos(beta), math.sin(beta)
-    f[3] += -(DRAG * v * v + (ROLLING if v > 0.5 else 0.0)) / env.m_true + a_x * cb + a_y * sb
-    if v > 0.5:
-        f[6] += (a_y * cb - a_x * sb) / v
+class _TyreHook:
+    """Tyre relaxation in physical form: CommonRoad's tyres see slip angles that build up over the relaxation
+    length (d alpha_eff / dt = (v / sigma) (alpha - alpha_eff)), not the kinematic ones.
+
+    The package computes each tyre's kinematic slip angle inside its right-hand side and hands it to
+    vehiclemodels.utils.tire_model; during a call this hook stands in for the three functions of that module
+    that take a slip angle, records the kinematic angles (the i-th formula_lateral call is tyre i) and
+    evaluates the package's own tyre formulas at the relaxed angles carried as extra plant states."""
+
+    NAMES = ("formula_lateral", "formula_lateral_comb", "formula_longitudinal_comb")
+
+    def __init__(self):
+        from vehiclemodels.utils import tire_model
+        self.module = tire_model
+        self.orig = {n: getattr(tire_model, n) for n in self.NAMES}
+        self.eff: list = []
+        self.kin: list = []
+
+    def _index(self, alpha) -> int:
+        for i, a in enumerate(self.kin):
+            if a is alpha:
+                return i
+        return self.kin.index(alpha)
+
+    def lateral(self, alpha, gamma, F_z, p):
+        self.kin.append(alpha)
+        return self.orig["formula_lateral"](self.eff[len(self.kin) - 1], gamma, F_z, p)
+
+    def lateral_comb(self, kappa, alpha, gamma, mu_y, F_z, F0_y, p):
+        return self.orig["formula_lateral_comb"](kappa, self.eff[self._index(alpha)], gamma, mu_y, F_z, F0_y, p)
+
+    def longitudinal_comb(self, kappa, alpha, F0_x, p):
+        return self.orig["formula_longitudinal_comb"](kappa, self.eff[self._index(alpha)], F0_x, p)
+
+    def call(self, fn, x, u, p, eff):
+        """fn(x, u, p) with the tyres at the relaxed slip angles eff; returns (f, the kinematic angles)."""
+        self.eff, self.kin = list(eff), []
+        m = self.module
+        m.formula_lateral, m.formula_lateral_comb, m.formula_longitudinal_comb = (
+            self.lateral, self.lateral_comb, self.longitudinal_comb)
+        try:
+            f = fn(x, u, p)
+        finally:
+            for n, g in self.orig.items():
+                setattr(m, n, g)
+        return f, self.kin
+
+
+# the stepped gearbox of the gear_step effect: upshift speeds (m/s), downshift GEAR_HYSTERESIS lower; the drive
+# force in gear n is (1 + step)^(GEAR_REF - n) times the nominal's (a geometric ratio progression: lower gears
+# pull harder), the nominal's throttle map holds in GEAR_REF; each shift cuts the drive for SHIFT_TIME
+GEAR_SHIFTS = (8.0, 14.0, 20.0, 27.0)
+GEAR_REF = 3
+GEAR_HYSTERESIS = 1.0
+SHIFT_TIME = 0.15
+
+
+def gear_for(v: float, gear: int) -> int:
+    """The gear after a possible shift at speed v (up at GEAR_SHIFTS, down GEAR_HYSTERESIS below them)."""
+    while gear < len(GEAR_SHIFTS) + 1 and v >= GEAR_SHIFTS[gear - 1]:
+        gear += 1
+    while gear > 1 and v < GEAR_SHIFTS[gear - 2] - GEAR_HYSTERESIS:
+        gear -= 1
+    return gear
+
+
+class StdModel:
+    """CommonRoad's single-track drift model (9 states) with the additions of the module docstring."""
+
+    name = "std"
+    label = "commonroad vehicle_dynamics_std"
+    tyres = 2
+
+    def scale_mass(self, p, factor: float) -> None:
+        p.I_z = p.I_z * factor          # the mass itself is env.m_true, set per call
+
+    def init(self, px, py, delta0, v0, psi0, p) -> list:
+        return init_std([px, py, delta0, v0, psi0, 0.0, 0.0], p)
+
+    def observe(self, x) -> tuple:
+        """(X, Y, wheel angle, yaw, vx, vy, yaw rate, body roll)"""
+        v, beta = x[3], x[6]
+        return x[0], x[1], x[2], x[4], v * math.cos(beta), v * math.sin(beta), x[5], None
+
+    def clamp(self, x) -> None:
+        x[7], x[8] = max(x[7], 0.0), max(x[8], 0.0)   # as CommonRoad: no negative wheel spin
+
+    def rhs(self, x, u, env) -> tuple[list, list]:
+        v, beta, psi_dot = x[3], x[6], x[5]
+        q = 1.0 + env.downforce * v * v                  # tyre-load factor of downforce
+        env.p.m = env.m_true * q
+        u = [u[0], u[1] / q]                             # the drive force stays the same with the heavier m
+        if env.hook is None:
+            f, kin = _std_module.vehicle_dynamics_std(list(x), u, env.p), []
+        else:
+            f, kin = env.hook.call(_std_module.vehicle_dynamics_std, list(x), u, env.p, env.alpha_eff)
+        # undo the downforce mass: forces / (m q) -> forces / m (yaw and wheel dynamics have no mass)
+        f[3] *= q
+        f[6] = -psi_dot + (f[6] + psi_dot) * q
+        # drag and rolling resistance act along the velocity; gravity of bank (+: to the left) and grade (+: uphill)
+        a_x = -G * math.sin(env.grade)
+        a_y = G * math.sin(env.bank)
+        cb, sb = math.cos(beta), math.sin(beta)
+        f[3] += -(DRAG * v * v + (ROLLING if v > 0.5 else 0.0)) / env.m_true + a_x * cb + a_y * sb
+        if v > 0.5:
+            f[6] += (a_y * cb - a_x * sb) / v
+        return f, kin
+
+    def speed(self, x) -> float:
+        return x[3]
+
+
+def plant_rhs(x: list, steer_target: float, throttle: float, env: "_Env") -> list:
+    """d/dt of the plant's state (the model's states, then the relaxed slip angles when relaxation is on)
+    under the held commands."""
+    model = env.model
+    n = env.n_model
+    xm = x[:n]
+    steer_rate = (steer_target - xm[2]) / env.servo_tau
+    if throttle > 0:
+        pedal = throttle ** env.gamma * env.gear_factor
+    else:
+        pedal = (1.0 + env.brake_gain) * throttle
+    accel = env.m_nominal * ACCEL_SCALE * pedal / env.m_true   # the drive force, whatever the mass
+    if env.hook is not None:
+        env.alpha_eff = x[n:]
+    f, kin = model.rhs(xm, [steer_rate, accel], env)
+    if env.hook is not None:
+        rate = max(model.speed(xm), 0.5) / env.relaxation
+        f = list(f) + [rate * (a - e) for a, e in zip(kin, x[n:])]
     return f
 
 
-def rk4_step(x: list, h: float, steer_target: float, throttle: float, env: _Env) -> list:
+def rk4_step(x: list, h: float, steer_target: float, throttle: float, env: "_Env") -> list:
     k1 = plant_rhs(x, steer_target, throttle, env)
     k2 = plant_rhs([a + 0.5 * h * b for a, b in zip(x, k1)], steer_target, throttle, env)
     k3 = plant_rhs([a + 0.5 * h * b for a, b in zip(x, k2)], steer_target, throttle, env)
     k4 = plant_rhs([a + h * b for a, b in zip(x, k3)], steer_target, throttle, env)
     out = [a + h / 6.0 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip(x, k1, k2, k3, k4)]
-    out[7], out[8] = max(out[7], 0.0), max(out[8], 0.0)   # as CommonRoad: no negative wheel spin
+    env.model.clamp(out)
     return out
 
 
@@ -212,32 +341,46 @@ class LogSettings:
     start_s: float = 0.0
     extra: dict = field(default_factory=dict)
     roll_channel: bool = False   # log extras "roll" (bank minus body roll, plus noise)
+    dbw_period: float | None = None   # s between the DBW unit's commands (None: the log's sample time)
+    driver_grip: float | None = None  # share of the nominal's grip the driver's speed profile uses (None: simulate's)
 
 
-def _command_at(history: list, t: float, delay: float, Ts: float) -> float:
-    """The held command the actuator sees at time t: the one issued at the last sample before t - delay."""
-    k = int(math.floor((t - delay) / Ts + 1e-9))
+def _command_at(history: list, t: float, delay: float, period: float) -> float:
+    """The held command the actuator sees at time t: the one issued at the last DBW tick before t - delay."""
+    k = int(math.floor((t - delay) / period + 1e-9))
     return history[min(max(k, 0), len(history) - 1)]
 
 
 def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects(), seed: int = 0,
-             settings: LogSettings = LogSettings(), nominal: Vehicle | str | Path = NOMINAL_VEHICLE) -> Dataset:
-    """One log of the CommonRoad plant driven around `track` (see the module docstring)."""
+             settings: LogSettings = LogSettings(), nominal: Vehicle | str | Path = NOMINAL_VEHICLE,
+             model=None) -> Dataset:
+    """One log of the CommonRoad plant driven around `track` (see the module docstring). model: StdModel()
+    (default) or ddyn.data.commonroad_mb_plant.MbModel()."""
     require_commonroad()
+    model = model or StdModel()
     track = load_track(track) if isinstance(track, str) else track
     veh = vehicle_ref.as_vehicle(nominal) if not isinstance(nominal, Vehicle) else nominal
     Ts = veh.sample_time
     n_sub = int(round(Ts * PLANT_RATE))
     if abs(n_sub / PLANT_RATE - Ts) > 1e-9:
         raise DdynError(f"the log's sample time {Ts} s is not a multiple of the plant's {1 / PLANT_RATE} s")
+    dbw = float(settings.dbw_period or Ts)
+    n_dbw = int(round(dbw * PLANT_RATE))
+    if n_dbw < 1 or abs(n_dbw / PLANT_RATE - dbw) > 1e-9:
+        raise DdynError(f"the DBW period {dbw} s is not a multiple of the plant's {1 / PLANT_RATE} s")
     h = 1.0 / PLANT_RATE
     p = commonroad_parameters()
     m_nom = veh.known.mass
-    p.I_z = p.I_z * (1.0 + effects.mass_offset)
+    model.scale_mass(p, 1.0 + effects.mass_offset)
     env = _Env(p=p, m_true=m_nom * (1.0 + effects.mass_offset), m_nominal=m_nom, downforce=effects.downforce,
                servo_tau=max(SERVO_TAU, effects.steer_lag),
                gamma=equivalent_gamma(effects.throttle_map) if effects.throttle_map else 1.0,
-               brake_gain=effects.brake_gain)
+               brake_gain=effects.brake_gain, model=model)
+    if effects.tire_relaxation:
+        if effects.tire_relaxation < MIN_RELAXATION:
+            raise DdynError(f"tyre relaxation length {effects.tire_relaxation} m: below {MIN_RELAXATION} m the "
+                            f"relaxed slip angles are too fast for the {PLANT_RATE:g} Hz RK4 step (and for any tyre)")
+        env.hook, env.relaxation = _TyreHook(), effects.tire_relaxation
     if effects.power_limit:
         # CommonRoad caps the acceleration at a_max v_switch / v above v_switch: the power a_max v_switch m
         p.longitudinal.v_switch = effects.power_limit / (env.m_true * p.longitudinal.a_max)
@@ -249,13 +392,13 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         bank = world if bank is None else world + bank
     grade = grade_profile(track, effects.grade, effects.grade_phase) if effects.grade else None
 
-    ds_settings = driver_settings(veh, settings.target_speed)
+    ds_settings = driver_settings(veh, settings.target_speed, settings.driver_grip)
     profile = speed_profile(track, veh, veh.true_vector(), ds_settings)
     wheelbase = veh.known.lf + veh.known.lr
     t_lo, t_hi = veh.input_limits["throttle"]
     d_lo, d_hi = veh.input_limits["steering"]
-    dt_max = veh.input_limits["dthrottle"][1] * Ts
-    dd_max = veh.input_limits["dsteering"][1] * Ts
+    dt_max = veh.input_limits["dthrottle"][1] * dbw
+    dd_max = veh.input_limits["dsteering"][1] * dbw
     seeds = np.random.SeedSequence(seed).spawn(4)
     ex_steer = BandNoise(np.random.default_rng(seeds[0]), 0.08)
     ex_throttle = BandNoise(np.random.default_rng(seeds[1]), 0.04)
@@ -267,11 +410,16 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     px, py = (float(v) for v in track.position(s0))
     v0 = float(track.interpolate(profile, s0))
     delta0 = math.atan(wheelbase * float(track.curvature_at(s0)))
-    x = init_std([px, py, delta0, v0, float(track.heading_at(s0)), 0.0, 0.0], p)
+    x = list(model.init(px, py, delta0, v0, float(track.heading_at(s0)), p))
+    env.n_model = len(x)
+    if env.hook is not None:
+        x += [0.0] * model.tyres          # relaxed slip angles, from straight running
     n = int(round(settings.duration / Ts)) + 1
     rows = np.empty((n, 6))
     true_delta = np.empty(n)
+    body_roll = np.zeros(n)
     road_bank = np.zeros(n)
+    gears = np.zeros(n, dtype=np.int64)
     T_hist: list[float] = []
     D_hist: list[float] = []
     T_cmd, D_cmd = 0.0, delta0
@@ -279,59 +427,82 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     s_prev = s0
     window = max(4.0 * ds_settings.lookahead_min, 0.05 * L)
     preview = np.linspace(0.0, 1.0, 6)
-    for k in range(n):
-        X, Y, delta, v, psi, psi_dot, beta = x[:7]
-        if not all(math.isfinite(a) for a in x):
-            raise DdynError(f"the CommonRoad plant diverged at t = {k * Ts:.2f} s")
-        vx, vy = v * math.cos(beta), v * math.sin(beta)
-        rows[k] = (X, Y, psi, vx, vy, psi_dot)
-        true_delta[k] = delta
-        s_arr, lat_arr = track.project(X, Y, s_hint=s_prev, window=window)
-        s, lat = float(s_arr), float(lat_arr)
-        s_prev = s
-        if bank is not None:
-            road_bank[k] = float(track.interpolate(bank, s))
-        wl, wr = track.half_widths(s)
-        if max(lat - float(wl), -lat - float(wr)) > 0.5 * track.width:
-            raise DdynError(f"the driver lost the CommonRoad car at t = {k * Ts:.2f} s, s = {s:.0f} m "
-                            f"(seed {seed}, effects {effects.active()}); try a lower target speed")
-        # ---- driver (on the true state, once per log sample)
-        look = max(ds_settings.lookahead_min, ds_settings.lookahead_time * vx)
-        gx, gy = track.position(s + look)
-        alpha = math.atan2(float(gy) - Y, float(gx) - X) - psi
-        kappa_cmd = 2.0 * math.sin(alpha) / math.hypot(float(gx) - X, float(gy) - Y)
-        d_new = math.atan(wheelbase * kappa_cmd)
-        v_yaw = max(vx, ds_settings.lookahead_min / ds_settings.lookahead_time)
-        d_new += ds_settings.yaw_gain * wheelbase * (kappa_cmd - psi_dot / v_yaw)
-        amp = ds_settings.steer_excitation * min(1.0, (ds_settings.excitation_speed / max(vx, 1e-6)) ** 2)
-        d_new += settings.excitation * amp * ex_steer.next()
-        scale = 1.0 + settings.excitation * ds_settings.speed_excitation * ex_speed.next()
-        v_ref = scale * float(np.min(track.interpolate(profile, s + preview * ds_settings.speed_preview * max(vx, 0))))
-        err = v_ref - vx
-        t_new = (ds_settings.kp * err + ds_settings.ki * integ) / ACCEL_SCALE \
-            + settings.excitation * ds_settings.throttle_excitation * ex_throttle.next()
-        if t_lo < t_new < t_hi:
-            integ += err * Ts
-        # the DBW unit's rate and range limits (the log's rates stay inside the vehicle's input limits)
-        T_cmd = min(max(T_cmd + min(max(t_new - T_cmd, -dt_max), dt_max), t_lo), t_hi)
-        D_cmd = min(max(D_cmd + min(max(d_new - D_cmd, -dd_max), dd_max), d_lo), d_hi)
-        T_hist.append(T_cmd)
-        D_hist.append(D_cmd)
-        if k == n - 1:
+    gear, shift_until = None, -1.0
+    n_steps = (n - 1) * n_sub
+    for i in range(n_steps + 1):
+        t = i * h
+        X, Y, delta, psi, vx, vy, psi_dot, roll = model.observe(x)
+        k, log_row = divmod(i, n_sub)
+        if log_row == 0 or i % n_dbw == 0:
+            if not all(math.isfinite(a) for a in x):
+                raise DdynError(f"the CommonRoad plant diverged at t = {t:.2f} s")
+            s_arr, lat_arr = track.project(X, Y, s_hint=s_prev, window=window)
+            s, lat = float(s_arr), float(lat_arr)
+            s_prev = s
+        if log_row == 0:
+            # the excitation is drawn once per log sample whatever the DBW rate (the same driving spectrum)
+            ex = (ex_steer.next(), ex_speed.next(), ex_throttle.next())
+        if i % n_dbw == 0:
+            # ---- driver (on the true state, once per DBW tick)
+            look = max(ds_settings.lookahead_min, ds_settings.lookahead_time * vx)
+            gx, gy = track.position(s + look)
+            alpha = math.atan2(float(gy) - Y, float(gx) - X) - psi
+            kappa_cmd = 2.0 * math.sin(alpha) / math.hypot(float(gx) - X, float(gy) - Y)
+            d_new = math.atan(wheelbase * kappa_cmd)
+            v_yaw = max(vx, ds_settings.lookahead_min / ds_settings.lookahead_time)
+            d_new += ds_settings.yaw_gain * wheelbase * (kappa_cmd - psi_dot / v_yaw)
+            amp = ds_settings.steer_excitation * min(1.0, (ds_settings.excitation_speed / max(vx, 1e-6)) ** 2)
+            d_new += settings.excitation * amp * ex[0]
+            scale = 1.0 + settings.excitation * ds_settings.speed_excitation * ex[1]
+            v_ref = scale * float(np.min(track.interpolate(profile, s + preview * ds_settings.speed_preview
+                                                           * max(vx, 0))))
+            err = v_ref - vx
+            t_new = (ds_settings.kp * err + ds_settings.ki * integ) / ACCEL_SCALE \
+                + settings.excitation * ds_settings.throttle_excitation * ex[2]
+            if t_lo < t_new < t_hi:
+                integ += err * dbw
+            # the DBW unit's rate and range limits (the log's rates stay inside the vehicle's input limits)
+            T_cmd = min(max(T_cmd + min(max(t_new - T_cmd, -dt_max), dt_max), t_lo), t_hi)
+            D_cmd = min(max(D_cmd + min(max(d_new - D_cmd, -dd_max), dd_max), d_lo), d_hi)
+            T_hist.append(T_cmd)
+            D_hist.append(D_cmd)
+        if log_row == 0:
+            rows[k] = (X, Y, psi, vx, vy, psi_dot)
+            true_delta[k] = delta
+            body_roll[k] = roll or 0.0
+            if bank is not None:
+                road_bank[k] = float(track.interpolate(bank, s))
+            wl, wr = track.half_widths(s)
+            if max(lat - float(wl), -lat - float(wr)) > 0.5 * track.width:
+                raise DdynError(f"the driver lost the CommonRoad car at t = {t:.2f} s, s = {s:.0f} m "
+                                f"(seed {seed}, effects {effects.active()}); try a lower target speed")
+            # held over the sample: the road under the car and the tyres' wear change slowly
+            if bank is not None:
+                env.bank = road_bank[k]
+            if effects.tire_wear:
+                w = math.exp(-effects.tire_wear * t)
+                p.tire.p_dx1, p.tire.p_dy1 = grip[0] * w, grip[1] * w
+            if grade is not None:
+                env.grade = float(track.interpolate(grade, s))
+        if effects.gear_step:
+            # the stepped gearbox: shift on the true speed, cut the drive while the clutch is open
+            new = gear_for(vx, gear or 1)
+            if gear is not None and new != gear:
+                shift_until = t + SHIFT_TIME
+            gear = new
+            env.gear_factor = 0.0 if t < shift_until else (1.0 + effects.gear_step) ** (GEAR_REF - gear)
+            if log_row == 0:
+                gears[k] = gear
+        if i == n_steps:
             break
-        # ---- plant: n_sub RK4 steps with the held (possibly delayed) commands
-        if bank is not None:
-            env.bank = road_bank[k]
-        if effects.tire_wear:   # held over the sample, like the bank: wear is slow
-            w = math.exp(-effects.tire_wear * k * Ts)
-            p.tire.p_dx1, p.tire.p_dy1 = grip[0] * w, grip[1] * w
-        if grade is not None:
-            env.grade = float(track.interpolate(grade, s))
-        for j in range(n_sub):
-            t = k * Ts + j * h
-            x = rk4_step(x, h, _command_at(D_hist, t, effects.steer_delay, Ts),
-                         _command_at(T_hist, t, effects.throttle_delay, Ts), env)
+        # ---- plant: one RK4 step with the held (possibly delayed) commands
+        x = rk4_step(x, h, _command_at(D_hist, t, effects.steer_delay, dbw),
+                     _command_at(T_hist, t, effects.throttle_delay, dbw), env)
 
+    # the log records the command in force at each row (the DBW's latest)
+    ticks = np.minimum((np.arange(n) * n_sub) // n_dbw, len(T_hist) - 1)
+    T_hist = [T_hist[j] for j in ticks]
+    D_hist = [D_hist[j] for j in ticks]
     T = np.array(T_hist)
     D = np.array(D_hist)
     states = np.column_stack([rows[:, :3], rows[:, 3:6], T, D])
@@ -341,10 +512,15 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     extras = {f"true_{c}": rows[:, i].copy() for i, c in enumerate(NOISY)}
     extras["true_steering"] = true_delta
     extras["true_bank"] = road_bank
+    if model.name != "std":
+        extras["true_body_roll"] = body_roll
+    if effects.gear_step:
+        extras["true_gear"] = gears.astype(float)
     if settings.roll_channel:
         # bank minus body roll (the body leans out of the turn: against the lateral acceleration vx omega)
         roll_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[4])
-        extras["roll"] = road_bank - ROLL_GRADIENT * rows[:, 3] * rows[:, 5] / G + ROLL_NOISE * roll_rng.standard_normal(n)
+        lean = body_roll if model.name != "std" else -ROLL_GRADIENT * rows[:, 3] * rows[:, 5] / G
+        extras["roll"] = road_bank + lean + ROLL_NOISE * roll_rng.standard_normal(n)
     noisy = states.copy()
     if settings.noise_scale > 0:
         std = np.array([settings.noise_scale * veh.sensor_noise_std[c] for c in NOISY])
@@ -358,7 +534,8 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     noisy[:, 5] += effects.yaw_rate_bias      # a sensor bias: the driver and the dynamics see the true omega
     active = effects.active()
     metadata = {
-        "plant": "commonroad vehicle_dynamics_std, parameters_vehicle2, RK4 at 1 kHz, DBW hold",
+        "plant": f"{model.label}, parameters_vehicle2, RK4 at 1 kHz, DBW hold",
+        "dbw_period": repr(dbw),
         "track": track.name, "seed": str(seed), "noise_scale": repr(float(settings.noise_scale)),
         "noise_color": repr(float(settings.noise_color)), "target_speed": repr(float(settings.target_speed)),
         "method": "rk4", "substeps": str(veh.rk4_substeps),
@@ -366,7 +543,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         "plant_effects": json.dumps(active),
         **vehicle_ref.metadata_for(veh),
     }
-    src = (f"commonroad plant (vehicle_dynamics_std, BMW 320i) on {track.name}, seed {seed}, "
+    src = (f"commonroad plant ({model.label.split()[-1]}, BMW 320i) on {track.name}, seed {seed}, "
            f"effects {active or 'none'}")
     return Dataset(time=np.arange(n) * Ts, segment=np.zeros(n, dtype=np.int64), states=noisy, inputs=inputs,
                    sample_time=Ts, vehicle=veh.name, source=src, extras=extras, metadata=metadata)

@@ -17,8 +17,10 @@ Each effect is off by default and has one main parameter (zero means off):
                                      (shape > 0: more force at part throttle; full and zero throttle unchanged)
   brake_gain       fraction   -      the braking force (T < 0) is (1 + fraction) times the nominal's
   power_limit      power      W      the drive force is capped at power / vx (an engine's power limit; 0: off)
+  gear_step        step       -      stepped gearbox: the drive force is (1 + step)^(GEAR_REF - gear(vx)) times the
+                                     nominal's, gears changing at GEAR_SHIFTS (the car's table; the step is fitted)
 
-Drivetrain effects (the last three) act on the drive term (Cm1 - Cm2 vx) T of the drivetrain force only;
+Drivetrain effects (the last four) act on the drive term (Cm1 - Cm2 vx) T of the drivetrain force only;
 rolling resistance and drag are unchanged.
 
 bank_angle and grade may vary along the track (position s): params `profile` "constant"
@@ -74,15 +76,23 @@ ELLIPSE_FLOOR = 0.1          # the friction ellipse never takes away more than 9
 EFFECT_NAMES = ("steer_delay", "throttle_delay", "steer_lag", "bank_angle", "grade", "downforce",
                 "combined_slip", "tire_relaxation", "tire_wear", "yaw_rate_bias", "mass_offset")
 # drivetrain effects for vx gaps (issue 14); kept out of EFFECT_NAMES, the own-model benchmark's effect set
-DRIVETRAIN = ("throttle_map", "brake_gain", "power_limit")
+DRIVETRAIN = ("throttle_map", "brake_gain", "power_limit", "gear_step")
+# gear_step: a road car's five-speed gearbox, upshifting at these speeds (m/s); the drive force in gear n is
+# (1 + step)^(GEAR_REF - n) times the nominal's. The shift speeds are the car's gearbox table (known to its
+# owner, like its mass); what the candidate estimates is the force step between gears. Each shift is a smooth
+# ramp GEAR_RAMP m/s wide (written with fmax only, for the numpy, torch and CasADi backends).
+GEAR_SHIFTS = (8.0, 14.0, 20.0, 27.0)
+GEAR_REF = 3
+GEAR_RAMP = 1.0
 ALL_EFFECTS = EFFECT_NAMES + DRIVETRAIN
 MAIN_PARAM = {"steer_delay": "delay", "throttle_delay": "delay", "steer_lag": "tau", "bank_angle": "angle",
               "grade": "angle", "downforce": "k", "combined_slip": "coupling", "tire_relaxation": "length",
               "tire_wear": "rate", "yaw_rate_bias": "bias", "mass_offset": "fraction",
-              "throttle_map": "shape", "brake_gain": "fraction", "power_limit": "power"}
+              "throttle_map": "shape", "brake_gain": "fraction", "power_limit": "power", "gear_step": "step"}
 UNITS = {"steer_delay": "s", "throttle_delay": "s", "steer_lag": "s", "bank_angle": "rad", "grade": "rad",
          "downforce": "s2/m2", "combined_slip": "-", "tire_relaxation": "m", "tire_wear": "1/s",
-         "yaw_rate_bias": "rad/s", "mass_offset": "-", "throttle_map": "-", "brake_gain": "-", "power_limit": "W"}
+         "yaw_rate_bias": "rad/s", "mass_offset": "-", "throttle_map": "-", "brake_gain": "-", "power_limit": "W",
+         "gear_step": "-"}
 PROFILE_PARAMS = ("profile", "amplitude", "wavelength", "phase", "breaks", "channel")
 PROFILES = ("constant", "sinusoid", "piecewise", "linear", "channel")
 
@@ -128,8 +138,8 @@ def _check(e: Effect) -> Effect:
         raise DdynError(f"effect {e.effect}: a channel profile needs the logged channel's name (channel=roll)")
     if e.effect in ("steer_delay", "throttle_delay", "steer_lag", "tire_relaxation", "power_limit") and e.value < 0:
         raise DdynError(f"effect {e.effect}: {MAIN_PARAM[e.effect]} must be non-negative, got {e.value}")
-    if e.effect == "brake_gain" and not e.value > -1:
-        raise DdynError(f"effect brake_gain: fraction must exceed -1, got {e.value}")
+    if e.effect in ("brake_gain", "gear_step") and not e.value > -1:
+        raise DdynError(f"effect {e.effect}: {MAIN_PARAM[e.effect]} must exceed -1, got {e.value}")
     if e.effect == "mass_offset" and not e.value > -1:
         raise DdynError(f"effect mass_offset: fraction must exceed -1, got {e.value}")
     return e
@@ -267,6 +277,7 @@ class EffectSet:
     throttle_map: float = 0.0
     brake_gain: float = 0.0
     power_limit: float = 0.0
+    gear_step: float = 0.0
 
     @classmethod
     def of(cls, effects) -> "EffectSet":
@@ -274,7 +285,8 @@ class EffectSet:
         field_of = {"steer_delay": "steer_delay", "throttle_delay": "throttle_delay", "steer_lag": "steer_lag",
                     "downforce": "downforce", "combined_slip": "combined_slip", "tire_relaxation": "relaxation",
                     "tire_wear": "wear", "yaw_rate_bias": "yaw_bias", "mass_offset": "mass_offset",
-                    "throttle_map": "throttle_map", "brake_gain": "brake_gain", "power_limit": "power_limit"}
+                    "throttle_map": "throttle_map", "brake_gain": "brake_gain", "power_limit": "power_limit",
+                    "gear_step": "gear_step"}
         for e in parse_effects(effects) if not isinstance(effects, EffectSet) else []:
             if e.effect in ("bank_angle", "grade"):
                 prof = Profile.of(e.params)
@@ -291,7 +303,7 @@ class EffectSet:
     def active(self) -> bool:
         return any((self.steer_delay, self.throttle_delay, self.steer_lag, self.bank, self.grade, self.downforce,
                     self.combined_slip, self.relaxation, self.wear, self.yaw_bias, self.mass_offset,
-                    self.throttle_map, self.brake_gain, self.power_limit))
+                    self.throttle_map, self.brake_gain, self.power_limit, self.gear_step))
 
     def shapes_inputs(self) -> bool:
         return bool(self.steer_delay or self.throttle_delay or self.steer_lag)
@@ -326,7 +338,7 @@ def derivatives(ns: mathns.MathNamespace, state: Sequence, inputs: Sequence, coe
         c[4], c[10] = c[4] + aux.slip_offset[0], c[10] + aux.slip_offset[1]
     f = model.forces(ns, state, c, p)
     Frx = f.Frx
-    if fx.throttle_map or fx.brake_gain or fx.power_limit:
+    if fx.throttle_map or fx.brake_gain or fx.power_limit or fx.gear_step:
         Frx = Frx + _drive_change(ns, state[6], vx, c[12], c[13], fx, p)
     Fry = f.Fry
     if fx.combined_slip:
@@ -347,12 +359,24 @@ def _drive_change(ns: mathns.MathNamespace, T, vx, Cm1, Cm2, fx: EffectSet, p: K
     gain = Cm1 - Cm2 * vx
     Tp = ns.fmax(T, 0.0)                 # throttle part
     Tb = T - Tp                          # brake part (<= 0)
-    Teff = Tp * (1.0 + fx.throttle_map * (1.0 + ns.fmax(-Tp, -1.0))) + (1.0 + fx.brake_gain) * Tb   # T (1 - min(T, 1))
+    Tp_eff = Tp * (1.0 + fx.throttle_map * (1.0 + ns.fmax(-Tp, -1.0)))   # T (1 - min(T, 1))
+    if fx.gear_step:
+        Tp_eff = Tp_eff * gear_factor(ns, vx, fx.gear_step)
+    Teff = Tp_eff + (1.0 + fx.brake_gain) * Tb
     drive = gain * Teff
     if fx.power_limit:
         cap = fx.power_limit / ns.fmax(vx, p.v_min)
         drive = drive - ns.fmax(drive - cap, 0.0)
     return drive - gain * T
+
+
+def gear_factor(ns: mathns.MathNamespace, vx, step: float):
+    """(1 + step)^(GEAR_REF - gear(vx)), the gear counted with smooth ramps at GEAR_SHIFTS."""
+    gear = 1.0
+    for v in GEAR_SHIFTS:
+        z = (vx - v) / GEAR_RAMP + 0.5
+        gear = gear + ns.fmax(z, 0.0) - ns.fmax(z - 1.0, 0.0)
+    return ns.exp(math.log(1.0 + step) * (GEAR_REF - gear))
 
 
 @dataclass

@@ -1,0 +1,185 @@
+"""The multi-body plant and the plant effects added with it (issue 14): CommonRoad's PyPI vehicle_dynamics_mb
+integrates it, a steady turn matches the physics, tyre relaxation, the stepped gearbox and a DBW period apart
+from the log rate act as described, and the hold estimate and the gear_step candidate behave."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+vehiclemodels = pytest.importorskip("vehiclemodels", reason="COMMONROAD MISSING: pip install "
+                                    "commonroad-vehicle-models (requirements.in); CI installs it")
+
+from ddyn.analysis import diagnose as D  # noqa: E402
+from ddyn.analysis import gap_mb, hold_estimate  # noqa: E402
+from ddyn.data import commonroad_mb_plant as MB  # noqa: E402
+from ddyn.data import commonroad_plant as CP  # noqa: E402
+from ddyn.model import backends, mathns  # noqa: E402
+from ddyn.model import effects as E  # noqa: E402
+from ddyn.model.single_track import COEFF_NAMES  # noqa: E402
+from ddyn.model.vehicle import load as load_vehicle  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+NOMINAL = load_vehicle(MB.NOMINAL_VEHICLE)
+
+
+def _settings(duration=2.0, **kw):
+    return CP.LogSettings(duration=duration, noise_scale=0.0, **kw)
+
+
+def test_the_pypi_multibody_model_integrates_the_plant(monkeypatch):
+    """Every right-hand side is vehiclemodels' vehicle_dynamics_mb from the installed distribution, 4 per RK4
+    step at 1 kHz; neither the single-track model nor ddyn.model's integrators run."""
+    import vehiclemodels.vehicle_dynamics_mb as mb
+    import vehiclemodels.vehicle_dynamics_std as std
+    from importlib.metadata import distribution
+
+    dist = distribution("commonroad-vehicle-models")
+    installed = {Path(dist.locate_file(f)).resolve() for f in dist.files}
+    assert Path(mb.__file__).resolve() in installed
+    assert (REPO / "train") not in Path(mb.__file__).resolve().parents
+    calls = {"n": 0}
+    real = mb.vehicle_dynamics_mb
+
+    def counting(x, u, p):
+        assert len(x) == 29
+        calls["n"] += 1
+        return real(x, u, p)
+
+    def forbidden(*a, **k):
+        raise AssertionError("must not run")
+
+    monkeypatch.setattr(mb, "vehicle_dynamics_mb", counting)
+    monkeypatch.setattr(std, "vehicle_dynamics_std", forbidden)
+    monkeypatch.setattr(backends, "step_numpy", forbidden)
+    ds = MB.make_log("putnam", CP.PlantEffects(), 4, _settings(0.2, roll_channel=True))
+    assert calls["n"] == 4 * (len(ds) - 1) * round(NOMINAL.sample_time * CP.PLANT_RATE)
+    assert ds.vehicle == "commonroad_vehicle2_mb" and "vehicle_dynamics_mb" in ds.metadata["plant"]
+    assert {"true_body_roll", "roll", "true_vx"} <= set(ds.extras)
+
+
+def _steady(model, delta=0.04, v0=15.0, seconds=4.0):
+    """Constant steering, speed held by a P loop on the throttle: the state after `seconds` and 0.5 s before."""
+    p = CP.commonroad_parameters()
+    env = CP._Env(p=p, m_true=NOMINAL.known.mass, m_nominal=NOMINAL.known.mass, downforce=0.0,
+                  servo_tau=CP.SERVO_TAU, model=model)
+    x = list(model.init(0.0, 0.0, delta, v0, 0.0, p))
+    env.n_model = len(x)
+    h, thr, hist = 1.0 / CP.PLANT_RATE, 0.0, []
+    for i in range(int(seconds * CP.PLANT_RATE)):
+        if i % 10 == 0:
+            thr = 0.3 * (v0 - model.observe(x)[4]) + 0.05
+        x = CP.rk4_step(x, h, delta, thr, env)
+        hist.append(model.observe(x))
+    return hist[-1], hist[-int(0.5 * CP.PLANT_RATE)]
+
+
+def test_steady_turn_matches_the_bicycle_and_the_body_rolls_out():
+    """In a steady 0.36 g turn the multi-body car's yaw rate is the linear bicycle's v delta / (L + K v^2), with
+    the cornering stiffnesses B C D of the mapped vehicle file (its tyres are still linear there), and the body
+    rolls out of the turn by a saloon's few degrees per g."""
+    (_, _, _, _, vx, vy, r, roll), before = _steady(MB.MbModel())
+    assert r == pytest.approx(before[6], rel=1e-3)                       # steady
+    c = dict(zip(COEFF_NAMES, NOMINAL.true_vector()))
+    k = NOMINAL.known
+    L = k.lf + k.lr
+    K = k.mass / L * (k.lr / (c["Bf"] * c["Cf"] * c["Df"]) - k.lf / (c["Br"] * c["Cr"] * c["Dr"]))
+    assert r == pytest.approx(vx * 0.04 / (L + K * vx * vx), rel=0.05)
+    ay_g = vx * r / CP.G
+    assert 0.3 < ay_g < 0.4
+    assert roll < 0 and 3.0 < math.degrees(-roll) / ay_g < 15.0          # deg per g, out of the (left) turn
+
+
+def test_mb_log_is_kinematically_consistent():
+    """The logged positions move with the logged body velocities and yaw (noise-free log)."""
+    ds = MB.make_log("putnam", CP.PlantEffects(), 6, _settings(4.0))
+    s = ds.states
+    Ts = ds.sample_time
+    vel = np.diff(s[:, :2], axis=0) / Ts
+    c, si = np.cos(s[:, 2]), np.sin(s[:, 2])
+    mid = 0.5 * (np.column_stack([s[:, 3] * c - s[:, 4] * si, s[:, 3] * si + s[:, 4] * c])[:-1]
+                 + np.column_stack([s[:, 3] * c - s[:, 4] * si, s[:, 3] * si + s[:, 4] * c])[1:])
+    assert np.max(np.abs(vel - mid)) < 0.05
+    assert np.max(np.abs(np.diff(np.unwrap(s[:, 2])) / Ts - 0.5 * (s[1:, 5] + s[:-1, 5]))) < 0.01
+
+
+@pytest.mark.parametrize("make", [CP.make_log, MB.make_log], ids=["std", "mb"])
+def test_tyre_relaxation_acts_through_the_package_tyres(make):
+    """A relaxation length changes the yaw response; a tiny one changes nearly nothing (the relaxed slip angles
+    follow the kinematic ones); the package's tyre functions are its own again after the log."""
+    from vehiclemodels.utils import tire_model
+
+    orig = tire_model.formula_lateral
+    base = make("putnam", CP.PlantEffects(), 8, _settings())
+    tiny = make("putnam", CP.PlantEffects(tire_relaxation=0.05), 8, _settings())
+    slow = make("putnam", CP.PlantEffects(tire_relaxation=4.0), 8, _settings())
+    assert tire_model.formula_lateral is orig
+    d_tiny = np.max(np.abs(tiny.states[:, 5] - base.states[:, 5]))
+    d_slow = np.max(np.abs(slow.states[:, 5] - base.states[:, 5]))
+    assert d_slow > 10 * d_tiny and d_slow > 1e-3
+    with pytest.raises(Exception, match="relaxation"):
+        make("putnam", CP.PlantEffects(tire_relaxation=0.01), 8, _settings(0.2))
+
+
+def test_gearbox_shifts_and_the_candidate_matches_its_steps():
+    """The plant shifts at GEAR_SHIFTS (downshifts lower), and the gear_step candidate's force factor is the
+    plant's (1 + step)^(GEAR_REF - gear) between shifts."""
+    assert CP.gear_for(7.0, 1) == 1 and CP.gear_for(15.0, 1) == 3 and CP.gear_for(19.5, 4) == 4
+    assert CP.gear_for(18.5, 4) == 3
+    ds = CP.make_log("putnam", CP.PlantEffects(gear_step=0.3), 9, _settings(8.0))
+    gears = ds.extras["true_gear"]
+    assert set(np.unique(gears)) <= {1, 2, 3, 4, 5} and len(np.unique(gears)) >= 1
+    for v in (11.0, 17.0, 23.5):
+        g = CP.gear_for(v, 1)
+        assert float(E.gear_factor(mathns.NUMPY, np.array(v), 0.3)) == pytest.approx(1.3 ** (CP.GEAR_REF - g))
+    assert CP.GEAR_SHIFTS == E.GEAR_SHIFTS and CP.GEAR_REF == E.GEAR_REF
+    assert "gear_step" in E.DRIVETRAIN and "gear_step" not in E.EFFECT_NAMES    # opt-in (extended)
+
+
+def test_dbw_period_apart_from_the_log_rate_and_its_detection():
+    """A DBW unit at half the log rate logs each command twice (detected: 2 samples); one at twice the log rate
+    logs every sample anew; the default is the log rate."""
+    slow = CP.make_log("putnam", CP.PlantEffects(), 10, _settings(6.0, dbw_period=0.08))
+    fast = CP.make_log("putnam", CP.PlantEffects(), 10, _settings(6.0, dbw_period=0.02))
+    assert np.all(slow.states[0:-1:2, 7] == slow.states[1::2, 7])
+    assert hold_estimate.detect_period(slow)["samples"] == 2
+    assert hold_estimate.detect_period(fast)["samples"] == 1
+    assert fast.metadata["dbw_period"] == repr(0.02)
+    with pytest.raises(Exception):
+        CP.make_log("putnam", CP.PlantEffects(), 10, _settings(1.0, dbw_period=0.0005))
+
+
+def test_hold_estimate_is_bounded_and_recorded():
+    """diagnose(hold="estimate") fits the hold delay on [0, Ts/2] and records the grid and the step structure."""
+    ds = CP.make_log("putnam", CP.PlantEffects(), 11, CP.LogSettings(duration=12.0))
+    nominal = D.nominal_from_vehicle(load_vehicle(CP.NOMINAL_VEHICLE), ds)
+    d = D.diagnose(ds, nominal, candidates=("steer_delay",), max_effects=1, max_starts=30, gate=None, hold="estimate")
+    info = d["nominal"]["hold_estimate"]
+    assert 0.0 <= info["hold"] <= 0.5 * ds.sample_time + 1e-12 == info["bound"] + 1e-12
+    assert d["nominal"]["command_hold_delay"] == pytest.approx(info["hold"])
+    assert len(info["grid"]) == hold_estimate.GRID_STEPS + 1
+    assert info["dbw_period_from_steps"]["samples"] == 1
+
+
+def test_mb_case_plan_covers_the_new_effects():
+    cases = gap_mb.plan(12, 3)
+    effects = [c["effect"] for c in cases]
+    assert effects[:2] == ["tire_relaxation", "gear_step"] and effects.count("none") == 3
+    assert set(gap_mb.EFFECT_RANGES) - {"none"} <= set(effects)
+    assert all(c["plant"] == "mb" and "gear_step" in c["candidates"] for c in cases)
+    assert len({c["seed"] for c in cases}) == 12
+
+
+def test_cli_hold_takes_estimate():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    D.register(parser.add_subparsers())
+    base = ["diagnose", "--vehicle", "x", "--data", "y", "--out", "z"]
+    assert parser.parse_args(base).hold is False
+    assert parser.parse_args(base + ["--hold"]).hold is True
+    assert parser.parse_args(base + ["--hold", "estimate"]).hold == "estimate"
+    with pytest.raises(SystemExit):
+        parser.parse_args(base + ["--hold", "0.02"])
