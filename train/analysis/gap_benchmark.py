@@ -641,7 +641,8 @@ def _run_case_set(args, out: Path) -> int:
     if args.min_evidence is not None:
         D.MIN_EVIDENCE = args.min_evidence
     seed = gap_independent.DEFAULT_SEED if args.seed is None else args.seed
-    doc = gap_sets.run(args.case_set, args.cases or 8, seed, args.jobs, progress=not args.no_progress, hold=args.hold)
+    doc = gap_sets.run(args.case_set, args.cases or 8, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
+                       nominal=args.nominal, fit=args.fit)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
