@@ -267,6 +267,12 @@ def test_case_sets_plan_and_score():
     assert sc["summary"]["top1"] == 1.0 and sc["summary"]["false_alarm_rate"] == 1.0
     assert sc["per_group"]["bank_angle"]["within_target"] == 0.5
     assert sc["per_group"]["bank_angle"]["turn_error_deg_max"] == 4.0
+    # the margin that silences the effect-free logs is read off their first greedy step
+    none = [{"status": "ok", "effect": "none", "selected": sel, "greedy": [[e, d, False]]}
+            for sel, e, d in ((["mass_offset"], "mass_offset", -68.3), ([], "steer_delay", 4.0),
+                              (["mass_offset"], "mass_offset", -115.9))]
+    assert S.calibrate_margin(none) == pytest.approx(115.9)
+    assert S.calibrate_margin(none[1:2]) == 0.0
 
 
 def test_plant_tyre_wear_and_yaw_rate_bias():

@@ -647,6 +647,7 @@ def _run_case_set(args, out: Path) -> int:
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
     print(doc["markdown"])
+    print(f"evidence margin leaving <= 5 % of these effect-free logs with a selection: {doc['calibrated_margin']:.4g}")
     print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
     return 0
 
