@@ -121,6 +121,8 @@ def curvature_knots(track) -> np.ndarray | None:
     gaps filled at most KNOT_SPACING apart; None when the track has no such change or needs more than
     MAX_KNOTS (then the uniform layout)."""
     L = float(track.length)
+    if L < 4 * KNOT_SPACING:       # a lap shorter than the smoothing windows (a model car's track)
+        return None
     h = 0.5 * KNOT_SPACING
     g = np.arange(0.0, L, 1.0)
     kappa = np.asarray(track.curvature_at(g), float)
