@@ -5,12 +5,15 @@ Why: a constant bank or grade cannot stand for a road that is banked in the turn
 straights (the issue's real oval: about 20 degrees in the turns, 9 on the front straight), and a road course
 has both signs. So:
 
-  bank_profile, grade_profile   the angle at KNOTS along the track, linearly interpolated between them
+  bank_profile, grade_profile   the angle at knots along the track (on a known track, on its curvature
+                                changes and between them: curvature_knots), linearly interpolated between them
                                 (periodic along the lap when the track is known; otherwise along the distance
                                 the log travelled), sign free; one parameter per knot the fit rows visit
                                 (knots the fit part never reaches stay at zero: nothing could fit them);
   bank_from_roll                bank = gain x the log's roll channel, per row; tried only when the channel
                                 passes ddyn.data.roll_check (the verdict is reported either way).
+
+A hypothesis with bank_profile or bank_from_roll keeps the nominal's tyre refit factors (HOLDS_REFIT).
 
 Their parameters enter ddyn.analysis.diagnose.fit as scalar keys "NAME@i" (knot i), so the fit, the
 held-out score (dk = the number of keys) and the greedy step treat them like any effect's. The profile
