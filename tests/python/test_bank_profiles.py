@@ -99,7 +99,7 @@ def test_profile_knots_sit_on_the_curvature_changes():
     tied = np.degrees(np.abs(_pl_fit(s, knots, true, t.length) - true))[inside].max()
     uniform = np.linspace(0.0, t.length, math.ceil(t.length / C.KNOT_SPACING), endpoint=False)
     even = np.degrees(np.abs(_pl_fit(s, uniform, true, t.length) - true))[inside].max()
-    assert tied < 0.75 < 1.4 < even, (tied, even)
+    assert tied < 0.75 and even > 1.4, (tied, even)
 
     class DS:   # a log along the oval's centre line: its layout uses the tied knots
         states = np.column_stack([t.x, t.y] + [np.zeros(t.n)] * 6)

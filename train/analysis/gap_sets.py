@@ -199,7 +199,7 @@ def calibrate_margin(results: list[dict], target: float = 0.05) -> float:
     logs with a selection: a margin only stops the greedy step earlier, so it is read off each log's first step."""
     none = [r for r in results if r["status"] == "ok" and r["effect"] == NONE]
     alarms = sorted(-r["greedy"][0][1] for r in none if r["selected"])
-    allowed = int(math.floor(target * len(none)))
+    allowed = math.floor(target * len(none))
     return 0.0 if len(alarms) <= allowed else float(alarms[len(alarms) - allowed - 1])
 
 
