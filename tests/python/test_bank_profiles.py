@@ -71,6 +71,49 @@ def test_profile_candidate_keys_and_effect_set():
     assert val == -0.2 and C.profile_at(prof, lay.knots[1]) == pytest.approx(-0.2)
 
 
+def _pl_fit(s, knots, target, length):
+    """Least-squares periodic piecewise-linear fit of target(s) on the knots: the best any knot values can do."""
+    basis = np.column_stack([np.interp(np.mod(s, length), knots, np.eye(len(knots))[k], period=length)
+                             for k in range(len(knots))])
+    coef, *_ = np.linalg.lstsq(basis, target, rcond=None)
+    return basis @ coef
+
+
+def test_profile_knots_sit_on_the_curvature_changes():
+    """On a known track the knots are tied to its curvature: one on each turn entry and exit and one half a
+    spacing either side, so a bank ramp centred there is followed; uniform knots every ~50 m miss the turn's
+    bank next to the ramp by 1.5 degrees (2 on some logs) even with the best knot values."""
+    t = oval_track()
+    knots = C.curvature_knots(t)
+    turn = 100.0 * math.pi
+    for change in (300.0, 300.0 + turn, 600.0 + turn, 600.0 + 2 * turn):
+        d = np.abs((knots - change + 0.5 * t.length) % t.length - 0.5 * t.length)
+        assert d.min() < 2.0
+        for side in (-0.5 * C.KNOT_SPACING, 0.5 * C.KNOT_SPACING):
+            assert np.abs((knots - change - side + 0.5 * t.length) % t.length - 0.5 * t.length).min() < 2.0
+    gaps = np.diff(np.r_[knots, knots[0] + t.length])
+    assert np.all(np.diff(knots) > 0) and gaps.max() <= C.KNOT_SPACING + 1e-6 and len(knots) <= C.MAX_KNOTS
+    s = np.arange(0.0, t.length, 0.5)
+    true = bank_at(t, s)
+    inside = np.interp(s, t.s, t.turns.astype(float)) == 1.0
+    tied = np.degrees(np.abs(_pl_fit(s, knots, true, t.length) - true))[inside].max()
+    uniform = np.linspace(0.0, t.length, math.ceil(t.length / C.KNOT_SPACING), endpoint=False)
+    even = np.degrees(np.abs(_pl_fit(s, uniform, true, t.length) - true))[inside].max()
+    assert tied < 0.75 and even > 1.4, (tied, even)
+
+    class DS:   # a log along the oval's centre line: its layout uses the tied knots
+        states = np.column_stack([t.x, t.y] + [np.zeros(t.n)] * 6)
+        segment = np.zeros(t.n, int)
+        extras: dict = {}
+
+    lay = C.layout(DS, t, np.arange(t.n))
+    assert lay.knots == pytest.approx(knots) and lay.free == list(range(len(knots)))
+    assert "curvature" in lay.source
+    from ddyn.model.tracks import load_track
+
+    assert C.curvature_knots(load_track("putnam")) is None     # a road course needs too many: uniform knots
+
+
 # ---------------------------------------------------------------------------------------------- the plant
 
 vehiclemodels = pytest.importorskip("vehiclemodels", reason="COMMONROAD MISSING: pip install "
@@ -124,6 +167,21 @@ def test_flat_nominal_gets_bank_first_on_the_banked_oval(roll_channel, oval_logs
     # straight)
     by = {c["effect"]: c["delta_bic"] for c in d["candidates"]}
     assert by["bank_angle"] > by[d["selected"][0]]
+
+
+def test_a_bank_profile_keeps_the_nominal_tyre(oval_logs):
+    """A bank that follows the turns and the tyre's friction scale are confounded in steady cornering, so the
+    bank hypotheses keep the nominal's Df, Dr (candidates.HOLDS_REFIT); every other hypothesis refits them."""
+    t, ds = _oval_log(oval_logs, True)
+    prob = D.Problem(ds, D.nominal_from_vehicle(NOMINAL, ds), D.DEFAULT_FIT_FRACTION, hold=True)
+    prob.layout = C.layout(ds, t, prob.rows_fit)
+    C.attach(prob.lm, prob.layout)
+    for name in ("bank_profile", "bank_from_roll"):
+        f = D.fit(prob, C.keys(name, prob.layout) + ("steer_lag",), start_rho=np.full(2, 0.2))
+        assert np.all(f.rho == 0.0) and len(f.rho) == 2 and f.values["steer_lag"] >= 0.0
+    f = D.fit(prob, ("bank_angle",))
+    assert np.any(f.rho != 0.0)
+    assert C.holds_refit(("bank_profile@3", "mass_offset")) and not C.holds_refit(("bank_angle", "grade_profile@1"))
 
 
 def test_an_implausible_roll_channel_is_reported_and_not_used(oval_logs):
@@ -209,6 +267,12 @@ def test_case_sets_plan_and_score():
     assert sc["summary"]["top1"] == 1.0 and sc["summary"]["false_alarm_rate"] == 1.0
     assert sc["per_group"]["bank_angle"]["within_target"] == 0.5
     assert sc["per_group"]["bank_angle"]["turn_error_deg_max"] == 4.0
+    # the margin that silences the effect-free logs is read off their first greedy step
+    none = [{"status": "ok", "effect": "none", "selected": sel, "greedy": [[e, d, False]]}
+            for sel, e, d in ((["mass_offset"], "mass_offset", -68.3), ([], "steer_delay", 4.0),
+                              (["mass_offset"], "mass_offset", -115.9))]
+    assert S.calibrate_margin(none) == pytest.approx(115.9)
+    assert S.calibrate_margin(none[1:2]) == 0.0
 
 
 def test_plant_tyre_wear_and_yaw_rate_bias():

@@ -5,12 +5,15 @@ Why: a constant bank or grade cannot stand for a road that is banked in the turn
 straights (the issue's real oval: about 20 degrees in the turns, 9 on the front straight), and a road course
 has both signs. So:
 
-  bank_profile, grade_profile   the angle at KNOTS along the track, linearly interpolated between them
+  bank_profile, grade_profile   the angle at knots along the track (on a known track, on its curvature
+                                changes and between them: curvature_knots), linearly interpolated between them
                                 (periodic along the lap when the track is known; otherwise along the distance
                                 the log travelled), sign free; one parameter per knot the fit rows visit
                                 (knots the fit part never reaches stay at zero: nothing could fit them);
   bank_from_roll                bank = gain x the log's roll channel, per row; tried only when the channel
                                 passes ddyn.data.roll_check (the verdict is reported either way).
+
+A hypothesis with bank_profile or bank_from_roll keeps the nominal's tyre refit factors (HOLDS_REFIT).
 
 Their parameters enter ddyn.analysis.diagnose.fit as scalar keys "NAME@i" (knot i), so the fit, the
 held-out score (dk = the number of keys) and the greedy step treat them like any effect's. The profile
@@ -42,6 +45,27 @@ GRID = {"bank_from_roll": (2.5, 5, 7.5, 10, 12.5),   # in units: gains 0.25-1.25
 
 KNOT_SPACING = 50.0      # m between knots: a bank changes over a turn entry (tens of metres), not faster
 MIN_KNOTS, MAX_KNOTS = 4, 40
+# Knots tied to the curvature (a known track): a road's bank changes where its curvature does (the transition
+# spirals of a turn entry or exit), so a knot sits on every such change and one KNOT_SPACING/2 either side of it;
+# the rest of the lap gets knots at most KNOT_SPACING apart. Uniform knots every ~50 m cut a 60 m bank ramp
+# anywhere, and the interpolation alone then misses the turn's bank by up to 2 degrees next to the ramp
+# (docs/gap_independent.md). A change counts when the smoothed curvature differs by BREAK_CURVATURE (1/m) across
+# KNOT_SPACING (a straight into a 500 m radius); more knots than MAX_KNOTS: the uniform layout.
+BREAK_CURVATURE = 2e-3
+
+
+# The tyre's refit factors (Df, Dr) stay at the nominal's in any hypothesis with a bank that follows the turns:
+# in steady cornering a friction scale rho changes the lateral force by about rho m a_y, and a_y is nearly
+# constant in a turn, so rho reads as a bank of about rho a_y / g rad there and the two cannot be told apart from
+# the log (refitted, the oval's turn bank came out up to 11 degrees off with Df, Dr -27 %; held, within 2.6
+# degrees: docs/gap_independent.md). The nominal's tyre, identified where the road is flat, is the prior that
+# separates them.
+HOLDS_REFIT = ("bank_profile", "bank_from_roll")
+
+
+def holds_refit(names) -> bool:
+    """Whether a hypothesis (fit keys) keeps the nominal's refit factors (HOLDS_REFIT)."""
+    return any(base(n) in HOLDS_REFIT for n in names)
 
 
 def base(key: str) -> str:
@@ -79,15 +103,58 @@ def layout(ds, track, rows_fit: np.ndarray) -> Layout:
         span = max(float(s[-1]), 1.0)
     k = int(min(MAX_KNOTS, max(MIN_KNOTS, math.ceil(span / KNOT_SPACING))))
     knots = np.linspace(0.0, span, k, endpoint=length is None)   # periodic: the last knot wraps to the first
-    # a knot is free when fit rows lie on either of its two intervals
+    tied = curvature_knots(track) if track is not None else None
+    if tied is not None:
+        knots, src = tied, src + ", knots tied to its curvature"
+    k = len(knots)
+    # a knot is free when fit rows lie on either of its two intervals (between its neighbours)
     sf = np.asarray(s)[rows_fit]
-    h = span / (k if length is not None else max(k - 1, 1))
-    d = np.abs(sf[None, :] - knots[:, None])
     if length is not None:
-        d = np.minimum(d, length - d)
-    free = [i for i in range(k) if np.any(d[i] < h)]
+        prev, nxt = np.roll(knots, 1) - np.r_[length, np.zeros(k - 1)], np.roll(knots, -1) + np.r_[np.zeros(k - 1), length]
+        sf = np.mod(sf, length)
+        free = [i for i in range(k) if np.any(((sf > prev[i]) & (sf < nxt[i])) | (sf - length > prev[i])
+                                               | (sf + length < nxt[i]))]
+    else:
+        prev, nxt = np.r_[-np.inf, knots[:-1]], np.r_[knots[1:], np.inf]
+        free = [i for i in range(k) if np.any((sf > prev[i]) & (sf < nxt[i]))]
     roll = roll_check.check_dataset(ds) if "roll" in ds.extras else None
     return Layout(np.asarray(s, float), length, knots, free, src, roll)
+
+
+def curvature_knots(track) -> np.ndarray | None:
+    """Knots (m, ascending in [0, lap)) on the track's curvature changes and KNOT_SPACING/2 either side, the
+    gaps filled at most KNOT_SPACING apart; None when the track has no such change or needs more than
+    MAX_KNOTS (then the uniform layout)."""
+    L = float(track.length)
+    if L < 4 * KNOT_SPACING:       # a lap shorter than the smoothing windows (a model car's track)
+        return None
+    h = 0.5 * KNOT_SPACING
+    g = np.arange(0.0, L, 1.0)
+    kappa = np.asarray(track.curvature_at(g), float)
+    n = int(h)
+    kappa = np.convolve(np.r_[kappa[-n:], kappa, kappa[:n]], np.ones(n) / n, mode="same")[n:-n]
+    change = np.abs(np.roll(kappa, -n) - np.roll(kappa, n))           # across +-h, periodic
+    # a change point: the largest change within +-KNOT_SPACING, above the threshold
+    w = int(KNOT_SPACING)
+    ext = np.r_[change[-w:], change, change[:w]]
+    top = np.array([change[i] >= 0.98 * ext[i:i + 2 * w + 1].max() for i in range(len(g))]) \
+        & (change >= BREAK_CURVATURE)
+    if not top.any():
+        return None
+    if top.all():
+        return None
+    # one change point per run of (near-)maxima: the run's middle (a step in the curvature gives a plateau)
+    i0 = int(np.flatnonzero(~top)[0])
+    rot = np.roll(top, -i0)                    # starts on a point that is no change point
+    edges = np.flatnonzero(np.diff(np.r_[rot, False].astype(int)))    # run j: (edges[2j], edges[2j + 1]]
+    base = [float(np.mod(0.5 * (a + 1 + b) + i0, len(g))) * (L / len(g)) for a, b in zip(edges[::2], edges[1::2])]
+    knots = np.unique(np.round(np.mod([b + o for b in base for o in (-h, 0.0, h)], L), 6))
+    out = []
+    for a, b in zip(knots, np.r_[knots[1:], knots[0] + L]):
+        m = max(1, math.ceil((b - a) / KNOT_SPACING - 1e-9))
+        out += [a + (b - a) * j / m for j in range(m)]
+    out = np.sort(np.mod(out, L))
+    return out if len(out) <= MAX_KNOTS else None
 
 
 def available(name: str, lay: Layout | None) -> bool:

@@ -329,15 +329,18 @@ def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, 
     start = dict(start or {})
     units = np.array([_param_unit(n, prob.ctx) for n in names])
     rlo, rhi = (np.full(len(prob.refit), -0.5), np.full(len(prob.refit), 0.5)) if rho_bounds is None else rho_bounds
-    lo = np.array([_bounds(n, prob.ctx)[0] for n in names] + list(rlo))
-    hi = np.array([_bounds(n, prob.ctx)[1] for n in names] + list(rhi))
-    nr = len(prob.refit)
+    # a bank that follows the turns keeps the nominal's tyre (candidates.HOLDS_REFIT: the two are confounded)
+    held = C.holds_refit(names)
+    nr = 0 if held else len(prob.refit)
+    rlo, rhi = list(rlo)[:nr], list(rhi)[:nr]
+    lo = np.array([_bounds(n, prob.ctx)[0] for n in names] + rlo)
+    hi = np.array([_bounds(n, prob.ctx)[1] for n in names] + rhi)
     rows = prob.rows_fit
-    rho0 = np.zeros(nr) if start_rho is None else np.asarray(start_rho, float)
+    rho0 = np.zeros(nr) if start_rho is None or held else np.asarray(start_rho, float)
 
     def unpack(z):
         vals = {n: float(z[i] * units[i]) for i, n in enumerate(names)}
-        return vals, np.asarray(z[len(names):], float) * 0.1
+        return vals, (np.zeros(len(prob.refit)) if held else np.asarray(z[len(names):], float) * 0.1)
 
     def fun(z):
         vals, rho = unpack(z)
@@ -358,7 +361,8 @@ def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, 
     zlo, zhi = lo / np.r_[units, np.full(nr, 0.1)], hi / np.r_[units, np.full(nr, 0.1)]
     x0 = np.clip(x0, zlo, zhi)
     if len(x0) == 0:
-        return Fit(names, {}, np.zeros(0), {}, np.zeros(0), float(np.sum(fun(x0) ** 2)) / 2, 0.0)
+        return Fit(names, {}, np.zeros(len(prob.refit)) if held else np.zeros(0), {}, np.zeros(0),
+                   float(np.sum(fun(x0) ** 2)) / 2, 0.0)
     sol = optimize.least_squares(fun, x0, bounds=(zlo, zhi), method="trf", x_scale=1.0, max_nfev=200)
     vals, rho = unpack(sol.x)
     m, k = sol.fun.size, len(sol.x)
@@ -371,7 +375,8 @@ def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, 
     except (np.linalg.LinAlgError, ValueError):
         pass
     std = {n: float(std_z[i] * units[i]) for i, n in enumerate(names)}
-    return Fit(names, vals, rho, std, std_z[len(names):] * 0.1, float(sol.cost), _time.perf_counter() - t0)
+    rho_std = np.zeros(len(prob.refit)) if held else std_z[len(names):] * 0.1
+    return Fit(names, vals, rho, std, rho_std, float(sol.cost), _time.perf_counter() - t0)
 
 
 # ----------------------------------------------------------------------------------------------- scores

@@ -18,6 +18,11 @@ the nominal being the flat-road vehicle file (a model from a flat track):
               power-law pedal map; power_limit replaces CommonRoad's own 92 kW). Scored: top-1, false alarms,
               relative parameter error.
 
+The nominal: the mapped vehicle file, or (nominal="identified") the coefficients gap_independent fits on an
+effect-free plant log on Putnam (a flat track); the fit mode and the evidence margin (diagnose.MIN_EVIDENCE) as
+for the Putnam set. Each log records its greedy steps' dBICs, from which calibrate_margin reads the margin that
+silences the effect-free logs (chosen on the calibration seed 11 only).
+
 Case seeds are 5000 + 100000 seed + case (the Putnam set uses 1000 + ...).
 """
 from __future__ import annotations
@@ -113,8 +118,9 @@ def run_case(case: dict) -> dict:
         return out | {"status": "simulation failed", "error": err}
     veh = load_vehicle(CP.NOMINAL_VEHICLE)
     t0 = time.perf_counter()
-    diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds), candidates=C.ALL, track=track,
-                      hold=bool(case.get("hold", False)))
+    coeffs = np.asarray(case["coefficients"]) if case.get("coefficients") is not None else None
+    diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), candidates=C.ALL, track=track,
+                      hold=bool(case.get("hold", False)), fit_mode=case.get("fit"))
     seconds = time.perf_counter() - t0
     top1 = diag["selected"][0] if diag["selected"] else NONE
     family = C.FAMILY.get(top1, top1)
@@ -122,6 +128,8 @@ def run_case(case: dict) -> dict:
            "correct": family == case["effect"], "verdict": diag["verdict"],
            "delta_bic_top": diag["candidates"][0]["delta_bic"], "top_candidate": diag["candidates"][0]["effect"],
            "roll_plausible": (diag["data"]["roll_channel"] or {}).get("plausible"), "diagnose_seconds": seconds,
+           # each greedy step's best candidate and dBIC (an evidence margin is calibrated from them)
+           "greedy": [[g["best_candidate"], g["delta_bic"], g["at_bound"]] for g in diag["greedy"]],
            "estimate": None, "param_error": None}
     if case["case_set"] == "oval" and case["effect"] != NONE:
         turn = math.radians(case["oval_bank_deg"]["turns"])
@@ -186,12 +194,23 @@ def score(results: list[dict]) -> dict:
             "per_group": per}
 
 
+def calibrate_margin(results: list[dict], target: float = 0.05) -> float:
+    """The smallest evidence margin (diagnose --min-evidence) that leaves at most `target` of the effect-free
+    logs with a selection: a margin only stops the greedy step earlier, so it is read off each log's first step."""
+    none = [r for r in results if r["status"] == "ok" and r["effect"] == NONE]
+    alarms = sorted(-r["greedy"][0][1] for r in none if r["selected"])
+    allowed = math.floor(target * len(none))
+    return 0.0 if len(alarms) <= allowed else float(alarms[len(alarms) - allowed - 1])
+
+
 def markdown(sc: dict, settings: dict, seconds: float) -> str:
     s = sc["summary"]
     lines = [f"Independent plant, case set {settings['case_set']}, seed {settings['seed']}; {s['cases']} cases "
              f"({s['cases'] - s['simulated']} not simulated), {s['effect_cases']} with an effect, {s['none_cases']} "
-             f"without; command hold {'modelled' if settings['hold'] else 'not modelled'}; nominal: the flat-road "
-             f"vehicle file; {seconds / 60:.1f} min with {settings['jobs']} job(s).", "",
+             f"without; command hold {'modelled' if settings['hold'] else 'not modelled'}; nominal: "
+             f"{'identified on a flat-track plant log' if settings.get('nominal') == 'identified' else 'the flat-road vehicle file'}; "
+             f"fit {settings.get('fit') or D.DEFAULT_FIT}; evidence margin {settings.get('min_evidence') or 0:g}; "
+             f"{seconds / 60:.1f} min with {settings['jobs']} job(s).", "",
              f"Top-1 {_f(s['top1'], True)}; false alarms {_f(s['false_alarm_rate'], True)} "
              f"({', '.join(s['false_alarm_effects']) or 'none selected'}); median parameter error (found) "
              f"{_f(s['median_param_error'], True)}; diagnosis median {_f(s['median_diagnose_seconds'])} s per log."
@@ -209,17 +228,29 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(case_set: str, n_cases: int, seed: int, jobs: int = 1, progress: bool = True, hold: bool = False) -> dict:
+def run(case_set: str, n_cases: int, seed: int, jobs: int = 1, progress: bool = True, hold: bool = False,
+        nominal: str = "mapped", fit: str | None = None) -> dict:
+    """nominal: "mapped" (the vehicle file) or "identified" (gap_independent.identified_coefficients: fitted on
+    an effect-free 120 s plant log on Putnam, a flat track). fit: the diagnosis's fit mode (D.FIT_MODES)."""
+    from ddyn.analysis import gap_independent as G
+
     CP.require_commonroad()
     if case_set not in SETS:
         raise DdynError(f"unknown case set {case_set!r}; expected one of {', '.join(SETS)}")
     t0 = time.perf_counter()
-    cases = [c | {"hold": hold} for c in plan(case_set, n_cases, seed)]
+    coeffs, ident = None, None
+    if nominal == "identified":
+        coeffs, ident = G.identified_coefficients(hold)
+    elif nominal != "mapped":
+        raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
+    cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist()}
+             for c in plan(case_set, n_cases, seed)]
     results = run_cases(run_case, cases, jobs, desc=f"gap-benchmark (commonroad, {case_set})", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad", "case_set": case_set, "cases": n_cases, "seed": seed, "jobs": jobs,
-                "hold": hold, "oval_banks_deg": OVAL_BANKS, "drivetrain_ranges": DRIVETRAIN_RANGES,
+                "hold": hold, "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT,
+                "oval_banks_deg": OVAL_BANKS, "drivetrain_ranges": DRIVETRAIN_RANGES,
                 "gate": D.NO_GAP_GATE, "min_evidence": D.MIN_EVIDENCE, "calibration_seed": False}
     sc = score(results)
     return {"settings": settings, **sc, "results": results, "seconds": seconds,
-            "markdown": markdown(sc, settings, seconds)}
+            "calibrated_margin": calibrate_margin(results), "markdown": markdown(sc, settings, seconds)}
