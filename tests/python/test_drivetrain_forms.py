@@ -105,3 +105,22 @@ def test_checkpoint_records_the_drivetrain(tmp_path):
     assert ckpt["vehicle"]["brake_gain"] == v.known.brake_gain
     _, back = checkpoint.load(tmp_path / "pt.ckpt")
     assert checkpoint.vehicle_of(back).known.drivetrain == "powertrain"
+
+
+def test_drivetrain_study_recovers_a_simulated_powertrain():
+    """`ddyn study drivetrain` on a log of the powertrain model itself: the powertrain fit finds the brake
+    gain and explains the vx change better than the papers' form (which cannot brake with its own gain)."""
+    from ddyn.data import simulate
+    from ddyn.model import tracks
+    from ddyn.studies import drivetrain
+
+    v = vehicle.load("av21_powertrain")
+    ds = simulate.simulate(v, tracks.load_track("putnam"), duration=60.0, seed=4, progress=False)
+    assert (ds.states[:, 6] < -0.05).mean() > 0.02, "the log must brake to tell the forms apart"
+    res = drivetrain.run(ds, v)
+    pt, pa = res["forms"]["powertrain"], res["forms"]["papers"]
+    assert pt["r2_train"] > 0.99 and pt["r2_train"] > pa["r2_train"]
+    assert abs(pt["fit"]["brake_gain"] / v.known.brake_gain - 1) < 0.02
+    assert abs(pt["fit"]["Cm1"] / v.true_coefficients["Cm1"] - 1) < 0.05
+    lo, hi = pt["ranges"]["Cm1"]
+    assert lo == 0.5 * pt["fit"]["Cm1"] and hi == 2.0 * pt["fit"]["Cm1"]

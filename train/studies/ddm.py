@@ -37,6 +37,7 @@ from ddyn.paths import REPO, shared_data_dir
 PAPER_SIM_DDM = {"vx": 1.506e-5, "vy": 1.839e-4, "omega": 9.6e-3, "ade": 3.77e-5, "fde": 1.15e-4}
 PAPER_REAL_DDM = {"vx": 0.0312, "vy": 0.0730, "omega": 0.0187, "ade": 0.1827, "fde": 0.3840}
 TARGET_COEFFS = ("Bf", "Cf", "Df", "Br", "Cr", "Dr", "Cm1", "Cm2", "Cr0", "Iz")
+POWERTRAIN_VEHICLE = "av21_powertrain"
 # (run name, vehicle file, table label, drivetrain ranges from the training part via --ranges)
 REAL_RUNS = (("ddm_putnam", "av21", "DDM, papers' drivetrain, papers' ranges", False),
              ("ddm_putnam_ranges", "av21", "DDM, papers' drivetrain, ranges from data", True),
@@ -107,10 +108,15 @@ def run_real(out: Path, quick: bool = False) -> list[dict]:
         cut = int(len(ds) * drivetrain.TRAIN_FRACTION)
         train_part, test_part = ds.subset(slice(0, cut)), ds.subset(slice(cut, None))
         ranges_file = None
-        if data_ranges:   # the papers' form with drivetrain ranges from the training part
+        if data_ranges:
+            # the papers' form with ranges from the training part: its own drivetrain fit's, and
+            # the other coefficients' from av21_powertrain (derived from the same part), so that
+            # the two rows differ in the drivetrain only
             fit = drivetrain.run(train_part, vehicle_mod.load(vehicle_name), fraction=1.0)
+            other = {k: list(r) for k, r in vehicle_mod.load(POWERTRAIN_VEHICLE).ranges.items()
+                     if k not in drivetrain.DRIVE}
             ranges_file = out / f"ranges_{name}.json"
-            ranges_file.write_text(json.dumps(fit["forms"]["papers"]["ranges"], indent=2))
+            ranges_file.write_text(json.dumps({**other, **fit["forms"]["papers"]["ranges"]}, indent=2))
         if quick:
             train_part = train_part.subset(slice(0, 1500))
         train_path = out / f"putnam_train_{vehicle_name}.csv"

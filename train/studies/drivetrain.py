@@ -15,6 +15,14 @@ held-out last 20 % is only reported, never fitted), for each drivetrain form of 
      and Iz from half to double the true value", shared/data/README.md): [x / 2, 2 x]; Cd keeps the
      vehicle file's range (see 1).
 
+With --model CKPT (a DDM trained on the same training part), also the ranges of the coefficients the
+DDM's estimates press on (training part only): the rule of `ddyn denoise` (ddyn.learn.denoise.
+suggest_ranges: a pinned side is extended, to half or double a positive bound or by half the width;
+the other side is kept; a bound at zero and a coefficient pinned at both ends keep the vehicle file's
+range: they are not identified, or serve as slack), and the tyre
+curvature E's upper bound 1 (the magic formula's own condition E <= 1, Pacejka, Tyre and Vehicle
+Dynamics, 2012, sec. 4.3.2) where the estimates press on the papers' 0: DIR/ranges_guard.json.
+
 Writes DIR/drivetrain.json (fits, R^2, ranges) and DIR/ranges_<form>.json (a `ddyn train --ranges`
 file). The numbers of train/vehicles/av21_powertrain.json come from this command.
 """
@@ -109,6 +117,35 @@ def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -
     return out
 
 
+E_MAX = 1.0   # Pacejka's condition on the curvature factor
+
+
+def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> dict:
+    """{coefficient: {"vehicle", "used", "why"}} for the coefficients the DDM's estimates on train_part
+    press on (see the module docstring); the checkpoint's own ranges are the starting point."""
+    import dataclasses
+
+    from ddyn.learn import checkpoint
+    from ddyn.learn.denoise import ddm_estimates, suggest_ranges
+
+    model, ckpt = checkpoint.load(ckpt_path)
+    v = checkpoint.vehicle_of(ckpt)
+    r = ckpt["ranges"]
+    v = dataclasses.replace(v, ranges={n: (lo, hi) for n, lo, hi in zip(r["names"], r["lo"], r["hi"])})
+    est = ddm_estimates(model, train_part, ckpt["config"]["tau"])
+    out = {}
+    for name, s in suggest_ranges(est, v)["coefficients"].items():
+        lo, hi = v.ranges[name]
+        if name in ("Ef", "Er") and hi == 0.0 and s["pinned"] in ("high", "both"):
+            out[name] = {"vehicle": [lo, hi], "used": [lo, E_MAX], "why": "E <= 1 (Pacejka), pressed on 0"}
+        elif s["pinned"] in ("low", "high"):
+            # only the pinned side moves (as the rule extends it); the other side keeps the vehicle's bound
+            used = [s["suggested"][0], hi] if s["pinned"] == "low" else [lo, s["suggested"][1]]
+            if used != [lo, hi]:
+                out[name] = {"vehicle": [lo, hi], "used": used, "why": f"ddyn denoise's rule, pinned {s['pinned']}"}
+    return out
+
+
 def markdown(res: dict) -> str:
     lines = [f"Drivetrain forms on {res['vehicle']}'s log: fit on the first {TRAIN_FRACTION:.0%} "
              f"({res['rows']['train']} steps), R^2 of the one-step vx change",
@@ -135,6 +172,14 @@ def _run(args) -> int:
     (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
     for form, r in res["forms"].items():
         (out / f"ranges_{form}.json").write_text(json.dumps(r["ranges"], indent=2))
+    if args.model:
+        cut = int(len(ds) * TRAIN_FRACTION)
+        guard = guard_ranges_from_model(args.model, ds.subset(slice(0, cut)))
+        res["guard_ranges"] = guard
+        (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
+        (out / "ranges_guard.json").write_text(json.dumps({k: g["used"] for k, g in guard.items()}, indent=2))
+        for k, g in guard.items():
+            print(f"guard range {k}: {g['vehicle']} -> [{g['used'][0]:.4g}, {g['used'][1]:.4g}] ({g['why']})")
     print(markdown(res))
     for form, r in res["forms"].items():
         print(f"{form}: ranges ({RULE}) " + ", ".join(f"{k} [{a:.4g}, {b:.4g}]" for k, (a, b) in r["ranges"].items())
@@ -146,5 +191,6 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("drivetrain", help="drivetrain forms on a real log: fit, R^2, guard ranges from data")
     p.add_argument("--data", help="a RACECAR CSV (default: the shared Putnam log)")
     p.add_argument("--vehicle", default="av21", help="vehicle file whose other coefficients and Cd range are used")
+    p.add_argument("--model", help="a DDM checkpoint trained on the training part: ranges its estimates press on")
     p.add_argument("--out", default="out/study/drivetrain", help="output directory (default: %(default)s)")
     p.set_defaults(func=_run)
