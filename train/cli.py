@@ -40,7 +40,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("sil", ("ddyn.sil.run", "ddyn.sil.table", "ddyn.sil.tracks"),
             "software in the loop: plant and controller as processes over virtual CAN"),
     Command("diagnose", ("ddyn.analysis.diagnose",)),
-    Command("study", ("ddyn.studies.ddm", "ddyn.studies.fthd", "ddyn.studies.denoise",
+    Command("study", ("ddyn.studies.ddm", "ddyn.studies.fthd", "ddyn.studies.denoise", "ddyn.studies.drivetrain",
                       "ddyn.analysis.gap_benchmark", "ddyn.analysis.fidelity"),
             "the papers' tables and the project's studies (DDM/DPM, FTHD, denoising, gap diagnosis, fidelity)"),
     Command("bench", ("ddyn.bench.runtime", "ddyn.bench.controller", "ddyn.bench.large_net", "ddyn.bench.qp"),

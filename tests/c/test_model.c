@@ -51,7 +51,7 @@ typedef struct {
             {vec_##V##_euler_P, vec_##V##_rk4_P}                                                       \
     }
 
-static const vector_set sets[] = {VECTOR_SET(orca_1_43), VECTOR_SET(av21)};
+static const vector_set sets[] = {VECTOR_SET(orca_1_43), VECTOR_SET(av21), VECTOR_SET(av21_powertrain)};
 
 static void check_set(const vector_set *set)
 {
@@ -85,6 +85,13 @@ static void test_av21_matches_python(void **state)
     check_set(&sets[1]);
 }
 
+/* the powertrain drivetrain (brake gain below zero throttle): the reference cases span throttle -1..1 */
+static void test_av21_powertrain_matches_python(void **state)
+{
+    (void)state;
+    check_set(&sets[2]);
+}
+
 /* every sensor model of both vehicles against numpy values and torch-autograd Jacobians */
 #define MEAS_CHECK(V, KIND, NAME)                                                                              \
     do {                                                                                                       \
@@ -115,6 +122,7 @@ static void test_sensor_models_match_python(void **state)
     (void)state;
     MEAS_CHECK_ALL(orca_1_43);
     MEAS_CHECK_ALL(av21);
+    MEAS_CHECK_ALL(av21_powertrain);
     assert_int_equal(ddyn_meas_dim(DDYN_MEAS_COUNT), 0);
 }
 
@@ -173,6 +181,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_orca_matches_python),
         cmocka_unit_test(test_av21_matches_python),
+        cmocka_unit_test(test_av21_powertrain_matches_python),
         cmocka_unit_test(test_sensor_models_match_python),
         cmocka_unit_test(test_unknown_vehicle_is_null),
         cmocka_unit_test(test_nonfinite_input_refused_and_output_untouched),

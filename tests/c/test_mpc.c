@@ -734,7 +734,9 @@ static void test_generated_prediction_step_jacobians_and_integrators(void **stat
 {
     /* the MPC's step: A, B against central differences; throttle, steering are exact integrators
      * (the QP's prefix-sum rows rely on it) */
-    const ddyn_casadi_fn step = ddyn_mpc_limits[1].step;
+    /* the 1:43 car's row, found by name: the table holds every vehicle file, in name order */
+    int row = 0;
+    ddyn_casadi_fn step;
     double x[DDYN_NX] = {0.3, -0.2, 0.4, 1.7, 0.1, 1.2, 0.4, 0.1}, u[DDYN_NU] = {0.5, -0.8};
     double out[DDYN_NX * 11], xp[DDYN_NX], xm[DDYN_NX], scratch[DDYN_NX * 10];
     static ddyn_model_work work;
@@ -742,7 +744,9 @@ static void test_generated_prediction_step_jacobians_and_integrators(void **stat
     double *res[3];
     int i, j;
     (void)state;
-    assert_string_equal(ddyn_mpc_limits[1].name, "orca_1_43");
+    while (row < DDYN_MPC_LIMITS_COUNT - 1 && strcmp(ddyn_mpc_limits[row].name, "orca_1_43") != 0) ++row;
+    assert_string_equal(ddyn_mpc_limits[row].name, "orca_1_43");
+    step = ddyn_mpc_limits[row].step;
     arg[0] = x;
     arg[1] = u;
     arg[2] = C;

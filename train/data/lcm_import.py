@@ -202,7 +202,8 @@ def _vehicle(path: Path, sample_time: float, name: str | None):
         raise DataError(path, f"the controller clock gives a sample time of {sample_time!r} s; "
                         "utime must increase with step")
     if name is None:
-        matches = [vehicle_mod.load(n) for n in vehicle_mod.available()]
+        # a variant (another model setting of the same car) is chosen by name only, never by the clock
+        matches = [v for v in (vehicle_mod.load(n) for n in vehicle_mod.available()) if not v.variant_of]
         matches = [v for v in matches if abs(v.sample_time - sample_time) <= CLOCK_RTOL * v.sample_time]
         if len(matches) != 1:
             raise DataError(path, f"the log's sample time is {sample_time:.6g} s, which "

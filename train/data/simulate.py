@@ -35,6 +35,7 @@ from ddyn.data.dataset import Dataset, write_canonical
 from ddyn.errors import DdynError
 from ddyn.model import backends
 from ddyn.model.effects import EffectSet, Plant, effects_json, parse_effects
+from ddyn.model import mathns
 from ddyn.model.single_track import COEFF_NAMES, N_STATE, STATE_NAMES, drivetrain_force
 from ddyn.model.track_files import open_track
 from ddyn.model.tracks import Track
@@ -140,7 +141,7 @@ def speed_profile(track: Track, vehicle: Vehicle, coeffs: np.ndarray, settings: 
     v_curve = np.minimum(v_curve, settings.target_speed)
     # braking capability with the lowest throttle, at standstill (the weakest case when Cd >= 0)
     t_lo = vehicle.input_limits["throttle"][0]
-    a_brake = -float(drivetrain_force(0.0, t_lo, c["Cm1"], c["Cm2"], c["Cr0"], c["Cd"])) / p.mass
+    a_brake = -float(drivetrain_force(0.0, t_lo, c["Cm1"], c["Cm2"], c["Cr0"], c["Cd"], mathns.NUMPY, p)) / p.mass
     a_brake = settings.brake_fraction * max(a_brake, 1e-3 * a_lat)
     # v(s_i)^2 <= min_{j >= i} v_curve(s_j)^2 + 2 a_brake (s_j - s_i): a reverse running minimum,
     # over two laps so the constraint wraps around the start line
@@ -251,10 +252,14 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
     noise_rng = np.random.default_rng(seeds[3])
 
     def throttle_for(v: float, accel: float) -> float:
-        # the throttle whose drivetrain force gives mass * accel (the force is affine in the throttle)
+        # the throttle whose drivetrain force gives mass * accel (the force is affine in the throttle on
+        # each side of zero; the papers' form has one slope, the powertrain form the brake gain below zero)
         f0 = drivetrain_force(v, 0.0, *drive)
         gain = drivetrain_force(v, 1.0, *drive) - f0
-        return (mass * accel - f0) / gain if gain > 0.0 else t_hi
+        want = mass * accel - f0
+        if p.drivetrain == "powertrain" and want < 0.0:
+            return want / p.brake_gain
+        return want / gain if gain > 0.0 else t_hi
 
     # initial state: on the centre line at start_s, heading along it
     s0 = float(start_s) % L

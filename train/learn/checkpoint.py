@@ -56,7 +56,10 @@ def make(result: TrainResult, vehicle: vehicle_mod.Vehicle, data_hash: str, data
         "ranges": ({"names": list(COEFF_NAMES), "lo": model.lo.tolist(), "hi": model.hi.tolist()} if ddm else None),
         "dpm_iz": None if ddm else model.iz,
         "loss_scale": [float(x) for x in result.loss_scale],
-        "vehicle": {"name": vehicle.name, "sha256": vehicle.digest, "json": vehicle.raw_json},
+        # the drivetrain form is in the embedded vehicle file too; named here so a reader sees which
+        # longitudinal model the coefficients belong to without parsing it
+        "vehicle": {"name": vehicle.name, "sha256": vehicle.digest, "json": vehicle.raw_json,
+                    "drivetrain": vehicle.known.drivetrain, "brake_gain": vehicle.known.brake_gain},
         "data": {"train_sha256": data_hash, "source": data_source, "rows": rows,
                  "split": f"by time: last {cfg.val_fraction:.0%} of rows validate, windows never cross the cut"},
         "training": {"seconds": result.seconds, "best_val_loss": result.best_val_loss,

@@ -10,7 +10,9 @@ Known: mass m, CoG-to-axle distances lf, lr.
     alpha_f = delta - atan2(omega lf + vy, vx*) + Gf
     alpha_r =        atan2(omega lr - vy, vx*) + Gr
     F_y     = K + D sin(C atan(B a - E (B a - atan(B a))))     per axle, a = alpha
-    F_rx    = (Cm1 - Cm2 vx) T - Cr0 - Cd vx^2
+    F_rx    = (Cm1 - Cm2 vx) T - Cr0 - Cd vx^2                 drivetrain "papers" (default)
+    F_rx    = (Cm1 - Cm2 vx) T+ + Kb T- - Cr0 - Cd vx^2         drivetrain "powertrain"
+              (T+ = max(T, 0), T- = min(T, 0); Kb the vehicle file's known brake_gain)
     dvx     = (F_rx - F_fy sin(delta)) / m + vy omega
     dvy     = (F_ry + F_fy cos(delta)) / m - vx omega
     domega  = (F_fy lf cos(delta) - F_ry lr) / Iz
@@ -46,13 +48,24 @@ N_STATE, N_INPUT, N_COEFF = len(STATE_NAMES), len(INPUT_NAMES), len(COEFF_NAMES)
 VELOCITY_INDEX = (3, 4, 5)
 
 
+# The drivetrain forms a vehicle file can choose ("drivetrain"). "papers": the Deep Dynamics papers'
+# F_rx = (Cm1 - Cm2 vx) T - Cr0 - Cd vx^2 for both signs of T. "powertrain": a real car whose negative
+# input is brake pressure (the RACECAR logs' -brake/2757.9 kPa) acting through its own gain, not
+# through the engine's Cm1 - Cm2 vx: on the AV-21's Putnam log one gain for both pedals leaves
+# R^2 = 0.50 of the drive force on the training part, a separate brake gain 0.58 (docs/model.md).
+DRIVETRAINS = ("papers", "powertrain")
+
+
 class KnownParams(NamedTuple):
-    """Quantities measured on the car, not estimated: mass (kg), lf, lr (m), v_min (m/s)."""
+    """Quantities measured on the car, not estimated: mass (kg), lf, lr (m), v_min (m/s); the
+    drivetrain form (DRIVETRAINS) and, for "powertrain", the brake gain (N per unit of brake input)."""
 
     mass: float
     lf: float
     lr: float
     v_min: float
+    drivetrain: str = "papers"
+    brake_gain: float = 0.0
 
 
 class Forces(NamedTuple):
@@ -76,9 +89,18 @@ def slip_angles(ns: MathNamespace, vx, vy, omega, delta, Gf, Gr, p: KnownParams)
     return alpha_f, alpha_r
 
 
-def drivetrain_force(vx, T, Cm1, Cm2, Cr0, Cd):
-    """Longitudinal force at the rear axle from throttle T (the papers' drivetrain model)."""
-    return (Cm1 - Cm2 * vx) * T - Cr0 - Cd * vx * vx
+def drivetrain_force(vx, T, Cm1, Cm2, Cr0, Cd, ns: MathNamespace | None = None, p: KnownParams | None = None):
+    """Longitudinal force at the rear axle from throttle T: the papers' form unless p chooses
+    "powertrain" (then ns is needed for max). The papers' expression is kept as it was, term for term,
+    so its results are bit-identical to before the choice existed."""
+    if p is None or p.drivetrain == "papers":
+        return (Cm1 - Cm2 * vx) * T - Cr0 - Cd * vx * vx
+    if p.drivetrain != "powertrain":
+        raise ValueError(f"unknown drivetrain {p.drivetrain!r}; expected one of {', '.join(DRIVETRAINS)}")
+    if ns is None:
+        raise ValueError("the powertrain drivetrain needs a math namespace (for max)")
+    T_drive = ns.fmax(T, 0.0)
+    return (Cm1 - Cm2 * vx) * T_drive + p.brake_gain * (T - T_drive) - Cr0 - Cd * vx * vx
 
 
 def forces(ns: MathNamespace, state: Sequence, coeffs: Sequence, p: KnownParams) -> Forces:
@@ -87,7 +109,7 @@ def forces(ns: MathNamespace, state: Sequence, coeffs: Sequence, p: KnownParams)
     alpha_f, alpha_r = slip_angles(ns, vx, vy, omega, delta, Gf, Gr, p)
     Ffy = pacejka(ns, alpha_f, Bf, Cf, Df, Ef, Kf)
     Fry = pacejka(ns, alpha_r, Br, Cr, Dr, Er, Kr)
-    Frx = drivetrain_force(vx, T, Cm1, Cm2, Cr0, Cd)
+    Frx = drivetrain_force(vx, T, Cm1, Cm2, Cr0, Cd, ns, p)
     return Forces(alpha_f, alpha_r, Ffy, Fry, Frx)
 
 

@@ -15,13 +15,14 @@ from pathlib import Path
 import numpy as np
 
 from ddyn.errors import DdynError
-from ddyn.model.single_track import COEFF_NAMES, KnownParams
+from ddyn.model.single_track import COEFF_NAMES, DRIVETRAINS, KnownParams
 
 VEHICLE_DIR = Path(__file__).resolve().parents[1] / "vehicles"  # train/vehicles
 
 # Each car's body, length by width in m, for track-bound checks (MPC, racing line, SIL). The 1:43 car's body (not in the vehicle file, which holds only what the model needs): about
 # 10 cm by 5 cm, centred on the centre of gravity. Chosen here from the ORCA car's size class.
 FOOTPRINT = {"orca_1_43": (0.10, 0.05), "av21": (4.9, 1.9)}
+FOOTPRINT["av21_powertrain"] = FOOTPRINT["av21"]   # the same car with the real log's drivetrain and ranges
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,9 @@ class Vehicle:
     input_limits: dict[str, tuple[float, float]]
     sensor_noise_std: dict[str, float]
     description: str = ""
+    # another vehicle file's name when this one is the same car with other model settings (drivetrain,
+    # ranges): never inferred from a log's clock in place of that car
+    variant_of: str = ""
     sources: dict[str, str] = field(default_factory=dict)
     source_path: str = ""
     raw_json: str = ""
@@ -77,6 +81,21 @@ def load(name_or_path: str | Path) -> Vehicle:
     return parse(path.read_bytes(), str(path))
 
 
+def _known(raw: dict, path: str) -> KnownParams:
+    """mass, lf, lr, v_min from "known"; the drivetrain form from "drivetrain" (default the papers'), and
+    for "powertrain" the brake gain from known.brake_gain (required there, refused elsewhere)."""
+    form = str(raw.get("drivetrain", "papers"))
+    if form not in DRIVETRAINS:
+        raise DdynError(f"{path}: drivetrain {form!r} is not one of {', '.join(DRIVETRAINS)}")
+    gain = raw["known"].get("brake_gain")
+    if form == "powertrain" and not (gain is not None and float(gain) > 0.0):
+        raise DdynError(f"{path}: the powertrain drivetrain needs known.brake_gain > 0 (N per unit brake input)")
+    if form == "papers" and gain is not None:
+        raise DdynError(f"{path}: known.brake_gain is used only by the powertrain drivetrain")
+    return KnownParams(**{k: float(raw["known"][k]) for k in ("mass", "lf", "lr", "v_min")},
+                       drivetrain=form, brake_gain=float(gain) if gain is not None else 0.0)
+
+
 def parse(raw_bytes: bytes, origin: str) -> Vehicle:
     """A vehicle from the bytes of a vehicle file (origin names it in errors), e.g. one embedded in a checkpoint."""
     path = origin
@@ -85,7 +104,7 @@ def parse(raw_bytes: bytes, origin: str) -> Vehicle:
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DdynError(f"{path}: not valid JSON: {e}") from None
     try:
-        known = KnownParams(**{k: float(raw["known"][k]) for k in KnownParams._fields})
+        known = _known(raw, path)
         ranges = {k: (float(raw["ranges"][k][0]), float(raw["ranges"][k][1])) for k in COEFF_NAMES}
         true = raw.get("true_coefficients")
         ref = raw.get("reference_dataset_coefficients")
@@ -105,6 +124,7 @@ def parse(raw_bytes: bytes, origin: str) -> Vehicle:
             input_limits={k: (float(v[0]), float(v[1])) for k, v in raw["input_limits"].items()},
             sensor_noise_std={k: float(v) for k, v in raw.get("sensor_noise_std", {}).items()},
             description=str(raw.get("description", "")),
+            variant_of=str(raw.get("variant_of", "")),
             sources=dict(raw.get("sources", {})),
             source_path=path,
             digest=hashlib.sha256(raw_bytes).hexdigest(),

@@ -1,0 +1,126 @@
+"""The drivetrain choice of a vehicle file: the papers' form unchanged, the powertrain form the same in
+every backend (numpy, torch, CasADi here; the generated C in tests/c/test_model.c), and recorded in
+checkpoints."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from ddyn.analysis import fidelity
+from ddyn.errors import DdynError
+from ddyn.model import backends, mathns, vehicle
+from ddyn.model.sampling import random_cases
+from ddyn.model.single_track import COEFF_NAMES, drivetrain_force, forces
+
+DRIVE = [COEFF_NAMES.index(k) for k in ("Cm1", "Cm2", "Cr0", "Cd")]
+
+
+def _papers_literal(vx, T, Cm1, Cm2, Cr0, Cd):
+    """The papers' drivetrain as Table I writes it, typed out here on purpose as the reference."""
+    return (Cm1 - Cm2 * vx) * T - Cr0 - Cd * vx * vx
+
+
+@pytest.mark.parametrize("name", ["orca_1_43", "av21"])
+def test_papers_form_is_bit_identical(name):
+    v = vehicle.load(name)
+    assert v.known.drivetrain == "papers" and v.known.brake_gain == 0.0
+    x, _, c = random_cases(v, 2000, np.random.default_rng(5))
+    args = (x[:, 3], x[:, 6], *(c[:, i] for i in DRIVE))
+    want = _papers_literal(*args)
+    assert np.array_equal(drivetrain_force(*args), want)
+    assert np.array_equal(drivetrain_force(*args, mathns.NUMPY, v.known), want)
+    f = forces(mathns.NUMPY, tuple(x.T), tuple(c.T), v.known)
+    assert np.array_equal(f.Frx, want)
+
+
+def test_powertrain_uses_the_brake_gain_below_zero_only():
+    v = vehicle.load("av21_powertrain")
+    assert v.known.drivetrain == "powertrain" and v.known.brake_gain > 0
+    x, _, c = random_cases(v, 4000, np.random.default_rng(6))
+    assert (x[:, 6] < 0).any() and (x[:, 6] > 0).any(), "the cases must brake and drive"
+    args = (x[:, 3], x[:, 6], *(c[:, i] for i in DRIVE))
+    got = drivetrain_force(*args, mathns.NUMPY, v.known)
+    papers = _papers_literal(*args)
+    drive = x[:, 6] >= 0
+    assert np.array_equal(got[drive], papers[drive])
+    vx, T, _, _, Cr0, Cd = (a[~drive] for a in args)
+    assert np.allclose(got[~drive], v.known.brake_gain * T - Cr0 - Cd * vx * vx, rtol=1e-14, atol=0)
+    assert not np.allclose(got[~drive], papers[~drive]), "braking must differ from the papers' form"
+
+
+@pytest.mark.parametrize("method", ["euler", "rk4"])
+def test_powertrain_numpy_torch_casadi_agree(method):
+    diff = fidelity.backend_agreement("av21_powertrain", method, 2000)
+    assert diff["torch"] <= 1e-12 and diff["casadi"] <= 1e-12, diff
+
+
+def test_powertrain_gradients_finite_at_zero_throttle():
+    v = vehicle.load("av21_powertrain")
+    x = torch.tensor([[0.0, 0.0, 0.0, 20.0, 0.1, 0.05, 0.0, 0.01]], dtype=torch.float64, requires_grad=True)
+    c = torch.tensor(v.true_vector(), dtype=torch.float64, requires_grad=True)
+    out = backends.step_torch(x, torch.zeros(1, 2, dtype=torch.float64), c, v.known, v.sample_time)
+    out[:, 3].sum().backward()
+    assert torch.isfinite(x.grad).all() and torch.isfinite(c.grad).all()
+
+
+def test_vehicle_file_checks_the_drivetrain(tmp_path):
+    raw = json.loads(vehicle.load("av21_powertrain").raw_json)
+    bad = dict(raw, drivetrain="turbo")
+    with pytest.raises(DdynError, match="drivetrain 'turbo'"):
+        vehicle.parse(json.dumps(bad).encode(), "bad.json")
+    no_gain = dict(raw, known={k: x for k, x in raw["known"].items() if k != "brake_gain"})
+    with pytest.raises(DdynError, match="brake_gain"):
+        vehicle.parse(json.dumps(no_gain).encode(), "no_gain.json")
+    papers_with_gain = dict(raw, drivetrain="papers")
+    with pytest.raises(DdynError, match="only by the powertrain"):
+        vehicle.parse(json.dumps(papers_with_gain).encode(), "papers_gain.json")
+
+
+def test_variant_is_not_inferred_from_the_clock():
+    from ddyn.data import lcm_import
+
+    chosen = lcm_import._vehicle(__import__("pathlib").Path("log.lcm"), 0.04, None)
+    assert chosen.name == "av21"
+
+
+def test_checkpoint_records_the_drivetrain(tmp_path):
+    from ddyn.data import simulate
+    from ddyn.data.dataset import write_canonical
+    from ddyn.learn import checkpoint
+    from ddyn.learn.train_cmd import train_to_checkpoint
+    from ddyn.learn.training import TrainConfig
+    from ddyn.model import tracks
+
+    v = vehicle.load("av21_powertrain")
+    ds = simulate.simulate(v, tracks.load_track("putnam"), duration=12.0, seed=3, progress=False)
+    assert (ds.states[:, 6] < 0).any(), "the simulated lap should brake"
+    path = tmp_path / "pt.csv"
+    write_canonical(ds, path)
+    ckpt = train_to_checkpoint(str(path), TrainConfig(epochs=1, lbfgs_iterations=2, hidden=8, layers=1),
+                               str(tmp_path / "pt.ckpt"), progress=False)
+    assert ckpt["vehicle"]["drivetrain"] == "powertrain"
+    assert ckpt["vehicle"]["brake_gain"] == v.known.brake_gain
+    _, back = checkpoint.load(tmp_path / "pt.ckpt")
+    assert checkpoint.vehicle_of(back).known.drivetrain == "powertrain"
+
+
+def test_drivetrain_study_recovers_a_simulated_powertrain():
+    """`ddyn study drivetrain` on a log of the powertrain model itself: the powertrain fit finds the brake
+    gain and explains the vx change better than the papers' form (which cannot brake with its own gain)."""
+    from ddyn.data import simulate
+    from ddyn.model import tracks
+    from ddyn.studies import drivetrain
+
+    v = vehicle.load("av21_powertrain")
+    ds = simulate.simulate(v, tracks.load_track("putnam"), duration=60.0, seed=4, progress=False)
+    assert (ds.states[:, 6] < -0.05).mean() > 0.02, "the log must brake to tell the forms apart"
+    res = drivetrain.run(ds, v)
+    pt, pa = res["forms"]["powertrain"], res["forms"]["papers"]
+    assert pt["r2_train"] > 0.99 and pt["r2_train"] > pa["r2_train"]
+    assert abs(pt["fit"]["brake_gain"] / v.known.brake_gain - 1) < 0.02
+    assert abs(pt["fit"]["Cm1"] / v.true_coefficients["Cm1"] - 1) < 0.05
+    lo, hi = pt["ranges"]["Cm1"]
+    assert lo == 0.5 * pt["fit"]["Cm1"] and hi == 2.0 * pt["fit"]["Cm1"]

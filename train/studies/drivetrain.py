@@ -1,0 +1,196 @@
+"""`ddyn study drivetrain`: which drivetrain form fits a real log, and guard ranges for it from data.
+
+On the training part of a time split (the first 80 % of the log, as `ddyn study ddm real`; the
+held-out last 20 % is only reported, never fitted), for each drivetrain form of the model
+(ddyn.model.single_track.DRIVETRAINS):
+
+  1. one set of constant drivetrain coefficients (Cm1, Cm2, Cr0, Cd; for "powertrain" also the
+     vehicle's known brake gain) by least squares on the one-step change of vx predicted by the one
+     model (Euler, the vehicle's other coefficients at its true values: they enter vx only through
+     the front tyre's F_fy sin(delta)); Cd is held inside the vehicle file's range (a physical prior:
+     alone it is not separable from Cm2, both grow with speed);
+  2. the share of the vx change the fitted form explains, R^2 = 1 - SSE / SS of (vx_next - vx), on
+     the training part (the figure that chooses the form) and, for information, on the held-out part;
+  3. guard ranges from the fit by the papers' own rule for nominal ranges ("drivetrain coefficients
+     and Iz from half to double the true value", shared/data/README.md): [x / 2, 2 x]; Cd keeps the
+     vehicle file's range (see 1).
+
+With --model CKPT (a DDM trained on the same training part), also the ranges of the coefficients the
+DDM's estimates press on (training part only): the rule of `ddyn denoise` (ddyn.learn.denoise.
+suggest_ranges: a pinned side is extended, to half or double a positive bound or by half the width;
+the other side is kept; a bound at zero and a coefficient pinned at both ends keep the vehicle file's
+range: they are not identified, or serve as slack), and the tyre
+curvature E's upper bound 1 (the magic formula's own condition E <= 1, Pacejka, Tyre and Vehicle
+Dynamics, 2012, sec. 4.3.2) where the estimates press on the papers' 0: DIR/ranges_guard.json.
+
+Writes DIR/drivetrain.json (fits, R^2, ranges) and DIR/ranges_<form>.json (a `ddyn train --ranges`
+file). The numbers of train/vehicles/av21_powertrain.json come from this command.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ddyn.data.dataset import Dataset
+from ddyn.errors import DdynError
+from ddyn.model import backends
+from ddyn.model import vehicle as vehicle_mod
+from ddyn.model.single_track import COEFF_NAMES, DRIVETRAINS
+from ddyn.paths import shared_data_dir
+
+DRIVE = ("Cm1", "Cm2", "Cr0", "Cd")
+TRAIN_FRACTION = 0.8
+RULE = "papers' half-to-double rule around the training part's fit"
+
+
+def split_rows(ds: Dataset, fraction: float = TRAIN_FRACTION) -> tuple[np.ndarray, np.ndarray]:
+    """Row indices k with a next row k + 1 in the same segment, before the cut and from the cut on
+    (no pair straddles the cut: the same split as `ddyn study ddm real`)."""
+    cut = int(len(ds) * fraction)
+    k = np.arange(len(ds) - 1)
+    k = k[ds.segment[k] == ds.segment[k + 1]]
+    return k[k + 1 < cut], k[k >= cut]
+
+
+def _predict_vx(ds: Dataset, rows: np.ndarray, v: vehicle_mod.Vehicle, drive: np.ndarray, brake_gain: float,
+                form: str) -> np.ndarray:
+    c = v.true_vector().copy()
+    for name, x in zip(DRIVE, drive):
+        c[COEFF_NAMES.index(name)] = x
+    p = v.known._replace(drivetrain=form, brake_gain=brake_gain if form == "powertrain" else 0.0)
+    return backends.step_numpy(ds.states[rows], ds.inputs[rows], c, p, v.sample_time, "euler")[:, 3]
+
+
+def r_squared(ds: Dataset, rows: np.ndarray, pred_vx: np.ndarray) -> float:
+    change = ds.states[rows + 1, 3] - ds.states[rows, 3]
+    sse = float(np.sum((ds.states[rows + 1, 3] - pred_vx) ** 2))
+    return 1.0 - sse / float(np.sum((change - change.mean()) ** 2))
+
+
+def fit_form(ds: Dataset, train_rows: np.ndarray, v: vehicle_mod.Vehicle, form: str) -> dict:
+    """Constant drivetrain coefficients (and brake gain) of one form by least squares on the training rows."""
+    cd_lo, cd_hi = v.ranges["Cd"]
+    start = np.array([10.0 * v.known.mass,
+                      0.1 * v.known.mass, 0.5 * v.known.mass, 0.5 * (cd_lo + cd_hi)])
+    lo, hi = np.array([0.0, 0.0, 0.0, cd_lo]), np.array([np.inf, np.inf, np.inf, cd_hi])
+    if form == "powertrain":
+        start, lo, hi = np.append(start, 3.0 * v.known.mass), np.append(lo, 0.0), np.append(hi, np.inf)
+    target = ds.states[train_rows + 1, 3]
+
+    def residual(z):
+        return _predict_vx(ds, train_rows, v, z[:4], z[4] if form == "powertrain" else 0.0, form) - target
+
+    sol = least_squares(residual, start, bounds=(lo, hi), x_scale=np.maximum(np.abs(start), 1e-3))
+    out = {name: float(x) for name, x in zip(DRIVE, sol.x[:4])}
+    if form == "powertrain":
+        out["brake_gain"] = float(sol.x[4])
+    return out
+
+
+def ranges_from_fit(fit: dict, v: vehicle_mod.Vehicle) -> dict:
+    """[x / 2, 2 x] for Cm1, Cm2, Cr0 (the papers' rule); Cd keeps the vehicle file's range."""
+    out = {name: [0.5 * fit[name], 2.0 * fit[name]] for name in ("Cm1", "Cm2", "Cr0") if fit[name] > 0.0}
+    out["Cd"] = list(v.ranges["Cd"])
+    return out
+
+
+def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -> dict:
+    """fraction 1.0: ds is already the training part (then no held-out R^2)."""
+    train_rows, test_rows = split_rows(ds, fraction)
+    if len(train_rows) < 10 or (fraction < 1.0 and len(test_rows) < 10):
+        raise DdynError(f"too few rows for a {TRAIN_FRACTION:.0%} time split ({len(ds)})")
+    out = {"vehicle": v.name, "rows": {"train": int(len(train_rows)), "heldout": int(len(test_rows))}, "forms": {}}
+    for form in DRIVETRAINS:
+        fit = fit_form(ds, train_rows, v, form)
+        drive = np.array([fit[n] for n in DRIVE])
+        bg = fit.get("brake_gain", 0.0)
+        out["forms"][form] = {
+            "fit": fit,
+            "r2_train": r_squared(ds, train_rows, _predict_vx(ds, train_rows, v, drive, bg, form)),
+            "r2_heldout": (r_squared(ds, test_rows, _predict_vx(ds, test_rows, v, drive, bg, form))
+                           if len(test_rows) else None),
+            "ranges": ranges_from_fit(fit, v), "rule": RULE,
+        }
+    return out
+
+
+E_MAX = 1.0   # Pacejka's condition on the curvature factor
+
+
+def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> dict:
+    """{coefficient: {"vehicle", "used", "why"}} for the coefficients the DDM's estimates on train_part
+    press on (see the module docstring); the checkpoint's own ranges are the starting point."""
+    import dataclasses
+
+    from ddyn.learn import checkpoint
+    from ddyn.learn.denoise import ddm_estimates, suggest_ranges
+
+    model, ckpt = checkpoint.load(ckpt_path)
+    v = checkpoint.vehicle_of(ckpt)
+    r = ckpt["ranges"]
+    v = dataclasses.replace(v, ranges={n: (lo, hi) for n, lo, hi in zip(r["names"], r["lo"], r["hi"])})
+    est = ddm_estimates(model, train_part, ckpt["config"]["tau"])
+    out = {}
+    for name, s in suggest_ranges(est, v)["coefficients"].items():
+        lo, hi = v.ranges[name]
+        if name in ("Ef", "Er") and hi == 0.0 and s["pinned"] in ("high", "both"):
+            out[name] = {"vehicle": [lo, hi], "used": [lo, E_MAX], "why": "E <= 1 (Pacejka), pressed on 0"}
+        elif s["pinned"] in ("low", "high"):
+            # only the pinned side moves (as the rule extends it); the other side keeps the vehicle's bound
+            used = [s["suggested"][0], hi] if s["pinned"] == "low" else [lo, s["suggested"][1]]
+            if used != [lo, hi]:
+                out[name] = {"vehicle": [lo, hi], "used": used, "why": f"ddyn denoise's rule, pinned {s['pinned']}"}
+    return out
+
+
+def markdown(res: dict) -> str:
+    lines = [f"Drivetrain forms on {res['vehicle']}'s log: fit on the first {TRAIN_FRACTION:.0%} "
+             f"({res['rows']['train']} steps), R^2 of the one-step vx change",
+             "", "| form | R^2 training part | R^2 held-out (information) | Cm1 | Cm2 | Cr0 | Cd | brake gain |",
+             "|---|---|---|---|---|---|---|---|"]
+    for form, r in res["forms"].items():
+        f = r["fit"]
+        lines.append(f"| {form} | {r['r2_train']:.3f} | {r['r2_heldout']:.3f} | {f['Cm1']:.4g} | {f['Cm2']:.4g} | "
+                     f"{f['Cr0']:.4g} | {f['Cd']:.3g} | {f.get('brake_gain', float('nan')):.4g} |")
+    return "\n".join(lines)
+
+
+def _run(args) -> int:
+    from ddyn.data.importers import load_any
+
+    src = Path(args.data) if args.data else shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+    if not src.is_file():
+        raise DdynError(f"log not found: {src}")
+    v = vehicle_mod.load(args.vehicle)
+    ds = load_any(src, vehicle=v.variant_of or v.name)
+    res = run(ds, v)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
+    for form, r in res["forms"].items():
+        (out / f"ranges_{form}.json").write_text(json.dumps(r["ranges"], indent=2))
+    if args.model:
+        cut = int(len(ds) * TRAIN_FRACTION)
+        guard = guard_ranges_from_model(args.model, ds.subset(slice(0, cut)))
+        res["guard_ranges"] = guard
+        (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
+        (out / "ranges_guard.json").write_text(json.dumps({k: g["used"] for k, g in guard.items()}, indent=2))
+        for k, g in guard.items():
+            print(f"guard range {k}: {g['vehicle']} -> [{g['used'][0]:.4g}, {g['used'][1]:.4g}] ({g['why']})")
+    print(markdown(res))
+    for form, r in res["forms"].items():
+        print(f"{form}: ranges ({RULE}) " + ", ".join(f"{k} [{a:.4g}, {b:.4g}]" for k, (a, b) in r["ranges"].items())
+              + f" -> {out / f'ranges_{form}.json'}")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("drivetrain", help="drivetrain forms on a real log: fit, R^2, guard ranges from data")
+    p.add_argument("--data", help="a RACECAR CSV (default: the shared Putnam log)")
+    p.add_argument("--vehicle", default="av21", help="vehicle file whose other coefficients and Cd range are used")
+    p.add_argument("--model", help="a DDM checkpoint trained on the training part: ranges its estimates press on")
+    p.add_argument("--out", default="out/study/drivetrain", help="output directory (default: %(default)s)")
+    p.set_defaults(func=_run)
