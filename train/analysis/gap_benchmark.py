@@ -608,7 +608,7 @@ def _run_commonroad(args, out: Path) -> int:
             D.MIN_EVIDENCE = args.min_evidence
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
         doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
-                    nominal=args.nominal, fit=args.fit,
+                    nominal=args.nominal, fit=args.fit, mass_inertia=args.mass_inertia, steer_servo=args.steer_servo,
                     thresholds=G.thresholds_of(args.thresholds_from) if args.thresholds_from else None)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
@@ -712,6 +712,10 @@ def register(subparsers) -> None:
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--fit", choices=D.FIT_MODES, default=None,
                    help=f"commonroad: the diagnosis's fit (diagnose --fit; default {D.DEFAULT_FIT})")
+    p.add_argument("--mass-inertia", action="store_true",
+                   help="commonroad: diagnose --mass-inertia (the mass_offset candidate scales Iz with the mass)")
+    p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",
+                   help="commonroad: diagnose --steer-servo TAU (the plant's servo: 0.01 s, its data sheet)")
     p.add_argument("--thresholds-from", default=None, metavar="RESULTS_JSON",
                    help="commonroad: score top-1 above the detection thresholds measured in this (calibration) run")
     p.add_argument("--eiv-check", action="store_true",
