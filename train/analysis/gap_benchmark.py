@@ -585,6 +585,14 @@ def _run_commonroad(args, out: Path) -> int:
         print(doc["markdown"])
         print(f"wrote {out / 'eiv.json'}")
         return 0
+    if args.mass_check:
+        doc = G.mass_check(args.cases or 7, G.EIV_SEED if args.seed is None else args.seed, args.jobs,
+                           progress=not args.no_progress)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "mass.json").write_text(json.dumps(doc, indent=2, default=float))
+        print(doc["markdown"])
+        print(f"wrote {out / 'mass.json'}")
+        return 0
     if args.rescore:
         path = out / "results.json"
         if not path.is_file():
@@ -721,6 +729,9 @@ def register(subparsers) -> None:
     p.add_argument("--eiv-check", action="store_true",
                    help="commonroad: the errors-in-variables check instead of the benchmark: the mass offset fitted "
                         "on --cases effect-free logs from logged, noise-free and smoothed states and by output error")
+    p.add_argument("--mass-check", action="store_true",
+                   help="commonroad: the mass offset fitted alone on --cases logs with offsets of both signs hidden, "
+                        "with the candidate's Iz fixed or scaled with the mass (--mass-inertia)")
     p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")
     p.add_argument("--real", action="store_true", help="diagnose the Putnam log: nominal from its first half "
                                                        "(or --model), diagnosis on the rest")

@@ -158,12 +158,14 @@ def run_case(case: dict) -> dict:
 EIV_SEED = 12                  # effect-free logs of the errors-in-variables check (neither calibrates nor scores)
 
 
-def _fit_mass(ds, veh, mode: str, hold: bool, states=None) -> dict:
+def _fit_mass(ds, veh, mode: str, hold: bool, states=None, mass_inertia: bool = False) -> dict:
     """The mass offset (Df, Dr refitted) that a fit of `mode` gives on ds; states: the rows the steps start
-    from instead of the logged ones (the noise-free truth: what the fit would give without errors in variables)."""
+    from instead of the logged ones (the noise-free truth: what the fit would give without errors in variables);
+    mass_inertia: the candidate scales Iz with the mass (diagnose --mass-inertia)."""
     from ddyn.model import effects as E
 
-    prob = D.Problem(ds, D.nominal_from_vehicle(veh, ds), D.DEFAULT_FIT_FRACTION, hold=hold, fit_mode=mode)
+    prob = D.Problem(ds, D.nominal_from_vehicle(veh, ds), D.DEFAULT_FIT_FRACTION, hold=hold, fit_mode=mode,
+                     mass_inertia=mass_inertia)
     if states is not None:
         prob.lm_fit = E.LogModel(ds.time, ds.segment, states, ds.inputs, veh.known, ds.sample_time,
                                  prob.nominal.method, prob.nominal.substeps)
@@ -210,6 +212,39 @@ def eiv_check(n_logs: int = 10, seed: int = EIV_SEED, jobs: int = 1, hold: bool 
     return {"settings": {"logs": n_logs, "seed": seed, "hold": hold, "duration": DURATION,
                          "oe_steps": D.OE_STEPS}, "summary": summary, "results": res,
             "markdown": "\n".join(lines) + "\n"}
+
+
+MASS_CHECK_OFFSETS = (0.0, 0.15, -0.15, 0.25, -0.25, 0.08, -0.08)   # cycled over the logs of the mass check
+
+
+def mass_case(case: dict) -> dict:
+    ds, seed, err = make_case_log(case)
+    if ds is None:
+        return case | {"status": "simulation failed", "error": err}
+    veh = load_vehicle(CP.NOMINAL_VEHICLE)
+    fits = {f"{mode}, Iz {'scaled' if mi else 'fixed'}": _fit_mass(ds, veh, mode, True, mass_inertia=mi)["mass_offset"]
+            for mode in ("one-step", "output-error") for mi in (False, True)}
+    return case | {"status": "ok", "seed_used": seed, "fits": fits}
+
+
+def mass_check(n_logs: int = 7, seed: int = EIV_SEED, jobs: int = 1, progress: bool = True) -> dict:
+    """Is the plant's mass offset found with the right sign? The mass offset fitted alone (Df, Dr refitted, the
+    hold modelled) on logs with MASS_CHECK_OFFSETS hidden, by one-step and output-error fits, with the
+    candidate's Iz fixed (diagnose's default) or scaled with the mass (--mass-inertia)."""
+    cases = [c | {"effect": "mass_offset" if MASS_CHECK_OFFSETS[i % len(MASS_CHECK_OFFSETS)] else NONE,
+                  "magnitude": MASS_CHECK_OFFSETS[i % len(MASS_CHECK_OFFSETS)]}
+             for i, c in enumerate(plan(n_logs, seed))]
+    res = run_cases(mass_case, cases, jobs, desc="mass offset", progress=progress)
+    ok = [r for r in res if r["status"] == "ok"]
+    modes = list(ok[0]["fits"]) if ok else []
+    lines = [f"Mass offset fitted alone on {len(ok)} plant logs (seed {seed}, {DURATION:.0f} s each, command hold "
+             "modelled; Df, Dr refitted):", "", "| hidden | " + " | ".join(modes) + " |",
+             "|---" * (len(modes) + 1) + "|"]
+    lines += [f"| {r['magnitude']:+.2f} | " + " | ".join(f"{r['fits'][m]:+.3f}" for m in modes) + " |" for r in ok]
+    err = {m: _median([abs(r["fits"][m] - r["magnitude"]) for r in ok]) for m in modes}
+    lines += ["| median abs error | " + " | ".join(f"{err[m]:.3f}" for m in modes) + " |"]
+    return {"settings": {"logs": n_logs, "seed": seed, "duration": DURATION, "offsets": MASS_CHECK_OFFSETS},
+            "median_abs_error": err, "results": res, "markdown": "\n".join(lines) + "\n"}
 
 
 # ----------------------------------------------------------------------------------------------- scoring
