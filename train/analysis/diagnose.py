@@ -206,7 +206,8 @@ class Problem:
     """One-step residuals of the nominal model plus effects on a log, split into fit and held-out rows."""
 
     def __init__(self, ds: Dataset, nominal: Nominal, fit_fraction: float, refit=DEFAULT_REFIT, hold: bool = False,
-                 fit_mode: str = "one-step", mass_inertia: bool = False, steer_servo: float = 0.0):
+                 fit_mode: str = "one-step", mass_inertia: bool = False, steer_servo: float = 0.0,
+                 nominal_effects: dict | None = None):
         self.ds, self.nominal = ds, nominal
         # mass_offset scales Iz with the mass (EffectSet.mass_inertia): with Df, Dr refitted it is then what a
         # heavier car with load-proportional tyre forces is, a change of the longitudinal response only
@@ -214,6 +215,11 @@ class Problem:
         # a known steering servo (a DBW data sheet's first-order time constant) in the nominal; a steer_lag
         # hypothesis replaces it (the servo's time constant is then the estimate), a steer_delay adds to it
         self.steer_servo = float(steer_servo)
+        # effects the nominal itself carries ({name: main parameter}, e.g. a data sheet's power limit); a hypothesis
+        # of the same effect replaces the value
+        self.nominal_effects = dict(nominal_effects or {})
+        if self.steer_servo:
+            self.nominal_effects.setdefault("steer_lag", self.steer_servo)
         if fit_mode not in FIT_MODES:
             raise DdynError(f"unknown fit {fit_mode!r}; expected {', '.join(FIT_MODES)}")
         self.fit_mode = fit_mode
@@ -267,8 +273,8 @@ class Problem:
         """The effects of a hypothesis, with the command hold's half-sample delays added when hold is on."""
         if self._hold_values:
             values = {**values, **{k: values.get(k, 0.0) + v for k, v in self._hold_values.items()}}
-        if self.steer_servo and "steer_lag" not in values:
-            values = {**values, "steer_lag": self.steer_servo}
+        if self.nominal_effects:
+            values = {**self.nominal_effects, **values}
         fx = C.effect_set(values, self.layout)
         return _replace(fx, mass_inertia=True) if self.mass_inertia and fx.mass_offset else fx
 

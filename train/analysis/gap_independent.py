@@ -158,14 +158,15 @@ def run_case(case: dict) -> dict:
 EIV_SEED = 12                  # effect-free logs of the errors-in-variables check (neither calibrates nor scores)
 
 
-def _fit_mass(ds, veh, mode: str, hold: bool, states=None, mass_inertia: bool = False) -> dict:
+def _fit_mass(ds, veh, mode: str, hold: bool, states=None, mass_inertia: bool = False,
+              nominal_effects: dict | None = None) -> dict:
     """The mass offset (Df, Dr refitted) that a fit of `mode` gives on ds; states: the rows the steps start
     from instead of the logged ones (the noise-free truth: what the fit would give without errors in variables);
     mass_inertia: the candidate scales Iz with the mass (diagnose --mass-inertia)."""
     from ddyn.model import effects as E
 
     prob = D.Problem(ds, D.nominal_from_vehicle(veh, ds), D.DEFAULT_FIT_FRACTION, hold=hold, fit_mode=mode,
-                     mass_inertia=mass_inertia)
+                     mass_inertia=mass_inertia, nominal_effects=nominal_effects)
     if states is not None:
         prob.lm_fit = E.LogModel(ds.time, ds.segment, states, ds.inputs, veh.known, ds.sample_time,
                                  prob.nominal.method, prob.nominal.substeps)
@@ -224,6 +225,13 @@ def mass_case(case: dict) -> dict:
     veh = load_vehicle(CP.NOMINAL_VEHICLE)
     fits = {f"{mode}, Iz {'scaled' if mi else 'fixed'}": _fit_mass(ds, veh, mode, True, mass_inertia=mi)["mass_offset"]
             for mode in ("one-step", "output-error") for mi in (False, True)}
+    # the nominal given the plant's own power limit (CommonRoad's acceleration cap a_max v_switch / v times the
+    # nominal mass), which the mapped vehicle file lacks
+    p = CP.commonroad_parameters()
+    limit = {"power_limit": p.longitudinal.a_max * p.longitudinal.v_switch * veh.known.mass}
+    fits |= {f"{mode}, Iz scaled, nominal power limit": _fit_mass(ds, veh, mode, True, mass_inertia=True,
+                                                                   nominal_effects=limit)["mass_offset"]
+             for mode in ("one-step", "output-error")}
     return case | {"status": "ok", "seed_used": seed, "fits": fits}
 
 
