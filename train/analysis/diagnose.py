@@ -97,7 +97,7 @@ OE_STEPS = 10
 # evidence margin that left none of seed 11's effect-free logs with a selection. Not the default: logs whose
 # commands ramp (the project's simulator, the own-model benchmark) must not get the hold, and output error costs
 # about four times the one-step diagnosis.
-DBW_PRESET = {"hold": True, "fit": "output-error", "min_evidence": 13.02, "mass_inertia": True}
+DBW_PRESET = {"hold": True, "fit": "output-error", "min_evidence": 13.02}
 SCHEMA = "ddyn-diagnosis 1"
 
 
@@ -975,7 +975,6 @@ def _run(args) -> int:
         args.hold = True
         args.fit = args.fit or DBW_PRESET["fit"]
         args.min_evidence = DBW_PRESET["min_evidence"] if args.min_evidence is None else args.min_evidence
-        args.mass_inertia = args.mass_inertia or DBW_PRESET["mass_inertia"]
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
                  hold=args.hold, min_evidence=args.min_evidence, fit_mode=args.fit, mass_inertia=args.mass_inertia,
                  steer_servo=args.steer_servo)
@@ -1019,13 +1018,13 @@ def register(subparsers) -> None:
                    help="the log's throttle and steering were held between samples (a drive-by-wire unit): the "
                         "nominal gets half a sample of delay on both, delay estimates are on top of it")
     p.add_argument("--dbw", action="store_true",
-                   help="a drive-by-wire log: --hold --fit {fit} --min-evidence {min_evidence:g} --mass-inertia "
-                        "(calibrated on the "
+                   help="a drive-by-wire log: --hold --fit {fit} --min-evidence {min_evidence:g} (calibrated on the "
                         "independent plant; explicit --fit/--min-evidence win)".format(**DBW_PRESET))
     p.add_argument("--mass-inertia", action="store_true",
                    help="the mass_offset candidate scales the yaw inertia with the mass (with Df, Dr refitted it "
                         "then changes only the longitudinal response, as a heavier car with load-proportional "
-                        "tyre forces does; docs/gap_independent.md)")
+                        "tyre forces does; not in --dbw: on the independent plant it then reads the nominal's "
+                        "missing power limit as a mass, docs/gap_independent.md)")
     p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",
                    help="a known steering servo in the nominal: first-order lag of TAU s (e.g. from the DBW data "
                         "sheet); steer_lag then estimates the servo's time constant, steer_delay what comes on top")

@@ -269,7 +269,7 @@ class EffectSet:
     power_limit: float = 0.0
     # mass_offset scales the yaw inertia Iz with the mass (a car scaled as a whole, the tyre peak forces refitted
     # with the load: then it changes only the longitudinal response); off: Iz unchanged (the effect's definition
-    # above, what the own-model benchmark simulates). Set by `diagnose --mass-inertia` (in --dbw).
+    # above, what the own-model benchmark simulates). Set by `diagnose --mass-inertia`.
     mass_inertia: bool = False
 
     @classmethod
