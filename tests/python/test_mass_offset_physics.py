@@ -72,10 +72,14 @@ def test_a_heavier_plant_is_estimated_heavier():
     assert estimate(False) < 0.1
 
 
-def test_the_known_servo_is_the_nominal_a_lag_hypothesis_replaces_it(short):
+def test_the_known_servo_and_nominal_effects_a_hypothesis_replaces_them(short):
     prob = D.Problem(short, D.nominal_from_vehicle(NOMINAL, short), 0.6, hold=True, steer_servo=0.01)
     assert prob.effects({}).steer_lag == pytest.approx(0.01)
     assert prob.effects({"steer_lag": 0.05}).steer_lag == pytest.approx(0.05)
     fx = prob.effects({"steer_delay": 0.03})
     assert fx.steer_lag == pytest.approx(0.01) and fx.steer_delay == pytest.approx(0.03 + 0.5 * short.sample_time)
     assert D.Problem(short, D.nominal_from_vehicle(NOMINAL, short), 0.6).effects({}).steer_lag == 0.0
+    # any effect the nominal carries (a data sheet's power limit), replaced by a hypothesis of the same effect
+    prob = D.Problem(short, D.nominal_from_vehicle(NOMINAL, short), 0.6,
+                     nominal_effects=D.nominal_effects_arg("power_limit=92000"))
+    assert prob.effects({}).power_limit == 92000.0 and prob.effects({"power_limit": 5e4}).power_limit == 5e4

@@ -594,7 +594,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
              candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
              max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False,
              min_evidence: float | None = None, fit_mode: str | None = None, mass_inertia: bool = False,
-             steer_servo: float = 0.0) -> dict:
+             steer_servo: float = 0.0, nominal_effects: dict | None = None) -> dict:
     """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
     between samples (drive-by-wire), not ramped as the model integrates them (see Problem). min_evidence: an
     effect is added only when its dBIC < -min_evidence (default MIN_EVIDENCE). fit_mode: what the fit compares
@@ -604,7 +604,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     fit_mode = fit_mode or DEFAULT_FIT
     t0 = _time.perf_counter()
     prob = Problem(ds, nominal, fit_fraction, refit, hold=hold, fit_mode=fit_mode, mass_inertia=mass_inertia,
-                   steer_servo=steer_servo)
+                   steer_servo=steer_servo, nominal_effects=nominal_effects)
     prob.layout = C.layout(ds, track, prob.rows_fit)
     C.attach(prob.lm, prob.layout)
     candidates = tuple(c for c in candidates if C.available(c, prob.layout))
@@ -731,6 +731,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                     "substeps": nominal.substeps, "refit_under_every_hypothesis": list(prob.refit),
                     "command_hold_delay": prob.hold,
                     "mass_offset_scales_iz": prob.mass_inertia, "steer_servo_tau": prob.steer_servo,
+                    "nominal_effects": prob.nominal_effects,
                     "refit_only": {"rmse": _chan(base["rmse"]), "factors": {n: 1.0 + float(r) for n, r in
                                                                              zip(prob.refit, base_fit.rho)}}},
         "split": {"fit_fraction": fit_fraction, "fit_rows": int(len(prob.rows_fit)),
@@ -952,6 +953,11 @@ def _track(name: str | None, ds: Dataset):
         return None
 
 
+def nominal_effects_arg(text: str | None) -> dict:
+    """--nominal-effects "power_limit=92000,steer_lag=0.01": {effect: main parameter}."""
+    return {e.effect: float(e.value) for e in E.parse_effects(text)} if text else {}
+
+
 def _run(args) -> int:
     ds, nominal = load_inputs(args)
     # the default library is the eleven one-parameter effects the benchmarks calibrated and scored;
@@ -977,7 +983,7 @@ def _run(args) -> int:
         args.min_evidence = DBW_PRESET["min_evidence"] if args.min_evidence is None else args.min_evidence
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
                  hold=args.hold, min_evidence=args.min_evidence, fit_mode=args.fit, mass_inertia=args.mass_inertia,
-                 steer_servo=args.steer_servo)
+                 steer_servo=args.steer_servo, nominal_effects=nominal_effects_arg(args.nominal_effects))
     paths = write_report(d, args.out, not args.no_plots)
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
@@ -1028,6 +1034,9 @@ def register(subparsers) -> None:
     p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",
                    help="a known steering servo in the nominal: first-order lag of TAU s (e.g. from the DBW data "
                         "sheet); steer_lag then estimates the servo's time constant, steer_delay what comes on top")
+    p.add_argument("--nominal-effects", default=None, metavar="SPEC",
+                   help="effects the nominal itself has, e.g. a data sheet's 'power_limit=92000' (main parameters, "
+                        "key=value); a hypothesis of the same effect replaces the value")
     p.add_argument("--fit", choices=FIT_MODES, default=None,
                    help=f"what the fit compares (default {DEFAULT_FIT}): one-step predictions from the logged states, "
                         "from smoothed states (errors in variables), or output-error rollouts of "

@@ -617,6 +617,7 @@ def _run_commonroad(args, out: Path) -> int:
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
         doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
                     nominal=args.nominal, fit=args.fit, mass_inertia=args.mass_inertia, steer_servo=args.steer_servo,
+                    nominal_effects=D.nominal_effects_arg(args.nominal_effects),
                     thresholds=G.thresholds_of(args.thresholds_from) if args.thresholds_from else None)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
@@ -724,6 +725,8 @@ def register(subparsers) -> None:
                    help="commonroad: diagnose --mass-inertia (the mass_offset candidate scales Iz with the mass)")
     p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",
                    help="commonroad: diagnose --steer-servo TAU (the plant's servo: 0.01 s, its data sheet)")
+    p.add_argument("--nominal-effects", default=None, metavar="SPEC",
+                   help="commonroad: diagnose --nominal-effects SPEC (e.g. the plant's power limit, power_limit=92021)")
     p.add_argument("--thresholds-from", default=None, metavar="RESULTS_JSON",
                    help="commonroad: score top-1 above the detection thresholds measured in this (calibration) run")
     p.add_argument("--eiv-check", action="store_true",

@@ -121,7 +121,7 @@ def run_case(case: dict) -> dict:
     coeffs = np.asarray(case["coefficients"]) if case.get("coefficients") is not None else None
     diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), hold=bool(case.get("hold", False)),
                       fit_mode=case.get("fit"), mass_inertia=bool(case.get("mass_inertia", False)),
-                      steer_servo=float(case.get("steer_servo", 0.0)))
+                      steer_servo=float(case.get("steer_servo", 0.0)), nominal_effects=case.get("nominal_effects"))
     seconds = time.perf_counter() - t0
     g = diag["gate"]
     # a bank or grade found as a profile along the track (or from the roll channel) is that effect found
@@ -444,6 +444,7 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
              f"{settings.get('nominal', 'mapped')}; fit {settings.get('fit') or D.DEFAULT_FIT}"
              + ("; mass offset scales Iz (--mass-inertia)" if settings.get("mass_inertia") else "")
              + (f"; steering servo {settings['steer_servo']:g} s in the nominal" if settings.get("steer_servo") else "")
+             + (f"; nominal effects {settings['nominal_effects']}" if settings.get("nominal_effects") else "")
              + ".", "",
              "| metric | as diagnosed, gate off | with the gate and margin above |", "|---|---|---|",
              f"| top-1 identification (effect cases) | {_f(s['top1_without_gate'], True)} | {_f(s['top1'], True)} |",
@@ -476,7 +477,7 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
 
 def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = True, hold: bool = False,
         nominal: str = "mapped", fit: str | None = None, thresholds: dict | None = None, mass_inertia: bool = False,
-        steer_servo: float = 0.0) -> dict:
+        steer_servo: float = 0.0, nominal_effects: dict | None = None) -> dict:
     """hold: diagnose with the command hold modelled (diagnose --hold). nominal: "mapped" (the vehicle file)
     or "identified" (identified_coefficients). mass_inertia, steer_servo: diagnose's (--mass-inertia,
     --steer-servo; the plant's servo is CP.SERVO_TAU)."""
@@ -488,7 +489,7 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
     elif nominal != "mapped":
         raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
-                  "mass_inertia": mass_inertia, "steer_servo": steer_servo}
+                  "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects}
              for c in plan(n_cases, seed)]
     results = run_cases(run_case, cases, jobs, desc="gap-benchmark (commonroad)", progress=progress)
     seconds = time.perf_counter() - t0
@@ -497,7 +498,7 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": DURATION, "track": TRACK,
                 "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold,
                 "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds,
-                "mass_inertia": mass_inertia, "steer_servo": steer_servo}
+                "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects}
     sc = score(results, thresholds)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
            "calibrated_gate": calibrate(results), "calibrated_margin": calibrate_margin(results)}
