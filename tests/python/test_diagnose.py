@@ -337,7 +337,7 @@ def test_leave_out_smoother():
 
 def test_cli_dbw_preset(delay_log, tmp_path):
     """--dbw: the hold, output error and the calibrated margin, recorded in diagnosis.json; an explicit
-    --min-evidence wins."""
+    --min-evidence wins; --mass-inertia and --steer-servo are recorded."""
     data = write_canonical(delay_log, tmp_path / "log.csv")
     parser = argparse.ArgumentParser()
     D.register(parser.add_subparsers())
@@ -349,3 +349,11 @@ def test_cli_dbw_preset(delay_log, tmp_path):
     assert d["method"]["fit_mode"] == D.DBW_PRESET["fit"] == "output-error"
     assert d["nominal"]["command_hold_delay"] == pytest.approx(0.5 * delay_log.sample_time)
     assert d["gate"]["min_evidence"] == 2.0
+    assert d["nominal"]["mass_offset_scales_iz"] is False and d["nominal"]["steer_servo_tau"] == 0.0
+    out2 = tmp_path / "diag2"
+    args = parser.parse_args(["diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out2),
+                              "--candidates", "steer_lag", "--no-plots", "--dbw", "--mass-inertia",
+                              "--steer-servo", "0.01"])
+    assert args.func(args) == 0
+    d = json.loads((out2 / "diagnosis.json").read_text())
+    assert d["nominal"]["mass_offset_scales_iz"] is True and d["nominal"]["steer_servo_tau"] == 0.01

@@ -59,7 +59,7 @@ import argparse
 import json
 import math
 import time as _time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace as _replace
 from pathlib import Path
 
 import numpy as np
@@ -207,8 +207,20 @@ class Problem:
     """One-step residuals of the nominal model plus effects on a log, split into fit and held-out rows."""
 
     def __init__(self, ds: Dataset, nominal: Nominal, fit_fraction: float, refit=DEFAULT_REFIT, hold: bool = False,
-                 fit_mode: str = "one-step"):
+                 fit_mode: str = "one-step", mass_inertia: bool = False, steer_servo: float = 0.0,
+                 nominal_effects: dict | None = None):
         self.ds, self.nominal = ds, nominal
+        # mass_offset scales Iz with the mass (EffectSet.mass_inertia): with Df, Dr refitted it is then what a
+        # heavier car with load-proportional tyre forces is, a change of the longitudinal response only
+        self.mass_inertia = bool(mass_inertia)
+        # a known steering servo (a DBW data sheet's first-order time constant) in the nominal; a steer_lag
+        # hypothesis replaces it (the servo's time constant is then the estimate), a steer_delay adds to it
+        self.steer_servo = float(steer_servo)
+        # effects the nominal itself carries ({name: main parameter}, e.g. a data sheet's power limit); a hypothesis
+        # of the same effect replaces the value
+        self.nominal_effects = dict(nominal_effects or {})
+        if self.steer_servo:
+            self.nominal_effects.setdefault("steer_lag", self.steer_servo)
         if fit_mode not in FIT_MODES:
             raise DdynError(f"unknown fit {fit_mode!r}; expected {', '.join(FIT_MODES)}")
         self.fit_mode = fit_mode
@@ -263,7 +275,10 @@ class Problem:
         """The effects of a hypothesis, with the command hold's half-sample delays added when hold is on."""
         if self._hold_values:
             values = {**values, **{k: values.get(k, 0.0) + v for k, v in self._hold_values.items()}}
-        return C.effect_set(values, self.layout)
+        if self.nominal_effects:
+            values = {**self.nominal_effects, **values}
+        fx = C.effect_set(values, self.layout)
+        return _replace(fx, mass_inertia=True) if self.mass_inertia and fx.mass_offset else fx
 
     def predict(self, values: dict, rho: np.ndarray, rows: np.ndarray) -> np.ndarray:
         return self.lm.one_step(self.effects(values), rows, self.coeffs(rho))
@@ -585,11 +600,12 @@ def _score(prob: Problem, base: dict, cand: dict, dk: int, m: int) -> dict:
 def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FRACTION,
              candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
              max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False,
-             min_evidence: float | None = None, fit_mode: str | None = None) -> dict:
+             min_evidence: float | None = None, fit_mode: str | None = None, mass_inertia: bool = False,
+             steer_servo: float = 0.0, nominal_effects: dict | None = None) -> dict:
     """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
     between samples (drive-by-wire), not ramped as the model integrates them (see Problem). min_evidence: an
     effect is added only when its dBIC < -min_evidence (default MIN_EVIDENCE). fit_mode: what the fit compares
-    (FIT_MODES, default DEFAULT_FIT)."""
+    (FIT_MODES, default DEFAULT_FIT). mass_inertia, steer_servo: see Problem."""
     gate = NO_GAP_GATE if gate == "default" else gate
     margin = MIN_EVIDENCE if min_evidence is None else float(min_evidence)
     fit_mode = fit_mode or DEFAULT_FIT
@@ -600,7 +616,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                                            lambda pr: fit(pr, ()), ds.sample_time)
         hold_info["dbw_period_from_steps"] = hold_estimate.detect_period(ds)
         hold = hold_info["hold"]
-    prob = Problem(ds, nominal, fit_fraction, refit, hold=hold, fit_mode=fit_mode)
+    prob = Problem(ds, nominal, fit_fraction, refit, hold=hold, fit_mode=fit_mode, mass_inertia=mass_inertia,
+                   steer_servo=steer_servo, nominal_effects=nominal_effects)
     prob.layout = C.layout(ds, track, prob.rows_fit)
     C.attach(prob.lm, prob.layout)
     candidates = tuple(c for c in candidates if C.available(c, prob.layout))
@@ -726,6 +743,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "nominal": {"source": nominal.label, "vehicle": v.name, "method": nominal.method,
                     "substeps": nominal.substeps, "refit_under_every_hypothesis": list(prob.refit),
                     "command_hold_delay": prob.hold, "hold_estimate": hold_info,
+                    "mass_offset_scales_iz": prob.mass_inertia, "steer_servo_tau": prob.steer_servo,
+                    "nominal_effects": prob.nominal_effects,
                     "refit_only": {"rmse": _chan(base["rmse"]), "factors": {n: 1.0 + float(r) for n, r in
                                                                              zip(prob.refit, base_fit.rho)}}},
         "split": {"fit_fraction": fit_fraction, "fit_rows": int(len(prob.rows_fit)),
@@ -953,6 +972,11 @@ def _hold_arg(text: str):
     return text
 
 
+def nominal_effects_arg(text: str | None) -> dict:
+    """--nominal-effects "power_limit=92000,steer_lag=0.01": {effect: main parameter}."""
+    return {e.effect: float(e.value) for e in E.parse_effects(text)} if text else {}
+
+
 def _run(args) -> int:
     ds, nominal = load_inputs(args)
     # the default library is the eleven one-parameter effects the benchmarks calibrated and scored;
@@ -977,7 +1001,8 @@ def _run(args) -> int:
         args.fit = args.fit or DBW_PRESET["fit"]
         args.min_evidence = DBW_PRESET["min_evidence"] if args.min_evidence is None else args.min_evidence
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
-                 hold=args.hold, min_evidence=args.min_evidence, fit_mode=args.fit)
+                 hold=args.hold, min_evidence=args.min_evidence, fit_mode=args.fit, mass_inertia=args.mass_inertia,
+                 steer_servo=args.steer_servo, nominal_effects=nominal_effects_arg(args.nominal_effects))
     paths = write_report(d, args.out, not args.no_plots)
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
@@ -1022,6 +1047,17 @@ def register(subparsers) -> None:
     p.add_argument("--dbw", action="store_true",
                    help="a drive-by-wire log: --hold --fit {fit} --min-evidence {min_evidence:g} (calibrated on the "
                         "independent plant; explicit --fit/--min-evidence win)".format(**DBW_PRESET))
+    p.add_argument("--mass-inertia", action="store_true",
+                   help="the mass_offset candidate scales the yaw inertia with the mass (with Df, Dr refitted it "
+                        "then changes only the longitudinal response, as a heavier car with load-proportional "
+                        "tyre forces does; not in --dbw: on the independent plant it then reads the nominal's "
+                        "missing power limit as a mass, docs/gap_independent.md)")
+    p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",
+                   help="a known steering servo in the nominal: first-order lag of TAU s (e.g. from the DBW data "
+                        "sheet); steer_lag then estimates the servo's time constant, steer_delay what comes on top")
+    p.add_argument("--nominal-effects", default=None, metavar="SPEC",
+                   help="effects the nominal itself has, e.g. a data sheet's 'power_limit=92000' (main parameters, "
+                        "key=value); a hypothesis of the same effect replaces the value")
     p.add_argument("--fit", choices=FIT_MODES, default=None,
                    help=f"what the fit compares (default {DEFAULT_FIT}): one-step predictions from the logged states, "
                         "from smoothed states (errors in variables), or output-error rollouts of "

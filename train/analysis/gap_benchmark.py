@@ -589,6 +589,14 @@ def _run_commonroad(args, out: Path) -> int:
         print(doc["markdown"])
         print(f"wrote {out / 'eiv.json'}")
         return 0
+    if args.mass_check:
+        doc = G.mass_check(args.cases or 7, G.EIV_SEED if args.seed is None else args.seed, args.jobs,
+                           progress=not args.no_progress)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "mass.json").write_text(json.dumps(doc, indent=2, default=float))
+        print(doc["markdown"])
+        print(f"wrote {out / 'mass.json'}")
+        return 0
     if args.rescore:
         path = out / "results.json"
         if not path.is_file():
@@ -619,7 +627,9 @@ def _run_commonroad(args, out: Path) -> int:
                              fit=args.fit, thresholds=thresholds)
         else:
             doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
-                        nominal=args.nominal, fit=args.fit, thresholds=thresholds)
+                        nominal=args.nominal, fit=args.fit, mass_inertia=args.mass_inertia,
+                        steer_servo=args.steer_servo, nominal_effects=D.nominal_effects_arg(args.nominal_effects),
+                        thresholds=thresholds)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -741,11 +751,20 @@ def register(subparsers) -> None:
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--fit", choices=D.FIT_MODES, default=None,
                    help=f"commonroad: the diagnosis's fit (diagnose --fit; default {D.DEFAULT_FIT})")
+    p.add_argument("--mass-inertia", action="store_true",
+                   help="commonroad: diagnose --mass-inertia (the mass_offset candidate scales Iz with the mass)")
+    p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",
+                   help="commonroad: diagnose --steer-servo TAU (the plant's servo: 0.01 s, its data sheet)")
+    p.add_argument("--nominal-effects", default=None, metavar="SPEC",
+                   help="commonroad: diagnose --nominal-effects SPEC (e.g. the plant's power limit, power_limit=92021)")
     p.add_argument("--thresholds-from", default=None, metavar="RESULTS_JSON",
                    help="commonroad: score top-1 above the detection thresholds measured in this (calibration) run")
     p.add_argument("--eiv-check", action="store_true",
                    help="commonroad: the errors-in-variables check instead of the benchmark: the mass offset fitted "
                         "on --cases effect-free logs from logged, noise-free and smoothed states and by output error")
+    p.add_argument("--mass-check", action="store_true",
+                   help="commonroad: the mass offset fitted alone on --cases logs with offsets of both signs hidden, "
+                        "with the candidate's Iz fixed or scaled with the mass (--mass-inertia)")
     p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")
     p.add_argument("--real", action="store_true", help="diagnose the Putnam log: nominal from its first half "
                                                        "(or --model), diagnosis on the rest")

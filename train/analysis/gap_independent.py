@@ -125,7 +125,9 @@ def run_case(case: dict) -> dict:
     t0 = time.perf_counter()
     coeffs = np.asarray(case["coefficients"]) if case.get("coefficients") is not None else None
     diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), hold=bool(case.get("hold", False)),
-                      fit_mode=case.get("fit"), candidates=tuple(case.get("candidates") or E.EFFECT_NAMES))
+                      fit_mode=case.get("fit"), candidates=tuple(case.get("candidates") or E.EFFECT_NAMES),
+                      mass_inertia=bool(case.get("mass_inertia", False)),
+                      steer_servo=float(case.get("steer_servo", 0.0)), nominal_effects=case.get("nominal_effects"))
     seconds = time.perf_counter() - t0
     g = diag["gate"]
     # a bank or grade found as a profile along the track (or from the roll channel) is that effect found
@@ -162,12 +164,15 @@ def run_case(case: dict) -> dict:
 EIV_SEED = 12                  # effect-free logs of the errors-in-variables check (neither calibrates nor scores)
 
 
-def _fit_mass(ds, veh, mode: str, hold: bool, states=None) -> dict:
+def _fit_mass(ds, veh, mode: str, hold: bool, states=None, mass_inertia: bool = False,
+              nominal_effects: dict | None = None) -> dict:
     """The mass offset (Df, Dr refitted) that a fit of `mode` gives on ds; states: the rows the steps start
-    from instead of the logged ones (the noise-free truth: what the fit would give without errors in variables)."""
+    from instead of the logged ones (the noise-free truth: what the fit would give without errors in variables);
+    mass_inertia: the candidate scales Iz with the mass (diagnose --mass-inertia)."""
     from ddyn.model import effects as E
 
-    prob = D.Problem(ds, D.nominal_from_vehicle(veh, ds), D.DEFAULT_FIT_FRACTION, hold=hold, fit_mode=mode)
+    prob = D.Problem(ds, D.nominal_from_vehicle(veh, ds), D.DEFAULT_FIT_FRACTION, hold=hold, fit_mode=mode,
+                     mass_inertia=mass_inertia, nominal_effects=nominal_effects)
     if states is not None:
         prob.lm_fit = E.LogModel(ds.time, ds.segment, states, ds.inputs, veh.known, ds.sample_time,
                                  prob.nominal.method, prob.nominal.substeps)
@@ -214,6 +219,46 @@ def eiv_check(n_logs: int = 10, seed: int = EIV_SEED, jobs: int = 1, hold: bool 
     return {"settings": {"logs": n_logs, "seed": seed, "hold": hold, "duration": DURATION,
                          "oe_steps": D.OE_STEPS}, "summary": summary, "results": res,
             "markdown": "\n".join(lines) + "\n"}
+
+
+MASS_CHECK_OFFSETS = (0.0, 0.15, -0.15, 0.25, -0.25, 0.08, -0.08)   # cycled over the logs of the mass check
+
+
+def mass_case(case: dict) -> dict:
+    ds, seed, err = make_case_log(case)
+    if ds is None:
+        return case | {"status": "simulation failed", "error": err}
+    veh = load_vehicle(CP.NOMINAL_VEHICLE)
+    fits = {f"{mode}, Iz {'scaled' if mi else 'fixed'}": _fit_mass(ds, veh, mode, True, mass_inertia=mi)["mass_offset"]
+            for mode in ("one-step", "output-error") for mi in (False, True)}
+    # the nominal given the plant's own power limit (CommonRoad's acceleration cap a_max v_switch / v times the
+    # nominal mass), which the mapped vehicle file lacks
+    p = CP.commonroad_parameters()
+    limit = {"power_limit": p.longitudinal.a_max * p.longitudinal.v_switch * veh.known.mass}
+    fits |= {f"{mode}, Iz scaled, nominal power limit": _fit_mass(ds, veh, mode, True, mass_inertia=True,
+                                                                   nominal_effects=limit)["mass_offset"]
+             for mode in ("one-step", "output-error")}
+    return case | {"status": "ok", "seed_used": seed, "fits": fits}
+
+
+def mass_check(n_logs: int = 7, seed: int = EIV_SEED, jobs: int = 1, progress: bool = True) -> dict:
+    """Is the plant's mass offset found with the right sign? The mass offset fitted alone (Df, Dr refitted, the
+    hold modelled) on logs with MASS_CHECK_OFFSETS hidden, by one-step and output-error fits, with the
+    candidate's Iz fixed (diagnose's default) or scaled with the mass (--mass-inertia)."""
+    cases = [c | {"effect": "mass_offset" if MASS_CHECK_OFFSETS[i % len(MASS_CHECK_OFFSETS)] else NONE,
+                  "magnitude": MASS_CHECK_OFFSETS[i % len(MASS_CHECK_OFFSETS)]}
+             for i, c in enumerate(plan(n_logs, seed))]
+    res = run_cases(mass_case, cases, jobs, desc="mass offset", progress=progress)
+    ok = [r for r in res if r["status"] == "ok"]
+    modes = list(ok[0]["fits"]) if ok else []
+    lines = [f"Mass offset fitted alone on {len(ok)} plant logs (seed {seed}, {DURATION:.0f} s each, command hold "
+             "modelled; Df, Dr refitted):", "", "| hidden | " + " | ".join(modes) + " |",
+             "|---" * (len(modes) + 1) + "|"]
+    lines += [f"| {r['magnitude']:+.2f} | " + " | ".join(f"{r['fits'][m]:+.3f}" for m in modes) + " |" for r in ok]
+    err = {m: _median([abs(r["fits"][m] - r["magnitude"]) for r in ok]) for m in modes}
+    lines += ["| median abs error | " + " | ".join(f"{err[m]:.3f}" for m in modes) + " |"]
+    return {"settings": {"logs": n_logs, "seed": seed, "duration": DURATION, "offsets": MASS_CHECK_OFFSETS},
+            "median_abs_error": err, "results": res, "markdown": "\n".join(lines) + "\n"}
 
 
 # ----------------------------------------------------------------------------------------------- scoring
@@ -402,7 +447,11 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
              f"No-gap gate: {'off' if gate is None else f'{gate:.4g}x the noise floor'}; evidence margin "
              f"dBIC < -{s['min_evidence']:g}; command hold "
              f"{'modelled (diagnose --hold)' if settings.get('hold') else 'not modelled'}; nominal "
-             f"{settings.get('nominal', 'mapped')}; fit {settings.get('fit') or D.DEFAULT_FIT}.", "",
+             f"{settings.get('nominal', 'mapped')}; fit {settings.get('fit') or D.DEFAULT_FIT}"
+             + ("; mass offset scales Iz (--mass-inertia)" if settings.get("mass_inertia") else "")
+             + (f"; steering servo {settings['steer_servo']:g} s in the nominal" if settings.get("steer_servo") else "")
+             + (f"; nominal effects {settings['nominal_effects']}" if settings.get("nominal_effects") else "")
+             + ".", "",
              "| metric | as diagnosed, gate off | with the gate and margin above |", "|---|---|---|",
              f"| top-1 identification (effect cases) | {_f(s['top1_without_gate'], True)} | {_f(s['top1'], True)} |",
              f"| false alarms on effect-free logs | {_f(s['false_alarm_rate_without_gate'], True)} | "
@@ -433,9 +482,11 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
 
 
 def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = True, hold: bool = False,
-        nominal: str = "mapped", fit: str | None = None, thresholds: dict | None = None) -> dict:
+        nominal: str = "mapped", fit: str | None = None, thresholds: dict | None = None, mass_inertia: bool = False,
+        steer_servo: float = 0.0, nominal_effects: dict | None = None) -> dict:
     """hold: diagnose with the command hold modelled (diagnose --hold). nominal: "mapped" (the vehicle file)
-    or "identified" (identified_coefficients)."""
+    or "identified" (identified_coefficients). mass_inertia, steer_servo: diagnose's (--mass-inertia,
+    --steer-servo; the plant's servo is CP.SERVO_TAU)."""
     CP.require_commonroad()
     t0 = time.perf_counter()
     coeffs, ident = None, None
@@ -443,7 +494,8 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
         coeffs, ident = identified_coefficients(hold)
     elif nominal != "mapped":
         raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
-    cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist()}
+    cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
+                  "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects}
              for c in plan(n_cases, seed)]
     results = run_cases(run_case, cases, jobs, desc="gap-benchmark (commonroad)", progress=progress)
     seconds = time.perf_counter() - t0
@@ -451,7 +503,8 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
                 "calibration_seed": seed in CALIBRATION_SEEDS, "calibration_seeds": list(CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": DURATION, "track": TRACK,
                 "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold,
-                "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds}
+                "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds,
+                "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects}
     sc = score(results, thresholds)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
            "calibrated_gate": calibrate(results), "calibrated_margin": calibrate_margin(results)}

@@ -278,6 +278,10 @@ class EffectSet:
     brake_gain: float = 0.0
     power_limit: float = 0.0
     gear_step: float = 0.0
+    # mass_offset scales the yaw inertia Iz with the mass (a car scaled as a whole, the tyre peak forces refitted
+    # with the load: then it changes only the longitudinal response); off: Iz unchanged (the effect's definition
+    # above, what the own-model benchmark simulates). Set by `diagnose --mass-inertia`.
+    mass_inertia: bool = False
 
     @classmethod
     def of(cls, effects) -> "EffectSet":
@@ -345,7 +349,8 @@ def derivatives(ns: mathns.MathNamespace, state: Sequence, inputs: Sequence, coe
         x = fx.combined_slip * Frx / c[8]
         Fry = Fry * ns.sqrt(ns.fmax(1.0 - x * x, ELLIPSE_FLOOR ** 2))
     q = p._replace(mass=p.mass * (1.0 + fx.mass_offset)) if fx.mass_offset else p
-    d = list(model.rigid_body(ns, state, inputs, f.Ffy, Fry, Frx, c[16], q))
+    iz = c[16] * (1.0 + fx.mass_offset) if fx.mass_inertia else c[16]
+    d = list(model.rigid_body(ns, state, inputs, f.Ffy, Fry, Frx, iz, q))
     if aux.grade is not None:
         d[3] = d[3] - G * ns.sin(aux.grade)
     if aux.bank is not None:
