@@ -55,18 +55,25 @@ SEEN_SEEDS = (2027,)           # scored before and looked at since: reported, no
 TARGET_FALSE_ALARMS = 0.05
 
 
+def draw_magnitude(rng: np.random.Generator, eff: str, ranges: dict) -> float:
+    """A case's effect size: log-uniform in the effect's range, either sign for SIGNED effects (0 for NONE).
+    The draws' order is part of every plan's reproducibility: do not reorder."""
+    if eff == NONE:
+        return 0.0
+    lo, hi = ranges[eff]
+    mag = math.exp(rng.uniform(math.log(lo), math.log(hi)))
+    if eff in SIGNED and rng.uniform() < 0.5:
+        mag = -mag
+    return mag
+
+
 def plan(n: int, seed: int = DEFAULT_SEED) -> list[dict]:
     rng = np.random.default_rng(seed)
     length = 1.0   # start position as a fraction of the lap (the track is loaded in the worker)
     cases = []
     for i in range(n):
         eff = SLOTS[i % len(SLOTS)]
-        mag = 0.0
-        if eff != NONE:
-            lo, hi = EFFECT_RANGES[eff]
-            mag = math.exp(rng.uniform(math.log(lo), math.log(hi)))
-            if eff in SIGNED and rng.uniform() < 0.5:
-                mag = -mag
+        mag = draw_magnitude(rng, eff, EFFECT_RANGES)
         cases.append({"case": i, "effect": eff, "magnitude": mag, "seed": int(1000 + seed * 100000 + i),
                       "start_fraction": float(rng.uniform(0, length)),
                       "target_speed": float(rng.uniform(*SPEEDS)), "grade_phase": float(rng.uniform(0, 2 * math.pi))})

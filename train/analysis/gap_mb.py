@@ -43,12 +43,7 @@ def plan(n: int, seed: int) -> list[dict]:
     cases = []
     for i in range(n):
         eff = SLOTS[i % len(SLOTS)]
-        mag = 0.0
-        if eff != NONE:
-            lo, hi = EFFECT_RANGES[eff]
-            mag = math.exp(rng.uniform(math.log(lo), math.log(hi)))
-            if eff in G.SIGNED and rng.uniform() < 0.5:
-                mag = -mag
+        mag = G.draw_magnitude(rng, eff, EFFECT_RANGES)
         cases.append({"case": i, "effect": eff, "magnitude": mag, "seed": int(7000 + seed * 100000 + i),
                       "start_fraction": float(rng.uniform()), "target_speed": float(rng.uniform(*G.SPEEDS)),
                       "grade_phase": float(rng.uniform(0, 2 * math.pi)), "plant": "mb", "driver_grip": DRIVER_GRIP,
