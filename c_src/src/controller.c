@@ -699,16 +699,11 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
     } else if (ctl->safe_mode) {
         ctl->healthy_steps += 1;
         if (ctl->healthy_steps >= ctl->cfg.recovery_steps) {
-            /* explicit recovery. The MPC ran in every healthy period of the safe mode: if it solved
-             * this one, its plan and warm start are this period's, not the fault's, and are kept (reset,
-             * DAQP would start cold and, at its cap, leave no plan: safe again, and on a lossy bus that
-             * repeated). Otherwise they predate the fault: no shifted plan, a cold start. */
+            /* explicit recovery: the warm start and the stored plan predate the fault */
             ctl->safe_mode = 0;
             ctl->healthy_steps = 0;
-            if (out->mpc_status != DDYN_OK) {
-                ctl->plan_age = ctl->plan_horizon;
-                ddyn_mpc_reset(&ctl->mpc);
-            }
+            ctl->plan_age = ctl->plan_horizon; /* no shifted plan from before the fault */
+            ddyn_mpc_reset(&ctl->mpc);
             ctl->pid_integral = 0.0; /* nor an integral of the speed error while the car was braked */
             ctl->pid_started = 0;
             st |= DDYN_CTRL_RECOVERED;

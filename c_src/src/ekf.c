@@ -5,50 +5,6 @@
 #include <stddef.h>
 #include <string.h>
 
-/* The covariance algebra (P, the Jacobians, S, K, the Joseph form) runs in `real`: double by
- * default; float with DDYN_EKF_FLOAT32 (a measurement build for a single-precision FPU, docs/m7.md).
- * The model and its Jacobians (generated, double), the state, the innovation and the stored P (API)
- * stay double either way: P is stored as the float result, so the filter's precision is float's. */
-#ifdef DDYN_EKF_FLOAT32
-typedef float real;
-#define REAL_SQRT sqrtf
-#define CONV(n) (n) /* conversion buffers: only the float build needs them */
-/* src in real: converted into buf */
-static const real *to_real(const double *src, real *buf, int n)
-{
-    int i;
-    for (i = 0; i < n; ++i) {
-        buf[i] = (real)src[i];
-    }
-    return buf;
-}
-static const double *to_double(const real *src, double *buf, int n)
-{
-    int i;
-    for (i = 0; i < n; ++i) {
-        buf[i] = (double)src[i];
-    }
-    return buf;
-}
-#else
-typedef double real;
-#define REAL_SQRT sqrt
-#define CONV(n) 1
-/* the double build reads the double arrays themselves: no copies (its answers and cost unchanged) */
-static const real *to_real(const double *src, real *buf, int n)
-{
-    (void)buf;
-    (void)n;
-    return src;
-}
-static const double *to_double(const real *src, double *buf, int n)
-{
-    (void)buf;
-    (void)n;
-    return src;
-}
-#endif
-
 #define N DDYN_NX
 #define MMAX DDYN_MEAS_MAX_DIM
 #define AT(M, r, c, rows) ((M)[(size_t)(c) * (rows) + (r)]) /* column-major element */
@@ -68,20 +24,20 @@ static void symmetrise(double *P)
 }
 
 /* In-place Cholesky factor (lower) of an m x m column-major matrix; 0 if not positive definite. */
-static int cholesky(real *S, int m)
+static int cholesky(double *S, int m)
 {
     int i, j, k;
     for (j = 0; j < m; ++j) {
-        real d = AT(S, j, j, m);
+        double d = AT(S, j, j, m);
         for (k = 0; k < j; ++k) {
             d -= AT(S, j, k, m) * AT(S, j, k, m);
         }
         if (!(d > 0.0)) {
             return 0;
         }
-        AT(S, j, j, m) = REAL_SQRT(d);
+        AT(S, j, j, m) = sqrt(d);
         for (i = j + 1; i < m; ++i) {
-            real v = AT(S, i, j, m);
+            double v = AT(S, i, j, m);
             for (k = 0; k < j; ++k) {
                 v -= AT(S, i, k, m) * AT(S, j, k, m);
             }
@@ -92,7 +48,7 @@ static int cholesky(real *S, int m)
 }
 
 /* Solve (L L') x = b in place for one right-hand side of length m. */
-static void cholesky_solve(const real *L, int m, real *b)
+static void cholesky_solve(const double *L, int m, double *b)
 {
     int i, k;
     for (i = 0; i < m; ++i) {
@@ -138,10 +94,7 @@ ddyn_status ddyn_ekf_init(ddyn_ekf *ekf, const ddyn_vehicle_model *model, ddyn_d
 
 ddyn_status ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC])
 {
-    double xn[N], Ad[N * N], Pd_buf[CONV(N * N)];
-    real A_buf[CONV(N * N)], P_buf[CONV(N * N)], AP[N * N], Pn[N * N];
-    const real *A, *P;
-    const double *Pd;
+    double xn[N], A[N * N], AP[N * N], Pn[N * N];
     int r, col, k;
     ddyn_status s;
     if (ekf == NULL || ekf->model == NULL) {
@@ -151,37 +104,34 @@ ddyn_status ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const doubl
     if (s != DDYN_OK) {
         return s;
     }
-    s = ddyn_model_step_jacobians(ekf->model, ekf->disc, ekf->x, u, c, Ad, NULL, NULL, &ekf->work);
+    s = ddyn_model_step_jacobians(ekf->model, ekf->disc, ekf->x, u, c, A, NULL, NULL, &ekf->work);
     if (s != DDYN_OK) {
         return s;
     }
-    A = to_real(Ad, A_buf, N * N);
-    P = to_real(ekf->P, P_buf, N * N);
     /* Pn = A P A' + diag(q) */
     for (col = 0; col < N; ++col) {
         for (r = 0; r < N; ++r) {
-            real v = 0;
+            double v = 0.0;
             for (k = 0; k < N; ++k) {
-                v += AT(A, r, k, N) * AT(P, k, col, N);
+                v += AT(A, r, k, N) * AT(ekf->P, k, col, N);
             }
             AT(AP, r, col, N) = v;
         }
     }
     for (col = 0; col < N; ++col) {
         for (r = 0; r < N; ++r) {
-            real v = 0;
+            double v = 0.0;
             for (k = 0; k < N; ++k) {
                 v += AT(AP, r, k, N) * AT(A, col, k, N);
             }
-            AT(Pn, r, col, N) = v + (r == col ? (real)ekf->q[r] : 0);
+            AT(Pn, r, col, N) = v + (r == col ? ekf->q[r] : 0.0);
         }
     }
-    Pd = to_double(Pn, Pd_buf, N * N);
-    if (!ddyn_all_finite(Pd, N * N)) {
+    if (!ddyn_all_finite(Pn, N * N)) {
         return DDYN_ERR_NONFINITE_OUTPUT;
     }
     memcpy(ekf->x, xn, sizeof xn);
-    memcpy(ekf->P, Pd, N * N * sizeof(double));
+    memcpy(ekf->P, Pn, sizeof Pn);
     symmetrise(ekf->P);
     return DDYN_OK;
 }
@@ -190,14 +140,11 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
                             const double c[DDYN_NC], double *nis)
 {
     /* zero-initialised: only the first m (dimension of the sensor) entries are used */
-    double h[MMAX] = {0}, Hd[MMAX * N] = {0}, y[MMAX] = {0}, Pd_buf[CONV(N * N)], xn[N];
-    real H_buf[CONV(MMAX * N)], y_buf[CONV(MMAX)] = {0}, R_buf[CONV(MMAX)] = {0}, P_buf[CONV(N * N)];
-    real S[MMAX * MMAX] = {0}, w[MMAX] = {0}, PHt[N * MMAX], K[N * MMAX], IKH[N * N], T[N * N], Pn[N * N];
-    const real *H, *yr, *R, *P;
-    const double *Pd;
+    double h[MMAX] = {0}, H[MMAX * N] = {0}, y[MMAX] = {0}, S[MMAX * MMAX] = {0}, w[MMAX] = {0};
+    double PHt[N * MMAX], K[N * MMAX], IKH[N * N], T[N * N], Pn[N * N], xn[N];
     int m = ddyn_meas_dim(kind);
     int r, col, k, i;
-    real nis_value = 0;
+    double nis_value = 0.0;
     ddyn_status s;
     if (ekf == NULL || ekf->model == NULL || z == NULL || r_diag == NULL || m == 0) {
         return DDYN_ERR_ARGUMENT;
@@ -210,7 +157,7 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
             return DDYN_ERR_NOT_POSITIVE_DEFINITE;
         }
     }
-    s = ddyn_model_measure(ekf->model, kind, ekf->x, c, h, Hd, &ekf->work);
+    s = ddyn_model_measure(ekf->model, kind, ekf->x, c, h, H, &ekf->work);
     if (s != DDYN_OK) {
         return s;
     }
@@ -221,27 +168,23 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
         y[0] = fmod(y[0] + PI, 2.0 * PI);
         y[0] = (y[0] < 0.0 ? y[0] + 2.0 * PI : y[0]) - PI;
     }
-    H = to_real(Hd, H_buf, m * N);
-    P = to_real(ekf->P, P_buf, N * N);
-    yr = to_real(y, y_buf, m);
-    R = to_real(r_diag, R_buf, m);
     /* PHt = P H' (N x m), S = H P H' + R (m x m) */
     for (col = 0; col < m; ++col) {
         for (r = 0; r < N; ++r) {
-            real v = 0;
+            double v = 0.0;
             for (k = 0; k < N; ++k) {
-                v += AT(P, r, k, N) * AT(H, col, k, m);
+                v += AT(ekf->P, r, k, N) * AT(H, col, k, m);
             }
             AT(PHt, r, col, N) = v;
         }
     }
     for (col = 0; col < m; ++col) {
         for (r = 0; r < m; ++r) {
-            real v = 0;
+            double v = 0.0;
             for (k = 0; k < N; ++k) {
                 v += AT(H, r, k, m) * AT(PHt, k, col, N);
             }
-            AT(S, r, col, m) = v + (r == col ? R[r] : 0);
+            AT(S, r, col, m) = v + (r == col ? r_diag[r] : 0.0);
         }
     }
     if (!cholesky(S, m)) {
@@ -258,23 +201,23 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
         }
     }
     for (i = 0; i < m; ++i) {
-        w[i] = yr[i];
+        w[i] = y[i];
     }
     cholesky_solve(S, m, w);
     for (i = 0; i < m; ++i) {
-        nis_value += yr[i] * w[i];
+        nis_value += y[i] * w[i];
     }
     for (r = 0; r < N; ++r) {
-        real v = 0;
+        double v = 0.0;
         for (i = 0; i < m; ++i) {
-            v += AT(K, r, i, N) * yr[i];
+            v += AT(K, r, i, N) * y[i];
         }
-        xn[r] = ekf->x[r] + (double)v;
+        xn[r] = ekf->x[r] + v;
     }
     /* Joseph form: Pn = (I - K H) P (I - K H)' + K R K' */
     for (col = 0; col < N; ++col) {
         for (r = 0; r < N; ++r) {
-            real v = r == col ? 1 : 0;
+            double v = r == col ? 1.0 : 0.0;
             for (i = 0; i < m; ++i) {
                 v -= AT(K, r, i, N) * AT(H, i, col, m);
             }
@@ -283,34 +226,33 @@ ddyn_status ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z,
     }
     for (col = 0; col < N; ++col) {
         for (r = 0; r < N; ++r) {
-            real v = 0;
+            double v = 0.0;
             for (k = 0; k < N; ++k) {
-                v += AT(IKH, r, k, N) * AT(P, k, col, N);
+                v += AT(IKH, r, k, N) * AT(ekf->P, k, col, N);
             }
             AT(T, r, col, N) = v;
         }
     }
     for (col = 0; col < N; ++col) {
         for (r = 0; r < N; ++r) {
-            real v = 0;
+            double v = 0.0;
             for (k = 0; k < N; ++k) {
                 v += AT(T, r, k, N) * AT(IKH, col, k, N);
             }
             for (i = 0; i < m; ++i) {
-                v += AT(K, r, i, N) * R[i] * AT(K, col, i, N);
+                v += AT(K, r, i, N) * r_diag[i] * AT(K, col, i, N);
             }
             AT(Pn, r, col, N) = v;
         }
     }
-    Pd = to_double(Pn, Pd_buf, N * N);
-    if (!ddyn_all_finite(xn, N) || !ddyn_all_finite(Pd, N * N)) {
+    if (!ddyn_all_finite(xn, N) || !ddyn_all_finite(Pn, N * N)) {
         return DDYN_ERR_NONFINITE_OUTPUT;
     }
     memcpy(ekf->x, xn, sizeof xn);
-    memcpy(ekf->P, Pd, N * N * sizeof(double));
+    memcpy(ekf->P, Pn, sizeof Pn);
     symmetrise(ekf->P);
     if (nis != NULL) {
-        *nis = (double)nis_value;
+        *nis = nis_value;
     }
     return DDYN_OK;
 }

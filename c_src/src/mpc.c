@@ -632,7 +632,7 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
 {
     ddyn_mpc_info local;
     ddyn_status qst;
-    int k, j, h, hold, moved = 0, round, started_cold;
+    int k, j, h, hold, moved = 0;
     double u0;
     if (info == NULL) {
         info = &local;
@@ -670,21 +670,14 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         if (!mpc->have_warm_start) {
             ddyn_mpc_qp_daqp_reset(&mpc->daqp);
         }
-        /* A solve that started cold and hit the cap goes on at once from the working set it reached,
-         * up to DDYN_MPC_COLD_ROUNDS caps in all (a cold start can need more than one cap: the first QP
-         * from a standstill, the first after a reset or a failed period, up to ~90 iterations). Its
-         * cost is the rounds' iterations, measured on the M7 (pass 4 of tests/m7/m7_controller.c forces
-         * a cold start every period, docs/m7.md); a warm-started capped solve goes on in the next
-         * period instead (mpc_qp_daqp.c). */
         qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
-        started_cold = mpc->daqp.cold;
-        for (round = 1; round < DDYN_MPC_COLD_ROUNDS && qst == DDYN_ERR_QP_NOT_CONVERGED && started_cold &&
-                        mpc->daqp.exitflag == DDYN_DAQP_EXIT_ITERLIMIT && mpc->daqp.warm_n > 0;
-             ++round) {
-            const int used = mpc->qp.iterations;
-            mpc->daqp.factored_h = mpc->cfg.horizon; /* the same QP: its factorisation still holds */
-            qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 0);
-            mpc->qp.iterations += used; /* reported: the period's iterations, up to the rounds' caps */
+        if (qst == DDYN_ERR_QP_NOT_CONVERGED && mpc->daqp.cold) {
+            /* A cold active-set start can need more iterations than the cap (the first QPs from a
+             * standstill, the first after a recovery: up to ~90). With no plan to shift the controller
+             * would go safe and, after recovery, start cold again: on a lossy bus that repeated (87 safe
+             * periods of a lap). The interior point's iteration count does not depend on a start, so it
+             * solves this period's QP (same cap); DAQP continues from the working set it reached. */
+            qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
         }
     } else {
         qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);

@@ -16,7 +16,6 @@
 #include <math.h>
 #include <string.h>
 
-typedef char daqp_iterlimit_matches[DDYN_DAQP_EXIT_ITERLIMIT == DAQP_EXIT_ITERLIMIT ? 1 : -1];
 typedef char daqp_real_matches[sizeof(c_float) == sizeof(ddyn_qp_real) ? 1 : -1];
 
 /* packed upper-triangular row-major storage of an n x n matrix: start of row i */
@@ -28,7 +27,6 @@ void ddyn_mpc_qp_daqp_reset(ddyn_mpc_qp_daqp *w)
         w->warm_n = 0;
         w->warm_h = 0;
         w->capped = 0;
-        w->chain_cold = 0;
     }
 }
 
@@ -518,23 +516,13 @@ ddyn_status ddyn_mpc_qp_daqp_solve_factored(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w
         return DDYN_ERR_QP_NOT_CONVERGED;
     }
     /* the working set for the next solve; after the iteration cap the one reached so far, so that
-     * the next period goes on from there (a cold start would need as many iterations again). A capped
-     * chain that began warm continues once: if that continuation is capped too, it is no guide and the
-     * next solve starts cold. A chain that began cold continues for up to DDYN_DAQP_COLD_PERIODS capped
-     * solves (the MPC's rounds within the cold period count): starting cold again would throw away what
-     * it reached (after a recovery that looped: cold, capped, cold again, ...). */
-    if (exitflag == DAQP_EXIT_ITERLIMIT) {
-        if (w->capped == 0) {
-            w->chain_cold = w->cold;
-        }
-        w->capped += 1;
-        if (w->capped > (w->chain_cold ? DDYN_DAQP_COLD_PERIODS - 1 : 1)) {
-            ddyn_mpc_qp_daqp_reset(w);
-            return DDYN_ERR_QP_NOT_CONVERGED;
-        }
-    } else {
-        w->capped = 0;
+     * the next period goes on from there (a cold start would need as many iterations again), unless
+     * the previous solve was capped too: then that continuation is no guide either, and it starts cold */
+    if (exitflag == DAQP_EXIT_ITERLIMIT && w->capped) {
+        ddyn_mpc_qp_daqp_reset(w);
+        return DDYN_ERR_QP_NOT_CONVERGED;
     }
+    w->capped = exitflag == DAQP_EXIT_ITERLIMIT;
     w->warm_n = 0;
     for (i = 0; i < work.n_active && i < DDYN_DAQP_WS; ++i) {
         const int id = work.WS[i];

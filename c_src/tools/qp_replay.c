@@ -88,7 +88,7 @@ int main(int argc, char **argv)
         {
             /* every repeat from the same warm start: the working set the previous QP left */
             int warm_id[DDYN_DAQP_WS], warm_lower[DDYN_DAQP_WS], warm_n = daqp.warm_n, warm_h = daqp.warm_h;
-            const int capped = daqp.capped, chain_cold = daqp.chain_cold;
+            const int capped = daqp.capped;
             memcpy(warm_id, daqp.warm_id, sizeof warm_id);
             memcpy(warm_lower, daqp.warm_lower, sizeof warm_lower);
             for (r = 0; r < repeats; ++r) {
@@ -98,7 +98,6 @@ int main(int argc, char **argv)
                 daqp.warm_n = warm_n;
                 daqp.warm_h = warm_h;
                 daqp.capped = capped;
-                daqp.chain_cold = chain_cold;
                 memcpy(&work, &problem, sizeof work);
                 t0 = bench_now_us();
                 conv = ddyn_mpc_qp_daqp_solve(&work, &daqp, max_it, count > 0) == DDYN_OK;

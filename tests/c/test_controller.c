@@ -609,11 +609,6 @@ static void test_recovery_after_a_sensor_fault(void **state)
     run_exact(0, &out);
     assert_true(out.status & DDYN_CTRL_RECOVERED);
     assert_false(out.status & DDYN_CTRL_SAFE_COMMAND);
-    /* the MPC solved this period: its plan and warm start are kept, the next QP is not a cold start */
-    assert_int_equal(out.mpc_status, DDYN_OK);
-    assert_true(ctl.mpc.have_warm_start && ctl.plan_age == 0 && ctl.plan_horizon > 0);
-    assert_false(run_exact(1, &out) & DDYN_CTRL_SAFE_COMMAND);
-    assert_false(ctl.mpc.daqp.cold);
     drive_healthy(20); /* and drives on */
 }
 

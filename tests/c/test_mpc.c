@@ -487,8 +487,7 @@ static void test_iteration_cap_reports_and_commands_within_bounds(void **state)
     ring_start(x0);
     assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
     assert_int_equal(info.converged, 0);
-    /* the first QP starts cold (DAQP, the default): DDYN_MPC_COLD_ROUNDS caps in its period */
-    assert_int_equal(info.qp_iterations, DDYN_MPC_COLD_ROUNDS * 1);
+    assert_int_equal(info.qp_iterations, 1);
     assert_true(isfinite(u[0]) && isfinite(u[1]));
     assert_true(u[0] >= mpc.cfg.rate_lo[0] && u[0] <= mpc.cfg.rate_hi[0]);
     assert_true(u[1] >= mpc.cfg.rate_lo[1] && u[1] <= mpc.cfg.rate_hi[1]);
@@ -606,83 +605,6 @@ static void test_daqp_refusals_and_crossing_bounds_start_cold(void **state)
     qp.hard_lo[1] = -100.0;
     qp.hard_hi[1] = 100.0;
     assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_ERR_ARGUMENT);
-}
-
-static void test_daqp_cold_start_goes_on_over_capped_periods(void **state)
-{
-    /* 40 bounds active at the optimum: a cold start adds one per iteration and cannot finish within a
-     * cap of 30; the next solve goes on from the working set it reached and finishes (the M7's
-     * bounded cost per period, docs/m7.md) */
-    const int h = 20, n = 2 * h;
-    int i, k, last = 0;
-    (void)state;
-    qp_clear(h);
-    open_bounds(n);
-    for (i = 0; i < n; ++i) {
-        qp.hess[i + i * DDYN_QP_NV] = 1.0 + 0.05 * i;
-        qp.grad[i] = (i % 2 == 0 ? -5.0 : 4.0) * qp.hess[i + i * DDYN_QP_NV];
-        qp.lb[i] = -1.0;
-        qp.ub[i] = 2.0;
-    }
-    ddyn_mpc_qp_daqp_reset(&daqp);
-    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_ERR_QP_NOT_CONVERGED);
-    assert_true(daqp.cold && qp.iterations == 30 && daqp.warm_n == 30);
-    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
-    assert_true(!daqp.cold && qp.iterations <= 11);
-    for (i = 0; i < n; ++i) {
-        assert_true(fabs(qp.z[i] - (i % 2 == 0 ? 2.0 : -1.0)) < 1e-9);
-    }
-    /* a cold chain keeps its working set for DDYN_DAQP_COLD_PERIODS capped solves, then starts cold */
-    ddyn_mpc_qp_daqp_reset(&daqp);
-    for (k = 1; k < DDYN_DAQP_COLD_PERIODS; ++k) {
-        assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 3, 0), DDYN_ERR_QP_NOT_CONVERGED);
-        assert_true(daqp.warm_n > last && daqp.capped == k && daqp.chain_cold);
-        last = daqp.warm_n;
-    }
-    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 3, 0), DDYN_ERR_QP_NOT_CONVERGED);
-    assert_true(daqp.warm_n == 0 && daqp.capped == 0);
-    /* a chain that began warm (a wrong working set) continues once, as before */
-    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 50, 0), DDYN_OK);
-    ddyn_mpc_qp_daqp_adversarial_start(&daqp, h);
-    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 1, 0), DDYN_ERR_QP_NOT_CONVERGED);
-    assert_true(!daqp.cold && !daqp.chain_cold && daqp.capped == 1 && daqp.warm_n > 0);
-    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 1, 0), DDYN_ERR_QP_NOT_CONVERGED);
-    assert_true(daqp.warm_n == 0);
-}
-
-static void test_cold_start_takes_its_rounds_in_the_same_period(void **state)
-{
-    /* A cold DAQP start that hits the cap goes on at once from the working set it reached, up to
-     * DDYN_MPC_COLD_ROUNDS caps (mpc.c feedback). From standstill off the line (steering hard over,
-     * full throttle: track, rate and integrator rows bind) the cold QP needs `need` iterations; with a
-     * cap just above need / 2 it converges in its period, with a smaller one it is capped after the
-     * rounds' caps; a warm-started capped solve gets no rounds. */
-    static ddyn_mpc saved;
-    double x[DDYN_NX] = {RADIUS + 0.1, 0.0, PI / 2.0, 0.3, 0.0, 0.0, 0.9, 0.3}, u[DDYN_NU];
-    ddyn_mpc_info info;
-    int need;
-    (void)state;
-    ring_mpc(50);
-    memcpy(&saved, &mpc, sizeof saved);
-    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
-    need = info.qp_iterations;
-    print_message("cold start off the line: %d iterations\n", need);
-    assert_true(need >= 6 && need <= 50);
-    memcpy(&mpc, &saved, sizeof mpc);
-    mpc.cfg.qp_max_iterations = need / 2 + 1;
-    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
-    assert_true(info.converged && info.qp_iterations > mpc.cfg.qp_max_iterations);
-    assert_true(info.qp_iterations <= DDYN_MPC_COLD_ROUNDS * mpc.cfg.qp_max_iterations);
-    memcpy(&mpc, &saved, sizeof mpc);
-    mpc.cfg.qp_max_iterations = need / 4;
-    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
-    assert_int_equal(info.qp_iterations, DDYN_MPC_COLD_ROUNDS * mpc.cfg.qp_max_iterations);
-    assert_true(mpc.daqp.warm_n > 0); /* the next period goes on from there */
-    /* warm-started (a wrong working set), capped: one cap only */
-    ddyn_mpc_qp_daqp_adversarial_start(&mpc.daqp, mpc.cfg.horizon);
-    mpc.cfg.qp_max_iterations = 2;
-    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
-    assert_int_equal(info.qp_iterations, 2);
 }
 
 static void test_daqp_warm_start_shifts_and_the_cap_is_defined(void **state)
@@ -887,8 +809,6 @@ int main(void)
         cmocka_unit_test(test_closed_loop_stays_on_the_ring),
         cmocka_unit_test(test_daqp_solves_the_structured_qps),
         cmocka_unit_test(test_daqp_refusals_and_crossing_bounds_start_cold),
-        cmocka_unit_test(test_daqp_cold_start_goes_on_over_capped_periods),
-        cmocka_unit_test(test_cold_start_takes_its_rounds_in_the_same_period),
         cmocka_unit_test(test_daqp_warm_start_shifts_and_the_cap_is_defined),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),

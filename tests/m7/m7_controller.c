@@ -18,13 +18,8 @@
  * after every step (the MPC's preparation after the command has left), so that each following step
  * is the feedback phase alone (docs/controller.md); instructions of both (not compared with the host).
  *
- * Pass 4 makes every QP a cold start (the MPC reset before each step, with and without its plan: see the
- * pass) and pass 5 a cold start every M7_COLD_EVERY periods (how many periods until DAQP converges): the
- * cost of a cold start at its cap and beyond (mpc.c gives it DDYN_MPC_COLD_ROUNDS caps), which the
- * interior-point fallback this replaced left unmeasured.
- *
- * Prints "m7: key value" lines; exits 0 when the commands agree, the worst case of passes 1, 2, 4 and 5 is
- * at most M7_BOUND_INSN instructions (the issue's target M7_MAX_INSN, 3 M: met since the QP runs on DAQP)
+ * Prints "m7: key value" lines; exits 0 when the commands agree, the worst case of passes 1 and 2 is at
+ * most M7_BOUND_INSN instructions (the issue's target M7_MAX_INSN, 3 M: met since the QP runs on DAQP)
  * and the stack did not overflow, else 1 (qemu exits with that code).
  * With DAQP (the default solver; it has no tolerance to tighten) pass 2 starts every QP from a wrong
  * working set (ddyn_mpc_qp_daqp_adversarial_start), which it takes apart one constraint per iteration.
@@ -57,12 +52,6 @@
 #ifndef M7_CAP_STEPS
 #define M7_CAP_STEPS 300
 #endif
-#ifndef M7_COLD_STEPS
-#define M7_COLD_STEPS 5000
-#endif
-#ifndef M7_COLD_EVERY
-#define M7_COLD_EVERY 10 /* pass 5: periods from one cold start to the next */
-#endif
 #ifndef M7_MAX_STEPS
 #define M7_MAX_STEPS 5000 /* pass 1 replays min(this, the segment's periods) */
 #endif
@@ -74,9 +63,6 @@ extern uint32_t __stack_bottom, __stack_top;
 
 static ddyn_ctrl ctl;
 static uint32_t insn[5000], sorted[5000];
-#ifdef M7_EKF_SHADOW
-static uint32_t ekf_d[5000], ekf_f[5000];
-#endif
 static double track_col[5][DDYN_MPC_MAX_TRACK_POINTS];
 
 /* ---- console output without stdio (semihosting SYS_WRITE0) ---- */
@@ -177,84 +163,6 @@ void m7_systick(void)
 }
 #endif
 
-#ifdef M7_EKF_SHADOW
-/* scripts/m7_ekf_f32.sh: every EKF call of the controller also runs in float32 (ekf.c built with
- * DDYN_EKF_FLOAT32 as ddyn_ekf32_*) from a copy of the double filter's state, with the same inputs */
-ddyn_status __real_ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC]);
-ddyn_status __real_ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z, const double *r_diag,
-                                   const double c[DDYN_NC], double *nis);
-ddyn_status __wrap_ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC]);
-ddyn_status __wrap_ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z, const double *r_diag,
-                                   const double c[DDYN_NC], double *nis);
-ddyn_status ddyn_ekf32_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC]);
-ddyn_status ddyn_ekf32_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z, const double *r_diag,
-                              const double c[DDYN_NC], double *nis);
-static ddyn_ekf shadow;
-static uint32_t ekf_ticks_d, ekf_ticks_f; /* this period's EKF calls, double and float32 */
-static double ekf_dx_max[DDYN_NX], ekf_dp_rel_max, ekf_nis_rel_max;
-static unsigned long ekf_calls, ekf_status_differs;
-static uint32_t ticks_since(uint32_t start);
-static uint32_t systick_now(void);
-
-static void ekf_compare(ddyn_status sd, ddyn_status sf, const ddyn_ekf *d, const ddyn_ekf *f)
-{
-    int i;
-    ++ekf_calls;
-    if (sd != sf) {
-        ++ekf_status_differs;
-        return;
-    }
-    if (sd != DDYN_OK) {
-        return;
-    }
-    for (i = 0; i < DDYN_NX; ++i) {
-        double dx = fabs(d->x[i] - f->x[i]);
-        double dp = fabs(d->P[i * DDYN_NX + i] - f->P[i * DDYN_NX + i]) / d->P[i * DDYN_NX + i];
-        ekf_dx_max[i] = dx > ekf_dx_max[i] ? dx : ekf_dx_max[i];
-        ekf_dp_rel_max = dp > ekf_dp_rel_max ? dp : ekf_dp_rel_max;
-    }
-}
-
-ddyn_status __wrap_ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const double c[DDYN_NC])
-{
-    ddyn_status sd, sf;
-    uint32_t t0;
-    memcpy(&shadow, ekf, sizeof shadow);
-    t0 = systick_now();
-    sd = __real_ddyn_ekf_predict(ekf, u, c);
-    ekf_ticks_d += ticks_since(t0);
-    t0 = systick_now();
-    sf = ddyn_ekf32_predict(&shadow, u, c);
-    ekf_ticks_f += ticks_since(t0);
-    ekf_compare(sd, sf, ekf, &shadow);
-    return sd;
-}
-
-ddyn_status __wrap_ddyn_ekf_update(ddyn_ekf *ekf, ddyn_meas_kind kind, const double *z, const double *r_diag,
-                                   const double c[DDYN_NC], double *nis)
-{
-    ddyn_status sd, sf;
-    double nis_f = 0.0, nis_d = 0.0;
-    uint32_t t0;
-    memcpy(&shadow, ekf, sizeof shadow);
-    t0 = systick_now();
-    sd = __real_ddyn_ekf_update(ekf, kind, z, r_diag, c, &nis_d);
-    ekf_ticks_d += ticks_since(t0);
-    t0 = systick_now();
-    sf = ddyn_ekf32_update(&shadow, kind, z, r_diag, c, &nis_f);
-    ekf_ticks_f += ticks_since(t0);
-    ekf_compare(sd, sf, ekf, &shadow);
-    if (sd == DDYN_OK && sf == DDYN_OK && nis_d > 0.0) {
-        double e = fabs(nis_f - nis_d) / nis_d;
-        ekf_nis_rel_max = e > ekf_nis_rel_max ? e : ekf_nis_rel_max;
-    }
-    if (nis != NULL) {
-        *nis = nis_d;
-    }
-    return sd;
-}
-#endif
-
 /* ---- SysTick: 24-bit down-counter on the processor clock ---- */
 #define SYST_CSR (*(volatile uint32_t *)0xE000E010u)
 #define SYST_RVR (*(volatile uint32_t *)0xE000E014u)
@@ -264,13 +172,6 @@ static uint32_t ticks_since(uint32_t start)
 {
     return (start - SYST_CVR) & 0xFFFFFFu;
 }
-
-#ifdef M7_EKF_SHADOW
-static uint32_t systick_now(void)
-{
-    return SYST_CVR;
-}
-#endif
 
 /* 1 + 2n instructions (subs, bne per round) */
 static uint32_t count_loop(uint32_t n)
@@ -348,8 +249,7 @@ int main(void)
 {
     const int steps = m7_seg_steps < M7_MAX_STEPS ? m7_seg_steps : M7_MAX_STEPS;
     const int cap_steps = M7_CAP_STEPS < steps ? M7_CAP_STEPS : steps;
-    const int cold_steps = M7_COLD_STEPS < steps ? M7_COLD_STEPS : steps;
-    uint32_t c1, c4, worst = 0, worst_cap = 0, worst_cold = 0, worst_capped_pass1 = 0, *p;
+    uint32_t c1, c4, worst = 0, worst_cap = 0, worst_capped_pass1 = 0, *p;
     uintptr_t sp_main;
     int i, k, fail = 0, mismatch = 0, loose = 0, status_diff = 0, iter_diff = 0, capped_pass1 = 0, worst_step = 0;
     double max_du[DDYN_NU] = {0.0, 0.0};
@@ -401,16 +301,9 @@ int main(void)
         ddyn_ctrl_output out;
         uint32_t t0;
         input_of(rec, &in);
-#ifdef M7_EKF_SHADOW
-        ekf_ticks_d = ekf_ticks_f = 0u;
-#endif
         t0 = SYST_CVR;
         ddyn_ctrl_step(&ctl, &in, &out);
         insn[i] = ticks_since(t0) * INSN_PER_TICK;
-#ifdef M7_EKF_SHADOW
-        ekf_d[i] = ekf_ticks_d * INSN_PER_TICK;
-        ekf_f[i] = ekf_ticks_f * INSN_PER_TICK;
-#endif
         worst = insn[i] > worst ? insn[i] : worst;
         if (insn[i] == worst) {
             worst_step = i;
@@ -480,33 +373,6 @@ int main(void)
     }
     return 0;
 #endif
-#ifdef M7_EKF_SHADOW
-    {
-        uint32_t wd = 0, wf = 0;
-        for (i = 0; i < steps; ++i) {
-            wd = ekf_d[i] > wd ? ekf_d[i] : wd;
-            wf = ekf_f[i] > wf ? ekf_f[i] : wf;
-        }
-        kv("ekf_calls", ekf_calls);
-        kv("ekf_double_insn_per_step_median", (unsigned long)median_of(ekf_d, steps));
-        kv("ekf_double_insn_per_step_max", (unsigned long)wd);
-        kv("ekf_float32_insn_per_step_median", (unsigned long)median_of(ekf_f, steps));
-        kv("ekf_float32_insn_per_step_max", (unsigned long)wf);
-        kv("ekf_status_differs", ekf_status_differs);
-        put_str("m7: ekf_float32_max_abs_dx_per_call");
-        for (k = 0; k < DDYN_NX; ++k) {
-            put_str(" ");
-            put_sci(ekf_dx_max[k]);
-        }
-        flush();
-        put_str("m7: ekf_float32_max_rel_dP_diag_per_call ");
-        put_sci(ekf_dp_rel_max);
-        put_str(" max_rel_dnis ");
-        put_sci(ekf_nis_rel_max);
-        flush();
-        return 0; /* the step counts of this build include the shadow: not the figures */
-    }
-#endif
     kv("periods", (unsigned long)steps);
     kv("insn_per_step_median", (unsigned long)median_of(insn, steps));
     kv("insn_per_step_max", (unsigned long)worst);
@@ -564,99 +430,6 @@ int main(void)
         }
     }
 
-    /* pass 4: every QP a cold start. Before each step the MPC is reset as the controller's recovery
-     * and a start from standstill leave it (ddyn_mpc_reset: no plan to linearise along, zero rates,
-     * DAQP's working set empty), so that every period pays what a cold start costs; the host's applied
-     * command is fed back (as in pass 1) so that the filter follows the recording */
-    if (!controller_init(0.0)) {
-        m7_puts("m7: FAIL: controller refused the set-up of pass 4\n");
-        return 1;
-    }
-    {
-        int capped = 0, failed = 0, daqp_capped = 0;
-        for (i = 0; i < cold_steps; ++i) {
-            ddyn_ctrl_input in;
-            ddyn_ctrl_output out;
-            uint32_t t0;
-            input_of(&m7_seg_periods[i], &in);
-            if (i % 2 == 0) {
-                ddyn_mpc_reset(&ctl.mpc); /* no plan: linearised along zero rates, working set empty */
-            } else {
-                ddyn_mpc_qp_daqp_reset(&ctl.mpc.daqp); /* along the last plan, working set empty */
-            }
-            t0 = SYST_CVR;
-            ddyn_ctrl_step(&ctl, &in, &out);
-            insn[i] = ticks_since(t0) * INSN_PER_TICK;
-            capped += out.mpc_status == DDYN_ERR_QP_NOT_CONVERGED;
-            daqp_capped += ctl.mpc.daqp.exitflag == DDYN_DAQP_EXIT_ITERLIMIT;
-            failed += out.mpc_status != DDYN_OK && out.mpc_status != DDYN_ERR_QP_NOT_CONVERGED;
-            worst_cold = insn[i] > worst_cold ? insn[i] : worst_cold;
-            memcpy(ctl.u_prev, m7_seg_periods[i].u, sizeof ctl.u_prev);
-        }
-        kv("cold_pass_periods", (unsigned long)cold_steps);
-        kv("cold_pass_qp_not_converged", (unsigned long)capped);
-        kv("cold_pass_daqp_at_cap", (unsigned long)daqp_capped);
-        kv("cold_pass_mpc_failed", (unsigned long)failed);
-        kv("cold_pass_insn_per_step_median", (unsigned long)median_of(insn, cold_steps));
-        kv("cold_pass_insn_per_step_max", (unsigned long)worst_cold);
-        if (daqp_capped == 0) {
-            m7_puts("m7: FAIL: no cold start of pass 4 reached the iteration cap\n");
-            fail = 1;
-        }
-    }
-
-    /* pass 5: a cold start every M7_COLD_EVERY periods, the periods between them as they come: how many
-     * periods a cold start takes until DAQP converges when a capped one goes on from the working set it
-     * reached (at most DDYN_DAQP_COLD_PERIODS before it starts cold again), and the steps' cost */
-    if (!controller_init(0.0)) {
-        m7_puts("m7: FAIL: controller refused the set-up of pass 5\n");
-        return 1;
-    }
-    {
-        int starts = 0, unconverged = 0, periods_max = 0, since = -1, hist[M7_COLD_EVERY + 1];
-        memset(hist, 0, sizeof hist);
-        uint32_t worst5 = 0;
-        for (i = 0; i < steps; ++i) {
-            ddyn_ctrl_input in;
-            ddyn_ctrl_output out;
-            uint32_t t0, c;
-            input_of(&m7_seg_periods[i], &in);
-            if (i % M7_COLD_EVERY == 0) {
-                if (since >= 0) {
-                    ++unconverged; /* the last cold start had not converged by now */
-                }
-                ddyn_mpc_reset(&ctl.mpc);
-                ++starts;
-                since = 0;
-            }
-            t0 = SYST_CVR;
-            ddyn_ctrl_step(&ctl, &in, &out);
-            c = ticks_since(t0) * INSN_PER_TICK;
-            worst5 = c > worst5 ? c : worst5;
-            if (since >= 0) {
-                ++since;
-                if (out.mpc_status == DDYN_OK) {
-                    periods_max = since > periods_max ? since : periods_max;
-                    hist[since] += 1;
-                    since = -1;
-                }
-            }
-            memcpy(ctl.u_prev, m7_seg_periods[i].u, sizeof ctl.u_prev);
-        }
-        unconverged += since >= 0;
-        kv("cold_split_pass_cold_starts", (unsigned long)starts);
-        kv("cold_split_pass_periods_to_converge_max", (unsigned long)periods_max);
-        kv("cold_split_pass_not_converged_before_next_start", (unsigned long)unconverged);
-        put_str("m7: cold_split_pass_cold_starts_by_periods_to_converge");
-        for (k = 1; k <= M7_COLD_EVERY; ++k) {
-            put_str(" ");
-            put_ulong((unsigned long)hist[k]);
-        }
-        flush();
-        kv("cold_split_pass_insn_per_step_max", (unsigned long)worst5);
-        worst_cold = worst5 > worst_cold ? worst5 : worst_cold;
-    }
-
     /* pass 3: the real-time iteration split, feedback and preparation counted apart */
     if (!controller_init(0.0)) {
         m7_puts("m7: FAIL: controller refused the set-up of pass 3\n");
@@ -712,13 +485,13 @@ int main(void)
         fail = 1;
     }
     kv("target_max_insn", M7_MAX_INSN);
-    kv("target_met", worst <= M7_MAX_INSN && worst_cap <= M7_MAX_INSN && worst_cold <= M7_MAX_INSN ? 1ul : 0ul);
+    kv("target_met", worst <= M7_MAX_INSN && worst_cap <= M7_MAX_INSN ? 1ul : 0ul);
     kv("enforced_bound_insn", M7_BOUND_INSN);
     if (mismatch || status_diff || (long)loose * 100 > (long)(100 - M7_TIGHT_PERCENT) * steps) {
         m7_puts("m7: FAIL: commands or status differ from the host build's beyond the tolerance\n");
         fail = 1;
     }
-    if (worst > M7_BOUND_INSN || worst_cap > M7_BOUND_INSN || worst_cold > M7_BOUND_INSN) {
+    if (worst > M7_BOUND_INSN || worst_cap > M7_BOUND_INSN) {
         m7_puts("m7: FAIL: worst case above the enforced bound (the 3M-instruction target)\n");
         fail = 1;
     }

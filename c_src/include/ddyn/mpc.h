@@ -50,9 +50,6 @@ extern "C" {
 #define DDYN_MPC_DEFAULT_HORIZON 20
 #define DDYN_MPC_NV (DDYN_MPC_MAX_HORIZON * DDYN_NU)       /* QP variables: input rates */
 #define DDYN_MPC_MAX_QP_ITERATIONS 50
-/* DAQP: a solve that started cold may take this many caps of iterations in its period (mpc.c
- * feedback; measured on the M7, docs/m7.md) */
-#define DDYN_MPC_COLD_ROUNDS 2
 
 /* The prediction model's discretisation. */
 typedef enum {
@@ -86,8 +83,7 @@ typedef struct {
     double slack_l2;            /* rho2: quadratic penalty, per square metre (> 0) */
     ddyn_mpc_qp_solver qp_solver; /* DDYN_MPC_QP_DAQP (default) or DDYN_MPC_QP_IPM */
     int qp_max_iterations;      /* QP iteration cap, 1..DDYN_MPC_MAX_QP_ITERATIONS; hitting it returns
-                                   DDYN_ERR_QP_NOT_CONVERGED (the controller then shifts the last plan);
-                                   a DAQP solve that started cold gets DDYN_MPC_COLD_ROUNDS caps */
+                                   DDYN_ERR_QP_NOT_CONVERGED (the controller then shifts the last plan) */
     double qp_tolerance;        /* IPM: stop when residuals and mean complementarity are below this */
 } ddyn_mpc_config;
 
@@ -107,7 +103,7 @@ typedef struct {
 
 /* What one solve did. */
 typedef struct {
-    int qp_iterations;          /* QP iterations used (a cold DAQP start: up to DDYN_MPC_COLD_ROUNDS caps) */
+    int qp_iterations;          /* QP iterations used */
     int converged;              /* 1 if the QP met qp_tolerance within qp_max_iterations */
     double kkt_residual;        /* final max(primal residual, dual residual, mean complementarity) */
     double max_slack;           /* largest track-bound slack of the plan (m): > 0 = the plan leaves the track */

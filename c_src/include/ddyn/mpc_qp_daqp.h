@@ -32,12 +32,6 @@ typedef double ddyn_qp_real;
 #define DDYN_DAQP_MG (DDYN_QP_NV + DDYN_QP_NS)         /* general rows: integrators, soft rows */
 #define DDYN_DAQP_M (DDYN_DAQP_N + DDYN_DAQP_MG)       /* all constraints */
 #define DDYN_DAQP_WS (DDYN_DAQP_N + DDYN_QP_NS + 1)    /* working set capacity (DAQP: n + soft + 1) */
-/* capped solves a chain that began cold may take before it starts cold again (each from the working set
- * the last one reached: shifted one stage in the next period, unshifted in the MPC's rounds within the
- * cold period, mpc.c) */
-#define DDYN_DAQP_COLD_PERIODS 4
-/* DAQP's exit flag at the iteration cap (DAQP_EXIT_ITERLIMIT of its constants.h, 0.11.0) */
-#define DDYN_DAQP_EXIT_ITERLIMIT (-4)
 
 typedef struct {
     /* the QP in DAQP's form (row-major), rebuilt every solve */
@@ -60,8 +54,7 @@ typedef struct {
     int warm_n, warm_h;
     int exitflag;  /* DAQP's exit flag of the last solve (1 optimal, 2 soft optimal, < 0 failed) */
     int cold;      /* 1 if the last solve started cold */
-    int capped;     /* consecutive solves that hit the iteration cap, up to the last one */
-    int chain_cold; /* 1 if that chain of capped solves began with a cold start */
+    int capped;    /* 1 if the last solve hit the iteration cap (its working set is kept once) */
     /* the factorisation (ddyn_mpc_qp_daqp_factor) the next solve_factored uses */
     int zero_row[DDYN_DAQP_MG];
     int ill;
@@ -77,9 +70,8 @@ void ddyn_mpc_qp_daqp_reset(ddyn_mpc_qp_daqp *w);
  * period, 0 for the same QP again). Returns and fills qp->z, slack, iterations, converged, residual
  * (the largest violation of a hard constraint) like ddyn_mpc_qp_solve:
  *   DDYN_OK (DAQP optimal), DDYN_ERR_QP_NOT_CONVERGED (iteration cap: z is the last finite primal
- *   iterate, or 0, and the next solve starts from the working set reached; cold instead if this solve
- *   continued a capped warm-started one, or was the DDYN_DAQP_COLD_PERIODS-th capped solve of a chain
- *   that began cold; other DAQP failures (cycling, infeasible): the next solve starts cold), DDYN_ERR_ARGUMENT /
+ *   iterate, or 0, and the next solve starts from the working set reached, or cold if this solve had
+ *   started from a capped one; other DAQP failures (cycling, infeasible): the next solve starts cold), DDYN_ERR_ARGUMENT /
  *   DDYN_ERR_NONFINITE_INPUT for a malformed problem (z, slack zero; next solve cold). */
 ddyn_status ddyn_mpc_qp_daqp_solve(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max_iterations, int shift);
 
