@@ -51,8 +51,9 @@ VELOCITY_INDEX = (3, 4, 5)
 # The drivetrain forms a vehicle file can choose ("drivetrain"). "papers": the Deep Dynamics papers'
 # F_rx = (Cm1 - Cm2 vx) T - Cr0 - Cd vx^2 for both signs of T. "powertrain": a real car whose negative
 # input is brake pressure (the RACECAR logs' -brake/2757.9 kPa) acting through its own gain, not
-# through the engine's Cm1 - Cm2 vx: on the AV-21's Putnam log one gain for both pedals leaves
-# R^2 = 0.50 of the drive force on the training part, a separate brake gain 0.58 (docs/model.md).
+# through the engine's Cm1 - Cm2 vx: on the AV-21's Putnam log one gain for both pedals explains
+# R^2 = 0.469 of the one-step vx change on the training part, a separate brake gain 0.548
+# (`ddyn study drivetrain`, docs/model.md).
 DRIVETRAINS = ("papers", "powertrain")
 
 
