@@ -54,3 +54,32 @@ def test_the_gap_command_hands_its_cases_to_the_scheduler(monkeypatch):
     assert gap_benchmark._run(Args()) == 0
     assert seen == ["tcp://127.0.0.1:8786"]
     assert parallel._scheduler is None  # reset afterwards, so later runs in this process are local
+
+
+def test_each_case_carries_the_gate_and_margin_set_here(monkeypatch):
+    """`study gap --min-evidence/--gate` set diagnose's module defaults in this process; a Dask worker is no
+    fork of it, so every case must carry them to the worker's diagnose (else it diagnoses with margin 0)."""
+    import pytest
+
+    from ddyn.analysis import diagnose as D
+    from ddyn.analysis import gap_independent as G
+
+    class Captured(Exception):
+        pass
+
+    seen = {}
+
+    def capture(fn, cases, jobs, **kw):
+        seen["cases"] = cases
+        raise Captured
+
+    monkeypatch.setattr(D, "MIN_EVIDENCE", 13.02)
+    monkeypatch.setattr(D, "NO_GAP_GATE", None)
+    monkeypatch.setattr(G, "run_cases", capture)
+    with pytest.raises(Captured):
+        G.run(3, seed=99, progress=False)
+    # what a worker with the module defaults (margin 0, default gate) passes to diagnose
+    monkeypatch.setattr(D, "MIN_EVIDENCE", 0.0)
+    monkeypatch.setattr(D, "NO_GAP_GATE", 1.5)
+    assert [G.vetoes_of(c) for c in seen["cases"]] == [{"gate": None, "min_evidence": 13.02}] * 3
+    assert G.vetoes_of({}) == {"gate": "default", "min_evidence": None}

@@ -572,31 +572,34 @@ def real_markdown(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def _write_check(path: Path, doc: dict) -> int:
+    """A side check's result (--eiv-check, --mass-check): its JSON at path, its table on stdout."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=2, default=float))
+    print(doc["markdown"])
+    print(f"wrote {path}")
+    return 0
+
+
 def _run_commonroad(args, out: Path) -> int:
     """--plant commonroad: the independent plant (gap_independent.py)."""
     G = gap_independent
     if args.plant == "commonroad-mb" and (getattr(args, "case_set", "putnam") != "putnam" or args.eiv_check
-                                          or args.nominal != "mapped"):
+                                          or args.mass_check or args.nominal != "mapped" or args.mass_inertia
+                                          or args.steer_servo or args.nominal_effects):
         raise DdynError("--plant commonroad-mb: the Putnam cases with the mapped nominal only (--case-set, "
-                        "--eiv-check and --nominal identified are the single-track plant's)")
+                        "--eiv-check, --mass-check, --nominal identified, --mass-inertia, --steer-servo and "
+                        "--nominal-effects are the single-track plant's)")
     if getattr(args, "case_set", "putnam") != "putnam":
         return _run_case_set(args, out)
     if args.eiv_check:
-        doc = G.eiv_check(args.cases or 10, G.EIV_SEED if args.seed is None else args.seed, args.jobs,
-                          hold=args.hold, progress=not args.no_progress)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "eiv.json").write_text(json.dumps(doc, indent=2, default=float))
-        print(doc["markdown"])
-        print(f"wrote {out / 'eiv.json'}")
-        return 0
+        return _write_check(out / "eiv.json", G.eiv_check(args.cases or 10, G.EIV_SEED if args.seed is None
+                                                           else args.seed, args.jobs, hold=args.hold,
+                                                           progress=not args.no_progress))
     if args.mass_check:
-        doc = G.mass_check(args.cases or 7, G.EIV_SEED if args.seed is None else args.seed, args.jobs,
-                           progress=not args.no_progress)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "mass.json").write_text(json.dumps(doc, indent=2, default=float))
-        print(doc["markdown"])
-        print(f"wrote {out / 'mass.json'}")
-        return 0
+        return _write_check(out / "mass.json", G.mass_check(args.cases or 7, G.EIV_SEED if args.seed is None
+                                                             else args.seed, args.jobs,
+                                                             progress=not args.no_progress))
     if args.rescore:
         path = out / "results.json"
         if not path.is_file():
@@ -615,7 +618,7 @@ def _run_commonroad(args, out: Path) -> int:
         doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"], doc["seconds"])
     else:
         if args.gate is not None:
-            D.NO_GAP_GATE = None if args.gate <= 0 else args.gate   # workers inherit it (fork)
+            D.NO_GAP_GATE = None if args.gate <= 0 else args.gate   # each case carries it (diagnosis_vetoes)
         if args.min_evidence is not None:
             D.MIN_EVIDENCE = args.min_evidence
         seed = G.DEFAULT_SEED if args.seed is None else args.seed

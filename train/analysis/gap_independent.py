@@ -123,6 +123,18 @@ def make_case_log(case: dict, tries: int = 3):
     return None, seed, err
 
 
+def diagnosis_vetoes() -> dict:
+    """The no-gap gate and the evidence margin in force here (diagnose's NO_GAP_GATE, MIN_EVIDENCE, which
+    `ddyn study gap --gate/--min-evidence` set), for each case to carry: a worker of a Dask cluster is
+    not a fork of this process and would otherwise diagnose with its own module defaults."""
+    return {"gate": D.NO_GAP_GATE, "min_evidence": D.MIN_EVIDENCE}
+
+
+def vetoes_of(case: dict) -> dict:
+    """diagnose()'s gate and min_evidence arguments from a case (the module defaults if it carries none)."""
+    return {"gate": case.get("gate", "default"), "min_evidence": case.get("min_evidence")}
+
+
 def run_case(case: dict) -> dict:
     ds, seed, err = make_case_log(case)
     out = dict(case)
@@ -134,7 +146,8 @@ def run_case(case: dict) -> dict:
     diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), hold=bool(case.get("hold", False)),
                       fit_mode=case.get("fit"), candidates=tuple(case.get("candidates") or E.EFFECT_NAMES),
                       mass_inertia=bool(case.get("mass_inertia", False)),
-                      steer_servo=float(case.get("steer_servo", 0.0)), nominal_effects=case.get("nominal_effects"))
+                      steer_servo=float(case.get("steer_servo", 0.0)), nominal_effects=case.get("nominal_effects"),
+                      **vetoes_of(case))
     seconds = time.perf_counter() - t0
     g = diag["gate"]
     # a bank or grade found as a profile along the track (or from the roll channel) is that effect found
@@ -503,7 +516,7 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
         raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
                   "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects}
-             for c in plan(n_cases, seed)]
+             | diagnosis_vetoes() for c in plan(n_cases, seed)]
     results = run_cases(run_case, cases, jobs, desc="gap-benchmark (commonroad)", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad", "cases": n_cases, "seed": seed, "jobs": jobs, "min_evidence": D.MIN_EVIDENCE,

@@ -55,7 +55,7 @@ def run(n_cases: int, seed: int, jobs: int = 1, progress: bool = True, hold: boo
         fit: str | None = None, thresholds: dict | None = None) -> dict:
     CP.require_commonroad()
     t0 = time.perf_counter()
-    cases = [c | {"hold": hold, "fit": fit, "coefficients": None} for c in plan(n_cases, seed)]
+    cases = [c | {"hold": hold, "fit": fit, "coefficients": None} | G.diagnosis_vetoes() for c in plan(n_cases, seed)]
     results = run_cases(G.run_case, cases, jobs, desc="gap-benchmark (commonroad-mb)", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad-mb", "plant_model": PLANT_MODEL, "cases": n_cases, "seed": seed, "jobs": jobs,

@@ -34,7 +34,7 @@ import numpy as np
 
 from ddyn.analysis import candidates as C
 from ddyn.analysis import diagnose as D
-from ddyn.analysis.gap_independent import NONE, SPEEDS, _f, _median
+from ddyn.analysis.gap_independent import NONE, SPEEDS, _f, _median, vetoes_of
 from ddyn.analysis.parallel import run_cases
 from ddyn.data import commonroad_plant as CP
 from ddyn.errors import DdynError
@@ -120,7 +120,7 @@ def run_case(case: dict) -> dict:
     t0 = time.perf_counter()
     coeffs = np.asarray(case["coefficients"]) if case.get("coefficients") is not None else None
     diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), candidates=C.ALL, track=track,
-                      hold=bool(case.get("hold", False)), fit_mode=case.get("fit"))
+                      hold=bool(case.get("hold", False)), fit_mode=case.get("fit"), **vetoes_of(case))
     seconds = time.perf_counter() - t0
     top1 = diag["selected"][0] if diag["selected"] else NONE
     family = C.FAMILY.get(top1, top1)
@@ -244,7 +244,7 @@ def run(case_set: str, n_cases: int, seed: int, jobs: int = 1, progress: bool = 
     elif nominal != "mapped":
         raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist()}
-             for c in plan(case_set, n_cases, seed)]
+             | G.diagnosis_vetoes() for c in plan(case_set, n_cases, seed)]
     results = run_cases(run_case, cases, jobs, desc=f"gap-benchmark (commonroad, {case_set})", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad", "case_set": case_set, "cases": n_cases, "seed": seed, "jobs": jobs,
