@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d
 
 from ddyn.data import roll_check
 from ddyn.model import effects as E
@@ -136,9 +137,7 @@ def curvature_knots(track) -> np.ndarray | None:
     change = np.abs(np.roll(kappa, -n) - np.roll(kappa, n))           # across +-h, periodic
     # a change point: the largest change within +-KNOT_SPACING, above the threshold
     w = int(KNOT_SPACING)
-    ext = np.r_[change[-w:], change, change[:w]]
-    top = np.array([change[i] >= 0.98 * ext[i:i + 2 * w + 1].max() for i in range(len(g))]) \
-        & (change >= BREAK_CURVATURE)
+    top = (change >= 0.98 * maximum_filter1d(change, size=2 * w + 1, mode="wrap")) & (change >= BREAK_CURVATURE)
     if not top.any():
         return None
     if top.all():
