@@ -183,3 +183,37 @@ def test_cli_hold_takes_estimate():
     assert parser.parse_args(base + ["--hold", "estimate"]).hold == "estimate"
     with pytest.raises(SystemExit):
         parser.parse_args(base + ["--hold", "0.02"])
+
+
+def test_identified_mb_nominal_is_fitted_on_an_effect_free_mb_log(monkeypatch):
+    """--plant commonroad-mb --nominal identified: the 17 coefficients come from gap_independent's fit on one
+    effect-free multi-body log (its own seed, driven as the cases are), stay inside the mapped file's ranges,
+    differ from the mapped file and predict that log better than it (a short log here: 17 s, about the
+    shortest whose 95 % fit part leaves the 20 held-out rows the fit needs)."""
+    from ddyn.analysis import gap_independent as G
+
+    monkeypatch.setattr(G, "IDENT_DURATION", 17.0)
+    logs, real = [], MB.make_log
+
+    def recording(track, effects, seed, settings, *a, **k):
+        ds = real(track, effects, seed, settings, *a, **k)
+        logs.append((effects, seed, settings, ds))
+        return ds
+
+    monkeypatch.setattr(MB, "make_log", recording)
+    c, info = gap_mb.identified_coefficients(hold=True)
+    assert len(logs) == 1
+    effects, seed, settings, log = logs[0]
+    assert effects == CP.PlantEffects() and seed == gap_mb.IDENT_SEED == info["seed"]
+    assert settings.driver_grip == gap_mb.DRIVER_GRIP and settings.duration == 17.0
+    assert "vehicle_dynamics_mb" in info["plant"] and info["vehicle_file"] == MB.NOMINAL_VEHICLE.name
+    mapped = NOMINAL.true_vector()
+    lo, hi = NOMINAL.range_arrays()
+    assert np.all((lo - 1e-9 <= c) & (c <= hi + 1e-9) | (mapped == 0))
+    assert np.max(np.abs(c - mapped) / np.where(mapped != 0, np.abs(mapped), 1.0)) > 0.01
+
+    def err(coeffs):
+        p = D.Problem(log, D.nominal_from_vehicle(NOMINAL, log, coeffs), 0.95, refit=(), hold=True)
+        return float(np.sum(p.residuals({}, np.zeros(0), p.rows_all) ** 2))
+
+    assert err(c) < err(mapped)

@@ -585,11 +585,10 @@ def _run_commonroad(args, out: Path) -> int:
     """--plant commonroad: the independent plant (gap_independent.py)."""
     G = gap_independent
     if args.plant == "commonroad-mb" and (getattr(args, "case_set", "putnam") != "putnam" or args.eiv_check
-                                          or args.mass_check or args.nominal != "mapped" or args.mass_inertia
+                                          or args.mass_check or args.mass_inertia
                                           or args.steer_servo or args.nominal_effects):
-        raise DdynError("--plant commonroad-mb: the Putnam cases with the mapped nominal only (--case-set, "
-                        "--eiv-check, --mass-check, --nominal identified, --mass-inertia, --steer-servo and "
-                        "--nominal-effects are the single-track plant's)")
+        raise DdynError("--plant commonroad-mb: the Putnam cases only (--case-set, --eiv-check, --mass-check, "
+                        "--mass-inertia, --steer-servo and --nominal-effects are the single-track plant's)")
     if getattr(args, "case_set", "putnam") != "putnam":
         return _run_case_set(args, out)
     if args.eiv_check:
@@ -627,7 +626,7 @@ def _run_commonroad(args, out: Path) -> int:
             from ddyn.analysis import gap_mb
 
             doc = gap_mb.run(args.cases or 20, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
-                             fit=args.fit, thresholds=thresholds)
+                             fit=args.fit, thresholds=thresholds, nominal=args.nominal)
         else:
             doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
                         nominal=args.nominal, fit=args.fit, mass_inertia=args.mass_inertia,
@@ -733,8 +732,8 @@ def register(subparsers) -> None:
     p.add_argument("--plant", choices=("own", "commonroad", "commonroad-mb"), default="own",
                    help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
                         "single-track drift model (an independent plant, docs/gap_independent.md); commonroad-mb: "
-                        "its multi-body model (Putnam cases with tyre relaxation and gear steps; --case-set, "
-                        "--nominal identified and --eiv-check are the single-track plant's)")
+                        "its multi-body model (Putnam cases with tyre relaxation and gear steps; --case-set "
+                        "and --eiv-check are the single-track plant's)")
     p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the cases on this Dask distributed scheduler (e.g. tcp://HOST:8786; its workers need "
@@ -744,8 +743,9 @@ def register(subparsers) -> None:
                         "profile from a flat-road nominal) or drivetrain (throttle map, brake gain, power limit); "
                         "docs/gap_independent.md")
     p.add_argument("--nominal", choices=("mapped", "identified"), default="mapped",
-                   help="commonroad: the nominal model: the plant's parameters mapped onto the model "
-                        "(commonroad_vehicle2.json, default) or identified on an effect-free log of the plant")
+                   help="commonroad, commonroad-mb: the nominal model: the plant's parameters mapped onto the model "
+                        "(commonroad_vehicle2.json / commonroad_vehicle2_mb.json, default) or identified on an "
+                        "effect-free log of the plant")
     p.add_argument("--hold", action="store_true", help="commonroad: diagnose with the DBW command hold modelled "
                                                        "(diagnose --hold)")
     p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",

@@ -9,9 +9,10 @@ score, markdown); this module only plans the cases and names the plant.
 
 Cases: SLOTS cycle (driven at DRIVER_GRIP) (the new effects first, so a short run holds them; a quarter of the slots effect-free), on
 Putnam, 60 s logs, magnitudes log-uniform over EFFECT_RANGES (random sign where gap_independent.SIGNED). The
-nominal is the mapped vehicle file commonroad_vehicle2_mb.json; the candidates are the eleven default effects
-plus gear_step (CANDIDATES; gear_step is otherwise opt-in, `diagnose --candidates extended`). Case seeds are
-7000 + 100000 seed + case.
+nominal is the mapped vehicle file commonroad_vehicle2_mb.json or, nominal="identified", its 17 coefficients
+fitted on an effect-free multi-body log (identified_coefficients: gap_independent's fit, IDENT_SEED); the
+candidates are the eleven default effects plus gear_step (CANDIDATES; gear_step is otherwise opt-in,
+`diagnose --candidates extended`). Case seeds are 7000 + 100000 seed + case.
 """
 from __future__ import annotations
 
@@ -23,7 +24,9 @@ import numpy as np
 from ddyn.analysis import diagnose as D
 from ddyn.analysis import gap_independent as G
 from ddyn.analysis.parallel import run_cases
+from ddyn.data import commonroad_mb_plant as MB
 from ddyn.data import commonroad_plant as CP
+from ddyn.errors import DdynError
 from ddyn.model import effects as E
 
 NONE = G.NONE
@@ -36,6 +39,21 @@ SLOTS = ("tire_relaxation", "gear_step", NONE, "steer_delay", "throttle_delay", 
          "mass_offset", "downforce", "bank_angle", "grade", NONE)
 CANDIDATES = E.EFFECT_NAMES + ("gear_step",)
 PLANT_MODEL = "vehicle_dynamics_mb (multi-body, 29 states)"
+# the effect-free multi-body log the identified nominal is fitted on: a log seed no case, calibration or check
+# uses (case seeds are 7000 + 100000 seed + case; the single-track plant's identification log is 9000)
+IDENT_SEED = 9100
+
+
+def identification_log(seed: int, duration: float):
+    """The effect-free multi-body log for the identified nominal: driven as the cases are (DRIVER_GRIP), at the
+    default target speed, from the start line."""
+    return MB.make_log(G.TRACK, CP.PlantEffects(), seed, CP.LogSettings(duration=duration, driver_grip=DRIVER_GRIP))
+
+
+def identified_coefficients(hold: bool = False) -> tuple[np.ndarray, dict]:
+    """Option (b) for the multi-body plant: the single-track plant's identification (gap_independent's fit,
+    within the mapped file's ranges) on an effect-free multi-body log, starting from commonroad_vehicle2_mb.json."""
+    return G.identified_coefficients(hold, MB.NOMINAL_VEHICLE, identification_log, IDENT_SEED)
 
 
 def plan(n: int, seed: int) -> list[dict]:
@@ -52,10 +70,18 @@ def plan(n: int, seed: int) -> list[dict]:
 
 
 def run(n_cases: int, seed: int, jobs: int = 1, progress: bool = True, hold: bool = False,
-        fit: str | None = None, thresholds: dict | None = None) -> dict:
+        fit: str | None = None, thresholds: dict | None = None, nominal: str = "mapped") -> dict:
+    """nominal: "mapped" (commonroad_vehicle2_mb.json) or "identified" (identified_coefficients, fitted once per
+    run with the run's hold and carried by every case)."""
     CP.require_commonroad()
     t0 = time.perf_counter()
-    cases = [c | {"hold": hold, "fit": fit, "coefficients": None} | G.diagnosis_vetoes() for c in plan(n_cases, seed)]
+    coeffs, ident = None, None
+    if nominal == "identified":
+        coeffs, ident = identified_coefficients(hold)
+    elif nominal != "mapped":
+        raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
+    cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist()}
+             | G.diagnosis_vetoes() for c in plan(n_cases, seed)]
     results = run_cases(G.run_case, cases, jobs, desc="gap-benchmark (commonroad-mb)", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad-mb", "plant_model": PLANT_MODEL, "cases": n_cases, "seed": seed, "jobs": jobs,
@@ -63,7 +89,9 @@ def run(n_cases: int, seed: int, jobs: int = 1, progress: bool = True, hold: boo
                 "calibration_seeds": list(G.CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}" if cases else "", "duration": G.DURATION,
                 "track": G.TRACK, "effect_ranges": EFFECT_RANGES, "speeds": G.SPEEDS, "gate": D.NO_GAP_GATE,
-                "hold": hold, "nominal": "mapped (commonroad_vehicle2_mb.json)", "identification": None,
+                "hold": hold, "identification": ident,
+                "nominal": ("mapped (commonroad_vehicle2_mb.json)" if nominal == "mapped" else
+                            f"identified (on an effect-free multi-body log, seed {IDENT_SEED})"),
                 "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds, "candidates": list(CANDIDATES)}
     sc = G.score(results, thresholds)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
