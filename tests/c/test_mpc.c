@@ -667,14 +667,15 @@ static void test_daqp_warm_start_shifts_and_the_cap_is_defined(void **state)
     print_message("DAQP on the ring: %d iterations warm-started, %d cold over 60 QPs\n", warm_total, cold_total);
     assert_true(warm_total <= cold_total);
     /* the cap: from a wrong working set DAQP cannot finish in 3 iterations; the answer is finite and
-     * within the rate bounds, the working set reached is kept, and the next period finishes the work */
+     * within the rate bounds, and the next period starts cold: the interior point finishes the work */
     ddyn_mpc_qp_daqp_adversarial_start(&mpc.daqp, mpc.cfg.horizon);
     mpc.cfg.qp_max_iterations = 3;
     assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
-    assert_true(info.qp_iterations == 3 && !info.converged && mpc.daqp.warm_n > 0);
+    assert_true(info.qp_iterations == 3 && !info.converged && !info.qp_cold_start && mpc.daqp.warm_h == 0);
     assert_true(isfinite(u[0]) && isfinite(u[1]) && fabs(u[0]) <= 10.0 && fabs(u[1]) <= 5.0);
-    mpc.cfg.qp_max_iterations = 50; /* 35 wrong constraints are left to drop */
     assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+    assert_true(info.qp_cold_start && info.converged);
+    mpc.cfg.qp_max_iterations = 50;
     /* a reset of the MPC (a fault) starts the QP cold: the interior point solves it and leaves DAQP a
      * working set for the next period */
     ddyn_mpc_reset(&mpc);
