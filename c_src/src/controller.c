@@ -351,11 +351,13 @@ static int fuse(ddyn_ctrl *ctl, int k, const double *z, const double *r)
     return 0;
 }
 
-/* A repeated restart of the filter in one fault episode starts from this multiple of p0_diag (within
- * p_max): a restart at P0 that the readings still fail shows an estimate further from them than P0
- * allows (e.g. the car moved while the filter was blind), and restarting at P0 again would gate them
- * again. 100 (ten times the standard deviation) admits a 1:43 car's position off by metres; a reading
- * absurd by kilometres stays gated. */
+/* A repeated restart of the filter in one fault episode starts the states that the still-faulty sensors
+ * read (nonzero columns of their measurement Jacobians) from this multiple of p0_diag (within p_max): a
+ * restart at P0 that the readings still fail shows an estimate further from them than P0 allows (e.g.
+ * the car moved while the filter was blind), and restarting at P0 again would gate them again. 100 (ten
+ * times the standard deviation) admits a 1:43 car's position off by metres; a reading absurd by
+ * kilometres stays gated. Only those states: with every state widened, the first readings after such a
+ * restart swung the speed estimate by +-2 m/s in a guest run of the plant restart (the tyre model). */
 #define REACQUIRE_P0_SCALE 100.0
 
 /* count one rejected reading of sensor k. Returns 1 when this rejection makes the sensor faulty (the
@@ -518,7 +520,8 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
     const double r_var_scale = ctl->degraded ? ctl->cfg.degraded.r_scale * ctl->cfg.degraded.r_scale : 1.0;
-    int k, i, fused = 0, diverged = 0, reacquire = 0, restart;
+    int k, i, fused = 0, diverged = 0, restart;
+    unsigned reacquire = 0u; /* sensors whose repeated restart this is (bit k) */
     if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_prev, ctl->coeffs) != DDYN_OK) {
         diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
     }
@@ -550,7 +553,7 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
                  * believes its sensors, or cannot use them; restart it with P0, and again, wider,
                  * after every max_sensor_faults further rejections (count_fault) */
                 diverged = 1;
-                reacquire |= restart == 2;
+                reacquire |= restart == 2 ? 1u << k : 0u;
             }
         } else {
             ctl->sensor_fault_run[k] = 0;
@@ -573,11 +576,26 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
          * readings of the next periods pull it in again, while safe mode holds the car */
         const double *x = ddyn_all_finite(ctl->ekf.x, NX) ? ctl->ekf.x : ctl->x_prev;
         double x_restart[NX], p_restart[NX];
+        int widen[NX] = {0};
         memcpy(x_restart, x, sizeof x_restart);
+        for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+            double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX];
+            const int m = ddyn_meas_dim((ddyn_meas_kind)k);
+            int j;
+            if (!(reacquire & (1u << k)) ||
+                ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_restart, ctl->coeffs, h, H, &ctl->ekf.work) != DDYN_OK) {
+                continue;
+            }
+            for (j = 0; j < NX; ++j) {
+                for (i = 0; i < m; ++i) {
+                    widen[j] |= H[i + j * m] != 0.0; /* H column-major, m x NX */
+                }
+            }
+        }
         for (i = 0; i < NX; ++i) {
             const double p0 = ctl->cfg.p0_diag[i];
             /* widened, but within p_max with room for the prediction's growth */
-            p_restart[i] = reacquire ? fmax(p0, fmin(REACQUIRE_P0_SCALE * p0, 0.01 * ctl->cfg.p_max[i])) : p0;
+            p_restart[i] = widen[i] ? fmax(p0, fmin(REACQUIRE_P0_SCALE * p0, 0.01 * ctl->cfg.p_max[i])) : p0;
         }
         (void)ddyn_ekf_init(&ctl->ekf, ctl->model, ctl->cfg.ekf_disc, x_restart, p_restart, ctl->cfg.q_diag);
         st |= DDYN_CTRL_EKF_DIVERGED;
