@@ -9,10 +9,6 @@
 #include <string.h>
 
 /* the generated MPC step runs in the model's work memory */
-/* The interior point's cap for a QP that DAQP would start cold (docs/m7.md: chosen so that such a step,
- * with the interior point at this cap, stays within the Cortex-M7's 3 M-instruction target) */
-#define DDYN_MPC_COLD_IPM_ITERATIONS 12
-
 typedef char mpc_step_work_fits[(DDYN_MPC_STEP_SZ_W <= DDYN_MODEL_MAX_SZ_W && DDYN_MPC_STEP_SZ_IW <= DDYN_MODEL_MAX_SZ_IW) ? 1 : -1];
 
 ddyn_status ddyn_mpc_default_config(const ddyn_vehicle_model *model, ddyn_mpc_config *cfg)

@@ -50,6 +50,9 @@ extern "C" {
 #define DDYN_MPC_DEFAULT_HORIZON 20
 #define DDYN_MPC_NV (DDYN_MPC_MAX_HORIZON * DDYN_NU)       /* QP variables: input rates */
 #define DDYN_MPC_MAX_QP_ITERATIONS 50
+/* default qp_cold_max_iterations: the interior point's cap for a QP that DAQP would start cold
+ * (docs/m7.md: such a step at this cap stays within the Cortex-M7's 3 M-instruction target) */
+#define DDYN_MPC_COLD_IPM_ITERATIONS 12
 
 /* The prediction model's discretisation. */
 typedef enum {
