@@ -55,7 +55,8 @@ def test_runtime_daqp_path_is_optimal(lap):
     assert sum(conv) >= STEPS - 2
     assert all(conv[5:])
     # the path's cold starts (the first QP, and the one after a capped solve) are the interior point's answers
-    # (mpc.c feedback), stopped at its tolerance 1e-6: above the optimum by up to 1.5e-3 of the objective here (the 3rd QP, after the capped 2nd; steering rate 5.3e-3 off)
+    # (mpc.c feedback), stopped at its tolerance 1e-6: above the optimum by up to 1.5e-3 of the objective here
+    # (the 3rd QP, after the capped 2nd; its steering rate 5.3e-3 rad/s off)
     cold = {0} | {i + 1 for i, ok in enumerate(conv) if not ok}
     for i, (sf, x_d, x_ref, ok) in enumerate(zip(forms, own["daqp"]["x"], ref["x"], conv)):
         if not ok:
