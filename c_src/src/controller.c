@@ -351,14 +351,34 @@ static int fuse(ddyn_ctrl *ctl, int k, const double *z, const double *r)
     return 0;
 }
 
-/* count one rejected reading of sensor k; 1 when this rejection makes the sensor faulty */
+/* A repeated restart of the filter in one fault episode starts the states that the still-faulty sensors
+ * read (nonzero columns of their measurement Jacobians) from this multiple of p0_diag (within p_max): a
+ * restart at P0 that the readings still fail shows an estimate further from them than P0 allows (e.g.
+ * the car moved while the filter was blind), and restarting at P0 again would gate them again. 100 (ten
+ * times the standard deviation) admits a 1:43 car's position off by metres; a reading absurd by
+ * kilometres stays gated. Only those states: with every state widened, the first readings after such a
+ * restart swung the speed estimate by +-2 m/s in a guest run of the plant restart (the tyre model). */
+#define REACQUIRE_P0_SCALE 100.0
+
+/* count one rejected reading of sensor k. Returns 1 when this rejection makes the sensor faulty (the
+ * filter restarts), 2 after every max_sensor_faults further rejections while it stays faulty (the
+ * filter restarts again, wider: REACQUIRE_P0_SCALE; not for the accelerometer, below), else 0. The run stays >= max_sensor_faults
+ * (the sensor stays faulty) until a reading fuses; it cycles through max + 1 .. 2 max, so it is
+ * bounded. (Before, the filter restarted once per episode: readings that the restarted filter still
+ * gated stayed rejected to the end of the run, the controller safe.) */
 static int count_fault(ddyn_ctrl *ctl, int k)
 {
-    if (ctl->sensor_fault_run[k] < ctl->cfg.max_sensor_faults) {
-        ctl->sensor_fault_run[k] += 1;
-        return ctl->sensor_fault_run[k] == ctl->cfg.max_sensor_faults;
+    const int max = ctl->cfg.max_sensor_faults;
+    int *run = &ctl->sensor_fault_run[k];
+    *run = *run < 2 * max ? *run + 1 : max + 1;
+    /* the accelerometer is not re-anchored: its prediction runs through the tyre model and the
+     * coefficients, so readings that stay outside its gate show a model that does not fit (e.g. a
+     * network's poor coefficients), not a lost state; restarting for it every few periods threw the
+     * position estimate off by 0.44 m in the SIL loop test (fsim SilLoop.FramesFlowBothWays...) */
+    if (*run == 2 * max && k == DDYN_MEAS_ACCELERATION) {
+        return 0;
     }
-    return 0;
+    return *run == max ? 1 : (*run == 2 * max ? 2 : 0);
 }
 
 /* ---- degraded-bus mode (ddyn_ctrl_degraded_config) ---- */
@@ -507,7 +527,8 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
     const double r_var_scale = ctl->degraded ? ctl->cfg.degraded.r_scale * ctl->cfg.degraded.r_scale : 1.0;
-    int k, i, fused = 0, diverged = 0;
+    int k, i, fused = 0, diverged = 0, restart;
+    unsigned reacquire = 0u; /* sensors whose repeated restart this is (bit k) */
     if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_prev, ctl->coeffs) != DDYN_OK) {
         diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
     }
@@ -532,11 +553,14 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
         } else if ((result = fuse(ctl, k, z, rv)) != 0) {
             st |= DDYN_CTRL_MEAS_REJECTED;
             ctl->rejected_count[k] = saturating_increment(ctl->rejected_count[k]);
-            if (count_fault(ctl, k)) {
+            restart = count_fault(ctl, k);
+            if (restart) {
                 /* readings that stay outside the gate (result 2), or that the filter keeps refusing
                  * (result 1: S not positive definite, a non-finite update): the filter no longer
-                 * believes its sensors, or cannot use them; restart it with P0, once per episode */
+                 * believes its sensors, or cannot use them; restart it with P0, and again, wider,
+                 * after every max_sensor_faults further rejections (count_fault) */
                 diverged = 1;
+                reacquire |= restart == 2 ? 1u << k : 0u;
             }
         } else {
             ctl->sensor_fault_run[k] = 0;
@@ -558,10 +582,29 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
         /* restart the filter at its last finite estimate with the initial covariance: the
          * readings of the next periods pull it in again, while safe mode holds the car */
         const double *x = ddyn_all_finite(ctl->ekf.x, NX) ? ctl->ekf.x : ctl->x_prev;
-        double x_restart[NX];
+        double x_restart[NX], p_restart[NX];
+        int widen[NX] = {0};
         memcpy(x_restart, x, sizeof x_restart);
-        (void)ddyn_ekf_init(&ctl->ekf, ctl->model, ctl->cfg.ekf_disc, x_restart, ctl->cfg.p0_diag,
-                            ctl->cfg.q_diag);
+        for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+            double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX];
+            const int m = ddyn_meas_dim((ddyn_meas_kind)k);
+            int j;
+            if (!(reacquire & (1u << k)) ||
+                ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_restart, ctl->coeffs, h, H, &ctl->ekf.work) != DDYN_OK) {
+                continue;
+            }
+            for (j = 0; j < NX; ++j) {
+                for (i = 0; i < m; ++i) {
+                    widen[j] |= H[i + j * m] != 0.0; /* H column-major, m x NX */
+                }
+            }
+        }
+        for (i = 0; i < NX; ++i) {
+            const double p0 = ctl->cfg.p0_diag[i];
+            /* widened, but within p_max with room for the prediction's growth */
+            p_restart[i] = widen[i] ? fmax(p0, fmin(REACQUIRE_P0_SCALE * p0, 0.01 * ctl->cfg.p_max[i])) : p0;
+        }
+        (void)ddyn_ekf_init(&ctl->ekf, ctl->model, ctl->cfg.ekf_disc, x_restart, p_restart, ctl->cfg.q_diag);
         st |= DDYN_CTRL_EKF_DIVERGED;
     }
     return st;

@@ -48,6 +48,7 @@ ddyn_status ddyn_mpc_default_config(const ddyn_vehicle_model *model, ddyn_mpc_co
     cfg->qp_solver = DDYN_MPC_QP_DAQP; /* docs/mpc.md: faster and far more accurate than the own IPM */
     cfg->qp_max_iterations = 30;
     cfg->qp_tolerance = 1e-6;
+    cfg->qp_cold_max_iterations = DDYN_MPC_COLD_IPM_ITERATIONS;
     return DDYN_OK;
 }
 
@@ -56,7 +57,8 @@ static int config_valid(const ddyn_mpc_config *cfg)
     int j;
     if (cfg->horizon < 1 || cfg->horizon > DDYN_MPC_MAX_HORIZON || (unsigned)cfg->prediction >= (unsigned)DDYN_MPC_PRED_COUNT ||
         (unsigned)cfg->qp_solver >= (unsigned)DDYN_MPC_QP_COUNT ||
-        cfg->qp_max_iterations < 1 || cfg->qp_max_iterations > DDYN_MPC_MAX_QP_ITERATIONS) {
+        cfg->qp_max_iterations < 1 || cfg->qp_max_iterations > DDYN_MPC_MAX_QP_ITERATIONS ||
+        cfg->qp_cold_max_iterations < 1 || cfg->qp_cold_max_iterations > DDYN_MPC_MAX_QP_ITERATIONS) {
         return 0;
     }
     if (!ddyn_all_finite(cfg->q_pos, 2) || !ddyn_all_finite(cfg->r_rate, DDYN_NU) || !isfinite(cfg->q_terminal_scale) ||
@@ -557,7 +559,10 @@ static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, do
     sensitivities(mpc);
     references(mpc, mpc->prep_index, u0);
     build_qp(mpc, x0, hold);
-    if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP) {
+    /* DAQP starts cold without a plan to continue (its working set belongs to that plan) or without a
+     * working set; the feedback then runs the interior point instead, which needs no factorisation */
+    mpc->prep_cold = !mpc->have_warm_start || mpc->daqp.warm_h != mpc->cfg.horizon;
+    if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP && !mpc->prep_cold) {
         /* DAQP's factorisation reads only what the feedback leaves alone: done here, before the
          * measurement (its failure is reported by the feedback's solve) */
         (void)ddyn_mpc_qp_daqp_factor(&mpc->qp, &mpc->daqp);
@@ -665,20 +670,29 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
         u0 = mpc->prep_u0;
     }
     info->progress = track_at(&mpc->track, info->track_index, u0).s;
-    if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP) {
-        /* warm start: the last solve's working set one stage on, unless there is no plan to continue */
-        if (!mpc->have_warm_start) {
+    if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP && !mpc->prep_cold) {
+        /* warm start: the last solve's working set one stage on */
+        qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
+        if (qst == DDYN_ERR_QP_NOT_CONVERGED) {
+            /* at the cap the next period starts cold (the interior point below) rather than going on
+             * from the working set reached: in safe mode, where the plan is not applied, the warm
+             * starts miss and such continuations capped again (ddyn sil run --faults restart_plant=2:
+             * capped, capped, cold, ... after the restart), while the interior point converged */
             ddyn_mpc_qp_daqp_reset(&mpc->daqp);
         }
-        qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
-        if (qst == DDYN_ERR_QP_NOT_CONVERGED && mpc->daqp.cold) {
-            /* A cold active-set start can need more iterations than the cap (the first QPs from a
-             * standstill, the first after a recovery: up to ~90). With no plan to shift the controller
-             * would go safe and, after recovery, start cold again: on a lossy bus that repeated (87 safe
-             * periods of a lap). The interior point's iteration count does not depend on a start, so it
-             * solves this period's QP (same cap); DAQP continues from the working set it reached. */
-            qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
+    } else if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP) {
+        /* A cold active-set start adds about one constraint per iteration and can need more than the cap
+         * (the first QPs from a standstill, the QPs after a recovery: 40-60 active constraints, up to
+         * ~120 iterations). The interior point's iteration count does not depend on a start: it solves
+         * this QP with its own cap (a bounded cost, measured on the M7: docs/m7.md), and the constraints
+         * active at its solution start DAQP's next solve, so that the warm chain starts right. (Before,
+         * a capped cold DAQP solve was solved again by the interior point: both costs in one period.) */
+        ddyn_mpc_qp_daqp_reset(&mpc->daqp);
+        qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_cold_max_iterations, mpc->cfg.qp_tolerance);
+        if (qst == DDYN_OK || qst == DDYN_ERR_QP_NOT_CONVERGED) {
+            ddyn_mpc_qp_daqp_seed(&mpc->daqp, &mpc->qp);
         }
+        info->qp_cold_start = 1;
     } else {
         qst = ddyn_mpc_qp_solve(&mpc->qp, mpc->cfg.qp_max_iterations, mpc->cfg.qp_tolerance);
     }

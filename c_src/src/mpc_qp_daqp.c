@@ -30,6 +30,28 @@ void ddyn_mpc_qp_daqp_reset(ddyn_mpc_qp_daqp *w)
     }
 }
 
+void ddyn_mpc_qp_daqp_seed(ddyn_mpc_qp_daqp *w, const ddyn_mpc_qp *qp)
+{
+    int c, m, h;
+    if (w == NULL || qp == NULL || qp->horizon < 1 || qp->horizon > DDYN_MPC_MAX_HORIZON) {
+        ddyn_mpc_qp_daqp_reset(w);
+        return;
+    }
+    h = qp->horizon;
+    m = 5 * h; /* 2H bounds, 2H integrator rows, H soft rows */
+    w->warm_n = 0;
+    for (c = 0; c < m && w->warm_n < DDYN_DAQP_WS; ++c) {
+        const int side = ddyn_mpc_qp_active_side(qp, c);
+        if (side != 0) { /* a linearly dependent one is dropped by DAQP's activation */
+            w->warm_id[w->warm_n] = c;
+            w->warm_lower[w->warm_n] = side < 0;
+            ++w->warm_n;
+        }
+    }
+    w->warm_h = h;
+    w->capped = 0;
+}
+
 void ddyn_mpc_qp_daqp_adversarial_start(ddyn_mpc_qp_daqp *w, int horizon)
 {
     int i;

@@ -13,6 +13,7 @@ typedef double qp_f64;
 #define ddyn_mpc_qp_solve ddyn_mpc_qp_solve_f32
 #define ddyn_mpc_qp_newton_factor ddyn_mpc_qp_newton_factor_f32
 #define ddyn_mpc_qp_newton_solve ddyn_mpc_qp_newton_solve_f32
+#define ddyn_mpc_qp_active_side ddyn_mpc_qp_active_side_f32
 #include "../src/mpc_qp.c"
 #undef double
 

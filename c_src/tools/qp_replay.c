@@ -6,8 +6,11 @@
  *   - as the runtime does (double, MAX_ITER iterations, TOL), REPEATS times: median time;
  *   - by the float32 build of the same solver (qp_f32.c), REPEATS times;
  *   - by the double solver with 50 iterations and tolerance 1e-10 (a tight own answer).
- *   - by DAQP as the runtime does (mpc_qp_daqp.c: cap MAX_ITER, warm-started from the previous QP's
- *     working set shifted one stage, cold for the first), REPEATS times from the same warm start.
+ *   - as the runtime's DAQP path does (mpc.c feedback): DAQP (mpc_qp_daqp.c, cap MAX_ITER) warm-started
+ *     from the previous QP's working set shifted one stage; a QP without a working set (the first, and
+ *     the one after a capped or failed solve) by the interior point instead (cap
+ *     DDYN_MPC_COLD_IPM_ITERATIONS, TOL), which seeds the next working set. REPEATS times from the same
+ *     start.
  *   - by DAQP cold (an empty working set for every QP; cap MAX_ITER), REPEATS times.
  * The interior point always starts cold (infeasible start). OUT gets per QP, as doubles:
  *   iterations, converged, median_us, z (2H), slack (H)      for each of the five runs in that order.
@@ -91,8 +94,10 @@ int main(int argc, char **argv)
             const int capped = daqp.capped;
             memcpy(warm_id, daqp.warm_id, sizeof warm_id);
             memcpy(warm_lower, daqp.warm_lower, sizeof warm_lower);
+            const int cold = warm_h != problem.horizon;
             for (r = 0; r < repeats; ++r) {
                 double t0;
+                ddyn_status s;
                 memcpy(daqp.warm_id, warm_id, sizeof warm_id);
                 memcpy(daqp.warm_lower, warm_lower, sizeof warm_lower);
                 daqp.warm_n = warm_n;
@@ -100,7 +105,20 @@ int main(int argc, char **argv)
                 daqp.capped = capped;
                 memcpy(&work, &problem, sizeof work);
                 t0 = bench_now_us();
-                conv = ddyn_mpc_qp_daqp_solve(&work, &daqp, max_it, count > 0) == DDYN_OK;
+                if (cold) {
+                    s = ddyn_mpc_qp_solve(&work, DDYN_MPC_COLD_IPM_ITERATIONS, tol);
+                    if (s == DDYN_OK || s == DDYN_ERR_QP_NOT_CONVERGED) {
+                        ddyn_mpc_qp_daqp_seed(&daqp, &work);
+                    } else {
+                        ddyn_mpc_qp_daqp_reset(&daqp);
+                    }
+                } else {
+                    s = ddyn_mpc_qp_daqp_solve(&work, &daqp, max_it, 1);
+                    if (s == DDYN_ERR_QP_NOT_CONVERGED) {
+                        ddyn_mpc_qp_daqp_reset(&daqp); /* the next one starts cold, as in the runtime */
+                    }
+                }
+                conv = s == DDYN_OK;
                 times[r] = bench_now_us() - t0;
             }
         }

@@ -327,7 +327,7 @@ static void test_outlier_readings_are_gated_then_the_filter_restarts(void **stat
     int k;
     (void)state;
     run_exact(0, &out);
-    for (k = 1; k <= cfg.max_sensor_faults + 1; ++k) {
+    for (k = 1; k <= 2 * cfg.max_sensor_faults + 1; ++k) {
         ddyn_ctrl_status st;
         readings(&in, 0);
         /* a finite but absurd GNSS fix: a kilometre away, or the largest double */
@@ -337,8 +337,9 @@ static void test_outlier_readings_are_gated_then_the_filter_restarts(void **stat
         assert_false(st & DDYN_CTRL_MEAS_NONFINITE);
         assert_int_equal(ctl.rejected_count[DDYN_MEAS_GNSS_POSITION], k);
         assert_true(fabs(out.x_est[0] - plant[0]) < 0.1); /* the estimate did not jump towards it */
-        /* the gate's verdict restarts the filter once, when the sensor becomes faulty */
-        assert_int_equal((st & DDYN_CTRL_EKF_DIVERGED) != 0, k == cfg.max_sensor_faults);
+        /* the gate's verdict restarts the filter when the sensor becomes faulty, and again (wider)
+         * after max_sensor_faults further rejections; a kilometre stays outside the wider gate */
+        assert_int_equal((st & DDYN_CTRL_EKF_DIVERGED) != 0, k == cfg.max_sensor_faults || k == 2 * cfg.max_sensor_faults);
         assert_int_equal((st & DDYN_CTRL_SENSOR_FAULT) != 0, k >= cfg.max_sensor_faults);
     }
     assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
@@ -610,6 +611,44 @@ static void test_recovery_after_a_sensor_fault(void **state)
     assert_true(out.status & DDYN_CTRL_RECOVERED);
     assert_false(out.status & DDYN_CTRL_SAFE_COMMAND);
     drive_healthy(20); /* and drives on */
+}
+
+static void test_filter_reacquires_a_car_that_moved_beyond_the_gate(void **state)
+{
+    /* the car jumps a quarter of the circle (2.1 m, heading +90 degrees), as after a plant restart from
+     * a snapshot or a filter blind while the car moved: its position and heading readings fall outside
+     * the gate of the filter restarted at P0 too. The filter used to restart once per episode and then
+     * gate them to the end (sensor fault, safe to the end); it now restarts again, wider, after
+     * max_sensor_faults further rejections, fuses them, and the controller recovers and drives on */
+    const double a = 3.14159265358979323846 / 2.0;
+    ddyn_ctrl_output out;
+    double px, py;
+    int k, recovered = -1, faulty = 0, restarts = 0;
+    (void)state;
+    start_on_circle(oracle_tables());
+    drive_healthy(20);
+    px = plant[0];
+    py = plant[1];
+    plant[0] = cos(a) * px - sin(a) * py;
+    plant[1] = sin(a) * px + cos(a) * py;
+    plant[2] += a;
+    for (k = 0; k < 300 && recovered < 0; ++k) {
+        run_exact(k, &out);
+        faulty |= (out.status & DDYN_CTRL_SENSOR_FAULT) != 0;
+        restarts += (out.status & DDYN_CTRL_EKF_DIVERGED) != 0;
+        if (out.status & DDYN_CTRL_RECOVERED) {
+            recovered = k;
+        }
+    }
+    print_message("jump of a quarter circle: %d filter restarts, recovered in period %d\n", restarts, recovered);
+    assert_true(faulty && restarts >= 2);
+    assert_true(recovered >= 0);
+    assert_true(hypot(out.x_est[0] - plant[0], out.x_est[1] - plant[1]) < 0.1);
+    for (k = 0; k < 100; ++k) { /* drives on along the circle, never safe again */
+        run_exact(k, &out);
+        assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_SENSOR_FAULT));
+    }
+    assert_true(fabs(hypot(plant[0], plant[1]) - RADIUS) < 0.15 && plant[3] > 0.5);
 }
 
 static void test_qp_not_converged_shifts_the_plan_then_safe(void **state)
@@ -1052,6 +1091,7 @@ int main(void)
         cmocka_unit_test_setup(test_mpc_without_track_is_safe, setup),
         cmocka_unit_test_setup(test_healthy_closed_loop_follows_the_track, setup),
         cmocka_unit_test_setup(test_recovery_after_a_sensor_fault, setup),
+        cmocka_unit_test_setup(test_filter_reacquires_a_car_that_moved_beyond_the_gate, setup),
         cmocka_unit_test_setup(test_qp_not_converged_shifts_the_plan_then_safe, setup),
         cmocka_unit_test_setup(test_fixed_coefficients_bypass_the_network, setup),
         cmocka_unit_test_setup(test_pid_throttle_follows_the_law_and_the_plan_holds_it, setup),

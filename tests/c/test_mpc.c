@@ -484,8 +484,10 @@ static void test_iteration_cap_reports_and_commands_within_bounds(void **state)
     ddyn_mpc_info info;
     (void)state;
     ring_mpc(1);
+    mpc.cfg.qp_cold_max_iterations = 1; /* the first QP starts cold: the interior point's cap */
     ring_start(x0);
     assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
+    assert_int_equal(info.qp_cold_start, 1);
     assert_int_equal(info.converged, 0);
     assert_int_equal(info.qp_iterations, 1);
     assert_true(isfinite(u[0]) && isfinite(u[1]));
@@ -607,6 +609,25 @@ static void test_daqp_refusals_and_crossing_bounds_start_cold(void **state)
     assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_ERR_ARGUMENT);
 }
 
+/* the QP's objective at its solution z, slack */
+static double qp_objective(const ddyn_mpc_qp *p)
+{
+    const int n = 2 * p->horizon;
+    double f = 0.0;
+    int i, j;
+    for (i = 0; i < n; ++i) {
+        double hz = 0.0;
+        for (j = 0; j < n; ++j) {
+            hz += p->hess[i + j * DDYN_QP_NV] * p->z[j];
+        }
+        f += p->z[i] * (0.5 * hz + p->grad[i]);
+    }
+    for (i = 0; i < p->horizon; ++i) {
+        f += p->rho1 * p->slack[i] + p->rho2 * p->slack[i] * p->slack[i];
+    }
+    return f;
+}
+
 static void test_daqp_warm_start_shifts_and_the_cap_is_defined(void **state)
 {
     /* closed loop on the ring with DAQP (the default): every QP, re-solved cold from the same problem,
@@ -622,13 +643,22 @@ static void test_daqp_warm_start_shifts_and_the_cap_is_defined(void **state)
     ring_start(x);
     for (k = 0; k < 60; ++k) {
         assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
-        warm_total += info.qp_iterations;
+        /* only the first QP starts cold (the interior point, stopped at its tolerance 1e-6: loose in
+         * the nearly free throttle direction); the others are DAQP's, warm-started */
+        assert_int_equal(info.qp_cold_start, k == 0);
+        if (k > 0) {
+            warm_total += info.qp_iterations;
+        }
         memcpy(&copy, &mpc.qp, sizeof copy);
         ddyn_mpc_qp_daqp_reset(&daqp);
         assert_int_equal(ddyn_mpc_qp_daqp_solve(&copy, &daqp, 50, 1), DDYN_OK);
-        cold_total += copy.iterations;
+        cold_total += k > 0 ? copy.iterations : 0;
+        if (k == 0) { /* (the interior point stops ~1e-3 from the optimum's objective: docs/mpc.md) */
+            const double f_ipm = qp_objective(&mpc.qp), f_daqp = qp_objective(&copy);
+            assert_true(f_daqp <= f_ipm + 1e-9 * fabs(f_ipm) && f_ipm - f_daqp <= 1e-3 * fmax(1.0, fabs(f_daqp)));
+        }
         for (i = 0; i < 2 * mpc.cfg.horizon; ++i) {
-            assert_true(fabs(copy.z[i] - mpc.qp.z[i]) < 1e-7);
+            assert_true(k == 0 || fabs(copy.z[i] - mpc.qp.z[i]) < 1e-7);
         }
         assert_int_equal(ddyn_model_step(&ddyn_model_orca_1_43, DDYN_DISC_RK4, x, u, C, xn, &work), DDYN_OK);
         memcpy(x, xn, sizeof x);
@@ -637,19 +667,96 @@ static void test_daqp_warm_start_shifts_and_the_cap_is_defined(void **state)
     print_message("DAQP on the ring: %d iterations warm-started, %d cold over 60 QPs\n", warm_total, cold_total);
     assert_true(warm_total <= cold_total);
     /* the cap: from a wrong working set DAQP cannot finish in 3 iterations; the answer is finite and
-     * within the rate bounds, the working set reached is kept, and the next period finishes the work */
+     * within the rate bounds, and the next period starts cold: the interior point finishes the work */
     ddyn_mpc_qp_daqp_adversarial_start(&mpc.daqp, mpc.cfg.horizon);
     mpc.cfg.qp_max_iterations = 3;
     assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_ERR_QP_NOT_CONVERGED);
-    assert_true(info.qp_iterations == 3 && !info.converged && mpc.daqp.warm_n > 0);
+    assert_true(info.qp_iterations == 3 && !info.converged && !info.qp_cold_start && mpc.daqp.warm_h == 0);
     assert_true(isfinite(u[0]) && isfinite(u[1]) && fabs(u[0]) <= 10.0 && fabs(u[1]) <= 5.0);
-    mpc.cfg.qp_max_iterations = 50; /* 35 wrong constraints are left to drop */
     assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
-    /* a reset of the MPC (a fault) starts the QP cold */
+    assert_true(info.qp_cold_start && info.converged);
+    mpc.cfg.qp_max_iterations = 50;
+    /* a reset of the MPC (a fault) starts the QP cold: the interior point solves it and leaves DAQP a
+     * working set for the next period */
     ddyn_mpc_reset(&mpc);
     assert_int_equal(mpc.daqp.warm_n, 0);
     assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
-    assert_true(mpc.daqp.cold);
+    assert_true(info.qp_cold_start && mpc.daqp.warm_h == mpc.cfg.horizon);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+    assert_true(!info.qp_cold_start);
+}
+
+static void test_interior_point_seeds_daqp_working_set(void **state)
+{
+    /* box QP with 14 active bounds: DAQP from an empty working set needs at least 14 iterations; from
+     * the set the interior point's solution marks active (ddyn_mpc_qp_daqp_seed) it only checks it */
+    int i, h = 10;
+    (void)state;
+    qp_clear(h);
+    open_bounds(2 * h);
+    for (i = 0; i < 2 * h; ++i) {
+        qp.hess[i + i * DDYN_QP_NV] = 1.0 + 0.1 * i;
+        qp.grad[i] = (i % 3 == 0 ? -5.0 : (i % 3 == 1 ? 4.0 : 0.3)) * qp.hess[i + i * DDYN_QP_NV];
+        qp.lb[i] = -1.0;
+        qp.ub[i] = 2.0;
+    }
+    assert_int_equal(ddyn_mpc_qp_solve(&qp, 30, 1e-8), DDYN_OK);
+    for (i = 0; i < 2 * h; ++i) {
+        const int side = ddyn_mpc_qp_active_side(&qp, i);
+        assert_int_equal(side, i % 3 == 0 ? 1 : (i % 3 == 1 ? -1 : 0));
+    }
+    for (i = 2 * h; i < 5 * h; ++i) { /* integrator and soft rows: open */
+        assert_int_equal(ddyn_mpc_qp_active_side(&qp, i), 0);
+    }
+    assert_int_equal(ddyn_mpc_qp_active_side(&qp, 5 * h), 0); /* out of range */
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    ddyn_mpc_qp_daqp_seed(&daqp, &qp);
+    assert_true(daqp.warm_n == 14 && daqp.warm_h == h);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
+    assert_true(!daqp.cold && qp.iterations <= 1 && fabs(qp.z[0] - 2.0) < 1e-9 && fabs(qp.z[1] + 1.0) < 1e-9);
+}
+
+static void test_cold_start_beyond_daqp_cap_converges_in_its_period(void **state)
+{
+    /* a hard first QP (the car outside the line, heading out, steering the wrong way: ~55 constraints
+     * active at the optimum): DAQP from an empty working set needs far more than its cap of 30; the
+     * interior point solves it in its period within its own cap, and the working set it leaves
+     * (ddyn_mpc_qp_daqp_seed) is the optimum's: DAQP re-solving the same QP from it takes 1 iteration,
+     * and the next period's QP, warm from it shifted, takes fewer than a cold start of that QP */
+    static ddyn_model_work work;
+    static ddyn_mpc_qp copy;
+    static ddyn_mpc_qp_daqp seeded;
+    double x[DDYN_NX], u[DDYN_NU], xn[DDYN_NX];
+    ddyn_mpc_info info;
+    ddyn_status st;
+    (void)state;
+    ring_mpc(30);
+    ring_start(x);
+    x[0] += 0.1;
+    x[2] -= 0.5;
+    x[7] = -0.3;
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+    assert_true(info.qp_cold_start && info.converged && info.qp_iterations <= mpc.cfg.qp_cold_max_iterations);
+    assert_true(mpc.daqp.warm_n > 30);
+    memcpy(&copy, &mpc.qp, sizeof copy);
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&copy, &daqp, 150, 0), DDYN_OK);
+    print_message("hard first QP: DAQP cold %d iterations", copy.iterations);
+    assert_true(copy.iterations > mpc.cfg.qp_max_iterations);
+    memcpy(&copy, &mpc.qp, sizeof copy);
+    memcpy(&seeded, &mpc.daqp, sizeof seeded);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&copy, &seeded, 150, 0), DDYN_OK);
+    print_message(", from the interior point's working set %d", copy.iterations);
+    assert_true(copy.iterations <= 2);
+    assert_int_equal(ddyn_model_step(&ddyn_model_orca_1_43, DDYN_DISC_RK4, x, u, C, xn, &work), DDYN_OK);
+    memcpy(x, xn, sizeof x);
+    st = ddyn_mpc_solve(&mpc, x, u, &info);
+    assert_true((st == DDYN_OK || st == DDYN_ERR_QP_NOT_CONVERGED) && !info.qp_cold_start);
+    memcpy(&copy, &mpc.qp, sizeof copy);
+    ddyn_mpc_qp_daqp_reset(&daqp);
+    assert_int_equal(ddyn_mpc_qp_daqp_solve(&copy, &daqp, 150, 0), DDYN_OK);
+    print_message("; next period warm %d, cold %d\n", info.qp_iterations, copy.iterations);
+    assert_true(info.qp_iterations < copy.iterations);
 }
 
 static void test_generated_prediction_step_jacobians_and_integrators(void **state)
@@ -809,6 +916,8 @@ int main(void)
         cmocka_unit_test(test_closed_loop_stays_on_the_ring),
         cmocka_unit_test(test_daqp_solves_the_structured_qps),
         cmocka_unit_test(test_daqp_refusals_and_crossing_bounds_start_cold),
+        cmocka_unit_test(test_interior_point_seeds_daqp_working_set),
+        cmocka_unit_test(test_cold_start_beyond_daqp_cap_converges_in_its_period),
         cmocka_unit_test(test_daqp_warm_start_shifts_and_the_cap_is_defined),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),

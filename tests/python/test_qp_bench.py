@@ -50,14 +50,24 @@ def test_runtime_daqp_path_is_optimal(lap):
     MPC's penalty) solves the same problem as the standard form: its answers equal PIQP's tight ones."""
     _, own, forms = lap
     ref = qpb.solve_piqp(forms, 1e-10)
-    # from standstill (the lap's first QPs) a cold working set can need more than the cap of 30 iterations
-    assert sum(own["daqp"]["converged"]) >= STEPS - 2
-    assert all(own["daqp"]["converged"][5:])
-    for sf, x_d, x_ref, ok in zip(forms, own["daqp"]["x"], ref["x"], own["daqp"]["converged"]):
+    # from standstill (the lap's first QPs) a warm-started solve can need more than the cap of 30 iterations
+    conv = own["daqp"]["converged"]
+    assert sum(conv) >= STEPS - 2
+    assert all(conv[5:])
+    # the path's cold starts (the first QP, and the one after a capped solve) are the interior point's answers
+    # (mpc.c feedback), stopped at its tolerance 1e-6: above the optimum by up to 1.5e-3 of the objective here
+    # (the 3rd QP, after the capped 2nd; its steering rate 5.3e-3 rad/s off)
+    cold = {0} | {i + 1 for i, ok in enumerate(conv) if not ok}
+    for i, (sf, x_d, x_ref, ok) in enumerate(zip(forms, own["daqp"]["x"], ref["x"], conv)):
         if not ok:
             continue
-        assert qpb.violation(sf, x_d) < 1e-6  # DAQP's primal tolerance
         f_d, f_ref = qpb.objective(sf, x_d), qpb.objective(sf, x_ref)
+        if i in cold:
+            assert qpb.violation(sf, x_d) < 1e-6
+            assert f_ref - 1e-9 * max(1.0, abs(f_ref)) <= f_d <= f_ref + 1e-2 * max(1.0, abs(f_ref))
+            assert abs(x_d[1] - x_ref[1]) < 1e-2
+            continue
+        assert qpb.violation(sf, x_d) < 1e-6  # DAQP's primal tolerance
         assert abs(f_d - f_ref) <= 1e-7 * max(1.0, abs(f_ref))
         assert abs(x_d[1] - x_ref[1]) < 1e-4  # the applied steering rate (rad/s, bounds +-5)
 

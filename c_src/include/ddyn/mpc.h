@@ -50,6 +50,9 @@ extern "C" {
 #define DDYN_MPC_DEFAULT_HORIZON 20
 #define DDYN_MPC_NV (DDYN_MPC_MAX_HORIZON * DDYN_NU)       /* QP variables: input rates */
 #define DDYN_MPC_MAX_QP_ITERATIONS 50
+/* default qp_cold_max_iterations: the interior point's cap for a QP that DAQP would start cold
+ * (docs/m7.md: such a step at this cap stays within the Cortex-M7's 3 M-instruction target) */
+#define DDYN_MPC_COLD_IPM_ITERATIONS 12
 
 /* The prediction model's discretisation. */
 typedef enum {
@@ -85,6 +88,10 @@ typedef struct {
     int qp_max_iterations;      /* QP iteration cap, 1..DDYN_MPC_MAX_QP_ITERATIONS; hitting it returns
                                    DDYN_ERR_QP_NOT_CONVERGED (the controller then shifts the last plan) */
     double qp_tolerance;        /* IPM: stop when residuals and mean complementarity are below this */
+    int qp_cold_max_iterations; /* DAQP: a QP without a working set to start from (the first from a
+                                   standstill, after ddyn_mpc_reset or a failed solve) is solved by the
+                                   interior point with this cap, 1..DDYN_MPC_MAX_QP_ITERATIONS, and its
+                                   active constraints start DAQP's next solve (docs/mpc.md) */
 } ddyn_mpc_config;
 
 /* Raceline table with the room to the track bounds (set once per track with ddyn_mpc_set_track). */
@@ -112,6 +119,7 @@ typedef struct {
     double cost;                /* QP objective at the returned plan (linearised) */
     double progress;            /* arc length of x0's projection on the raceline (m) */
     int track_index;            /* raceline segment of that projection */
+    int qp_cold_start;          /* 1: DAQP had no working set, the interior point solved this QP */
 } ddyn_mpc_info;
 
 typedef struct {
@@ -144,6 +152,7 @@ typedef struct {
     int prep_hold;
     int prep_movable;
     int prep_index;
+    int prep_cold;              /* DAQP: the prepared QP has no working set to start from */
     double prep_u0;
     ddyn_mpc_qp qp;
     ddyn_mpc_qp_daqp daqp;      /* DAQP's workspace and warm start (qp_solver DDYN_MPC_QP_DAQP) */

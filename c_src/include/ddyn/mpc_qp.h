@@ -60,6 +60,11 @@ typedef struct {
  * DDYN_ERR_NONFINITE_INPUT for a malformed problem (z, slack are then zero). */
 ddyn_status ddyn_mpc_qp_solve(ddyn_mpc_qp *qp, int max_iterations, double tol);
 
+/* After a solve: which side of two-sided constraint c is active at the last iterate (its multiplier
+ * exceeds its slack): +1 upper, -1 lower, 0 neither. c numbers the constraints as DAQP's path does
+ * (mpc_qp_daqp.c): [0, n) the bounds of z, [n, 2n) the integrator rows, [2n, 2n + H) the soft rows. */
+int ddyn_mpc_qp_active_side(const ddyn_mpc_qp *qp, int c);
+
 /* The solver's linear algebra, exposed for the tests: with D (length DDYN_QP_NCON, the barrier
  * weights lambda / t of the inequalities in the order of mpc_qp.c) and the objective scale, forms the
  * reduced Newton matrix K = scale H + C_z'D C_z - (slack elimination) in qp->kkt and factors it,

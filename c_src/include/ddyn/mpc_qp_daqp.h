@@ -85,6 +85,10 @@ ddyn_status ddyn_mpc_qp_daqp_solve(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max
 ddyn_status ddyn_mpc_qp_daqp_factor(const ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w);
 ddyn_status ddyn_mpc_qp_daqp_solve_factored(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max_iterations, int shift);
 
+/* The next solve starts from the constraints active at qp's interior-point solution
+ * (ddyn_mpc_qp_active_side), in this solve's stage numbering (the next period shifts them as usual). */
+void ddyn_mpc_qp_daqp_seed(ddyn_mpc_qp_daqp *w, const ddyn_mpc_qp *qp);
+
 /* For the worst-case measurement (tests/m7): make the next solve start from a wrong working set,
  * the upper bounds of every stage but the last active, which DAQP must take apart one constraint per
  * iteration. */
