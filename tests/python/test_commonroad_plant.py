@@ -260,8 +260,29 @@ def test_scoring_thresholds_and_delay_vs_lag():
     assert sc["per_effect"]["steer_lag"]["measured_threshold"] == pytest.approx(0.1)
     assert s["above_threshold_cases"] == 5 and s["top1_above_thresholds"] == pytest.approx(4 / 5)
     assert s["below_threshold_cases"] == 2 and s["any_selected_below_thresholds"] == pytest.approx(0.5)
+    assert s["any_selected_none_or_below"] == pytest.approx(2 / 4)   # below: one lag named, one none; none: 1 of 2
     dl = s["delay_vs_lag"]
     assert dl["named_either"] == 6 and dl["told_apart"] == pytest.approx(4 / 6) and dl["delay_named_lag"] == 2
     assert s["false_alarm_rate"] == pytest.approx(0.5)
     # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
     assert G.plan(30, 4242) == G.plan(50, 4242)[:30]
+
+
+def test_the_threshold_sweep_draws_every_effect_over_its_range_largest_first():
+    """plan_sweep: each effect at SWEEP_LEVELS log-spaced magnitudes spanning its whole drawn range, largest
+    first (a run cut short keeps the top of every effect's range, where reliable_threshold starts), one effect
+    per log, effect-free logs among them, and case seeds apart from the mixed plan's."""
+    levels = 5
+    cases = G.plan_sweep(8 * levels, 11, levels=levels)
+    for eff, (lo, hi) in G.EFFECT_RANGES.items():
+        mags = [abs(c["magnitude"]) for c in cases if c["effect"] == eff]
+        assert len(mags) == levels
+        assert mags[0] == pytest.approx(hi) and mags[-1] == pytest.approx(lo) and mags == sorted(mags, reverse=True)
+        assert np.allclose(np.diff(np.log(mags)), math.log(lo / hi) / (levels - 1))
+        if eff not in G.SIGNED:
+            assert all(c["magnitude"] > 0 for c in cases if c["effect"] == eff)
+    assert sum(c["effect"] == G.NONE for c in cases) == levels
+    signs = {math.copysign(1, c["magnitude"]) for c in cases if c["effect"] in G.SIGNED}
+    assert signs == {-1.0, 1.0}
+    assert not {c["seed"] for c in cases} & {c["seed"] for c in G.plan(8 * levels, 11)}
+    assert G.plan_sweep(16, 11) == G.plan_sweep(24, 11)[:16]
