@@ -261,6 +261,9 @@ def test_scoring_thresholds_and_delay_vs_lag():
     assert s["above_threshold_cases"] == 5 and s["top1_above_thresholds"] == pytest.approx(4 / 5)
     assert s["below_threshold_cases"] == 2 and s["any_selected_below_thresholds"] == pytest.approx(0.5)
     assert s["any_selected_none_or_below"] == pytest.approx(2 / 4)   # below: one lag named, one none; none: 1 of 2
+    lad = sc["per_effect"]["steer_delay"]["ladder"]
+    assert [x[0] for x in lad] == [0.1, 0.06, 0.04, 0.02] and [x[1] for x in lad][-2:] == ["steer_lag", "steer_lag"]
+    assert "| steer_delay | 0.06 | 0.1 -> OK" in G.ladder_markdown(sc["per_effect"])
     dl = s["delay_vs_lag"]
     assert dl["named_either"] == 6 and dl["told_apart"] == pytest.approx(4 / 6) and dl["delay_named_lag"] == 2
     assert s["false_alarm_rate"] == pytest.approx(0.5)

@@ -423,6 +423,9 @@ def score(results: list[dict], thresholds: dict | None = None) -> dict:
                   "median_param_error_all": _median([r["param_error"] for r in rows]),
                   "median_ratio": _median([r["gate_ratio"] for r in rows]), "mistaken_for": wrong,
                   "measured_threshold": reliable_threshold(rows),
+                  # every case, largest |magnitude| first: what was picked and the hidden effect's own evidence
+                  "ladder": [[r["magnitude"], r["top1"], r.get("delta_bic_true"), r.get("estimate")]
+                             for r in sorted(rows, key=lambda r: -abs(r["magnitude"]))],
                   "threshold_used": None if thresholds is None else thresholds.get(e)}
         if thresholds is not None:
             above = [r for r in rows if thresholds.get(e) is not None and abs(r["magnitude"]) >= thresholds[e]]
@@ -542,6 +545,21 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                      f"{_f(p['median_param_error_all'], True) if e not in PROFILED else 'n/a'} | "
                      f"{_f(p['median_ratio'])} | "
                      + (", ".join(f"{k} {v}" for k, v in sorted(p["mistaken_for"].items())) or "-") + " |")
+    if settings.get("case_set") == "sweep":
+        lines += ["", ladder_markdown(sc["per_effect"])]
+    return "\n".join(lines) + "\n"
+
+
+def ladder_markdown(per: dict) -> str:
+    """The threshold sweep per effect, largest magnitude first: top-1 (a tick when right), the hidden effect's own
+    round-1 dBIC (< 0: it pays on the held-out part) and its estimate; the measured threshold is where the
+    unbroken run of ticks from the top ends."""
+    lines = ["| effect | measured threshold | cases, largest first: magnitude -> top-1 (own dBIC, estimate) |",
+             "|---|---|---|"]
+    for e, p in per.items():
+        cells = [f"{m:.3g} -> {'OK' if t == e else t} ({_f(d)}, {_f(x)})" for m, t, d, x in p.get("ladder", [])]
+        thr = p.get("measured_threshold")
+        lines.append(f"| {e} | {'never' if thr is None else _f(thr)} | " + "; ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
