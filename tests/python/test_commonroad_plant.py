@@ -289,3 +289,22 @@ def test_the_threshold_sweep_draws_every_effect_over_its_range_largest_first():
     assert signs == {-1.0, 1.0}
     assert not {c["seed"] for c in cases} & {c["seed"] for c in G.plan(8 * levels, 11)}
     assert G.plan_sweep(16, 11) == G.plan_sweep(24, 11)[:16]
+
+
+def test_the_mixed_fit_takes_the_steering_delay_one_step_and_refits_the_rest_by_output_error():
+    """--fit mixed: a steering delay's value is the one-step fit's; the refit factors are then fitted by output
+    error with that value held (so they match an output-error fit given the delay), and nothing else changes."""
+    log = _log(CP.PlantEffects(steer_delay=0.06), seed=5, duration=12.0)
+
+    def prob(mode):
+        return D.Problem(log, D.nominal_from_vehicle(NOMINAL, log), 0.7, hold=True, fit_mode=mode)
+
+    one, mixed, oe = prob("one-step"), prob("mixed"), prob("output-error")
+    f1 = D.fit(one, ("steer_delay",), scan="steer_delay")
+    fm = D.fit(mixed, ("steer_delay",), scan="steer_delay")
+    fo = D.fit(oe, (), fixed={"steer_delay": f1.values["steer_delay"]})
+    assert fm.values["steer_delay"] == pytest.approx(f1.values["steer_delay"])
+    assert np.allclose(fm.rho, fo.rho, atol=1e-6) and not np.allclose(fm.rho, f1.rho, atol=1e-4)
+    assert not mixed.one_step_now
+    # without a steering delay the mixed fit is the output-error fit
+    assert np.allclose(D.fit(mixed, ("mass_offset",)).rho, D.fit(oe, ("mass_offset",)).rho)

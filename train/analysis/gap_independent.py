@@ -320,6 +320,37 @@ def mass_check(n_logs: int = 7, seed: int = EIV_SEED, jobs: int = 1, progress: b
             "median_abs_error": err, "results": res, "markdown": "\n".join(lines) + "\n"}
 
 
+def cost_profile(case: dict, effect: str, values, hold: bool = True, fit: str = "output-error",
+                 mass_inertia: bool = True, steer_servo: float = CP.SERVO_TAU,
+                 nominal_effects: dict | None = None) -> list[dict]:
+    """Why a fit lands where it does: on the case's log, the cost the fit minimises (fit rows, the fit mode's
+    residuals) and the held-out one-step sum of squares the evidence is scored with, at each value of one
+    effect's main parameter, the refit factors at the nominal's refit (diagnose's settings otherwise: the
+    threshold sweep's by default, the plant's power limit in the nominal unless nominal_effects is given)."""
+    ds, _, err = make_case_log(case)
+    if ds is None:
+        raise DdynError(f"case {case['case']}: {err}")
+    veh = load_vehicle(CP.NOMINAL_VEHICLE)
+    if nominal_effects is None:
+        p = CP.commonroad_parameters()
+        nominal_effects = {"power_limit": p.longitudinal.a_max * p.longitudinal.v_switch * veh.known.mass}
+    prob = D.Problem(ds, D.nominal_from_vehicle(veh, ds), D.DEFAULT_FIT_FRACTION, hold=hold, fit_mode=fit,
+                     mass_inertia=mass_inertia, steer_servo=steer_servo, nominal_effects=nominal_effects)
+    rho = D.fit(prob, ()).rho
+    return [{"value": float(v),
+             "fit_cost": float(np.sum(prob.fit_residuals({effect: float(v)}, rho, prob.rows_fit) ** 2)),
+             "heldout_rss": float(np.sum(prob.residuals({effect: float(v)}, rho, prob.rows_held) ** 2))}
+            for v in values]
+
+
+def cost_minima(case: dict, effect: str, values, **kw) -> dict:
+    """cost_profile's two minima: where the fit goes and where the held-out evidence is best."""
+    prof = cost_profile(case, effect, values, **kw)
+    return {"case": case["case"], "effect": effect, "true": case["magnitude"],
+            "fit_minimum": min(prof, key=lambda r: r["fit_cost"])["value"],
+            "heldout_minimum": min(prof, key=lambda r: r["heldout_rss"])["value"], "profile": prof}
+
+
 # ----------------------------------------------------------------------------------------------- scoring
 
 def _median(xs):
