@@ -308,3 +308,13 @@ def test_the_mixed_fit_takes_the_steering_delay_one_step_and_refits_the_rest_by_
     assert not mixed.one_step_now
     # without a steering delay the mixed fit is the output-error fit
     assert np.allclose(D.fit(mixed, ("mass_offset",)).rho, D.fit(oe, ("mass_offset",)).rho)
+
+
+def test_cost_minima_find_a_hidden_steering_delay_one_step(monkeypatch):
+    """cost_minima: where the fit's cost and the held-out one-step evidence put an effect's value, on a case's
+    log; with the one-step fit both sit at the hidden steering delay's grid point, not at the grid's ends."""
+    monkeypatch.setattr(G, "DURATION", 20.0)
+    case = G.plan_sweep(8, 11)[0] | {"magnitude": 0.08}
+    m = G.cost_minima(case, "steer_delay", (0.0, 0.04, 0.08, 0.16), fit="one-step")
+    assert m["fit_minimum"] == pytest.approx(0.08) and m["heldout_minimum"] == pytest.approx(0.08)
+    assert len(m["profile"]) == 4 and m["profile"][0]["fit_cost"] > m["profile"][2]["fit_cost"]
