@@ -260,8 +260,61 @@ def test_scoring_thresholds_and_delay_vs_lag():
     assert sc["per_effect"]["steer_lag"]["measured_threshold"] == pytest.approx(0.1)
     assert s["above_threshold_cases"] == 5 and s["top1_above_thresholds"] == pytest.approx(4 / 5)
     assert s["below_threshold_cases"] == 2 and s["any_selected_below_thresholds"] == pytest.approx(0.5)
+    assert s["any_selected_none_or_below"] == pytest.approx(2 / 4)   # below: one lag named, one none; none: 1 of 2
+    lad = sc["per_effect"]["steer_delay"]["ladder"]
+    assert [x[0] for x in lad] == [0.1, 0.06, 0.04, 0.02] and [x[1] for x in lad][-2:] == ["steer_lag", "steer_lag"]
+    assert "| steer_delay | 0.06 | 0.1 -> OK" in G.ladder_markdown(sc["per_effect"])
     dl = s["delay_vs_lag"]
     assert dl["named_either"] == 6 and dl["told_apart"] == pytest.approx(4 / 6) and dl["delay_named_lag"] == 2
     assert s["false_alarm_rate"] == pytest.approx(0.5)
     # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
     assert G.plan(30, 4242) == G.plan(50, 4242)[:30]
+
+
+def test_the_threshold_sweep_draws_every_effect_over_its_range_largest_first():
+    """plan_sweep: each effect at SWEEP_LEVELS log-spaced magnitudes spanning its whole drawn range, largest
+    first (a run cut short keeps the top of every effect's range, where reliable_threshold starts), one effect
+    per log, effect-free logs among them, and case seeds apart from the mixed plan's."""
+    levels = 5
+    cases = G.plan_sweep(8 * levels, 11, levels=levels)
+    for eff, (lo, hi) in G.EFFECT_RANGES.items():
+        mags = [abs(c["magnitude"]) for c in cases if c["effect"] == eff]
+        assert len(mags) == levels
+        assert mags[0] == pytest.approx(hi) and mags[-1] == pytest.approx(lo) and mags == sorted(mags, reverse=True)
+        assert np.allclose(np.diff(np.log(mags)), math.log(lo / hi) / (levels - 1))
+        if eff not in G.SIGNED:
+            assert all(c["magnitude"] > 0 for c in cases if c["effect"] == eff)
+    assert sum(c["effect"] == G.NONE for c in cases) == levels
+    signs = {math.copysign(1, c["magnitude"]) for c in cases if c["effect"] in G.SIGNED}
+    assert signs == {-1.0, 1.0}
+    assert not {c["seed"] for c in cases} & {c["seed"] for c in G.plan(8 * levels, 11)}
+    assert G.plan_sweep(16, 11) == G.plan_sweep(24, 11)[:16]
+
+
+def test_the_mixed_fit_takes_the_steering_delay_one_step_and_refits_the_rest_by_output_error():
+    """--fit mixed: a steering delay's value is the one-step fit's; the refit factors are then fitted by output
+    error with that value held (so they match an output-error fit given the delay), and nothing else changes."""
+    log = _log(CP.PlantEffects(steer_delay=0.06), seed=5, duration=12.0)
+
+    def prob(mode):
+        return D.Problem(log, D.nominal_from_vehicle(NOMINAL, log), 0.7, hold=True, fit_mode=mode)
+
+    one, mixed, oe = prob("one-step"), prob("mixed"), prob("output-error")
+    f1 = D.fit(one, ("steer_delay",), scan="steer_delay")
+    fm = D.fit(mixed, ("steer_delay",), scan="steer_delay")
+    fo = D.fit(oe, (), fixed={"steer_delay": f1.values["steer_delay"]})
+    assert fm.values["steer_delay"] == pytest.approx(f1.values["steer_delay"])
+    assert np.allclose(fm.rho, fo.rho, atol=1e-6) and not np.allclose(fm.rho, f1.rho, atol=1e-4)
+    assert not mixed.one_step_now
+    # without a steering delay the mixed fit is the output-error fit
+    assert np.allclose(D.fit(mixed, ("mass_offset",)).rho, D.fit(oe, ("mass_offset",)).rho)
+
+
+def test_cost_minima_find_a_hidden_steering_delay_one_step(monkeypatch):
+    """cost_minima: where the fit's cost and the held-out one-step evidence put an effect's value, on a case's
+    log; with the one-step fit both sit at the hidden steering delay's grid point, not at the grid's ends."""
+    monkeypatch.setattr(G, "DURATION", 20.0)
+    case = G.plan_sweep(8, 11)[0] | {"magnitude": 0.08}
+    m = G.cost_minima(case, "steer_delay", (0.0, 0.04, 0.08, 0.16), fit="one-step")
+    assert m["fit_minimum"] == pytest.approx(0.08) and m["heldout_minimum"] == pytest.approx(0.08)
+    assert len(m["profile"]) == 4 and m["profile"][0]["fit_cost"] > m["profile"][2]["fit_cost"]
