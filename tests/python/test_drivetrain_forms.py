@@ -124,3 +124,39 @@ def test_drivetrain_study_recovers_a_simulated_powertrain():
     assert abs(pt["fit"]["Cm1"] / v.true_coefficients["Cm1"] - 1) < 0.05
     lo, hi = pt["ranges"]["Cm1"]
     assert lo == 0.5 * pt["fit"]["Cm1"] and hi == 2.0 * pt["fit"]["Cm1"]
+
+
+def test_slip_offsets_recover_the_simulated_shifts():
+    """`ddyn study drivetrain`'s slip offsets on a log of av21_powertrain itself: on straight running the
+    measured shifts are the simulator's Gf, Gr (opposite signs: a shared sensor bias would not tell them
+    apart) within the stated error of the measurement (AY_STRAIGHT: 0.0013 rad; K adds 0.0002 rad), and
+    the ranges are the vehicle file's width centred on them."""
+    from ddyn.data import simulate
+    from ddyn.model import tracks
+    from ddyn.studies import drivetrain
+
+    v = vehicle.load("av21_powertrain")
+    ds = simulate.simulate(v, tracks.load_track("putnam"), duration=60.0, seed=4, progress=False)
+    res = drivetrain.run(ds, v)
+    so = res["slip_offsets"]
+    assert so["rows"] >= 50
+    for name in ("Gf", "Gr"):
+        assert abs(so[name]["offset"] - v.true_coefficients[name]) < 0.0015, (name, so[name])
+        lo, hi = res["shift_ranges"][name]
+        assert hi - lo == pytest.approx(v.ranges[name][1] - v.ranges[name][0])
+        assert 0.5 * (lo + hi) == pytest.approx(so[name]["offset"])
+
+
+def test_slip_offsets_need_straight_running():
+    """Too little straight running (every row below V_STRAIGHT) is an error, not an offset from a few rows."""
+    from ddyn.data import simulate
+    from ddyn.model import tracks
+    from ddyn.studies import drivetrain
+
+    v = vehicle.load("av21_powertrain")
+    ds = simulate.simulate(v, tracks.load_track("putnam"), duration=8.0, seed=4, progress=False)
+    rows = np.arange(len(ds))
+    slow = ds.subset(slice(0, len(ds)))
+    slow.states[:, 3] = 5.0   # below V_STRAIGHT everywhere
+    with pytest.raises(DdynError, match="straight running"):
+        drivetrain.slip_offsets(slow, rows, v)

@@ -23,6 +23,12 @@ range: they are not identified, or serve as slack), and the tyre
 curvature E's upper bound 1 (the magic formula's own condition E <= 1, Pacejka, Tyre and Vehicle
 Dynamics, 2012, sec. 4.3.2) where the estimates press on the papers' 0: DIR/ranges_guard.json.
 
+Also the tyres' measured slip offsets (slip_offsets): on the training part's straight running the
+axles carry next to no lateral force, so the model's slip angle there is zero and the horizontal
+shift G of each axle is minus the kinematic slip angle the log shows (a yaw misalignment of the
+velocity sensor shows up here, on both axles alike). The ranges of Gf and Gr are then the vehicle
+file's width centred on that measured offset instead of on 0 (DIR/ranges_shift.json).
+
 Writes DIR/drivetrain.json (fits, R^2, ranges) and DIR/ranges_<form>.json (a `ddyn train --ranges`
 file). The numbers of train/vehicles/av21_powertrain.json come from this command.
 """
@@ -103,6 +109,8 @@ def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -
     if len(train_rows) < 10 or (fraction < 1.0 and len(test_rows) < 10):
         raise DdynError(f"too few rows for a {TRAIN_FRACTION:.0%} time split ({len(ds)})")
     out = {"vehicle": v.name, "rows": {"train": int(len(train_rows)), "heldout": int(len(test_rows))}, "forms": {}}
+    out["slip_offsets"] = slip_offsets(ds, train_rows, v)
+    out["shift_ranges"] = shift_ranges(out["slip_offsets"], v)
     for form in DRIVETRAINS:
         fit = fit_form(ds, train_rows, v, form)
         drive = np.array([fit[n] for n in DRIVE])
@@ -114,6 +122,41 @@ def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -
                            if len(test_rows) else None),
             "ranges": ranges_from_fit(fit, v), "rule": RULE,
         }
+    return out
+
+
+# straight running: |lateral acceleration vx omega| at most this (m/s^2), at a speed of at least V_STRAIGHT.
+# At 0.3 m/s^2 an AV-21 axle carries at most m lr / L 0.3 = 140 N, 0.0013 rad of slip at its cornering
+# stiffness B C D of 110 kN/rad: the error of the offset measured, a tenth of the +-0.02 rad range.
+AY_STRAIGHT = 0.3
+V_STRAIGHT = 10.0
+
+
+def slip_offsets(ds: Dataset, rows: np.ndarray, v: vehicle_mod.Vehicle) -> dict:
+    """The horizontal shifts Gf, Gr that make both axles' slip angle zero on straight running (rows of ds,
+    the training part): minus the median kinematic slip angle (the model's, ddyn.model.single_track.
+    slip_angles with G = 0) over those rows, with its 5-95 % spread."""
+    s = ds.states[rows]
+    vx, vy, om, delta = s[:, 3], s[:, 4], s[:, 5], s[:, 7]
+    straight = (vx >= V_STRAIGHT) & (np.abs(vx * om) <= AY_STRAIGHT)
+    if straight.sum() < 50:
+        raise DdynError(f"too little straight running to measure the slip offsets ({int(straight.sum())} rows)")
+    kin = {"Gf": delta - np.arctan2(om * v.known.lf + vy, vx), "Gr": np.arctan2(om * v.known.lr - vy, vx)}
+    out = {"rows": int(straight.sum()), "rule": f"vx >= {V_STRAIGHT} m/s, |vx omega| <= {AY_STRAIGHT} m/s^2"}
+    for name, a in kin.items():
+        p5, p50, p95 = np.percentile(-a[straight], [5, 50, 95])
+        out[name] = {"offset": float(p50), "p05": float(p5), "p95": float(p95)}
+    return out
+
+
+def shift_ranges(offsets: dict, v: vehicle_mod.Vehicle) -> dict:
+    """Gf, Gr: the vehicle file's range width, centred on the measured offset (the physical zero of the
+    tyre's slip angle in this log) instead of on the vehicle file's centre."""
+    out = {}
+    for name in ("Gf", "Gr"):
+        lo, hi = v.ranges[name]
+        half = 0.5 * (hi - lo)
+        out[name] = [offsets[name]["offset"] - half, offsets[name]["offset"] + half]
     return out
 
 
@@ -172,6 +215,7 @@ def _run(args) -> int:
     (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
     for form, r in res["forms"].items():
         (out / f"ranges_{form}.json").write_text(json.dumps(r["ranges"], indent=2))
+    (out / "ranges_shift.json").write_text(json.dumps(res["shift_ranges"], indent=2))
     if args.model:
         cut = int(len(ds) * TRAIN_FRACTION)
         guard = guard_ranges_from_model(args.model, ds.subset(slice(0, cut)))
@@ -181,6 +225,10 @@ def _run(args) -> int:
         for k, g in guard.items():
             print(f"guard range {k}: {g['vehicle']} -> [{g['used'][0]:.4g}, {g['used'][1]:.4g}] ({g['why']})")
     print(markdown(res))
+    so = res["slip_offsets"]
+    for name, (a, b) in res["shift_ranges"].items():
+        print(f"slip offset {name}: {so[name]['offset']:+.4f} rad (5-95 % {so[name]['p05']:+.4f} .. {so[name]['p95']:+.4f}, "
+              f"{so['rows']} straight rows: {so['rule']}) -> range [{a:+.4f}, {b:+.4f}] -> {out / 'ranges_shift.json'}")
     for form, r in res["forms"].items():
         print(f"{form}: ranges ({RULE}) " + ", ".join(f"{k} [{a:.4g}, {b:.4g}]" for k, (a, b) in r["ranges"].items())
               + f" -> {out / f'ranges_{form}.json'}")
