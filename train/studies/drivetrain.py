@@ -26,8 +26,12 @@ Dynamics, 2012, sec. 4.3.2) where the estimates press on the papers' 0: DIR/rang
 Also the tyres' measured slip offsets (slip_offsets): on the training part's straight running the
 axles carry next to no lateral force, so the model's slip angle there is zero and the horizontal
 shift G of each axle is minus the kinematic slip angle the log shows (a yaw misalignment of the
-velocity sensor shows up here, on both axles alike). The ranges of Gf and Gr are then the vehicle
-file's width centred on that measured offset instead of on 0 (DIR/ranges_shift.json).
+velocity sensor shows up here, on both axles alike). A physical check of G's range: it must hold
+the measured offset and its spread. (Centring the range on the offset was tried on the Putnam log and
+refuted on its training part: the DDM then pressed on the other bound, docs/model.md.)
+
+With --model, also the share of the DDM's estimates on the training part at each guard bound (the
+figure a range rule may be chosen on; the held-out part's is `ddyn study ddm real`'s).
 
 Writes DIR/drivetrain.json (fits, R^2, ranges) and DIR/ranges_<form>.json (a `ddyn train --ranges`
 file). The numbers of train/vehicles/av21_powertrain.json come from this command.
@@ -110,7 +114,6 @@ def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -
         raise DdynError(f"too few rows for a {TRAIN_FRACTION:.0%} time split ({len(ds)})")
     out = {"vehicle": v.name, "rows": {"train": int(len(train_rows)), "heldout": int(len(test_rows))}, "forms": {}}
     out["slip_offsets"] = slip_offsets(ds, train_rows, v)
-    out["shift_ranges"] = shift_ranges(out["slip_offsets"], v)
     for form in DRIVETRAINS:
         fit = fit_form(ds, train_rows, v, form)
         drive = np.array([fit[n] for n in DRIVE])
@@ -149,23 +152,21 @@ def slip_offsets(ds: Dataset, rows: np.ndarray, v: vehicle_mod.Vehicle) -> dict:
     return out
 
 
-def shift_ranges(offsets: dict, v: vehicle_mod.Vehicle) -> dict:
-    """Gf, Gr: the vehicle file's range width, centred on the measured offset (the physical zero of the
-    tyre's slip angle in this log) instead of on the vehicle file's centre."""
-    out = {}
-    for name in ("Gf", "Gr"):
-        lo, hi = v.ranges[name]
-        half = 0.5 * (hi - lo)
-        out[name] = [offsets[name]["offset"] - half, offsets[name]["offset"] + half]
-    return out
-
-
 E_MAX = 1.0   # Pacejka's condition on the curvature factor
 
 
-def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> dict:
+def saturation(est: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float = 0.01) -> dict:
+    """{coefficient: [share at the lower bound, share at the upper bound]} of the estimates (n, 17): within
+    tol of the range width of a bound, as ddyn.learn.evaluate counts it on the held-out part."""
+    band = tol * (hi - lo)
+    return {n: [float(np.mean(est[:, i] <= lo[i] + band[i])), float(np.mean(est[:, i] >= hi[i] - band[i]))]
+            for i, n in enumerate(COEFF_NAMES)}
+
+
+def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> tuple[dict, dict]:
     """{coefficient: {"vehicle", "used", "why"}} for the coefficients the DDM's estimates on train_part
-    press on (see the module docstring); the checkpoint's own ranges are the starting point."""
+    press on (see the module docstring), and the estimates' saturation on train_part (saturation());
+    the checkpoint's own ranges are the starting point."""
     import dataclasses
 
     from ddyn.learn import checkpoint
@@ -176,14 +177,24 @@ def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> dict:
     r = ckpt["ranges"]
     v = dataclasses.replace(v, ranges={n: (lo, hi) for n, lo, hi in zip(r["names"], r["lo"], r["hi"])})
     est = ddm_estimates(model, train_part, ckpt["config"]["tau"])
+    out = moved_bounds(suggest_ranges(est, v)["coefficients"], v.ranges)
+    return out, saturation(est, np.asarray(r["lo"]), np.asarray(r["hi"]))
+
+
+def moved_bounds(suggestions: dict, ranges: dict) -> dict:
+    """{coefficient: {"vehicle", "used", "why"}} from ddyn.learn.denoise.suggest_ranges' "coefficients":
+    a side the estimates are pinned on moves as the rule extends it, the other side stays; a coefficient
+    pinned at both ends keeps its range (slack); E's upper bound goes from the papers' 0 to 1 when
+    pressed on, and never beyond 1 (the magic formula's E <= 1)."""
     out = {}
-    for name, s in suggest_ranges(est, v)["coefficients"].items():
-        lo, hi = v.ranges[name]
+    for name, s in suggestions.items():
+        lo, hi = ranges[name]
         if name in ("Ef", "Er") and hi == 0.0 and s["pinned"] in ("high", "both"):
             out[name] = {"vehicle": [lo, hi], "used": [lo, E_MAX], "why": "E <= 1 (Pacejka), pressed on 0"}
         elif s["pinned"] in ("low", "high"):
-            # only the pinned side moves (as the rule extends it); the other side keeps the vehicle's bound
             used = [s["suggested"][0], hi] if s["pinned"] == "low" else [lo, s["suggested"][1]]
+            if name in ("Ef", "Er"):
+                used[1] = min(used[1], E_MAX)
             if used != [lo, hi]:
                 out[name] = {"vehicle": [lo, hi], "used": used, "why": f"ddyn denoise's rule, pinned {s['pinned']}"}
     return out
@@ -215,20 +226,22 @@ def _run(args) -> int:
     (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
     for form, r in res["forms"].items():
         (out / f"ranges_{form}.json").write_text(json.dumps(r["ranges"], indent=2))
-    (out / "ranges_shift.json").write_text(json.dumps(res["shift_ranges"], indent=2))
     if args.model:
         cut = int(len(ds) * TRAIN_FRACTION)
-        guard = guard_ranges_from_model(args.model, ds.subset(slice(0, cut)))
-        res["guard_ranges"] = guard
+        guard, sat = guard_ranges_from_model(args.model, ds.subset(slice(0, cut)))
+        res["guard_ranges"], res["training_saturation"] = guard, sat
+        print("training part, share of the DDM's estimates at a guard bound (low / high, over 1 %): " + ", ".join(
+            f"{k} {100 * a:.1f} / {100 * b:.1f} %" for k, (a, b) in sat.items() if a + b > 0.01))
         (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
         (out / "ranges_guard.json").write_text(json.dumps({k: g["used"] for k, g in guard.items()}, indent=2))
         for k, g in guard.items():
             print(f"guard range {k}: {g['vehicle']} -> [{g['used'][0]:.4g}, {g['used'][1]:.4g}] ({g['why']})")
     print(markdown(res))
     so = res["slip_offsets"]
-    for name, (a, b) in res["shift_ranges"].items():
+    for name in ("Gf", "Gr"):
+        lo, hi = v.ranges[name]
         print(f"slip offset {name}: {so[name]['offset']:+.4f} rad (5-95 % {so[name]['p05']:+.4f} .. {so[name]['p95']:+.4f}, "
-              f"{so['rows']} straight rows: {so['rule']}) -> range [{a:+.4f}, {b:+.4f}] -> {out / 'ranges_shift.json'}")
+              f"{so['rows']} straight rows of the training part: {so['rule']}); {v.name}'s range [{lo:+.4f}, {hi:+.4f}]")
     for form, r in res["forms"].items():
         print(f"{form}: ranges ({RULE}) " + ", ".join(f"{k} [{a:.4g}, {b:.4g}]" for k, (a, b) in r["ranges"].items())
               + f" -> {out / f'ranges_{form}.json'}")
