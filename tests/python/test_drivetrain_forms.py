@@ -188,3 +188,15 @@ def test_moved_bounds_keep_e_at_most_one_and_slack_ranges():
     assert out["Er"]["used"] == [-2.0, 1.0]
     assert out["Iz"]["used"] == [500.0, 4000.0]  # only the pinned (upper) side moves
     assert "Gf" not in out and "Cd" not in out
+
+
+def test_union_of_moves_takes_the_widest_side_over_models():
+    from ddyn.studies import drivetrain
+
+    a = {"Iz": {"vehicle": [500.0, 4000.0], "used": [500.0, 8000.0], "why": "ddyn denoise's rule, pinned high"}}
+    b = {"Iz": {"vehicle": [500.0, 4000.0], "used": [250.0, 4000.0], "why": "ddyn denoise's rule, pinned low"},
+         "Cd": {"vehicle": [0.05, 1.0], "used": [0.025, 1.0], "why": "ddyn denoise's rule, pinned low"}}
+    u = drivetrain.union_of_moves([a, b, {}])
+    assert u["Iz"]["used"] == [250.0, 8000.0] and u["Cd"]["used"] == [0.025, 1.0]
+    assert "2 of 3 models" in u["Iz"]["why"] and "1 of 3 models" in u["Cd"]["why"]
+    assert a["Iz"]["used"] == [500.0, 8000.0]   # the inputs are not changed

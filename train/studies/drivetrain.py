@@ -15,8 +15,9 @@ held-out last 20 % is only reported, never fitted), for each drivetrain form of 
      and Iz from half to double the true value", shared/data/README.md): [x / 2, 2 x]; Cd keeps the
      vehicle file's range (see 1).
 
-With --model CKPT (a DDM trained on the same training part), also the ranges of the coefficients the
-DDM's estimates press on (training part only): the rule of `ddyn denoise` (ddyn.learn.denoise.
+With --model CKPT [CKPT ...] (DDMs trained on the same training part, e.g. several seeds), also the
+ranges of the coefficients the DDMs' estimates press on (training part only; the union over the models,
+union_of_moves): the rule of `ddyn denoise` (ddyn.learn.denoise.
 suggest_ranges: a pinned side is extended, to half or double a positive bound or by half the width;
 the other side is kept; a bound at zero and a coefficient pinned at both ends keep the vehicle file's
 range: they are not identified, or serve as slack), and the tyre
@@ -181,6 +182,24 @@ def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> tuple
     return out, saturation(est, np.asarray(r["lo"]), np.asarray(r["hi"]))
 
 
+def union_of_moves(moves: list[dict]) -> dict:
+    """Several models' moved_bounds() (DDMs of the same ranges and training part, e.g. other seeds) as one:
+    per coefficient the widest side any of them asks for (a bound one seed presses on is a bound the
+    training part presses on; which seed shows it is chance, docs/learning.md's seed check)."""
+    out: dict = {}
+    for m in moves:
+        for name, g in m.items():
+            if name not in out:
+                out[name] = {"vehicle": list(g["vehicle"]), "used": list(g["used"]), "why": [g["why"]]}
+            else:
+                u = out[name]["used"]
+                out[name]["used"] = [min(u[0], g["used"][0]), max(u[1], g["used"][1])]
+                out[name]["why"].append(g["why"])
+    for g in out.values():
+        g["why"] = "; ".join(sorted(set(g["why"]))) + f" ({len(g['why'])} of {len(moves)} models)"
+    return out
+
+
 def moved_bounds(suggestions: dict, ranges: dict) -> dict:
     """{coefficient: {"vehicle", "used", "why"}} from ddyn.learn.denoise.suggest_ranges' "coefficients":
     a side the estimates are pinned on moves as the rule extends it, the other side stays; a coefficient
@@ -228,10 +247,14 @@ def _run(args) -> int:
         (out / f"ranges_{form}.json").write_text(json.dumps(r["ranges"], indent=2))
     if args.model:
         cut = int(len(ds) * TRAIN_FRACTION)
-        guard, sat = guard_ranges_from_model(args.model, ds.subset(slice(0, cut)))
-        res["guard_ranges"], res["training_saturation"] = guard, sat
-        print("training part, share of the DDM's estimates at a guard bound (low / high, over 1 %): " + ", ".join(
-            f"{k} {100 * a:.1f} / {100 * b:.1f} %" for k, (a, b) in sat.items() if a + b > 0.01))
+        per_model = []
+        for path in args.model:
+            guard, sat = guard_ranges_from_model(path, ds.subset(slice(0, cut)))
+            per_model.append({"model": str(path), "guard_ranges": guard, "training_saturation": sat})
+            print(f"{path}: training part, share of the DDM's estimates at a guard bound (low / high, over 1 %): "
+                  + ", ".join(f"{k} {100 * a:.1f} / {100 * b:.1f} %" for k, (a, b) in sat.items() if a + b > 0.01))
+        guard = union_of_moves([m["guard_ranges"] for m in per_model])
+        res["guard_ranges"], res["per_model"] = guard, per_model
         (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
         (out / "ranges_guard.json").write_text(json.dumps({k: g["used"] for k, g in guard.items()}, indent=2))
         for k, g in guard.items():
@@ -252,6 +275,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("drivetrain", help="drivetrain forms on a real log: fit, R^2, guard ranges from data")
     p.add_argument("--data", help="a RACECAR CSV (default: the shared Putnam log)")
     p.add_argument("--vehicle", default="av21", help="vehicle file whose other coefficients and Cd range are used")
-    p.add_argument("--model", help="a DDM checkpoint trained on the training part: ranges its estimates press on")
+    p.add_argument("--model", nargs="+", help="DDM checkpoints trained on the training part (e.g. several seeds): "
+                   "their estimates' saturation there, and the union of the bounds they press on")
     p.add_argument("--out", default="out/study/drivetrain", help="output directory (default: %(default)s)")
     p.set_defaults(func=_run)
