@@ -29,6 +29,23 @@ def test_study_ddm_quick_writes_its_table(tmp_path, shared_data):
     assert "DDM" in md and "|" in md
 
 
+def test_study_ddm_real_only_one_run_with_its_seed(tmp_path, shared_data):
+    """`--only` trains the named real run alone and `--seed` reaches its training (recorded in the
+    checkpoint); an unknown run name is an error, not an empty table."""
+    from ddyn.errors import DdynError
+    from ddyn.learn import checkpoint
+
+    out = tmp_path / "study"
+    assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain", "--seed", "3",
+                 "--out", str(out)], "study") == 0
+    real = json.loads((out / "results.json").read_text())["real"]
+    assert [r["name"] for r in real] == ["ddm_putnam_powertrain"] and real[0]["seed"] == 3
+    _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain" / "model.ckpt")
+    assert ckpt["config"]["seed"] == 3
+    with pytest.raises(DdynError, match="unknown real run"):
+        _run(["study", "ddm", "real", "--quick", "--only", "ddm_nope", "--out", str(out)], "study")
+
+
 def test_codegen_check_passes_with_the_default_tool(tmp_path, shared_data, capsys):
     assert DEFAULT_BINARY.is_file(), f"{DEFAULT_BINARY} missing: scripts/test.sh builds it before pytest"
     v = vehicle.load("orca_1_43")

@@ -124,3 +124,82 @@ def test_drivetrain_study_recovers_a_simulated_powertrain():
     assert abs(pt["fit"]["Cm1"] / v.true_coefficients["Cm1"] - 1) < 0.05
     lo, hi = pt["ranges"]["Cm1"]
     assert lo == 0.5 * pt["fit"]["Cm1"] and hi == 2.0 * pt["fit"]["Cm1"]
+
+
+def test_slip_offsets_recover_the_simulated_shifts():
+    """`ddyn study drivetrain`'s slip offsets on a log of av21_powertrain itself: on straight running the
+    measured shifts are the simulator's Gf, Gr (opposite signs: a shared sensor bias would not tell them
+    apart) within the stated error of the measurement (AY_STRAIGHT: 0.0013 rad; K adds 0.0002 rad)."""
+    from ddyn.data import simulate
+    from ddyn.model import tracks
+    from ddyn.studies import drivetrain
+
+    v = vehicle.load("av21_powertrain")
+    ds = simulate.simulate(v, tracks.load_track("putnam"), duration=60.0, seed=4, progress=False)
+    res = drivetrain.run(ds, v)
+    so = res["slip_offsets"]
+    assert so["rows"] >= 50
+    for name in ("Gf", "Gr"):
+        assert abs(so[name]["offset"] - v.true_coefficients[name]) < 0.0015, (name, so[name])
+        assert so[name]["p05"] <= so[name]["offset"] <= so[name]["p95"]
+
+
+def test_slip_offsets_need_straight_running():
+    """Too little straight running is an error, not an offset from a few rows."""
+    from ddyn.data import simulate
+    from ddyn.model import tracks
+    from ddyn.studies import drivetrain
+
+    v = vehicle.load("av21_powertrain")
+    ds = simulate.simulate(v, tracks.load_track("putnam"), duration=8.0, seed=4, progress=False)
+    rows = np.arange(len(ds))
+    slow = ds.subset(slice(0, len(ds)))
+    slow.states[:, 5] = 1.0   # yaw rate 1 rad/s on every row: no straight running (|vx omega| > AY_STRAIGHT)
+    with pytest.raises(DdynError, match="straight running"):
+        drivetrain.slip_offsets(slow, rows, v)
+    # the study itself still fits the drivetrain and says why the offsets are missing
+    res = drivetrain.run(slow, v)
+    assert "straight running" in res["slip_offsets"]["error"] and set(res["forms"]) == {"papers", "powertrain"}
+
+
+def test_training_saturation_counts_each_bound():
+    """The training part's saturation of `ddyn study drivetrain --model`: the share within 1 % of the range
+    width of each bound, counted as ddyn.learn.evaluate counts the held-out part's."""
+    from ddyn.studies import drivetrain
+
+    lo, hi = np.zeros(len(COEFF_NAMES)), np.full(len(COEFF_NAMES), 10.0)
+    est = np.full((100, len(COEFF_NAMES)), 5.0)
+    est[:7, 0] = 0.05        # within 0.1 of the lower bound: at it
+    est[7:10, 0] = 0.2       # not
+    est[:4, 1] = 9.95        # at the upper bound
+    sat = drivetrain.saturation(est, lo, hi)
+    assert sat["Bf"] == [0.07, 0.0] and sat["Cf"] == [0.0, 0.04] and sat["Iz"] == [0.0, 0.0]
+
+
+def test_moved_bounds_keep_e_at_most_one_and_slack_ranges():
+    """The rule of `ddyn study drivetrain --model`: E pressed on 1 stays at 1 (the denoise rule alone would
+    double it to 2, beyond the magic formula's E <= 1); E pressed on the papers' 0 goes to 1; a side pinned
+    moves, the other stays; pinned at both ends (slack) keeps the range."""
+    from ddyn.studies import drivetrain
+
+    ranges = {"Ef": (-2.0, 1.0), "Er": (-2.0, 0.0), "Iz": (500.0, 2000.0), "Gf": (-0.02, 0.02), "Cd": (0.1, 1.0)}
+    sugg = {"Ef": {"pinned": "high", "suggested": [-2.0, 2.0]}, "Er": {"pinned": "high", "suggested": [-2.0, 0.0]},
+            "Iz": {"pinned": "high", "suggested": [900.0, 4000.0]}, "Gf": {"pinned": "both", "suggested": [-0.02, 0.02]},
+            "Cd": {"pinned": None, "suggested": [0.2, 0.5]}}
+    out = drivetrain.moved_bounds(sugg, ranges)
+    assert "Ef" not in out                       # already at E's physical limit: nothing to move
+    assert out["Er"]["used"] == [-2.0, 1.0]
+    assert out["Iz"]["used"] == [500.0, 4000.0]  # only the pinned (upper) side moves
+    assert "Gf" not in out and "Cd" not in out
+
+
+def test_union_of_moves_takes_the_widest_side_over_models():
+    from ddyn.studies import drivetrain
+
+    a = {"Iz": {"vehicle": [500.0, 4000.0], "used": [500.0, 8000.0], "why": "ddyn denoise's rule, pinned high"}}
+    b = {"Iz": {"vehicle": [500.0, 4000.0], "used": [250.0, 4000.0], "why": "ddyn denoise's rule, pinned low"},
+         "Cd": {"vehicle": [0.05, 1.0], "used": [0.025, 1.0], "why": "ddyn denoise's rule, pinned low"}}
+    u = drivetrain.union_of_moves([a, b, {}])
+    assert u["Iz"]["used"] == [250.0, 8000.0] and u["Cd"]["used"] == [0.025, 1.0]
+    assert "2 of 3 models" in u["Iz"]["why"] and "1 of 3 models" in u["Cd"]["why"]
+    assert a["Iz"]["used"] == [500.0, 8000.0]   # the inputs are not changed

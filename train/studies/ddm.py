@@ -92,7 +92,8 @@ def run_sim(out: Path, quick: bool = False) -> list[dict]:
     return results
 
 
-def run_real(out: Path, quick: bool = False) -> list[dict]:
+def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...] = ()) -> list[dict]:
+    """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run (all if empty)."""
     from ddyn.data.importers import load_any
 
     out.mkdir(parents=True, exist_ok=True)
@@ -101,9 +102,14 @@ def run_real(out: Path, quick: bool = False) -> list[dict]:
         raise DdynError(f"real log not found: {src}")
     from ddyn.studies import drivetrain
 
-    base = TrainConfig(epochs=5, lbfgs_iterations=40) if quick else TrainConfig()
+    unknown = set(only) - {r[0] for r in REAL_RUNS}
+    if unknown:
+        raise DdynError(f"unknown real run(s) {', '.join(sorted(unknown))}; expected {', '.join(r[0] for r in REAL_RUNS)}")
+    base = TrainConfig(epochs=5, lbfgs_iterations=40, seed=seed) if quick else TrainConfig(seed=seed)
     results = []
     for name, vehicle_name, label, data_ranges in REAL_RUNS:
+        if only and name not in only:
+            continue
         ds = load_any(src, vehicle=vehicle_name)
         cut = int(len(ds) * drivetrain.TRAIN_FRACTION)
         train_part, test_part = ds.subset(slice(0, cut)), ds.subset(slice(cut, None))
@@ -121,7 +127,8 @@ def run_real(out: Path, quick: bool = False) -> list[dict]:
             train_part = train_part.subset(slice(0, 1500))
         train_path = out / f"putnam_train_{vehicle_name}.csv"
         write_canonical(train_part, train_path)
-        results.append(_run_model(name, train_path, None, test_part, base, out, ranges_file) | {"label": label})
+        results.append(_run_model(name, train_path, None, test_part, base, out, ranges_file)
+                       | {"label": label + (f" (seed {seed})" if seed else ""), "seed": seed})
     return results
 
 
@@ -188,14 +195,14 @@ def update_doc(block: str, doc: Path = STUDY_DOC) -> None:
 def _run(args) -> int:
     out = Path(args.out)
     sim = run_sim(out / "sim", args.quick) if args.which in ("sim", "all") else None
-    real = run_real(out / "real", args.quick) if args.which in ("real", "all") else None
+    real = run_real(out / "real", args.quick, args.seed, tuple(args.only or ())) if args.which in ("real", "all") else None
     results = {"sim": sim, "real": real, "quick": args.quick}
     (out / "results.json").write_text(json.dumps(results, indent=2))
     md = markdown(sim, real)
     (out / "results.md").write_text(md)
     print(md)
     if args.update_doc:
-        if args.quick or args.which != "all":
+        if args.quick or args.which != "all" or args.only or args.seed:
             raise DdynError("--update-doc needs the full study: `ddyn study ddm all` without --quick")
         update_doc(md)
         print(f"{STUDY_DOC.relative_to(REPO)} results block updated")
@@ -208,4 +215,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", default="out/study", help="output directory (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="tiny data and training: a smoke run, not the figures")
     p.add_argument("--update-doc", action="store_true", help="write the results table into docs/learning.md")
+    p.add_argument("--seed", type=int, default=0, help="training seed of the real runs (default: %(default)s)")
+    p.add_argument("--only", nargs="+", metavar="RUN", help="real runs to train, by name (default: all): "
+                   + ", ".join(r[0] for r in REAL_RUNS))
     p.set_defaults(func=_run)

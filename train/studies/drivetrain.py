@@ -15,13 +15,24 @@ held-out last 20 % is only reported, never fitted), for each drivetrain form of 
      and Iz from half to double the true value", shared/data/README.md): [x / 2, 2 x]; Cd keeps the
      vehicle file's range (see 1).
 
-With --model CKPT (a DDM trained on the same training part), also the ranges of the coefficients the
-DDM's estimates press on (training part only): the rule of `ddyn denoise` (ddyn.learn.denoise.
+With --model CKPT [CKPT ...] (DDMs trained on the same training part, e.g. several seeds), also the
+ranges of the coefficients the DDMs' estimates press on (training part only; the union over the models,
+union_of_moves): the rule of `ddyn denoise` (ddyn.learn.denoise.
 suggest_ranges: a pinned side is extended, to half or double a positive bound or by half the width;
 the other side is kept; a bound at zero and a coefficient pinned at both ends keep the vehicle file's
 range: they are not identified, or serve as slack), and the tyre
 curvature E's upper bound 1 (the magic formula's own condition E <= 1, Pacejka, Tyre and Vehicle
 Dynamics, 2012, sec. 4.3.2) where the estimates press on the papers' 0: DIR/ranges_guard.json.
+
+Also the tyres' measured slip offsets (slip_offsets): on the training part's straight running the
+axles carry next to no lateral force, so the model's slip angle there is zero and the horizontal
+shift G of each axle is minus the kinematic slip angle the log shows (a yaw misalignment of the
+velocity sensor shows up here, on both axles alike). A physical check of G's range: it must hold
+the measured offset and its spread. (Centring the range on the offset was tried on the Putnam log and
+refuted on its training part: the DDM then pressed on the other bound, docs/learning.md.)
+
+With --model, also the share of the DDM's estimates on the training part at each guard bound (the
+figure a range rule may be chosen on; the held-out part's is `ddyn study ddm real`'s).
 
 Writes DIR/drivetrain.json (fits, R^2, ranges) and DIR/ranges_<form>.json (a `ddyn train --ranges`
 file). The numbers of train/vehicles/av21_powertrain.json come from this command.
@@ -103,6 +114,10 @@ def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -
     if len(train_rows) < 10 or (fraction < 1.0 and len(test_rows) < 10):
         raise DdynError(f"too few rows for a {TRAIN_FRACTION:.0%} time split ({len(ds)})")
     out = {"vehicle": v.name, "rows": {"train": int(len(train_rows)), "heldout": int(len(test_rows))}, "forms": {}}
+    try:   # information, not needed for the fit: a log without straight running still gets its drivetrain
+        out["slip_offsets"] = slip_offsets(ds, train_rows, v)
+    except DdynError as e:
+        out["slip_offsets"] = {"error": str(e)}
     for form in DRIVETRAINS:
         fit = fit_form(ds, train_rows, v, form)
         drive = np.array([fit[n] for n in DRIVE])
@@ -117,12 +132,45 @@ def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -
     return out
 
 
+# straight running: |lateral acceleration vx omega| at most this (m/s^2), at a speed of at least V_STRAIGHT.
+# At 0.3 m/s^2 an AV-21 axle carries at most m lr / L 0.3 = 140 N, 0.0013 rad of slip at its cornering
+# stiffness B C D of 110 kN/rad: the error of the offset measured, a tenth of the +-0.02 rad range.
+AY_STRAIGHT = 0.3
+V_STRAIGHT = 10.0
+
+
+def slip_offsets(ds: Dataset, rows: np.ndarray, v: vehicle_mod.Vehicle) -> dict:
+    """The horizontal shifts Gf, Gr that make both axles' slip angle zero on straight running (rows of ds,
+    the training part): minus the median kinematic slip angle (the model's, ddyn.model.single_track.
+    slip_angles with G = 0) over those rows, with its 5-95 % spread."""
+    s = ds.states[rows]
+    vx, vy, om, delta = s[:, 3], s[:, 4], s[:, 5], s[:, 7]
+    straight = (vx >= V_STRAIGHT) & (np.abs(vx * om) <= AY_STRAIGHT)
+    if straight.sum() < 50:
+        raise DdynError(f"too little straight running to measure the slip offsets ({int(straight.sum())} rows)")
+    kin = {"Gf": delta - np.arctan2(om * v.known.lf + vy, vx), "Gr": np.arctan2(om * v.known.lr - vy, vx)}
+    out = {"rows": int(straight.sum()), "rule": f"vx >= {V_STRAIGHT} m/s, |vx omega| <= {AY_STRAIGHT} m/s^2"}
+    for name, a in kin.items():
+        p5, p50, p95 = np.percentile(-a[straight], [5, 50, 95])
+        out[name] = {"offset": float(p50), "p05": float(p5), "p95": float(p95)}
+    return out
+
+
 E_MAX = 1.0   # Pacejka's condition on the curvature factor
 
 
-def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> dict:
+def saturation(est: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float = 0.01) -> dict:
+    """{coefficient: [share at the lower bound, share at the upper bound]} of the estimates (n, 17): within
+    tol of the range width of a bound, as ddyn.learn.evaluate counts it on the held-out part."""
+    band = tol * (hi - lo)
+    return {n: [float(np.mean(est[:, i] <= lo[i] + band[i])), float(np.mean(est[:, i] >= hi[i] - band[i]))]
+            for i, n in enumerate(COEFF_NAMES)}
+
+
+def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> tuple[dict, dict]:
     """{coefficient: {"vehicle", "used", "why"}} for the coefficients the DDM's estimates on train_part
-    press on (see the module docstring); the checkpoint's own ranges are the starting point."""
+    press on (see the module docstring), and the estimates' saturation on train_part (saturation());
+    the checkpoint's own ranges are the starting point."""
     import dataclasses
 
     from ddyn.learn import checkpoint
@@ -133,14 +181,42 @@ def guard_ranges_from_model(ckpt_path: str | Path, train_part: Dataset) -> dict:
     r = ckpt["ranges"]
     v = dataclasses.replace(v, ranges={n: (lo, hi) for n, lo, hi in zip(r["names"], r["lo"], r["hi"])})
     est = ddm_estimates(model, train_part, ckpt["config"]["tau"])
+    out = moved_bounds(suggest_ranges(est, v)["coefficients"], v.ranges)
+    return out, saturation(est, np.asarray(r["lo"]), np.asarray(r["hi"]))
+
+
+def union_of_moves(moves: list[dict]) -> dict:
+    """Several models' moved_bounds() (DDMs of the same ranges and training part, e.g. other seeds) as one:
+    per coefficient the widest side any of them asks for (a bound one seed presses on is a bound the
+    training part presses on; which seed shows it is chance, docs/learning.md's seed check)."""
+    out: dict = {}
+    for m in moves:
+        for name, g in m.items():
+            if name not in out:
+                out[name] = {"vehicle": list(g["vehicle"]), "used": list(g["used"]), "why": [g["why"]]}
+            else:
+                u = out[name]["used"]
+                out[name]["used"] = [min(u[0], g["used"][0]), max(u[1], g["used"][1])]
+                out[name]["why"].append(g["why"])
+    for g in out.values():
+        g["why"] = "; ".join(sorted(set(g["why"]))) + f" ({len(g['why'])} of {len(moves)} models)"
+    return out
+
+
+def moved_bounds(suggestions: dict, ranges: dict) -> dict:
+    """{coefficient: {"vehicle", "used", "why"}} from ddyn.learn.denoise.suggest_ranges' "coefficients":
+    a side the estimates are pinned on moves as the rule extends it, the other side stays; a coefficient
+    pinned at both ends keeps its range (slack); E's upper bound goes from the papers' 0 to 1 when
+    pressed on, and never beyond 1 (the magic formula's E <= 1)."""
     out = {}
-    for name, s in suggest_ranges(est, v)["coefficients"].items():
-        lo, hi = v.ranges[name]
+    for name, s in suggestions.items():
+        lo, hi = ranges[name]
         if name in ("Ef", "Er") and hi == 0.0 and s["pinned"] in ("high", "both"):
             out[name] = {"vehicle": [lo, hi], "used": [lo, E_MAX], "why": "E <= 1 (Pacejka), pressed on 0"}
         elif s["pinned"] in ("low", "high"):
-            # only the pinned side moves (as the rule extends it); the other side keeps the vehicle's bound
             used = [s["suggested"][0], hi] if s["pinned"] == "low" else [lo, s["suggested"][1]]
+            if name in ("Ef", "Er"):
+                used[1] = min(used[1], E_MAX)
             if used != [lo, hi]:
                 out[name] = {"vehicle": [lo, hi], "used": used, "why": f"ddyn denoise's rule, pinned {s['pinned']}"}
     return out
@@ -174,13 +250,26 @@ def _run(args) -> int:
         (out / f"ranges_{form}.json").write_text(json.dumps(r["ranges"], indent=2))
     if args.model:
         cut = int(len(ds) * TRAIN_FRACTION)
-        guard = guard_ranges_from_model(args.model, ds.subset(slice(0, cut)))
-        res["guard_ranges"] = guard
+        per_model = []
+        for path in args.model:
+            guard, sat = guard_ranges_from_model(path, ds.subset(slice(0, cut)))
+            per_model.append({"model": str(path), "guard_ranges": guard, "training_saturation": sat})
+            print(f"{path}: training part, share of the DDM's estimates at a guard bound (low / high, over 1 %): "
+                  + ", ".join(f"{k} {100 * a:.1f} / {100 * b:.1f} %" for k, (a, b) in sat.items() if a + b > 0.01))
+        guard = union_of_moves([m["guard_ranges"] for m in per_model])
+        res["guard_ranges"], res["per_model"] = guard, per_model
         (out / "drivetrain.json").write_text(json.dumps(res, indent=2))
         (out / "ranges_guard.json").write_text(json.dumps({k: g["used"] for k, g in guard.items()}, indent=2))
         for k, g in guard.items():
             print(f"guard range {k}: {g['vehicle']} -> [{g['used'][0]:.4g}, {g['used'][1]:.4g}] ({g['why']})")
     print(markdown(res))
+    so = res["slip_offsets"]
+    if "error" in so:
+        print(f"slip offsets: not measured: {so['error']}")
+    for name in () if "error" in so else ("Gf", "Gr"):
+        lo, hi = v.ranges[name]
+        print(f"slip offset {name}: {so[name]['offset']:+.4f} rad (5-95 % {so[name]['p05']:+.4f} .. {so[name]['p95']:+.4f}, "
+              f"{so['rows']} straight rows of the training part: {so['rule']}); {v.name}'s range [{lo:+.4f}, {hi:+.4f}]")
     for form, r in res["forms"].items():
         print(f"{form}: ranges ({RULE}) " + ", ".join(f"{k} [{a:.4g}, {b:.4g}]" for k, (a, b) in r["ranges"].items())
               + f" -> {out / f'ranges_{form}.json'}")
@@ -191,6 +280,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("drivetrain", help="drivetrain forms on a real log: fit, R^2, guard ranges from data")
     p.add_argument("--data", help="a RACECAR CSV (default: the shared Putnam log)")
     p.add_argument("--vehicle", default="av21", help="vehicle file whose other coefficients and Cd range are used")
-    p.add_argument("--model", help="a DDM checkpoint trained on the training part: ranges its estimates press on")
+    p.add_argument("--model", nargs="+", help="DDM checkpoints trained on the training part (e.g. several seeds): "
+                   "their estimates' saturation there, and the union of the bounds they press on")
     p.add_argument("--out", default="out/study/drivetrain", help="output directory (default: %(default)s)")
     p.set_defaults(func=_run)
