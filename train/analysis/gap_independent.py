@@ -565,6 +565,8 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
              f"{'modelled (diagnose --hold)' if settings.get('hold') else 'not modelled'}; nominal "
              f"{settings.get('nominal', 'mapped')}; fit {settings.get('fit') or D.DEFAULT_FIT}"
              + ("; mass offset scales Iz (--mass-inertia)" if settings.get("mass_inertia") else "")
+             + (f"; held-out evidence {settings['evidence']} (--evidence)"
+                if settings.get("evidence", "one-step") != "one-step" else "")
              + (f"; steering servo {settings['steer_servo']:g} s in the nominal" if settings.get("steer_servo") else "")
              + (f"; nominal effects {settings['nominal_effects']}" if settings.get("nominal_effects") else "")
              + ".", "",
