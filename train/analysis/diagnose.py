@@ -38,7 +38,8 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
                   on an edge of its search range), refit {coefficient: factor},
                   heldout {rmse_before, rmse_refit_only, rmse_after: {vx, vy, omega}, ade_before, ade_after,
                   fde_before, fde_after}, gap_closed_pct, error_reduction_pct, delta_bic, delta_loglik,
-                  lr_p_value, significant (dBIC < 0), fit_seconds
+                  lr_p_value, significant (dBIC < 0), fit_seconds, delta_bic_one_step (with --evidence multistep: the
+                  one-step dBIC of the same fit, for comparison)
   model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit, at_bound}],
                   refit, heldout (as above), gap_closed_pct, error_reduction_pct
   greedy          the selection steps: best candidate, its dBIC, whether it was added
@@ -50,6 +51,7 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
                   steering_rate, time, [track_position]: [{bin, samples_share, error_share, rmse, ade,
                   multi_step_rmse}]};
                   summary [sentences naming the regions that hold most of the error]
+  method.evidence "one-step" or "multistep:N: ..." (--evidence; what delta_bic scores)
   nominal, split, method, data, seconds: what was compared, how, on what (split.heldout_from_time: s after
                   the log's first row)
 """
