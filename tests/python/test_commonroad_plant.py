@@ -196,6 +196,33 @@ def test_study_gap_commonroad_cli(tmp_path, monkeypatch):
     assert all(r["top1"] == "none" for r in doc["results"])
 
 
+def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
+    """--effects keeps only those cases, with the whole plan's case numbers and seeds; --evidence reaches every
+    case (the multi-step dBIC decides, the one-step one is recorded beside it); a bad effect or spec fails."""
+    import json
+
+    from ddyn.cli import main
+    from ddyn.errors import DdynError
+
+    monkeypatch.setattr(G, "DURATION", 24.0)
+    out = tmp_path / "gap"
+    assert main(["study", "gap", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--gate", "0",
+                 "--effects", "mass_offset,none", "--evidence", "multistep:10", "--out", str(out),
+                 "--no-progress"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    whole = G.plan(8, 3)
+    assert [(r["case"], r["seed"]) for r in doc["results"]] == [(c["case"], c["seed"]) for c in whole
+                                                                 if c["effect"] in ("mass_offset", "none")]
+    assert doc["settings"]["evidence"] == "multistep:10" and "multistep:10" in (out / "results.md").read_text()
+    r = doc["results"][0]
+    assert r["effect"] == "mass_offset" and r["status"] == "ok"
+    assert r["delta_bic_true_one_step"] != r["delta_bic_true"]
+    with pytest.raises(DdynError, match="--effects"):
+        G.run(8, 3, effects=("mass",))
+    with pytest.raises(DdynError, match="evidence"):
+        G.run(8, 3, evidence="rollout")
+
+
 def test_the_command_hold_explains_the_dbw_delay():
     """On an effect-free log of the plant, the ramped commands of the nominal lag the DBW's held ones by about
     half a sample plus the servo: without --hold a steering delay of about that size is selected; with the hold

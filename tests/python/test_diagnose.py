@@ -357,3 +357,33 @@ def test_cli_dbw_preset(delay_log, tmp_path):
     assert args.func(args) == 0
     d = json.loads((out2 / "diagnosis.json").read_text())
     assert d["nominal"]["mass_offset_scales_iz"] is True and d["nominal"]["steer_servo_tau"] == 0.01
+
+
+def test_multistep_evidence(shared_data):
+    """--evidence multistep:N (opt-in): windows start after the fit/held-out cut and do not overlap; a hidden mass
+    offset pays under it, an effect-free log selects nothing; the one-step figure is kept beside it; bad specs fail;
+    the default stays one-step."""
+    assert D.parse_evidence(None) == 0 and D.parse_evidence("one-step") == 0
+    assert D.parse_evidence("multistep") == D.MULTISTEP_DEFAULT_STEPS and D.parse_evidence("multistep:7") == 7
+    for bad in ("multistep:1", "multistep:x", "rollout:5"):
+        with pytest.raises(Exception, match="evidence"):
+            D.parse_evidence(bad)
+    ds = _sim("mass_offset=0.15", seed=24)
+    prob = D.Problem(ds, D.nominal_from_vehicle(ORCA, ds), D.DEFAULT_FIT_FRACTION)
+    prob.set_evidence(10)
+    s = prob.ev_starts
+    assert len(s) >= 20 and s.min() >= prob.rows_held[0] and np.all(np.diff(s) >= 10)
+    assert np.all(ds.segment[s + 10] == ds.segment[s]) and s.max() + 10 < len(ds)
+    # the true effect shrinks the multi-step error, most at the end of the window (a slow effect accumulates)
+    r0, r1 = prob.multistep_rss({}, np.zeros(2)), prob.multistep_rss({"mass_offset": 0.15}, np.zeros(2))
+    assert r1.shape == (10, 3) and r1[-1, 0] < 0.5 * r0[-1, 0]
+    kw = dict(candidates=("mass_offset", "steer_delay"), max_effects=1, max_starts=50)
+    d = _diagnose(ds, evidence="multistep:10", **kw)
+    c = next(c for c in d["candidates"] if c["effect"] == "mass_offset")
+    assert d["selected"] == ["mass_offset"] and c["delta_bic"] < c["delta_bic_one_step"] < 0
+    assert d["method"]["evidence"].startswith("multistep:10")
+    d0 = _diagnose(_sim(None, seed=23), evidence="multistep:10", **kw)
+    assert d0["selected"] == [] and all(c["delta_bic"] > 0 for c in d0["candidates"])
+    d1 = _diagnose(ds, **kw)
+    assert d1["method"]["evidence"] == "one-step" and "delta_bic_one_step" not in d1["candidates"][0]
+    assert d1["candidates"][0]["delta_bic"] == pytest.approx(c["delta_bic_one_step"])

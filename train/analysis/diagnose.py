@@ -38,7 +38,8 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
                   on an edge of its search range), refit {coefficient: factor},
                   heldout {rmse_before, rmse_refit_only, rmse_after: {vx, vy, omega}, ade_before, ade_after,
                   fde_before, fde_after}, gap_closed_pct, error_reduction_pct, delta_bic, delta_loglik,
-                  lr_p_value, significant (dBIC < 0), fit_seconds
+                  lr_p_value, significant (dBIC < 0), fit_seconds, delta_bic_one_step (with --evidence multistep: the
+                  one-step dBIC of the same fit, for comparison)
   model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit, at_bound}],
                   refit, heldout (as above), gap_closed_pct, error_reduction_pct
   greedy          the selection steps: best candidate, its dBIC, whether it was added
@@ -50,6 +51,7 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
                   steering_rate, time, [track_position]: [{bin, samples_share, error_share, rmse, ade,
                   multi_step_rmse}]};
                   summary [sentences naming the regions that hold most of the error]
+  method.evidence "one-step" or "multistep:N: ..." (--evidence; what delta_bic scores)
   nominal, split, method, data, seconds: what was compared, how, on what (split.heldout_from_time: s after
                   the log's first row)
 """
@@ -104,6 +106,14 @@ OE_STEPS = 10
 # evidence margin that left none of seed 11's effect-free logs with a selection. Not the default: logs whose
 # commands ramp (the project's simulator, the own-model benchmark) must not get the hold, and output error costs
 # about four times the one-step diagnosis.
+# What the held-out evidence scores (issue 14, opt-in): "one-step" (default) the one-step residuals of the held-out
+# rows; "multistep:N" N-step open-loop rollouts from the logged state at every N-th held-out row (non-overlapping
+# windows that start after the fit/held-out cut, so no window sees a fit row), with a Gaussian variance per
+# horizon step and channel concentrated out. A slow longitudinal effect (a mass offset, downforce) changes one
+# 40 ms step by less than vx's sensor noise but accumulates over a window (docs/gap_independent.md).
+EVIDENCE_MODES = ("one-step", "multistep")
+DEFAULT_EVIDENCE = "one-step"
+MULTISTEP_DEFAULT_STEPS = 25
 DBW_PRESET = {"hold": True, "fit": "output-error", "min_evidence": 13.02}
 SCHEMA = "ddyn-diagnosis 1"
 
@@ -118,6 +128,22 @@ class Nominal:
     method: str
     substeps: int
     label: str
+
+
+def parse_evidence(text: str | None) -> int:
+    """--evidence: "one-step" -> 0, "multistep" -> MULTISTEP_DEFAULT_STEPS, "multistep:N" -> N (>= 2)."""
+    if text in (None, "", "one-step"):
+        return 0
+    name, _, n = text.partition(":")
+    if name != "multistep":
+        raise DdynError(f"unknown evidence {text!r}; expected one-step, multistep or multistep:N")
+    try:
+        steps = int(n) if n else MULTISTEP_DEFAULT_STEPS
+    except ValueError:
+        raise DdynError(f"--evidence {text!r}: N must be an integer") from None
+    if steps < 2:
+        raise DdynError(f"--evidence {text!r}: N must be >= 2 (N = 1 is the one-step evidence)")
+    return steps
 
 
 def nominal_from_vehicle(vehicle: Vehicle, ds: Dataset, coeffs=None, method: str | None = None,
@@ -258,6 +284,7 @@ class Problem:
             raise DdynError(f"fit fraction {fit_fraction} leaves too few rows to fit or to hold out")
         self.rows_all, self.rows_fit, self.rows_held = k, k[:cut], k[cut:]
         self.target = ds.states[:, 3:6]
+        self.ev_steps, self.ev_starts = 0, np.zeros(0, int)     # the multi-step evidence (set_evidence)
         self.refit = tuple(refit)
         self.refit_idx = [COEFF_NAMES.index(n) for n in self.refit]
         vx = np.abs(ds.states[k, 3])
@@ -314,8 +341,28 @@ class Problem:
         return np.sum(r ** 2, axis=0)
 
     def loglik(self, rss: np.ndarray, n: int) -> float:
-        """Gaussian log-likelihood with per-channel variances concentrated out (constants dropped)."""
+        """Gaussian log-likelihood with per-channel variances concentrated out (constants dropped); rss (3,) or,
+        for the multi-step evidence, (steps, 3): a variance per horizon step and channel (n: windows)."""
         return float(-0.5 * n * np.sum(np.log(rss / n + self.floor ** 2)))
+
+    def set_evidence(self, steps: int) -> None:
+        """The multi-step evidence's windows: every `steps`-th held-out row starts a rollout of `steps` steps
+        that stays in its segment and in the log; the held-out rows follow the fit rows, so no window holds a fit
+        row's target (steps 0: the one-step evidence)."""
+        self.ev_steps = int(steps)
+        self.ev_starts = np.zeros(0, int)
+        if self.ev_steps:
+            self.ev_starts = _starts(self, self.rows_held[::self.ev_steps], self.ev_steps, 10 ** 9)
+            if len(self.ev_starts) < 5:
+                raise DdynError(f"--evidence multistep:{steps}: only {len(self.ev_starts)} held-out windows; "
+                                "the held-out part is too short for this N")
+
+    def multistep_rss(self, values: dict, rho) -> np.ndarray:
+        """(steps, 3): sum over the evidence windows of the squared (vx, vy, omega) error at each horizon step."""
+        s, n = self.ev_starts, self.ev_steps
+        pred = self.lm.rollout(self.effects(values), s, n, self.coeffs(rho), whole_state=True)[..., 3:6]
+        truth = np.stack([self.target[s + j + 1] for j in range(n)])
+        return np.sum((truth - pred) ** 2, axis=1)
 
 
 @dataclass
@@ -482,8 +529,11 @@ def heldout_summary(prob: Problem, values: dict, rho, starts, steps) -> dict:
     rows = prob.rows_held
     res = prob.target[rows + 1] - prob.predict(values, rho, rows)
     e = rollout_errors(prob, values, rho, starts, steps)
-    return {"rss": np.sum(res ** 2, axis=0), "rmse": np.sqrt(np.mean(res ** 2, axis=0)), "res": res,
-            "ade": float(e.mean()) if e.size else float("nan"), "fde": float(e[-1].mean()) if e.size else float("nan")}
+    out = {"rss": np.sum(res ** 2, axis=0), "rmse": np.sqrt(np.mean(res ** 2, axis=0)), "res": res,
+           "ade": float(e.mean()) if e.size else float("nan"), "fde": float(e[-1].mean()) if e.size else float("nan")}
+    if prob.ev_steps:
+        out["ms_rss"] = prob.multistep_rss(values, rho)
+    return out
 
 
 def _rms(res: np.ndarray) -> np.ndarray:
@@ -615,15 +665,25 @@ def _score(prob: Problem, base: dict, cand: dict, dk: int, m: int) -> dict:
     n = len(prob.rows_held)
     dll = prob.loglik(cand["rss"], n) - prob.loglik(base["rss"], n)
     dbic = -2.0 * dll + dk * math.log(n) + 2.0 * math.log(max(m, 1))
-    return {"delta_loglik": dll, "delta_bic": dbic, "lr_p_value": float(stats.chi2.sf(max(2 * dll, 0.0), dk))}
+    out = {"delta_loglik": dll, "delta_bic": dbic, "lr_p_value": float(stats.chi2.sf(max(2 * dll, 0.0), dk))}
+    if prob.ev_steps:   # the multi-step evidence decides; the one-step figures are kept for comparison
+        nw = len(prob.ev_starts)
+        dll_ms = prob.loglik(cand["ms_rss"], nw) - prob.loglik(base["ms_rss"], nw)
+        # the penalty counts the held-out rows the windows predict (one each), as the one-step score does
+        dbic_ms = -2.0 * dll_ms + dk * math.log(nw * prob.ev_steps) + 2.0 * math.log(max(m, 1))
+        out = {"delta_loglik": dll_ms, "delta_bic": dbic_ms,
+               "lr_p_value": float(stats.chi2.sf(max(2 * dll_ms, 0.0), dk)),
+               "delta_bic_one_step": dbic, "delta_loglik_one_step": dll}
+    return out
 
 
 def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FRACTION,
              candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
              max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False,
              min_evidence: float | None = None, fit_mode: str | None = None, mass_inertia: bool = False,
-             steer_servo: float = 0.0, nominal_effects: dict | None = None) -> dict:
-    """gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
+             steer_servo: float = 0.0, nominal_effects: dict | None = None, evidence: str | None = None) -> dict:
+    """evidence: what the held-out score compares (EVIDENCE_MODES: "one-step" by default, "multistep[:N]").
+    gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
     between samples (drive-by-wire), not ramped as the model integrates them (see Problem). min_evidence: an
     effect is added only when its dBIC < -min_evidence (default MIN_EVIDENCE). fit_mode: what the fit compares
     (FIT_MODES, default DEFAULT_FIT). mass_inertia, steer_servo: see Problem."""
@@ -641,6 +701,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                    steer_servo=steer_servo, nominal_effects=nominal_effects)
     prob.layout = C.layout(ds, track, prob.rows_fit)
     C.attach(prob.lm, prob.layout)
+    prob.set_evidence(parse_evidence(evidence))
     candidates = tuple(c for c in candidates if C.available(c, prob.layout))
     v = nominal.vehicle
     steps = max(1, int(round(v.evaluation_horizon / ds.sample_time)))
@@ -669,7 +730,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                             "fde_before": before["fde"], "fde_after": h["fde"]},
                 "gap_closed_pct": None, "error_reduction_pct": None, "_res": h["res"],
                 "delta_bic": ev["delta_bic"], "delta_loglik": ev["delta_loglik"], "lr_p_value": ev["lr_p_value"],
-                "significant": bool(ev["delta_bic"] < 0), "fit_seconds": f.seconds}
+                "significant": bool(ev["delta_bic"] < 0), "fit_seconds": f.seconds,
+                **({"delta_bic_one_step": ev["delta_bic_one_step"]} if "delta_bic_one_step" in ev else {})}
 
     # round 1: every candidate alone (against the refitted nominal)
     first = []
@@ -782,6 +844,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                    "fit_mode": fit_mode,
                    "criterion": "held-out extended BIC: dBIC = -2 dLL + dk ln(n_heldout) + 2 ln(candidates in the "
                                 "round) < 0, greedy",
+                   "evidence": (f"multistep:{prob.ev_steps}: dLL of {prob.ev_steps}-step open-loop rollouts from "
+                                f"{len(prob.ev_starts)} non-overlapping held-out windows (a variance per horizon step "
+                                "and channel)" if prob.ev_steps else "one-step"),
                    "uncertainty": "Gauss-Newton covariance x long-run variance factor of the residuals",
                    "gap_closed": "share of the held-out normalised one-step MSE above an estimated noise floor removed",
                    "noise_floor": _chan(floor), "channel_scale": _chan(prob.scale)},
@@ -1025,7 +1090,8 @@ def _run(args) -> int:
         args.min_evidence = DBW_PRESET["min_evidence"] if args.min_evidence is None else args.min_evidence
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
                  hold=args.hold, min_evidence=args.min_evidence, fit_mode=args.fit, mass_inertia=args.mass_inertia,
-                 steer_servo=args.steer_servo, nominal_effects=nominal_effects_arg(args.nominal_effects))
+                 steer_servo=args.steer_servo, nominal_effects=nominal_effects_arg(args.nominal_effects),
+                 evidence=args.evidence)
     paths = write_report(d, args.out, not args.no_plots)
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
@@ -1088,6 +1154,10 @@ def register(subparsers) -> None:
                         "held-out scores are one-step in every mode")
     p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
                    help=f"add an effect only when its dBIC < -DBIC (default {MIN_EVIDENCE:g}: the plain rule)")
+    p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]",
+                   help="the held-out evidence (default one-step): 'multistep:N' scores N-step open-loop rollouts "
+                        f"from non-overlapping held-out windows (default N {MULTISTEP_DEFAULT_STEPS}; an experiment "
+                        "for slow longitudinal effects, not calibrated: docs/gap_independent.md)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="no-gap gate: select nothing when the nominal's held-out error is at most RATIO times the "
                         f"noise floor (default {NO_GAP_GATE}; 0: off)")

@@ -631,7 +631,8 @@ def _run_commonroad(args, out: Path) -> int:
             doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
                         nominal=args.nominal, fit=args.fit, mass_inertia=args.mass_inertia,
                         steer_servo=args.steer_servo, nominal_effects=D.nominal_effects_arg(args.nominal_effects),
-                        thresholds=thresholds, case_set=args.case_set)
+                        thresholds=thresholds, case_set=args.case_set, evidence=args.evidence,
+                        effects=tuple(e.strip() for e in args.effects.split(",")) if args.effects else None)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -755,6 +756,11 @@ def register(subparsers) -> None:
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--fit", choices=D.FIT_MODES, default=None,
                    help=f"commonroad: the diagnosis's fit (diagnose --fit; default {D.DEFAULT_FIT})")
+    p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]",
+                   help="commonroad: the diagnosis's held-out evidence (diagnose --evidence; default one-step)")
+    p.add_argument("--effects", default=None, metavar="LIST",
+                   help="commonroad (putnam, sweep): only the cases of these hidden effects, e.g. "
+                        "'mass_offset,downforce,none' (same case numbers and seeds as the whole plan)")
     p.add_argument("--mass-inertia", action="store_true",
                    help="commonroad: diagnose --mass-inertia (the mass_offset candidate scales Iz with the mass)")
     p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",

@@ -196,7 +196,7 @@ def run_case(case: dict) -> dict:
                       fit_mode=case.get("fit"), candidates=tuple(case.get("candidates") or E.EFFECT_NAMES),
                       mass_inertia=bool(case.get("mass_inertia", False)),
                       steer_servo=float(case.get("steer_servo", 0.0)), nominal_effects=case.get("nominal_effects"),
-                      **vetoes_of(case))
+                      evidence=case.get("evidence"), **vetoes_of(case))
     seconds = time.perf_counter() - t0
     g = diag["gate"]
     # a bank or grade found as a profile along the track (or from the roll channel) is that effect found
@@ -214,6 +214,8 @@ def run_case(case: dict) -> dict:
         # held-out evidence, a miss with a wrong estimate or at a range edge a wrong fit (docs: threshold sweep)
         true_cand = {"delta_bic_true": pick["delta_bic"], "at_bound_true": pick["at_bound"],
                      "rank_true": [c["effect"] for c in diag["candidates"]].index(case["effect"]) + 1}
+        if "delta_bic_one_step" in pick:    # --evidence multistep: the one-step figure of the same fit, to compare
+            true_cand["delta_bic_true_one_step"] = pick["delta_bic_one_step"]
     m = diag["model"]
     first = diag["candidates"][0]
     return out | {
@@ -228,6 +230,7 @@ def run_case(case: dict) -> dict:
         "gap_closed_pct_top_candidate": first["gap_closed_pct"],
         "error_reduction_pct_top_candidate": first["error_reduction_pct"],
         "delta_bic_top": first["delta_bic"], "top_candidate": first["effect"], "at_bound_top": first["at_bound"],
+        "delta_bic_top_one_step": first.get("delta_bic_one_step"),
         "unexplained": diag.get("unexplained"),
         "rmse_over_noise_floor": diag["where"]["rmse_over_noise_floor"], "diagnose_seconds": seconds,
     }
@@ -562,6 +565,8 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
              f"{'modelled (diagnose --hold)' if settings.get('hold') else 'not modelled'}; nominal "
              f"{settings.get('nominal', 'mapped')}; fit {settings.get('fit') or D.DEFAULT_FIT}"
              + ("; mass offset scales Iz (--mass-inertia)" if settings.get("mass_inertia") else "")
+             + (f"; held-out evidence {settings['evidence']} (--evidence)"
+                if settings.get("evidence", "one-step") != "one-step" else "")
              + (f"; steering servo {settings['steer_servo']:g} s in the nominal" if settings.get("steer_servo") else "")
              + (f"; nominal effects {settings['nominal_effects']}" if settings.get("nominal_effects") else "")
              + ".", "",
@@ -611,11 +616,14 @@ def ladder_markdown(per: dict) -> str:
 
 def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = True, hold: bool = False,
         nominal: str = "mapped", fit: str | None = None, thresholds: dict | None = None, mass_inertia: bool = False,
-        steer_servo: float = 0.0, nominal_effects: dict | None = None, case_set: str = "putnam") -> dict:
+        steer_servo: float = 0.0, nominal_effects: dict | None = None, case_set: str = "putnam",
+        evidence: str | None = None, effects: tuple | None = None) -> dict:
     """case_set: "putnam" (plan(): effects cycled, magnitudes drawn) or "sweep" (plan_sweep(): the threshold
     sweep). hold: diagnose with the command hold modelled (diagnose --hold). nominal: "mapped" (the vehicle file)
     or "identified" (identified_coefficients). mass_inertia, steer_servo: diagnose's (--mass-inertia,
-    --steer-servo; the plant's servo is CP.SERVO_TAU)."""
+    --steer-servo; the plant's servo is CP.SERVO_TAU). evidence: diagnose's (--evidence). effects: only the cases
+    of these hidden effects ("none": the effect-free ones), drawn as in the whole plan (same case numbers and seeds,
+    the others skipped)."""
     CP.require_commonroad()
     t0 = time.perf_counter()
     coeffs, ident = None, None
@@ -623,9 +631,19 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
         coeffs, ident = identified_coefficients(hold)
     elif nominal != "mapped":
         raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
+    if evidence is not None:
+        D.parse_evidence(evidence)      # a bad spec fails here, not in every worker
+    if effects is not None:
+        bad = [e for e in effects if e not in EFFECT_RANGES and e != NONE]
+        if bad:
+            raise DdynError(f"--effects: unknown {', '.join(bad)}; expected some of {', '.join(EFFECT_RANGES)}, none")
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
-                  "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects}
-             | diagnosis_vetoes() for c in (plan_sweep if case_set == "sweep" else plan)(n_cases, seed)]
+                  "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
+                  "evidence": evidence}
+             | diagnosis_vetoes() for c in (plan_sweep if case_set == "sweep" else plan)(n_cases, seed)
+             if effects is None or c["effect"] in effects]
+    if not cases:
+        raise DdynError("--effects: no case of the plan has these effects")
     results = run_cases(run_case, cases, jobs, desc=f"gap-benchmark (commonroad, {case_set})", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad", "case_set": case_set, "cases": n_cases, "seed": seed, "jobs": jobs,
@@ -634,7 +652,8 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": DURATION, "track": TRACK,
                 "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold,
                 "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds,
-                "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects}
+                "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
+                "evidence": evidence or D.DEFAULT_EVIDENCE, "effects": None if effects is None else list(effects)}
     sc = score(results, thresholds)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
            "calibrated_gate": calibrate(results), "calibrated_margin": calibrate_margin(results)}
