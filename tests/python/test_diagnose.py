@@ -387,3 +387,38 @@ def test_multistep_evidence(shared_data):
     d1 = _diagnose(ds, **kw)
     assert d1["method"]["evidence"] == "one-step" and "delta_bic_one_step" not in d1["candidates"][0]
     assert d1["candidates"][0]["delta_bic"] == pytest.approx(c["delta_bic_one_step"])
+
+
+def test_endpoint_evidence(shared_data):
+    """--evidence endpoint:N (opt-in): the multi-step windows, but only each window's N-th-step error is scored and
+    the penalty counts windows (one roughly independent sample each, so the correlated errors within a window are
+    not counted as independent evidence): the score is that formula; it is weaker than the all-steps score; a hidden
+    mass offset still pays; an effect-free log selects nothing."""
+    assert D.parse_evidence_spec("endpoint:7") == (7, True) and D.parse_evidence_spec("endpoint") == (25, True)
+    assert D.parse_evidence_spec("multistep:7") == (7, False) and D.parse_evidence_spec(None) == (0, False)
+    for bad in ("endpoint:1", "endpoint:x", "end:5"):
+        with pytest.raises(Exception, match="evidence"):
+            D.parse_evidence_spec(bad)
+    ds = _sim("mass_offset=0.15", seed=24)
+    kw = dict(candidates=("mass_offset", "steer_delay"), max_effects=1, max_starts=50)
+    d = _diagnose(ds, evidence="endpoint:10", **kw)
+    dm = _diagnose(ds, evidence="multistep:10", **kw)
+    c = next(c for c in d["candidates"] if c["effect"] == "mass_offset")
+    cm = next(c for c in dm["candidates"] if c["effect"] == "mass_offset")
+    assert d["selected"] == ["mass_offset"] and c["delta_bic"] < 0 and d["method"]["evidence"].startswith("endpoint:10")
+    # the same fit: the one-step figure is shared; the endpoint score is the last step's alone, so it is weaker
+    assert c["delta_bic_one_step"] == pytest.approx(cm["delta_bic_one_step"])
+    assert cm["delta_bic"] < c["delta_bic"]
+    # the formula: dLL of the last step's (vx, vy, omega) errors over the windows, the penalty ln(windows)
+    prob = D.Problem(ds, D.nominal_from_vehicle(ORCA, ds), D.DEFAULT_FIT_FRACTION)
+    prob.set_evidence(10, endpoint=True)
+    nw = len(prob.ev_starts)
+    base = {"rss": np.ones(3), "ms_rss": np.full((10, 3), 4.0)}
+    cand = {"rss": np.ones(3), "ms_rss": np.full((10, 3), 4.0)}
+    cand["ms_rss"][-1] = 1.0
+    s = D._score(prob, base, cand, 1, 1)
+    f2 = prob.floor ** 2
+    dll = -0.5 * nw * (np.sum(np.log(1.0 / nw + f2)) - np.sum(np.log(4.0 / nw + f2)))
+    assert s["delta_loglik"] == pytest.approx(dll) and s["delta_bic"] == pytest.approx(-2 * dll + np.log(nw))
+    d0 = _diagnose(_sim(None, seed=23), evidence="endpoint:10", **kw)
+    assert d0["selected"] == [] and all(c["delta_bic"] > 0 for c in d0["candidates"])

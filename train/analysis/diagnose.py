@@ -38,8 +38,8 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
                   on an edge of its search range), refit {coefficient: factor},
                   heldout {rmse_before, rmse_refit_only, rmse_after: {vx, vy, omega}, ade_before, ade_after,
                   fde_before, fde_after}, gap_closed_pct, error_reduction_pct, delta_bic, delta_loglik,
-                  lr_p_value, significant (dBIC < 0), fit_seconds, delta_bic_one_step (with --evidence multistep: the
-                  one-step dBIC of the same fit, for comparison)
+                  lr_p_value, significant (dBIC < 0), fit_seconds, delta_bic_one_step (with --evidence multistep or
+                  endpoint: the one-step dBIC of the same fit, for comparison)
   model           the selected combination refitted jointly: effects [{effect, params, uncertainty, unit, at_bound}],
                   refit, heldout (as above), gap_closed_pct, error_reduction_pct
   greedy          the selection steps: best candidate, its dBIC, whether it was added
@@ -51,7 +51,7 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
                   steering_rate, time, [track_position]: [{bin, samples_share, error_share, rmse, ade,
                   multi_step_rmse}]};
                   summary [sentences naming the regions that hold most of the error]
-  method.evidence "one-step" or "multistep:N: ..." (--evidence; what delta_bic scores)
+  method.evidence "one-step", "multistep:N: ..." or "endpoint:N: ..." (--evidence; what delta_bic scores)
   nominal, split, method, data, seconds: what was compared, how, on what (split.heldout_from_time: s after
                   the log's first row)
 """
@@ -111,7 +111,11 @@ OE_STEPS = 10
 # windows that start after the fit/held-out cut, so no window sees a fit row), with a Gaussian variance per
 # horizon step and channel concentrated out. A slow longitudinal effect (a mass offset, downforce) changes one
 # 40 ms step by less than vx's sensor noise but accumulates over a window (docs/gap_independent.md).
-EVIDENCE_MODES = ("one-step", "multistep")
+# "endpoint:N" the same windows, but only each window's N-th-step error is scored and the penalty counts windows:
+# the errors within a window are correlated (one disturbance carries through the rollout), so scoring all N steps
+# as independent overstates the evidence (effect-free logs selected on seed 11); one endpoint per window is
+# roughly one independent sample.
+EVIDENCE_MODES = ("one-step", "multistep", "endpoint")
 DEFAULT_EVIDENCE = "one-step"
 MULTISTEP_DEFAULT_STEPS = 25
 DBW_PRESET = {"hold": True, "fit": "output-error", "min_evidence": 13.02}
@@ -130,20 +134,26 @@ class Nominal:
     label: str
 
 
-def parse_evidence(text: str | None) -> int:
-    """--evidence: "one-step" -> 0, "multistep" -> MULTISTEP_DEFAULT_STEPS, "multistep:N" -> N (>= 2)."""
+def parse_evidence_spec(text: str | None) -> tuple[int, bool]:
+    """--evidence: "one-step" -> (0, False); "multistep[:N]" -> (N, False); "endpoint[:N]" -> (N, True), N >= 2
+    (default MULTISTEP_DEFAULT_STEPS)."""
     if text in (None, "", "one-step"):
-        return 0
+        return 0, False
     name, _, n = text.partition(":")
-    if name != "multistep":
-        raise DdynError(f"unknown evidence {text!r}; expected one-step, multistep or multistep:N")
+    if name not in ("multistep", "endpoint"):
+        raise DdynError(f"unknown evidence {text!r}; expected one-step, multistep[:N] or endpoint[:N]")
     try:
         steps = int(n) if n else MULTISTEP_DEFAULT_STEPS
     except ValueError:
         raise DdynError(f"--evidence {text!r}: N must be an integer") from None
     if steps < 2:
         raise DdynError(f"--evidence {text!r}: N must be >= 2 (N = 1 is the one-step evidence)")
-    return steps
+    return steps, name == "endpoint"
+
+
+def parse_evidence(text: str | None) -> int:
+    """--evidence's horizon N (0: one-step); see parse_evidence_spec."""
+    return parse_evidence_spec(text)[0]
 
 
 def nominal_from_vehicle(vehicle: Vehicle, ds: Dataset, coeffs=None, method: str | None = None,
@@ -285,6 +295,7 @@ class Problem:
         self.rows_all, self.rows_fit, self.rows_held = k, k[:cut], k[cut:]
         self.target = ds.states[:, 3:6]
         self.ev_steps, self.ev_starts = 0, np.zeros(0, int)     # the multi-step evidence (set_evidence)
+        self.ev_endpoint = False
         self.refit = tuple(refit)
         self.refit_idx = [COEFF_NAMES.index(n) for n in self.refit]
         vx = np.abs(ds.states[k, 3])
@@ -345,17 +356,22 @@ class Problem:
         for the multi-step evidence, (steps, 3): a variance per horizon step and channel (n: windows)."""
         return float(-0.5 * n * np.sum(np.log(rss / n + self.floor ** 2)))
 
-    def set_evidence(self, steps: int) -> None:
+    def set_evidence(self, steps: int, endpoint: bool = False) -> None:
         """The multi-step evidence's windows: every `steps`-th held-out row starts a rollout of `steps` steps
         that stays in its segment and in the log; the held-out rows follow the fit rows, so no window holds a fit
-        row's target (steps 0: the one-step evidence)."""
+        row's target (steps 0: the one-step evidence). endpoint: score only each window's last step."""
         self.ev_steps = int(steps)
+        self.ev_endpoint = bool(endpoint) and self.ev_steps > 0
         self.ev_starts = np.zeros(0, int)
         if self.ev_steps:
             self.ev_starts = _starts(self, self.rows_held[::self.ev_steps], self.ev_steps, 10 ** 9)
             if len(self.ev_starts) < 5:
-                raise DdynError(f"--evidence multistep:{steps}: only {len(self.ev_starts)} held-out windows; "
+                raise DdynError(f"--evidence {self.evidence_name}: only {len(self.ev_starts)} held-out windows; "
                                 "the held-out part is too short for this N")
+
+    @property
+    def evidence_name(self) -> str:
+        return f"{'endpoint' if self.ev_endpoint else 'multistep'}:{self.ev_steps}" if self.ev_steps else "one-step"
 
     def multistep_rss(self, values: dict, rho) -> np.ndarray:
         """(steps, 3): sum over the evidence windows of the squared (vx, vy, omega) error at each horizon step."""
@@ -668,9 +684,12 @@ def _score(prob: Problem, base: dict, cand: dict, dk: int, m: int) -> dict:
     out = {"delta_loglik": dll, "delta_bic": dbic, "lr_p_value": float(stats.chi2.sf(max(2 * dll, 0.0), dk))}
     if prob.ev_steps:   # the multi-step evidence decides; the one-step figures are kept for comparison
         nw = len(prob.ev_starts)
-        dll_ms = prob.loglik(cand["ms_rss"], nw) - prob.loglik(base["ms_rss"], nw)
-        # the penalty counts the held-out rows the windows predict (one each), as the one-step score does
-        dbic_ms = -2.0 * dll_ms + dk * math.log(nw * prob.ev_steps) + 2.0 * math.log(max(m, 1))
+        if prob.ev_endpoint:    # one (roughly independent) sample per window: its last step; the penalty counts windows
+            rc, rb, n_pen = cand["ms_rss"][-1:], base["ms_rss"][-1:], nw
+        else:   # every step of every window; the penalty counts the held-out rows the windows predict (one each)
+            rc, rb, n_pen = cand["ms_rss"], base["ms_rss"], nw * prob.ev_steps
+        dll_ms = prob.loglik(rc, nw) - prob.loglik(rb, nw)
+        dbic_ms = -2.0 * dll_ms + dk * math.log(n_pen) + 2.0 * math.log(max(m, 1))
         out = {"delta_loglik": dll_ms, "delta_bic": dbic_ms,
                "lr_p_value": float(stats.chi2.sf(max(2 * dll_ms, 0.0), dk)),
                "delta_bic_one_step": dbic, "delta_loglik_one_step": dll}
@@ -701,7 +720,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                    steer_servo=steer_servo, nominal_effects=nominal_effects)
     prob.layout = C.layout(ds, track, prob.rows_fit)
     C.attach(prob.lm, prob.layout)
-    prob.set_evidence(parse_evidence(evidence))
+    prob.set_evidence(*parse_evidence_spec(evidence))
     candidates = tuple(c for c in candidates if C.available(c, prob.layout))
     v = nominal.vehicle
     steps = max(1, int(round(v.evaluation_horizon / ds.sample_time)))
@@ -844,9 +863,11 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                    "fit_mode": fit_mode,
                    "criterion": "held-out extended BIC: dBIC = -2 dLL + dk ln(n_heldout) + 2 ln(candidates in the "
                                 "round) < 0, greedy",
-                   "evidence": (f"multistep:{prob.ev_steps}: dLL of {prob.ev_steps}-step open-loop rollouts from "
-                                f"{len(prob.ev_starts)} non-overlapping held-out windows (a variance per horizon step "
-                                "and channel)" if prob.ev_steps else "one-step"),
+                   "evidence": (f"{prob.evidence_name}: dLL of {prob.ev_steps}-step open-loop rollouts from "
+                                f"{len(prob.ev_starts)} non-overlapping held-out windows "
+                                + ("(only each window's last step, a variance per channel; the penalty counts windows)"
+                                   if prob.ev_endpoint else "(a variance per horizon step and channel)")
+                                if prob.ev_steps else "one-step"),
                    "uncertainty": "Gauss-Newton covariance x long-run variance factor of the residuals",
                    "gap_closed": "share of the held-out normalised one-step MSE above an estimated noise floor removed",
                    "noise_floor": _chan(floor), "channel_scale": _chan(prob.scale)},
@@ -1154,10 +1175,12 @@ def register(subparsers) -> None:
                         "held-out scores are one-step in every mode")
     p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
                    help=f"add an effect only when its dBIC < -DBIC (default {MIN_EVIDENCE:g}: the plain rule)")
-    p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]",
+    p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]|endpoint[:N]",
                    help="the held-out evidence (default one-step): 'multistep:N' scores N-step open-loop rollouts "
                         f"from non-overlapping held-out windows (default N {MULTISTEP_DEFAULT_STEPS}; an experiment "
-                        "for slow longitudinal effects, not calibrated: docs/gap_independent.md)")
+                        "for slow longitudinal effects, not calibrated: docs/gap_independent.md); 'endpoint:N' the "
+                        "same windows, only each window's last step scored (one sample per window, the penalty "
+                        "counts windows)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="no-gap gate: select nothing when the nominal's held-out error is at most RATIO times the "
                         f"noise floor (default {NO_GAP_GATE}; 0: off)")

@@ -756,7 +756,7 @@ def register(subparsers) -> None:
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--fit", choices=D.FIT_MODES, default=None,
                    help=f"commonroad: the diagnosis's fit (diagnose --fit; default {D.DEFAULT_FIT})")
-    p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]",
+    p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]|endpoint[:N]",
                    help="commonroad: the diagnosis's held-out evidence (diagnose --evidence; default one-step)")
     p.add_argument("--effects", default=None, metavar="LIST",
                    help="commonroad (putnam, sweep): only the cases of these hidden effects, e.g. "
