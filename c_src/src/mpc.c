@@ -672,14 +672,8 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
     info->progress = track_at(&mpc->track, info->track_index, u0).s;
     if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP && !mpc->prep_cold) {
         /* warm start: the last solve's working set one stage on */
+        /* (at the cap DAQP drops its working set: the next period starts cold, below) */
         qst = ddyn_mpc_qp_daqp_solve_factored(&mpc->qp, &mpc->daqp, mpc->cfg.qp_max_iterations, 1);
-        if (qst == DDYN_ERR_QP_NOT_CONVERGED) {
-            /* at the cap the next period starts cold (the interior point below) rather than going on
-             * from the working set reached: in safe mode, where the plan is not applied, the warm
-             * starts miss and such continuations capped again (ddyn sil run --faults restart_plant=2:
-             * capped, capped, cold, ... after the restart), while the interior point converged */
-            ddyn_mpc_qp_daqp_reset(&mpc->daqp);
-        }
     } else if (mpc->cfg.qp_solver == DDYN_MPC_QP_DAQP) {
         /* A cold active-set start adds about one constraint per iteration and can need more than the cap
          * (the first QPs from a standstill, the QPs after a recovery: 40-60 active constraints, up to

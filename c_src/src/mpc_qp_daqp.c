@@ -26,7 +26,6 @@ void ddyn_mpc_qp_daqp_reset(ddyn_mpc_qp_daqp *w)
     if (w != NULL) {
         w->warm_n = 0;
         w->warm_h = 0;
-        w->capped = 0;
     }
 }
 
@@ -49,7 +48,6 @@ void ddyn_mpc_qp_daqp_seed(ddyn_mpc_qp_daqp *w, const ddyn_mpc_qp *qp)
         }
     }
     w->warm_h = h;
-    w->capped = 0;
 }
 
 void ddyn_mpc_qp_daqp_adversarial_start(ddyn_mpc_qp_daqp *w, int horizon)
@@ -533,18 +531,14 @@ ddyn_status ddyn_mpc_qp_daqp_solve_factored(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w
         }
     }
     outputs(qp, w, n, h);
-    if (exitflag <= 0 && exitflag != DAQP_EXIT_ITERLIMIT) {
-        ddyn_mpc_qp_daqp_reset(w); /* cycling, infeasible: the working set is no guide */
-        return DDYN_ERR_QP_NOT_CONVERGED;
-    }
-    /* the working set for the next solve; after the iteration cap the one reached so far, so that
-     * the next period goes on from there (a cold start would need as many iterations again), unless
-     * the previous solve was capped too: then that continuation is no guide either, and it starts cold */
-    if (exitflag == DAQP_EXIT_ITERLIMIT && w->capped) {
+    if (exitflag <= 0) {
+        /* cycling, infeasible: the working set is no guide. At the iteration cap neither: going on from
+         * the set reached missed in safe mode (the plan is not applied, so the shifted set no longer
+         * fits) and capped again (ddyn sil run --faults restart_plant=2: capped, capped, cold, ... after
+         * the restart), so the next solve starts cold (mpc.c: on the interior point, which seeds it) */
         ddyn_mpc_qp_daqp_reset(w);
         return DDYN_ERR_QP_NOT_CONVERGED;
     }
-    w->capped = exitflag == DAQP_EXIT_ITERLIMIT;
     w->warm_n = 0;
     for (i = 0; i < work.n_active && i < DDYN_DAQP_WS; ++i) {
         const int id = work.WS[i];
@@ -556,9 +550,6 @@ ddyn_status ddyn_mpc_qp_daqp_solve_factored(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w
         ++w->warm_n;
     }
     w->warm_h = h;
-    if (exitflag <= 0) {
-        return DDYN_ERR_QP_NOT_CONVERGED;
-    }
     qp->converged = 1;
     return DDYN_OK;
 }

@@ -91,7 +91,6 @@ int main(int argc, char **argv)
         {
             /* every repeat from the same warm start: the working set the previous QP left */
             int warm_id[DDYN_DAQP_WS], warm_lower[DDYN_DAQP_WS], warm_n = daqp.warm_n, warm_h = daqp.warm_h;
-            const int capped = daqp.capped;
             memcpy(warm_id, daqp.warm_id, sizeof warm_id);
             memcpy(warm_lower, daqp.warm_lower, sizeof warm_lower);
             const int cold = warm_h != problem.horizon;
@@ -102,7 +101,6 @@ int main(int argc, char **argv)
                 memcpy(daqp.warm_lower, warm_lower, sizeof warm_lower);
                 daqp.warm_n = warm_n;
                 daqp.warm_h = warm_h;
-                daqp.capped = capped;
                 memcpy(&work, &problem, sizeof work);
                 t0 = bench_now_us();
                 if (cold) {
@@ -113,10 +111,7 @@ int main(int argc, char **argv)
                         ddyn_mpc_qp_daqp_reset(&daqp);
                     }
                 } else {
-                    s = ddyn_mpc_qp_daqp_solve(&work, &daqp, max_it, 1);
-                    if (s == DDYN_ERR_QP_NOT_CONVERGED) {
-                        ddyn_mpc_qp_daqp_reset(&daqp); /* the next one starts cold, as in the runtime */
-                    }
+                    s = ddyn_mpc_qp_daqp_solve(&work, &daqp, max_it, 1); /* capped: the next one starts cold */
                 }
                 conv = s == DDYN_OK;
                 times[r] = bench_now_us() - t0;

@@ -54,7 +54,6 @@ typedef struct {
     int warm_n, warm_h;
     int exitflag;  /* DAQP's exit flag of the last solve (1 optimal, 2 soft optimal, < 0 failed) */
     int cold;      /* 1 if the last solve started cold */
-    int capped;    /* 1 if the last solve hit the iteration cap (its working set is kept once) */
     /* the factorisation (ddyn_mpc_qp_daqp_factor) the next solve_factored uses */
     int zero_row[DDYN_DAQP_MG];
     int ill;
@@ -70,8 +69,8 @@ void ddyn_mpc_qp_daqp_reset(ddyn_mpc_qp_daqp *w);
  * period, 0 for the same QP again). Returns and fills qp->z, slack, iterations, converged, residual
  * (the largest violation of a hard constraint) like ddyn_mpc_qp_solve:
  *   DDYN_OK (DAQP optimal), DDYN_ERR_QP_NOT_CONVERGED (iteration cap: z is the last finite primal
- *   iterate, or 0, and the next solve starts from the working set reached, or cold if this solve had
- *   started from a capped one; other DAQP failures (cycling, infeasible): the next solve starts cold), DDYN_ERR_ARGUMENT /
+ *   iterate, or 0; the next solve starts cold), other DAQP failures (cycling, infeasible: the next
+ *   solve starts cold), DDYN_ERR_ARGUMENT /
  *   DDYN_ERR_NONFINITE_INPUT for a malformed problem (z, slack zero; next solve cold). */
 ddyn_status ddyn_mpc_qp_daqp_solve(ddyn_mpc_qp *qp, ddyn_mpc_qp_daqp *w, int max_iterations, int shift);
 
