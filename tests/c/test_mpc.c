@@ -499,14 +499,11 @@ static void test_iteration_cap_reports_and_commands_within_bounds(void **state)
 /* ---- the DAQP path (mpc_qp_daqp.c): the same structured problems, the penalty, warm start, cap ---- */
 static ddyn_mpc_qp_daqp daqp;
 
-static void test_daqp_solves_the_structured_qps(void **state)
+/* a box-only QP over h stages whose minimiser is the unconstrained one (-5, 4, 0.3 repeating) clipped to
+ * [-1, 2]: the first two of every three variables end on a bound */
+static void box_qp(int h)
 {
-    /* the three problems with known answers above, now through DAQP's core on the static workspace */
-    int i, k, h;
-    double acc = 0.0;
-    (void)state;
-    /* box only: the clipped minimiser */
-    h = 10;
+    int i;
     qp_clear(h);
     open_bounds(2 * h);
     for (i = 0; i < 2 * h; ++i) {
@@ -515,6 +512,18 @@ static void test_daqp_solves_the_structured_qps(void **state)
         qp.lb[i] = -1.0;
         qp.ub[i] = 2.0;
     }
+}
+
+
+static void test_daqp_solves_the_structured_qps(void **state)
+{
+    /* the three problems with known answers above, now through DAQP's core on the static workspace */
+    int i, k, h;
+    double acc = 0.0;
+    (void)state;
+    /* box only: the clipped minimiser */
+    h = 10;
+    box_qp(h);
     ddyn_mpc_qp_daqp_reset(&daqp);
     assert_int_equal(ddyn_mpc_qp_daqp_solve(&qp, &daqp, 30, 0), DDYN_OK);
     for (i = 0; i < 2 * h; ++i) {
@@ -692,14 +701,7 @@ static void test_interior_point_seeds_daqp_working_set(void **state)
      * the set the interior point's solution marks active (ddyn_mpc_qp_daqp_seed) it only checks it */
     int i, h = 10;
     (void)state;
-    qp_clear(h);
-    open_bounds(2 * h);
-    for (i = 0; i < 2 * h; ++i) {
-        qp.hess[i + i * DDYN_QP_NV] = 1.0 + 0.1 * i;
-        qp.grad[i] = (i % 3 == 0 ? -5.0 : (i % 3 == 1 ? 4.0 : 0.3)) * qp.hess[i + i * DDYN_QP_NV];
-        qp.lb[i] = -1.0;
-        qp.ub[i] = 2.0;
-    }
+    box_qp(h);
     assert_int_equal(ddyn_mpc_qp_solve(&qp, 30, 1e-8), DDYN_OK);
     for (i = 0; i < 2 * h; ++i) {
         const int side = ddyn_mpc_qp_active_side(&qp, i);
