@@ -363,11 +363,12 @@ def test_multistep_evidence(shared_data):
     """--evidence multistep:N (opt-in): windows start after the fit/held-out cut and do not overlap; a hidden mass
     offset pays under it, an effect-free log selects nothing; the one-step figure is kept beside it; bad specs fail;
     the default stays one-step."""
-    assert D.parse_evidence(None) == 0 and D.parse_evidence("one-step") == 0
-    assert D.parse_evidence("multistep") == D.MULTISTEP_DEFAULT_STEPS and D.parse_evidence("multistep:7") == 7
+    assert D.parse_evidence_spec(None) == (0, False) and D.parse_evidence_spec("one-step") == (0, False)
+    assert D.parse_evidence_spec("multistep") == (D.MULTISTEP_DEFAULT_STEPS, False)
+    assert D.parse_evidence_spec("multistep:7") == (7, False)
     for bad in ("multistep:1", "multistep:x", "rollout:5"):
         with pytest.raises(Exception, match="evidence"):
-            D.parse_evidence(bad)
+            D.parse_evidence_spec(bad)
     ds = _sim("mass_offset=0.15", seed=24)
     prob = D.Problem(ds, D.nominal_from_vehicle(ORCA, ds), D.DEFAULT_FIT_FRACTION)
     prob.set_evidence(10)

@@ -151,11 +151,6 @@ def parse_evidence_spec(text: str | None) -> tuple[int, bool]:
     return steps, name == "endpoint"
 
 
-def parse_evidence(text: str | None) -> int:
-    """--evidence's horizon N (0: one-step); see parse_evidence_spec."""
-    return parse_evidence_spec(text)[0]
-
-
 def nominal_from_vehicle(vehicle: Vehicle, ds: Dataset, coeffs=None, method: str | None = None,
                          substeps: int | None = None) -> Nominal:
     if coeffs is None:
@@ -1172,7 +1167,7 @@ def register(subparsers) -> None:
                    help=f"what the fit compares (default {DEFAULT_FIT}): one-step predictions from the logged states, "
                         "from smoothed states (errors in variables), or output-error rollouts of "
                         f"{OE_STEPS} steps, or mixed (output error, a steering delay's value fitted one-step); "
-                        "held-out scores are one-step in every mode")
+                        "held-out scores are one-step in every mode unless --evidence says otherwise")
     p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
                    help=f"add an effect only when its dBIC < -DBIC (default {MIN_EVIDENCE:g}: the plain rule)")
     p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]|endpoint[:N]",
