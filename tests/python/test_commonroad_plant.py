@@ -176,6 +176,29 @@ def test_diagnose_gate_vetoes_a_selection_inside_the_noise():
     assert shut["model"]["error_reduction_pct"] < open_["model"]["error_reduction_pct"]
 
 
+def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_value():
+    """diagnose(truth=...) scores the model given the hidden effect at its true value (the refit around it); on a
+    log with a clear steering delay the oracle closes a real gap, a far-off value does worse, and the diagnosis
+    that finds the delay closes most of the oracle's gap, a vetoed one none of it."""
+    ds = _log(CP.PlantEffects(steer_delay=0.08), seed=5, duration=40.0)
+    nominal = D.nominal_from_vehicle(NOMINAL, ds)
+    kw = dict(candidates=("steer_delay", "mass_offset"), max_effects=1, max_starts=50, gate=None, hold=True,
+              steer_servo=CP.SERVO_TAU)     # the servo in the nominal: the delay on top of it is the plant's own
+    case = {"effect": "steer_delay", "magnitude": 0.08}
+    d = D.diagnose(ds, nominal, truth={"steer_delay": 0.08}, **kw)
+    assert d["selected"] == ["steer_delay"] and d["truth"]["delta_bic"] < 0
+    o = G.oracle_figures(d, case)
+    assert o["e_oracle"] < o["e_refit"] and 0.8 < o["gap_vs_oracle"] < 1.2 and 0.8 < o["own_fit_vs_oracle"] < 1.2
+    far = G.oracle_figures(D.diagnose(ds, nominal, truth={"steer_delay": 0.3}, **kw), case)
+    assert far["e_oracle"] > o["e_oracle"]
+    row = {"status": "ok", "effect": "steer_delay", "selected_without_gate": ["steer_delay"], "gate_ratio": 1.0,
+           "delta_bic_top": -5.0, **o}
+    vetoed = G.with_gate([row], None, margin=10.0)[0]
+    assert vetoed["gap_vs_oracle"] == 0.0 and vetoed["e_diagnosed"] == o["e_refit"]
+    s = G.oracle_summary([row | {"correct": True}, vetoed | {"correct": False}])
+    assert s["oracle_cases"] == 2 and s["median_gap_vs_oracle_found"] == pytest.approx(o["gap_vs_oracle"])
+
+
 def test_study_gap_commonroad_cli(tmp_path, monkeypatch):
     """Two cases in two processes, then a rescore with a gate: the files and the gate's veto are consistent."""
     import json

@@ -695,8 +695,11 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
              candidates=E.EFFECT_NAMES, refit=DEFAULT_REFIT, max_effects: int = 3, track=None,
              max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False,
              min_evidence: float | None = None, fit_mode: str | None = None, mass_inertia: bool = False,
-             steer_servo: float = 0.0, nominal_effects: dict | None = None, evidence: str | None = None) -> dict:
-    """evidence: what the held-out score compares (EVIDENCE_MODES: "one-step" by default, "multistep[:N]").
+             steer_servo: float = 0.0, nominal_effects: dict | None = None, evidence: str | None = None,
+             truth: dict | None = None) -> dict:
+    """truth: {effect: value} a benchmark knows the log holds; its held-out error at exactly that value (the
+    refit factors fitted around it, as under every hypothesis) is reported as `truth` (the oracle the
+    diagnosis's gap closed is compared with). evidence: what the held-out score compares (EVIDENCE_MODES: "one-step" by default, "multistep[:N]").
     gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
     between samples (drive-by-wire), not ramped as the model integrates them (see Problem). min_evidence: an
     effect is added only when its dBIC < -min_evidence (default MIN_EVIDENCE). fit_mode: what the fit compares
@@ -808,6 +811,14 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     for c in first:
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
+    truth_info = None
+    if truth:
+        tf = fit(prob, (), start_rho=base_fit.rho, fixed=dict(truth))
+        th = heldout_summary(prob, tf.values, tf.rho, starts, steps)
+        t_gap, t_red = _gap(prob, before, th, floor)
+        truth_info = {"values": dict(truth), "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, tf.rho)},
+                      "rmse_after": _chan(th["rmse"]), "gap_closed_pct": t_gap, "error_reduction_pct": t_red,
+                      **_score(prob, base, th, len(truth), 1)}
     final = {"effects": [described(n, current) for n in selected],
              "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, current.rho)},
              "heldout": {"rmse_before": _chan(before["rmse"]), "rmse_after": _chan(current_h["rmse"]),
@@ -836,6 +847,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "model": final,
         "greedy": steps_log,
         "gate": gate_info,
+        "truth": truth_info,
         "where": w,
         "nominal": {"source": nominal.label, "vehicle": v.name, "method": nominal.method,
                     "substeps": nominal.substeps, "refit_under_every_hypothesis": list(prob.refit),

@@ -56,6 +56,10 @@ DEFAULT_SEED = 4242            # the default run's seed; scored since (in SEEN_S
 # plant; 8802, 8803: the multi-body plant; see docs/gap_independent.md). The next blind run needs a new seed.
 SEEN_SEEDS = (2027, 4242, 6101, 7301, 7302, 7303, 7304, 8802, 8803)
 TARGET_FALSE_ALARMS = 0.05
+# the oracle: the project's model given the hidden effect at its true value. Only where the plant's effect and
+# the model's candidate share one parameter with the same meaning (a profile along the track has no single
+# value; the multi-body plant's gear steps and tyre relaxation are not the candidates' forms)
+ORACLE_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce")
 
 
 def draw_magnitude(rng: np.random.Generator, eff: str, ranges: dict) -> float:
@@ -196,7 +200,8 @@ def run_case(case: dict) -> dict:
                       fit_mode=case.get("fit"), candidates=tuple(case.get("candidates") or E.EFFECT_NAMES),
                       mass_inertia=bool(case.get("mass_inertia", False)),
                       steer_servo=float(case.get("steer_servo", 0.0)), nominal_effects=case.get("nominal_effects"),
-                      evidence=case.get("evidence"), **vetoes_of(case))
+                      evidence=case.get("evidence"), **vetoes_of(case),
+                      truth={case["effect"]: case["magnitude"]} if case["effect"] in ORACLE_EFFECTS else None)
     seconds = time.perf_counter() - t0
     g = diag["gate"]
     # a bank or grade found as a profile along the track (or from the roll channel) is that effect found
@@ -231,9 +236,36 @@ def run_case(case: dict) -> dict:
         "error_reduction_pct_top_candidate": first["error_reduction_pct"],
         "delta_bic_top": first["delta_bic"], "top_candidate": first["effect"], "at_bound_top": first["at_bound"],
         "delta_bic_top_one_step": first.get("delta_bic_one_step"),
-        "unexplained": diag.get("unexplained"),
+        "unexplained": diag.get("unexplained"), **oracle_figures(diag, case),
         "rmse_over_noise_floor": diag["where"]["rmse_over_noise_floor"], "diagnose_seconds": seconds,
     }
+
+
+def oracle_figures(diag: dict, case: dict) -> dict:
+    """The diagnosis's gap closed against the oracle's, on the held-out normalised one-step MSE above the refitted
+    nominal's (what the effect library adds beyond the refit of Df, Dr): (E_refit - E_diagnosed) / (E_refit -
+    E_oracle), where the oracle is the model with the hidden effect at its true value (diagnose(truth=...)).
+    Also the same for the hidden effect's own round-1 fit (its value estimated: an oracle that knows only which
+    effect). None where the oracle does not improve on the refitted nominal (no gap to close)."""
+    t = diag.get("truth")
+    if not t:
+        return {}
+    scale = diag["method"]["channel_scale"]
+
+    def e(rmse: dict) -> float:
+        return float(np.mean([(rmse[c] / scale[c]) ** 2 for c in D.CHANNELS]))
+
+    e_refit = e(diag["nominal"]["refit_only"]["rmse"])
+    e_diag = e(diag["model"]["heldout"]["rmse_after"])
+    e_orc = e(t["rmse_after"])
+    own = next(c for c in diag["candidates"] if c["effect"] == case["effect"])
+    e_own = e(own["heldout"]["rmse_after"])
+    gain = e_refit - e_orc
+    ok = gain > 1e-12 * e_refit
+    return {"e_refit": e_refit, "e_diagnosed": e_diag, "e_oracle": e_orc, "e_own_fit": e_own,
+            "oracle_delta_bic": t["delta_bic"], "oracle_gap_closed_pct": t["gap_closed_pct"],
+            "gap_vs_oracle": (e_refit - e_diag) / gain if ok else None,
+            "own_fit_vs_oracle": (e_refit - e_own) / gain if ok else None}
 
 
 # ----------------------------------------------------------------------------------------------- errors in variables
@@ -394,8 +426,12 @@ def with_gate(results: list[dict], threshold: float | None, margin: float = 0.0)
         weak = bool(sel) and not r["delta_bic_top"] < -margin
         gated = threshold is not None and bool(sel) and r["gate_ratio"] <= threshold
         top1 = NONE if gated or weak or not sel else C.FAMILY.get(sel[0], sel[0])
-        out.append(r | {"selected": [] if gated or weak else sel, "top1": top1, "correct": top1 == r["effect"],
-                        "gate_threshold": threshold, "min_evidence": margin})
+        vetoed = gated or weak
+        out.append(r | {"selected": [] if vetoed else sel, "top1": top1, "correct": top1 == r["effect"],
+                        "gate_threshold": threshold, "min_evidence": margin}
+                   # a vetoed selection leaves the refitted nominal: nothing of the oracle's gap closed
+                   | ({"gap_vs_oracle": 0.0, "e_diagnosed": r["e_refit"]}
+                      if vetoed and r.get("gap_vs_oracle") is not None else {}))
     return out
 
 
@@ -437,6 +473,20 @@ def reliable_threshold(rows: list[dict], rate: float = RELIABLE_RATE, min_cases:
     return best
 
 
+def oracle_summary(rows: list[dict]) -> dict:
+    """Gap closed against the oracle's (oracle_figures) over the cases that have one: every such case (a miss
+    closes nothing), the identified ones, and the hidden effect's own fit; how many have no oracle gain (the
+    true value does not improve on the refitted nominal) and in how many the oracle itself pays on the held-out
+    part (its dBIC < 0)."""
+    orc = [r for r in rows if "e_oracle" in r]
+    good = [r for r in orc if r.get("gap_vs_oracle") is not None]
+    return {"oracle_cases": len(orc), "oracle_no_gain": len(orc) - len(good),
+            "oracle_pays": sum(1 for r in orc if r["oracle_delta_bic"] < 0),
+            "median_gap_vs_oracle": _median([r["gap_vs_oracle"] for r in good]),
+            "median_gap_vs_oracle_found": _median([r["gap_vs_oracle"] for r in good if r["correct"]]),
+            "median_own_fit_vs_oracle": _median([r["own_fit_vs_oracle"] for r in good])}
+
+
 def delay_vs_lag(rows: list[dict]) -> dict:
     """Steering delay and steering lag told apart: of the cases with either hidden whose top-1 is either, the
     share naming the right one; plus how often each was named the other."""
@@ -475,7 +525,8 @@ def score(results: list[dict], thresholds: dict | None = None) -> dict:
                   # every case, largest |magnitude| first: what was picked and the hidden effect's own evidence
                   "ladder": [[r["magnitude"], r["top1"], r.get("delta_bic_true"), r.get("estimate")]
                              for r in sorted(rows, key=lambda r: -abs(r["magnitude"]))],
-                  "threshold_used": None if thresholds is None else thresholds.get(e)}
+                  "threshold_used": None if thresholds is None else thresholds.get(e),
+                  **oracle_summary(rows)}
         if thresholds is not None:
             above = [r for r in rows if thresholds.get(e) is not None and abs(r["magnitude"]) >= thresholds[e]]
             per[e] |= {"above_threshold": len(above), "top1_above_threshold": _rate(above, "correct"),
@@ -500,6 +551,9 @@ def score(results: list[dict], thresholds: dict | None = None) -> dict:
                                        else None),
         "delay_vs_lag": delay_vs_lag(eff),
         "edge_verdicts": sum(1 for r in ok if r.get("unexplained") and not r["selected"]),
+        **oracle_summary(eff),
+        "median_gap_vs_oracle_above_thresholds": (_median([r.get("gap_vs_oracle") for r in above_all])
+                                                  if thresholds is not None else None),
         "cases": len(results), "simulated": len(ok), "effect_cases": len(eff), "none_cases": len(none),
         "top1": _rate(eff, "correct"), "top1_without_gate": _rate(eff, "correct_without_gate"),
         "false_alarm_rate": _rate(none, "selected"), "false_alarm_rate_without_gate": _rate(none, "selected_without_gate"),
@@ -539,6 +593,18 @@ def _threshold_line(s: dict, per: dict) -> str:
             f"{_f(s['wrong_selected_below_thresholds'], True)}; effect-free and below-threshold logs together: any "
             f"effect selected in {_f(s.get('any_selected_none_or_below'), True)}. Range-edge verdicts (\"not explained by the effect "
             f"library\"): {s['edge_verdicts']}.")
+
+
+def _oracle_line(s: dict) -> str:
+    if not s.get("oracle_cases"):
+        return "Gap closed against the oracle: no case with an oracle (ORACLE_EFFECTS)."
+    return (f"Gap closed against the oracle (the model given the hidden effect at its true value; "
+            f"{s['oracle_cases']} cases of {', '.join(ORACLE_EFFECTS)}; the oracle does not improve on the refitted "
+            f"nominal in {s['oracle_no_gain']}, pays on the held-out part in {s['oracle_pays']}): median "
+            f"{_f(s['median_gap_vs_oracle'], True)} over every case with a gain (a miss closes nothing), "
+            f"{_f(s.get('median_gap_vs_oracle_above_thresholds'), True)} above the thresholds, "
+            f"{_f(s['median_gap_vs_oracle_found'], True)} where the effect was identified; the hidden effect's own "
+            f"fit (its value estimated) {_f(s['median_own_fit_vs_oracle'], True)}.")
 
 
 def thresholds_of(path) -> dict:
@@ -581,12 +647,13 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
              f"the noise floor.", "",
              _delay_lag_line(s["delay_vs_lag"]), "",
              _threshold_line(s, sc["per_effect"]), "",
+             _oracle_line(s), "",
              f"Identified cases: median parameter error {_f(s['median_param_error'], True)} (scalar effects), gap closed "
              f"{_f(s['median_gap_closed_pct_found'])} % above the floor = {_f(s['median_error_reduction_pct_found'])} % "
              f"of the whole error. Diagnosis median {_f(s['median_diagnose_seconds'])} s per log.", "",
              "| effect | cases | drawn abs range | measured threshold (these cases) | threshold used | top-1 without "
              "gate | top-1 with gate | param error (found) | param error (all) | nominal / floor | mistaken for (with "
-             "gate) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "gate) | gap closed vs oracle (all / found) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for e, p in sc["per_effect"].items():
         lines.append(f"| {e} | {p['cases']} | {_f(p['drawn'][0])}-{_f(p['drawn'][1])} | "
                      f"{_f(p.get('measured_threshold')) if p.get('measured_threshold') is not None else 'never'} | "
@@ -595,7 +662,9 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                      f"{_f(p['median_param_error'], True) if e not in PROFILED else 'n/a (profile)'} | "
                      f"{_f(p['median_param_error_all'], True) if e not in PROFILED else 'n/a'} | "
                      f"{_f(p['median_ratio'])} | "
-                     + (", ".join(f"{k} {v}" for k, v in sorted(p["mistaken_for"].items())) or "-") + " |")
+                     + (", ".join(f"{k} {v}" for k, v in sorted(p["mistaken_for"].items())) or "-") + " | "
+                     + (f"{_f(p.get('median_gap_vs_oracle'), True)} / {_f(p.get('median_gap_vs_oracle_found'), True)}"
+                        if p.get("oracle_cases") else "n/a") + " |")
     if settings.get("case_set") == "sweep":
         lines += ["", ladder_markdown(sc["per_effect"])]
     return "\n".join(lines) + "\n"
