@@ -317,6 +317,21 @@ def test_scoring_thresholds_and_delay_vs_lag():
     dl = s["delay_vs_lag"]
     assert dl["named_either"] == 6 and dl["told_apart"] == pytest.approx(4 / 6) and dl["delay_named_lag"] == 2
     assert s["false_alarm_rate"] == pytest.approx(0.5)
+    # thresholds pooled over two calibration runs: the union's cases of an effect, its tail from the top still
+    # >= 95 % found (one run's miss at 0.2 s left it no threshold; with the other's cases it stops at that miss)
+    import json
+    import tempfile
+
+    one = [row("throttle_delay", m, "throttle_delay" if m != 0.2 else G.NONE) for m in (0.05, 0.1, 0.2, 0.3)]
+    two = [row("throttle_delay", m, "throttle_delay") for m in (0.06, 0.12, 0.18, 0.25, 0.29, 0.3)]
+    with tempfile.TemporaryDirectory() as d:
+        paths = []
+        for i, rs in enumerate((one, two)):
+            p = Path(d) / f"{i}.json"
+            p.write_text(json.dumps({"results": rs, **G.score(rs)}))
+            paths.append(str(p))
+        assert G.thresholds_of(paths[0]) == {"throttle_delay": None}
+        assert G.thresholds_of(",".join(paths)) == {"throttle_delay": pytest.approx(0.25)}
     # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
     assert G.plan(30, 4242) == G.plan(50, 4242)[:30]
 

@@ -613,6 +613,7 @@ def _run_commonroad(args, out: Path) -> int:
         doc["settings"]["gate"], doc["settings"]["min_evidence"] = gate, margin
         if args.thresholds_from:
             doc["settings"]["thresholds"] = G.thresholds_of(args.thresholds_from)
+            doc["settings"]["thresholds_from"] = args.thresholds_from
         doc.update(G.score(doc["results"], doc["settings"].get("thresholds")))
         doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"], doc["seconds"])
     else:
@@ -768,7 +769,8 @@ def register(subparsers) -> None:
     p.add_argument("--nominal-effects", default=None, metavar="SPEC",
                    help="commonroad: diagnose --nominal-effects SPEC (e.g. the plant's power limit, power_limit=92021)")
     p.add_argument("--thresholds-from", default=None, metavar="RESULTS_JSON",
-                   help="commonroad: score top-1 above the detection thresholds measured in this (calibration) run")
+                   help="commonroad: score top-1 above the detection thresholds measured in this (calibration) run; "
+                        "several runs separated by commas: their cases pooled per effect")
     p.add_argument("--eiv-check", action="store_true",
                    help="commonroad: the errors-in-variables check instead of the benchmark: the mass offset fitted "
                         "on --cases effect-free logs from logged, noise-free and smoothed states and by output error")

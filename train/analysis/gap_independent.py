@@ -607,13 +607,24 @@ def _oracle_line(s: dict) -> str:
             f"fit (its value estimated) {_f(s['median_own_fit_vs_oracle'], True)}.")
 
 
-def thresholds_of(path) -> dict:
-    """{effect: measured threshold} of a run's results.json (a calibration run)."""
+def thresholds_of(paths) -> dict:
+    """{effect: measured threshold} of one calibration run's results.json, or of several pooled: their cases of
+    each effect together (reliable_threshold over the union), so that one miss on one sweep no longer sets an
+    effect's threshold alone, while a miss that repeats still does. `paths`: a path, or several separated by
+    commas."""
     import json
-    from pathlib import Path
 
-    doc = json.loads(Path(path).read_text())
-    return {e: p.get("measured_threshold") for e, p in doc["per_effect"].items()}
+    if isinstance(paths, (str, Path)):
+        paths = [p for p in str(paths).split(",") if p]
+    docs = [json.loads(Path(p).read_text()) for p in paths]
+    if len(docs) == 1:
+        return {e: p.get("measured_threshold") for e, p in docs[0]["per_effect"].items()}
+    rows: dict = {}
+    for doc in docs:
+        for r in doc["results"]:
+            if r["status"] == "ok" and r["effect"] != NONE:
+                rows.setdefault(r["effect"], []).append(r)
+    return {e: reliable_threshold(rs) for e, rs in rows.items()}
 
 
 def markdown(sc: dict, settings: dict, seconds: float) -> str:
