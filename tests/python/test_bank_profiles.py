@@ -157,6 +157,7 @@ def test_flat_nominal_gets_bank_first_on_the_banked_oval(roll_channel, oval_logs
     d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), candidates=cands, track=t, max_effects=1, hold=True)
     assert d["selected"] == ["bank_from_roll" if roll_channel else "bank_profile"], d["verdict"]
     assert (d["data"]["roll_channel"] is not None) == roll_channel
+    assert "bank_angle" in d["nominal"]["refit_held_by"]     # a profile is a candidate: the family holds the tyre
     true = ds.extras["true_bank"]
     rows = np.flatnonzero(np.abs(true - math.radians(20.0)) < 1e-9)
     assert len(rows) > 300
@@ -182,6 +183,10 @@ def test_a_bank_profile_keeps_the_nominal_tyre(oval_logs):
     f = D.fit(prob, ("bank_angle",))
     assert np.any(f.rho != 0.0)
     assert C.holds_refit(("bank_profile@3", "mass_offset")) and not C.holds_refit(("bank_angle", "grade_profile@1"))
+    # with a profile among the candidates the constant bank holds the tyre too (one footing for the bank family)
+    assert C.holds_refit(("bank_angle",), bank_family=True) and not C.holds_refit(("mass_offset",), bank_family=True)
+    prob.bank_family_held = True
+    assert np.all(D.fit(prob, ("bank_angle",)).rho == 0.0)
 
 
 def test_an_implausible_roll_channel_is_reported_and_not_used(oval_logs):

@@ -295,6 +295,7 @@ class Problem:
         self.refit_idx = [COEFF_NAMES.index(n) for n in self.refit]
         vx = np.abs(ds.states[k, 3])
         self.layout: C.Layout | None = None    # track positions for profile candidates (set by diagnose)
+        self.bank_family_held = False          # the constant bank holds the refit too (candidates.holds_refit)
         self.ctx = {"dt": ds.sample_time, "v_ref": max(float(np.mean(vx)), 1e-3), "mass": float(p.mass),
                     "v_max": max(float(np.max(vx)), 1e-3), "duration": max(float(ds.time[-1] - ds.time[0]), 1.0)}
         res = self.target[self.rows_fit + 1] - self.predict({}, np.zeros(0), self.rows_fit)
@@ -424,7 +425,7 @@ def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, 
     units = np.array([_param_unit(n, prob.ctx) for n in names])
     rlo, rhi = (np.full(len(prob.refit), -0.5), np.full(len(prob.refit), 0.5)) if rho_bounds is None else rho_bounds
     # a bank that follows the turns keeps the nominal's tyre (candidates.HOLDS_REFIT: the two are confounded)
-    held = C.holds_refit(names)
+    held = C.holds_refit(names, prob.bank_family_held)
     nr = 0 if held else len(prob.refit)
     rlo, rhi = list(rlo)[:nr], list(rhi)[:nr]
     lo = np.array([_bounds(n, prob.ctx)[0] for n in names] + rlo)
@@ -720,6 +721,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     C.attach(prob.lm, prob.layout)
     prob.set_evidence(*parse_evidence_spec(evidence))
     candidates = tuple(c for c in candidates if C.available(c, prob.layout))
+    prob.bank_family_held = any(c in C.HOLDS_REFIT for c in candidates)
     v = nominal.vehicle
     steps = max(1, int(round(v.evaluation_horizon / ds.sample_time)))
     starts = _starts(prob, prob.rows_held, steps, max_starts)
@@ -851,6 +853,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "where": w,
         "nominal": {"source": nominal.label, "vehicle": v.name, "method": nominal.method,
                     "substeps": nominal.substeps, "refit_under_every_hypothesis": list(prob.refit),
+                    "refit_held_by": [c for c in candidates if C.holds_refit((c,), prob.bank_family_held)],
                     "command_hold_delay": prob.hold, "hold_estimate": hold_info,
                     "mass_offset_scales_iz": prob.mass_inertia, "steer_servo_tau": prob.steer_servo,
                     "nominal_effects": prob.nominal_effects,
