@@ -115,6 +115,24 @@ def test_training_learns_and_is_deterministic(orca, lap):
     assert c.best_val_loss != a.best_val_loss
 
 
+def test_restarts_keep_the_lowest_validation_loss(orca, lap, tmp_path):
+    """restarts=3 trains seeds 5, 6, 7 and keeps the one that validates best: the same model as that seed's own
+    training, every restart recorded in the checkpoint."""
+    r = _result(lap, orca, seed=5, restarts=3)
+    alone = {s: _result(lap, orca, seed=s) for s in (5, 6, 7)}
+    assert [x["seed"] for x in r.restarts] == [5, 6, 7]
+    assert [x["best_val_loss"] for x in r.restarts] == [alone[s].best_val_loss for s in (5, 6, 7)]
+    kept = min(alone, key=lambda s: alone[s].best_val_loss)
+    assert r.seed == kept and r.best_val_loss == alone[kept].best_val_loss
+    for k, v in r.model.state_dict().items():
+        assert torch.equal(v, alone[kept].model.state_dict()[k]), k
+    ck = checkpoint.make(r, orca, lap.content_hash(), "lap", len(lap))
+    assert ck["training"]["seed"] == kept and len(ck["training"]["restarts"]) == 3
+    assert ck["config"]["seed"] == 5 and ck["config"]["restarts"] == 3
+    with pytest.raises(DdynError, match="restarts"):
+        TrainConfig(restarts=0)
+
+
 def test_dpm_uses_given_inertia_and_trains(orca, lap):
     r = _result(lap, orca, kind="dpm", dpm_iz_scale=1.2)
     assert r.model.iz == pytest.approx(1.2 * orca.true_coefficients["Iz"])

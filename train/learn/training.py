@@ -10,7 +10,7 @@ exact to rounding, and float32 would floor the error above the papers' figures.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import torch
@@ -41,11 +41,13 @@ class TrainConfig:
     lbfgs_iterations: int = 4000     # full-batch L-BFGS iterations after Adam (polishes a near-exact fit)
     dpm_iz_scale: float = 1.0      # DPM only: Iz given as truth times this (1.2, 0.8 for the +-20 % variants)
     dtype: str = "float64"
+    restarts: int = 1              # trainings from seeds seed, seed+1, ...: the lowest validation loss is kept
+                                   # (a bad initialisation's local minimum is caught on the validation part)
 
     def __post_init__(self):
         if self.kind not in ("ddm", "dpm"):
             raise DdynError(f"model kind must be ddm or dpm, got {self.kind!r}")
-        for name in ("tau", "hidden", "layers", "batch_size", "epochs"):
+        for name in ("tau", "hidden", "layers", "batch_size", "epochs", "restarts"):
             if getattr(self, name) < 1:
                 raise DdynError(f"{name} must be at least 1, got {getattr(self, name)}")
 
@@ -58,6 +60,8 @@ class TrainResult:
     history: list[dict]
     best_val_loss: float
     seconds: float
+    restarts: list = field(default_factory=list)   # [{"seed", "best_val_loss", "seconds"}] of every restart
+    seed: int | None = None                         # the seed of the model kept (config.seed without restarts)
 
 
 def _tensor(a, dtype):
@@ -109,7 +113,23 @@ def evaluate_loss(model, w: Windows, scale: torch.Tensor, batch: int = 4096) -> 
 
 def train(ds: Dataset, vehicle: Vehicle, cfg: TrainConfig, progress: bool = True,
           validation: Windows | None = None) -> TrainResult:
-    """Train on ds (split by time into train and validation unless `validation` is given)."""
+    """Train on ds (split by time into train and validation unless `validation` is given); with cfg.restarts > 1,
+    once per seed cfg.seed, cfg.seed + 1, ..., keeping the model with the lowest validation loss (the held-out
+    test part plays no role in the choice). The result's seconds are the total over the restarts."""
+    if cfg.restarts == 1:
+        return _train_once(ds, vehicle, cfg, progress, validation)
+    runs = []
+    for k in range(cfg.restarts):
+        r = _train_once(ds, vehicle, replace(cfg, seed=cfg.seed + k, restarts=1), progress, validation)
+        runs.append(r)
+    best = min(runs, key=lambda r: r.best_val_loss)
+    record = [{"seed": r.config.seed, "best_val_loss": r.best_val_loss, "seconds": r.seconds} for r in runs]
+    return TrainResult(best.model, cfg, best.loss_scale, best.history, best.best_val_loss,
+                       sum(r.seconds for r in runs), record, best.config.seed)
+
+
+def _train_once(ds: Dataset, vehicle: Vehicle, cfg: TrainConfig, progress: bool,
+                validation: Windows | None) -> TrainResult:
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     dtype = getattr(torch, cfg.dtype)

@@ -70,7 +70,8 @@ def _run_model(name: str, train_path: Path, test_path: Path | None, test_ds, cfg
     m = evaluate(model, ckpt, ds)
     plot_evaluation(m, ckpt, out / name)
     result = {"name": name, "kind": cfg.kind, "train_seconds": ckpt["training"]["seconds"],
-              "validation_loss": ckpt["training"]["best_val_loss"], **public(m)}
+              "validation_loss": ckpt["training"]["best_val_loss"], "seed_kept": ckpt["training"]["seed"],
+              "restart_losses": {r["seed"]: r["best_val_loss"] for r in ckpt["training"]["restarts"]}, **public(m)}
     (out / name / "metrics.json").write_text(json.dumps(result, indent=2))
     return result
 
@@ -92,8 +93,9 @@ def run_sim(out: Path, quick: bool = False) -> list[dict]:
     return results
 
 
-def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...] = ()) -> list[dict]:
-    """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run (all if empty)."""
+def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...] = (), restarts: int = 1) -> list[dict]:
+    """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run (all if empty);
+    restarts: TrainConfig.restarts (seeds seed..seed+restarts-1, the lowest validation loss kept)."""
     from ddyn.data.importers import load_any
 
     out.mkdir(parents=True, exist_ok=True)
@@ -105,7 +107,8 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
     unknown = set(only) - {r[0] for r in REAL_RUNS}
     if unknown:
         raise DdynError(f"unknown real run(s) {', '.join(sorted(unknown))}; expected {', '.join(r[0] for r in REAL_RUNS)}")
-    base = TrainConfig(epochs=5, lbfgs_iterations=40, seed=seed) if quick else TrainConfig(seed=seed)
+    base = (TrainConfig(epochs=5, lbfgs_iterations=40, seed=seed, restarts=restarts) if quick
+            else TrainConfig(seed=seed, restarts=restarts))
     results = []
     for name, vehicle_name, label, data_ranges in REAL_RUNS:
         if only and name not in only:
@@ -128,7 +131,9 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
         train_path = out / f"putnam_train_{vehicle_name}.csv"
         write_canonical(train_part, train_path)
         results.append(_run_model(name, train_path, None, test_part, base, out, ranges_file)
-                       | {"label": label + (f" (seed {seed})" if seed else ""), "seed": seed})
+                       | {"label": label + (f" (seed {seed})" if seed and restarts == 1 else "")
+                          + (f" (seeds {seed}-{seed + restarts - 1}, best validation kept)" if restarts > 1 else ""),
+                          "seed": seed, "restarts": restarts})
     return results
 
 
@@ -195,14 +200,15 @@ def update_doc(block: str, doc: Path = STUDY_DOC) -> None:
 def _run(args) -> int:
     out = Path(args.out)
     sim = run_sim(out / "sim", args.quick) if args.which in ("sim", "all") else None
-    real = run_real(out / "real", args.quick, args.seed, tuple(args.only or ())) if args.which in ("real", "all") else None
+    real = (run_real(out / "real", args.quick, args.seed, tuple(args.only or ()), args.restarts)
+            if args.which in ("real", "all") else None)
     results = {"sim": sim, "real": real, "quick": args.quick}
     (out / "results.json").write_text(json.dumps(results, indent=2))
     md = markdown(sim, real)
     (out / "results.md").write_text(md)
     print(md)
     if args.update_doc:
-        if args.quick or args.which != "all" or args.only or args.seed:
+        if args.quick or args.which != "all" or args.only or args.seed or args.restarts != 1:
             raise DdynError("--update-doc needs the full study: `ddyn study ddm all` without --quick")
         update_doc(md)
         print(f"{STUDY_DOC.relative_to(REPO)} results block updated")
@@ -216,6 +222,8 @@ def register(subparsers) -> None:
     p.add_argument("--quick", action="store_true", help="tiny data and training: a smoke run, not the figures")
     p.add_argument("--update-doc", action="store_true", help="write the results table into docs/learning.md")
     p.add_argument("--seed", type=int, default=0, help="training seed of the real runs (default: %(default)s)")
+    p.add_argument("--restarts", type=int, default=1, help="real runs: train seeds SEED..SEED+N-1 and keep the "
+                   "lowest validation loss (TrainConfig.restarts; default: %(default)s)")
     p.add_argument("--only", nargs="+", metavar="RUN", help="real runs to train, by name (default: all): "
                    + ", ".join(r[0] for r in REAL_RUNS))
     p.set_defaults(func=_run)
