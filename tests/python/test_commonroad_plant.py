@@ -333,6 +333,10 @@ def test_scoring_thresholds_and_delay_vs_lag():
             paths.append(str(p))
         assert G.thresholds_of(paths[0]) == {"throttle_delay": None}
         assert G.thresholds_of(",".join(paths)) == {"throttle_delay": pytest.approx(0.25)}
+    # tied magnitudes enter the tail together, whichever order they come in
+    tie = [row("steer_lag", 0.2, "steer_lag"), row("steer_lag", 0.2, "steer_lag"), row("steer_lag", 0.15, "steer_lag"),
+           row("steer_lag", 0.15, G.NONE)]
+    assert G.reliable_threshold(tie) == G.reliable_threshold(tie[::-1]) == pytest.approx(0.2)
     # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
     assert G.plan(30, 4242) == G.plan(50, 4242)[:30]
 

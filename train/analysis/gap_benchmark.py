@@ -611,6 +611,7 @@ def _run_commonroad(args, out: Path) -> int:
         margin = doc["settings"].get("min_evidence", 0.0) if args.min_evidence is None else args.min_evidence
         doc["results"] = G.with_gate(doc["results"], gate, margin)
         doc["settings"]["gate"], doc["settings"]["min_evidence"] = gate, margin
+        doc["settings"]["calibration_seed"] = doc["settings"]["seed"] in G.CALIBRATION_SEEDS   # the list may grow
         if args.thresholds_from:
             doc["settings"]["thresholds"] = G.thresholds_of(args.thresholds_from)
             doc["settings"]["thresholds_from"] = args.thresholds_from
