@@ -15,7 +15,8 @@ A checkpoint is a `torch.save` file of plain containers (loadable with
   loss_scale             per-channel divisors of the loss (vx, vy, omega)
   vehicle                {"name", "sha256", "json"}: the whole vehicle file
   data                   {"train_sha256", "source", "rows", "split"}
-  training               {"seconds", "best_val_loss", "epochs_run", "val_loss_curve", "seed", "restarts"}
+  training               {"seconds", "best_val_loss", "epochs_run", "val_loss_curve", "seed", "restarts",
+                          "validation_saturation"}
   metrics                evaluation results added by `ddyn train` (validation) or later tools
   software               versions of ddyn and torch
 """
@@ -66,7 +67,8 @@ def make(result: TrainResult, vehicle: vehicle_mod.Vehicle, data_hash: str, data
                      "epochs_run": len(result.history),
                      "val_loss_curve": [h["val_loss"] for h in result.history],
                      # TrainConfig.restarts: every restart's seed and validation loss, the kept model's seed
-                     "seed": cfg.seed if result.seed is None else result.seed, "restarts": result.restarts},
+                     "seed": cfg.seed if result.seed is None else result.seed, "restarts": result.restarts,
+                     "validation_saturation": result.validation_saturation},
         "metrics": metrics or {},
         "software": {"torch": str(torch.__version__), "ddyn": _ddyn_version()},
     }

@@ -71,7 +71,7 @@ def _run_model(name: str, train_path: Path, test_path: Path | None, test_ds, cfg
     plot_evaluation(m, ckpt, out / name)
     result = {"name": name, "kind": cfg.kind, "train_seconds": ckpt["training"]["seconds"],
               "validation_loss": ckpt["training"]["best_val_loss"], "seed_kept": ckpt["training"]["seed"],
-              "restart_losses": {r["seed"]: r["best_val_loss"] for r in ckpt["training"]["restarts"]}, **public(m)}
+              "restarts": ckpt["training"]["restarts"], **public(m)}
     (out / name / "metrics.json").write_text(json.dumps(result, indent=2))
     return result
 
