@@ -198,6 +198,10 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     s = G.oracle_summary([row | {"correct": True}, vetoed | {"correct": False}])
     assert s["oracle_cases"] == 2 and s["median_gap_vs_oracle_found"] == pytest.approx(min(o["gap_vs_oracle"], 1.0))
     assert s["median_gap_vs_oracle"] == pytest.approx(0.5 * min(o["gap_vs_oracle"], 1.0))   # a miss closes nothing
+    wrong = row | {"correct": False, "top1": "mass_offset"}     # a wrong effect that lowers the error
+    s = G.oracle_summary([wrong, wrong])
+    assert s["median_gap_vs_oracle"] == pytest.approx(min(o["gap_vs_oracle"], 1.0))
+    assert s["median_gap_vs_oracle_strict"] == 0.0
 
 
 def test_study_gap_commonroad_cli(tmp_path, monkeypatch):
