@@ -26,10 +26,9 @@ from ddyn.data.dataset import Dataset
 from ddyn.data.windows import TARGET_NAMES, make_windows, valid_end_rows
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
+from ddyn.learn.networks import SATURATION_TOL
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
-
-SATURATION_TOL = 0.01
 
 
 def _t(a, dtype):

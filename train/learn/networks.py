@@ -22,6 +22,9 @@ from ddyn.model import integrators, mathns
 from ddyn.model.backends import step_torch
 from ddyn.model.single_track import KnownParams, pacejka, rigid_body, slip_angles
 
+# a coefficient within this share of its range's width from a guard bound counts as at the bound (saturated)
+SATURATION_TOL = 0.01
+
 DPM_OUTPUTS = ("Bf", "Cf", "Df", "Ef", "Br", "Cr", "Dr", "Er", "Frx")
 
 

@@ -19,7 +19,8 @@ from tqdm import tqdm
 from ddyn.data.dataset import Dataset
 from ddyn.data.windows import Windows, split_train_validation
 from ddyn.errors import DdynError
-from ddyn.learn.networks import DPM_OUTPUTS, DeepDynamics, DeepPacejka
+from ddyn.learn.networks import DPM_OUTPUTS, SATURATION_TOL, DeepDynamics, DeepPacejka
+from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
 
 
@@ -148,10 +149,8 @@ def validation_saturation(model: torch.nn.Module, va: Windows) -> dict | None:
     saturation figure of ddyn evaluate), and that share; None for a model without a guard (DPM)."""
     if not hasattr(model, "lo"):
         return None
-    from ddyn.learn.evaluate import SATURATION_TOL, predict
-    from ddyn.model.single_track import COEFF_NAMES
-
-    _, c = predict(model, va.history, va.state, va.inputs)
+    with torch.no_grad():
+        c = model.coefficients(_tensor(va.history, model.lo.dtype)).numpy()
     lo, hi = model.lo.numpy(), model.hi.numpy()
     tol = SATURATION_TOL * (hi - lo)
     share = np.mean((c <= lo + tol) | (c >= hi - tol), axis=0)
