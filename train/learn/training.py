@@ -42,8 +42,8 @@ class TrainConfig:
     lbfgs_iterations: int = 4000     # full-batch L-BFGS iterations after Adam (polishes a near-exact fit)
     dpm_iz_scale: float = 1.0      # DPM only: Iz given as truth times this (1.2, 0.8 for the +-20 % variants)
     dtype: str = "float64"
-    restarts: int = 1              # trainings from seeds seed, seed+1, ...: the lowest validation loss among
-                                   # those whose guard is not pinned on the validation part is kept (train())
+    restarts: int = 1              # trainings from seeds seed, seed+1, ...: the lowest validation loss is kept
+                                   # (a bad initialisation's local minimum is caught on the validation part)
 
     def __post_init__(self):
         if self.kind not in ("ddm", "dpm"):
@@ -66,10 +66,6 @@ class TrainResult:
     # DDM: the coefficient most often at a guard bound on the validation windows {"coefficient", "share"}
     validation_saturation: dict | None = None
 
-
-# restarts: a model with a coefficient at a guard bound in more of the validation samples than this is kept only
-# when every restart is (the issue's real-data target: no coefficient at a bound in over 5 % of the samples)
-RESTART_SATURATION_LIMIT = 0.05
 
 
 def _tensor(a, dtype):
@@ -122,24 +118,18 @@ def evaluate_loss(model, w: Windows, scale: torch.Tensor, batch: int = 4096) -> 
 def train(ds: Dataset, vehicle: Vehicle, cfg: TrainConfig, progress: bool = True,
           validation: Windows | None = None) -> TrainResult:
     """Train on ds (split by time into train and validation unless `validation` is given); with cfg.restarts > 1,
-    once per seed cfg.seed, cfg.seed + 1, ..., keeping the model with the lowest validation loss among those
-    whose Physics Guard holds no coefficient at a bound in over RESTART_SATURATION_LIMIT of the validation
-    samples (all of them if none is that free). A coefficient pinned at its bound is physics the model no longer
-    explains; of equally good fits the one that keeps its coefficients inside their ranges is the physical one.
-    Only the validation part (inside the training data) decides: a held-out test part plays no role. The
-    result's seconds are the total over the restarts."""
+    once per seed cfg.seed, cfg.seed + 1, ..., keeping the model with the lowest validation loss (only the
+    validation part, inside the training data, decides: a held-out test part plays no role). Each restart's
+    guard saturation on the validation part is recorded beside its loss; it is not a selection criterion: on the
+    real Putnam log every restart had Gf or Kf at a bound in 20-28 % of the validation samples whatever its
+    held-out saturation (0.5-35 %; docs/learning.md). The result's seconds are the total over the restarts."""
     if cfg.restarts == 1:
         return _train_once(ds, vehicle, cfg, progress, validation)
     runs = [_train_once(ds, vehicle, replace(cfg, seed=cfg.seed + k, restarts=1), progress, validation)
             for k in range(cfg.restarts)]
-
-    def pinned(r: TrainResult) -> bool:
-        return r.validation_saturation is not None and r.validation_saturation["share"] > RESTART_SATURATION_LIMIT
-
-    free = [r for r in runs if not pinned(r)] or runs
-    best = min(free, key=lambda r: r.best_val_loss)
+    best = min(runs, key=lambda r: r.best_val_loss)
     record = [{"seed": r.config.seed, "best_val_loss": r.best_val_loss, "seconds": r.seconds,
-               "validation_saturation": r.validation_saturation, "pinned": pinned(r)} for r in runs]
+               "validation_saturation": r.validation_saturation} for r in runs]
     return TrainResult(best.model, cfg, best.loss_scale, best.history, best.best_val_loss,
                        sum(r.seconds for r in runs), record, best.config.seed, best.validation_saturation)
 
