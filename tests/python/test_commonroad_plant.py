@@ -176,7 +176,7 @@ def test_diagnose_gate_vetoes_a_selection_inside_the_noise():
     assert shut["model"]["error_reduction_pct"] < open_["model"]["error_reduction_pct"]
 
 
-def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_value():
+def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_value(monkeypatch):
     """diagnose(truth=...) scores the model given the hidden effect at its true value (the refit around it); on a
     log with a clear steering delay the oracle closes a real gap, a far-off value does worse, and the diagnosis
     that finds the delay closes most of the oracle's gap, a vetoed one none of it."""
@@ -189,6 +189,13 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     assert d["selected"] == ["steer_delay"] and d["truth"]["delta_bic"] < 0
     o = G.oracle_figures(d, case)
     assert o["e_oracle"] < o["e_refit"] and 0.8 < o["gap_vs_oracle"] < 1.2 and 0.8 < o["own_fit_vs_oracle"] < 1.2
+    # the runner-up is far behind: no rival; with an ambiguity band wider than their gap it is named in the verdict
+    assert d["rival"] is None and "not told apart" not in d["verdict"]
+    gap = d["candidates"][1]["delta_bic"] - d["candidates"][0]["delta_bic"]
+    monkeypatch.setattr(D, "AMBIGUITY_DBIC", gap + 1.0)
+    tie = D.diagnose(ds, nominal, **kw)
+    assert tie["selected"] == ["steer_delay"] and tie["rival"]["effect"] == "mass_offset"
+    assert tie["rival"]["evidence_difference"] == pytest.approx(gap) and "or mass_offset" in tie["verdict"]
     far = G.oracle_figures(D.diagnose(ds, nominal, truth={"steer_delay": 0.3}, **kw), case)
     assert far["e_oracle"] > o["e_oracle"]
     row = {"status": "ok", "effect": "steer_delay", "selected_without_gate": ["steer_delay"], "gate_ratio": 1.0,
@@ -321,6 +328,12 @@ def test_scoring_thresholds_and_delay_vs_lag():
     assert "| steer_delay | 0.06 | 0.1 -> OK" in G.ladder_markdown(sc["per_effect"])
     dl = s["delay_vs_lag"]
     assert dl["named_either"] == 6 and dl["told_apart"] == pytest.approx(4 / 6) and dl["delay_named_lag"] == 2
+    assert dl["flagged_not_told_apart"] is None      # runs recorded before the rival was: no claim either way
+    # the two delays named lag flagged with the other as rival: where the diagnosis claims a choice, it is right
+    for r in rows:
+        r["rival"] = "steer_delay" if r["effect"] == "steer_delay" and r["top1"] == "steer_lag" else None
+    dl = G.delay_vs_lag(rows)
+    assert dl["flagged_not_told_apart"] == 2 and dl["told_apart_where_claimed"] == pytest.approx(1.0)
     assert s["false_alarm_rate"] == pytest.approx(0.5)
     # thresholds pooled over two calibration runs: the union's cases of an effect, its tail from the top still
     # >= 95 % found (one run's miss at 0.2 s left it no threshold; with the other's cases it stops at that miss)

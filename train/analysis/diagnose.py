@@ -33,6 +33,10 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
                   explained by the effect library" when the best candidate pays for itself only from an edge
                   of its search range (such an estimate is a bound, never the verdict)
   unexplained     that candidate {effect, params, delta_bic}, or None
+  rival           the runner-up of the first effect's round (another family) when its dBIC is within
+                  AMBIGUITY_DBIC of the first's: {effect, params, delta_bic, evidence_difference}, else None
+                  (the verdict then says the two are not told apart)
+  truth           with diagnose(truth=...) (benchmarks): that hypothesis's held-out scores, else None
   candidates      best first (by dBIC), one per effect tried alone against the refitted nominal:
                   effect, params {name: value}, uncertainty {name: std}, unit, at_bound (the estimate sits
                   on an edge of its search range), refit {coefficient: factor},
@@ -89,6 +93,11 @@ NO_GAP_GATE: float | None = None
 # plant the nominal's own structural mismatch makes spurious effects pay for themselves by a few to a few tens of
 # dBIC; the margin is calibrated like the gate (docs/gap_independent.md) and stays 0 by default.
 MIN_EVIDENCE = 0.0
+# The first effect added and the runner-up of its round with evidence closer than this (dBIC) are not told apart
+# by the data: "not worth more than a bare mention" on Kass & Raftery's scale of BIC differences, a textbook
+# constant, not tuned here. The diagnosis still adds the first (the selection is unchanged) and names the other
+# as its rival, so a report never states a choice the held-out data cannot make (docs/gap_independent.md).
+AMBIGUITY_DBIC = 2.0
 # What the fit compares (errors in variables, ddyn.analysis.eiv): "one-step" the step from the logged state,
 # "smoothed" the step from a local polynomial estimate of the state that leaves out the sample being predicted,
 # "output-error" OE_STEPS-step rollouts from the logged states. Held-out scores are one-step in every mode.
@@ -813,6 +822,13 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     for c in first:
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
+    # the first effect's rival: the runner-up of round 1 within AMBIGUITY_DBIC of it (another family)
+    rival = None
+    if selected and len(first) > 1 and first[0]["effect"] == selected[0]:
+        r = next((c for c in first[1:] if C.FAMILY[c["effect"]] != C.FAMILY[selected[0]]), None)
+        if r is not None and r["delta_bic"] - first[0]["delta_bic"] < AMBIGUITY_DBIC:
+            rival = {"effect": r["effect"], "params": r["params"], "delta_bic": r["delta_bic"],
+                     "evidence_difference": r["delta_bic"] - first[0]["delta_bic"]}
     truth_info = None
     if truth:
         tf = fit(prob, (), start_rho=base_fit.rho, fixed=dict(truth))
@@ -842,9 +858,12 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                               f"+- {next(iter(e['uncertainty'].values())):.2g} {e['unit']}"
                               + (" (AT THE EDGE of its range: a stand-in for another mismatch, not an estimate)"
                                  if e["at_bound"] else "") for e in final["effects"])
+                    + (f" (or {rival['effect']}: its held-out evidence is within {rival['evidence_difference']:.1f} "
+                       f"dBIC of the first effect's, < {AMBIGUITY_DBIC:g}: not told apart)" if rival else "")
                     + (f"; the rest is not explained by the effect library ({_unexplained_verdict(unexplained)[5:]})"
                        if selected and unexplained else "")),
         "unexplained": unexplained,
+        "rival": rival,
         "candidates": first,
         "model": final,
         "greedy": steps_log,

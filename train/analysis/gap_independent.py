@@ -237,6 +237,7 @@ def run_case(case: dict) -> dict:
         "delta_bic_top": first["delta_bic"], "top_candidate": first["effect"], "at_bound_top": first["at_bound"],
         "delta_bic_top_one_step": first.get("delta_bic_one_step"),
         "unexplained": diag.get("unexplained"), **oracle_figures(diag, case),
+        "rival": (diag.get("rival") or {}).get("effect"),
         "rmse_over_noise_floor": diag["where"]["rmse_over_noise_floor"], "diagnose_seconds": seconds,
     }
 
@@ -498,11 +499,17 @@ def oracle_summary(rows: list[dict]) -> dict:
 
 def delay_vs_lag(rows: list[dict]) -> dict:
     """Steering delay and steering lag told apart: of the cases with either hidden whose top-1 is either, the
-    share naming the right one; plus how often each was named the other."""
+    share naming the right one; plus how often each was named the other. Also the same where the diagnosis
+    claims to tell them apart: without the other as its rival (diagnose.AMBIGUITY_DBIC), and how many it flags."""
     dl = [r for r in rows if r["effect"] in DELAY_LAG]
     named = [r for r in dl if r["top1"] in DELAY_LAG]
+    flagged = [r for r in named if r.get("rival") in DELAY_LAG]
+    claimed = [r for r in named if r not in flagged]
     return {"cases": len(dl), "named_either": len(named),
             "told_apart": float(np.mean([r["correct"] for r in named])) if named else None,
+            "flagged_not_told_apart": len(flagged) if any("rival" in r for r in named) else None,
+            "told_apart_where_claimed": (float(np.mean([r["correct"] for r in claimed]))
+                                         if claimed and any("rival" in r for r in named) else None),
             "delay_named_lag": sum(r["effect"] == "steer_delay" and r["top1"] == "steer_lag" for r in dl),
             "lag_named_delay": sum(r["effect"] == "steer_lag" and r["top1"] == "steer_delay" for r in dl)}
 
@@ -590,7 +597,10 @@ def _f(x, pct=False) -> str:
 def _delay_lag_line(d: dict) -> str:
     return (f"Steering delay vs lag: of {d['cases']} cases with either hidden, {d['named_either']} were named one of "
             f"the two, the right one in {_f(d['told_apart'], True)}; delay named lag {d['delay_named_lag']}, lag "
-            f"named delay {d['lag_named_delay']}.")
+            f"named delay {d['lag_named_delay']}."
+            + (f" The diagnosis flagged {d['flagged_not_told_apart']} of them as not told apart (the other within "
+               f"{D.AMBIGUITY_DBIC:g} dBIC); where it did not, the right one in "
+               f"{_f(d['told_apart_where_claimed'], True)}." if d.get("flagged_not_told_apart") is not None else ""))
 
 
 def _threshold_line(s: dict, per: dict) -> str:
