@@ -166,7 +166,8 @@ def test_cli_train_and_evaluate(lap, tmp_path, capsys):
     data = write_canonical(lap, tmp_path / "lap.csv")
     ck = tmp_path / "m.ckpt"
     assert cli_main(["train", "--data", str(data), "-o", str(ck), "--quiet", "--epochs", "2",
-                     "--lbfgs-iterations", "0", "--hidden", "8"]) == 0
+                     "--lbfgs-iterations", "0", "--hidden", "8", "--restarts", "2"]) == 0
+    assert "restarts: kept seed" in capsys.readouterr().out
     assert cli_main(["evaluate", "--model", str(ck), "--data", str(data), "--out", str(tmp_path / "ev")]) == 0
     out = capsys.readouterr().out
     assert "one-step RMSE" in out and "ADE" in out

@@ -43,6 +43,9 @@ def _run(args) -> int:
                                ranges_file=args.ranges)
     t = ckpt["training"]
     print(f"trained {cfg.kind} in {t['seconds']:.1f} s, best validation loss {t['best_val_loss']:.4e}")
+    if t.get("restarts"):
+        print(f"restarts: kept seed {t['seed']} of " + ", ".join(
+            f"{r['seed']} ({r['best_val_loss']:.4e})" for r in t["restarts"]))
     if ckpt["ranges"] is not None:
         print(describe(ckpt["ranges"].get("source")))
     print("validation: " + format_summary(ckpt["metrics"]["validation"]))
