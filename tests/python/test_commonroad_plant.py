@@ -15,6 +15,7 @@ from ddyn.analysis import diagnose as D  # noqa: E402
 from ddyn.analysis import gap_independent as G  # noqa: E402
 from ddyn.data import commonroad_plant as CP  # noqa: E402
 from ddyn.data.dataset import COLUMNS  # noqa: E402
+from ddyn.errors import DdynError  # noqa: E402
 from ddyn.model import backends  # noqa: E402
 from ddyn.model.vehicle import load as load_vehicle  # noqa: E402
 
@@ -237,7 +238,6 @@ def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
     import json
 
     from ddyn.cli import main
-    from ddyn.errors import DdynError
 
     monkeypatch.setattr(G, "DURATION", 24.0)
     out = tmp_path / "gap"
@@ -395,6 +395,18 @@ def test_the_mixed_fit_takes_the_steering_delay_one_step_and_refits_the_rest_by_
     assert not mixed.one_step_now
     # without a steering delay the mixed fit is the output-error fit
     assert np.allclose(D.fit(mixed, ("mass_offset",)).rho, D.fit(oe, ("mass_offset",)).rho)
+    # mixed:downforce takes downforce one-step instead, and the steering delay by output error
+    md = prob("mixed:downforce")
+    assert md.fit_mode == "mixed" and md.one_step_in_mixed == ("downforce",)
+    fd = D.fit(md, ("downforce",))
+    assert fd.values["downforce"] == pytest.approx(D.fit(one, ("downforce",)).values["downforce"])
+    assert np.allclose(D.fit(md, ("steer_delay",), scan="steer_delay").rho,
+                       D.fit(oe, ("steer_delay",), scan="steer_delay").rho)
+    assert D.parse_fit_spec("mixed") == ("mixed", ("steer_delay",))
+    assert D.parse_fit_spec("mixed:downforce,steer_delay") == ("mixed", ("downforce", "steer_delay"))
+    for bad in ("mixed:wings", "output-error:downforce", "rollout"):
+        with pytest.raises(DdynError, match="fit"):
+            D.parse_fit_spec(bad)
 
 
 def test_cost_minima_find_a_hidden_steering_delay_one_step(monkeypatch):

@@ -106,6 +106,9 @@ AMBIGUITY_DBIC = 2.0
 # over the steering delay lies up to 0.08 s off the truth while the one-step cost's lies within 0.012 s
 # (docs/gap_independent.md, the threshold sweep), and the refit by output error keeps every hypothesis on the
 # footing of the nominal's output-error refit.
+# "mixed:EFFECT,...": the same with those effects' values fitted one-step (downforce: on the calibration sweeps'
+# logs its output-error fit drags the refit factors to their bounds and lands 2-10x off, the one-step fit a
+# median 17-33 % off; docs/gap_independent.md).
 FIT_MODES = ("one-step", "smoothed", "output-error", "mixed")
 ONE_STEP_IN_MIXED = ("steer_delay",)
 DEFAULT_FIT = "one-step"
@@ -141,6 +144,21 @@ class Nominal:
     method: str
     substeps: int
     label: str
+
+
+def parse_fit_spec(text: str | None) -> tuple[str, tuple[str, ...]]:
+    """(fit mode, effects fitted one-step in "mixed") of a --fit spec: a FIT_MODES name, or "mixed:EFFECT,..."."""
+    text = (text or DEFAULT_FIT).strip()
+    mode, _, rest = text.partition(":")
+    if mode not in FIT_MODES or (rest and mode != "mixed"):
+        raise DdynError(f"unknown fit {text!r}; expected {', '.join(FIT_MODES)} or mixed:EFFECT,...")
+    if mode != "mixed":
+        return mode, ()
+    effects = tuple(e.strip() for e in rest.split(",") if e.strip()) if rest else ONE_STEP_IN_MIXED
+    bad = [e for e in effects if e not in C.ALL]
+    if bad or not effects:
+        raise DdynError(f"--fit {text}: unknown effect(s) {', '.join(bad) or '(none given)'}")
+    return mode, effects
 
 
 def parse_evidence_spec(text: str | None) -> tuple[int, bool]:
@@ -267,9 +285,8 @@ class Problem:
         self.nominal_effects = dict(nominal_effects or {})
         if self.steer_servo:
             self.nominal_effects.setdefault("steer_lag", self.steer_servo)
-        if fit_mode not in FIT_MODES:
-            raise DdynError(f"unknown fit {fit_mode!r}; expected {', '.join(FIT_MODES)}")
-        self.fit_mode = fit_mode
+        # "mixed:EFFECT,...": which effects' values are fitted one-step (parse_fit_spec)
+        self.fit_mode, self.one_step_in_mixed = parse_fit_spec(fit_mode)
         # commands held between samples (a drive-by-wire unit) while the model ramps them: on average the held
         # command lags the ramp by half a sample, so every hypothesis gets that delay on both commands and the
         # delay candidates estimate what comes on top of the hold
@@ -281,7 +298,7 @@ class Problem:
         # the fit's predictor (fit_residuals); held-out scores, the noise floor and "where" stay one-step from
         # the logged states whatever the fit, so that every fit mode is judged by the same yardstick
         self.lm_fit = self.lm
-        if fit_mode == "smoothed":
+        if self.fit_mode == "smoothed":
             # errors in variables (ddyn.analysis.eiv): every step starts from a local polynomial estimate of the
             # state that leaves out the sample it predicts; the targets stay the measurements
             sm, _ = eiv.smooth_states(ds.states, ds.segment)
@@ -418,9 +435,9 @@ def fit(prob: Problem, names: tuple, start: dict | None = None, start_rho=None, 
     names = tuple(names)
     start = dict(start or {})
     fixed = dict(fixed or {})
-    one_step = [n for n in names if n in ONE_STEP_IN_MIXED]
+    one_step = [n for n in names if n in prob.one_step_in_mixed]
     if prob.fit_mode == "mixed" and one_step and not prob.one_step_now:
-        # the steering delay's value from the one-step cost, then everything else by output error around it
+        # those effects' values from the one-step cost, then everything else by output error around them
         prob.one_step_now = True
         try:
             f1 = fit(prob, names, start, start_rho, scan, rho_bounds, fixed)
@@ -887,9 +904,10 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                                        f"estimate of (vx, vy, omega) (+-{eiv.HALF_WIDTH} samples; errors in variables)",
                            "output-error": f"as one-step, on the (vx, vy, omega) of {OE_STEPS}-step rollouts from each "
                                            "fit row",
-                           "mixed": "as output-error, except a steering delay: its value fitted one-step, then held "
-                                    "while the rest is fitted by output error"}[fit_mode],
-                   "fit_mode": fit_mode,
+                           "mixed": f"as output-error, except {', '.join(prob.one_step_in_mixed)}: its value fitted "
+                                    "one-step, then held while the rest is fitted by output error"}[prob.fit_mode],
+                   "fit_mode": prob.fit_mode if prob.fit_mode != "mixed" else
+                   "mixed:" + ",".join(prob.one_step_in_mixed),
                    "criterion": "held-out extended BIC: dBIC = -2 dLL + dk ln(n_heldout) + 2 ln(candidates in the "
                                 "round) < 0, greedy",
                    "evidence": (f"{prob.evidence_name}: dLL of {prob.ev_steps}-step open-loop rollouts from "
@@ -1104,6 +1122,17 @@ def _track(name: str | None, ds: Dataset):
         return None
 
 
+def fit_spec_arg(text: str) -> str:
+    """argparse type of --fit: the spec as given, checked (parse_fit_spec)."""
+    import argparse
+
+    try:
+        parse_fit_spec(text)
+    except DdynError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return text
+
+
 def _hold_arg(text: str):
     if text != "estimate":
         raise argparse.ArgumentTypeError("--hold takes no value or 'estimate'")
@@ -1197,10 +1226,11 @@ def register(subparsers) -> None:
     p.add_argument("--nominal-effects", default=None, metavar="SPEC",
                    help="effects the nominal itself has, e.g. a data sheet's 'power_limit=92000' (main parameters, "
                         "key=value); a hypothesis of the same effect replaces the value")
-    p.add_argument("--fit", choices=FIT_MODES, default=None,
+    p.add_argument("--fit", type=fit_spec_arg, default=None, metavar="|".join(FIT_MODES) + "[:EFFECTS]",
                    help=f"what the fit compares (default {DEFAULT_FIT}): one-step predictions from the logged states, "
                         "from smoothed states (errors in variables), or output-error rollouts of "
-                        f"{OE_STEPS} steps, or mixed (output error, a steering delay's value fitted one-step); "
+                        f"{OE_STEPS} steps, or mixed (output error, a steering delay's value fitted one-step; "
+                        "mixed:EFFECT,... those effects' values, e.g. mixed:downforce); "
                         "held-out scores are one-step in every mode unless --evidence says otherwise")
     p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
                    help=f"add an effect only when its dBIC < -DBIC (default {MIN_EVIDENCE:g}: the plain rule)")

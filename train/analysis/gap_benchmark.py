@@ -756,8 +756,8 @@ def register(subparsers) -> None:
                    help="commonroad: the evidence margin for this run or --rescore (default diagnose's)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
-    p.add_argument("--fit", choices=D.FIT_MODES, default=None,
-                   help=f"commonroad: the diagnosis's fit (diagnose --fit; default {D.DEFAULT_FIT})")
+    p.add_argument("--fit", type=D.fit_spec_arg, default=None,
+                   help=f"commonroad: the diagnosis's fit (diagnose --fit, e.g. mixed:downforce; default {D.DEFAULT_FIT})")
     p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]|endpoint[:N]",
                    help="commonroad: the diagnosis's held-out evidence (diagnose --evidence; default one-step)")
     p.add_argument("--effects", default=None, metavar="LIST",

@@ -735,6 +735,7 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
         raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
     if evidence is not None:
         D.parse_evidence_spec(evidence)  # a bad spec fails here, not in every worker
+    D.parse_fit_spec(fit)
     if effects is not None:
         bad = [e for e in effects if e not in EFFECT_RANGES and e != NONE]
         if bad:
