@@ -107,8 +107,8 @@ AMBIGUITY_DBIC = 2.0
 # (docs/gap_independent.md, the threshold sweep), and the refit by output error keeps every hypothesis on the
 # footing of the nominal's output-error refit.
 # "mixed:EFFECT,...": the same with those effects' values fitted one-step (downforce: on the calibration sweeps'
-# logs its output-error fit drags the refit factors to their bounds and lands 2-10x off, the one-step fit a
-# median 17-33 % off; docs/gap_independent.md).
+# 16 downforce logs its output-error estimate is a median 100 % and 71 % off (seeds 11, 13: zero, or several
+# times the truth), the one-step estimate 33 % and 18 %; docs/gap_independent.md).
 FIT_MODES = ("one-step", "smoothed", "output-error", "mixed")
 ONE_STEP_IN_MIXED = ("steer_delay",)
 DEFAULT_FIT = "one-step"
