@@ -726,7 +726,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
              truth: dict | None = None) -> dict:
     """truth: {effect: value} a benchmark knows the log holds; its held-out error at exactly that value (the
     refit factors fitted around it, as under every hypothesis) is reported as `truth` (the oracle the
-    diagnosis's gap closed is compared with). evidence: what the held-out score compares (EVIDENCE_MODES: "one-step" by default, "multistep[:N]").
+    diagnosis's gap closed is compared with). evidence: what the held-out score compares (EVIDENCE_MODES:
+    "one-step" by default, "multistep[:N]").
     gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
     between samples (drive-by-wire), not ramped as the model integrates them (see Problem). min_evidence: an
     effect is added only when its dBIC < -min_evidence (default MIN_EVIDENCE). fit_mode: what the fit compares

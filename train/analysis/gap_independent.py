@@ -620,7 +620,8 @@ def _oracle_line(s: dict) -> str:
         return "Gap closed against the oracle: no case with an oracle (ORACLE_EFFECTS)."
     return (f"Gap closed against the oracle (the model given the hidden effect at its true value; "
             f"{s['oracle_cases']} cases of {', '.join(ORACLE_EFFECTS)}; the oracle does not improve on the refitted "
-            f"nominal in {s['oracle_no_gain']}, pays on the held-out part in {s['oracle_pays']}; each case capped at 100 %): "
+            f"nominal in {s['oracle_no_gain']}, pays on the held-out part in {s['oracle_pays']}; each case capped at "
+            f"100 %): "
             f"median {_f(s['median_gap_vs_oracle'], True)} over every case with a gain (a miss closes nothing; "
             f"uncapped {_f(s.get('median_gap_vs_oracle_uncapped'), True)}; counting only a right top-1 "
             f"{_f(s.get('median_gap_vs_oracle_strict'), True)}), "
@@ -631,8 +632,8 @@ def _oracle_line(s: dict) -> str:
 
 def thresholds_of(paths) -> dict:
     """{effect: measured threshold} of one calibration run's results.json, or of several pooled: their cases of
-    each effect together (reliable_threshold over the union), so that one miss on one sweep no longer sets an
-    effect's threshold alone, while a miss that repeats still does. `paths`: a path, or several separated by
+    each effect together (reliable_threshold over the union: more cases per magnitude, but a miss on either
+    still ends the tail unless enough found cases lie above it). `paths`: a path, or several separated by
     commas."""
     import json
 

@@ -67,7 +67,6 @@ class TrainResult:
     validation_saturation: dict | None = None
 
 
-
 def _tensor(a, dtype):
     return torch.as_tensor(np.asarray(a), dtype=dtype)
 
@@ -121,8 +120,8 @@ def train(ds: Dataset, vehicle: Vehicle, cfg: TrainConfig, progress: bool = True
     once per seed cfg.seed, cfg.seed + 1, ..., keeping the model with the lowest validation loss (only the
     validation part, inside the training data, decides: a held-out test part plays no role). Each restart's
     guard saturation on the validation part is recorded beside its loss; it is not a selection criterion: on the
-    real Putnam log every restart had Gf or Kf at a bound in 20-28 % of the validation samples whatever its
-    held-out saturation (0.5-35 %; docs/learning.md). The result's seconds are the total over the restarts."""
+    real Putnam log every restart measured had Gf or Kf at a bound in 20-29 % of the validation samples whatever
+    its held-out saturation (0.2-35 %; docs/learning.md). The result's seconds are the total over the restarts."""
     if cfg.restarts == 1:
         return _train_once(ds, vehicle, cfg, progress, validation)
     runs = [_train_once(ds, vehicle, replace(cfg, seed=cfg.seed + k, restarts=1), progress, validation)
