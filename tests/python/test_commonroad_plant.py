@@ -378,6 +378,18 @@ def test_the_threshold_sweep_draws_every_effect_over_its_range_largest_first():
     assert G.plan_sweep(16, 11) == G.plan_sweep(24, 11)[:16]
 
 
+def test_the_above_threshold_plan_draws_only_between_the_thresholds_and_the_range_tops():
+    thr = {"steer_delay": 0.0557, "throttle_delay": 0.232, "steer_lag": 0.2, "mass_offset": None, "downforce": 4e-4}
+    cases = G.plan_above(40, 5, thr)
+    assert {c["effect"] for c in cases} == {"steer_delay", "throttle_delay", "steer_lag", "downforce"}
+    for c in cases:
+        assert thr[c["effect"]] - 1e-12 <= abs(c["magnitude"]) <= G.EFFECT_RANGES[c["effect"]][1] + 1e-12
+    assert len({c["seed"] for c in cases}) == 40 and not {c["seed"] for c in cases} & {c["seed"] for c in G.plan(40, 5)}
+    assert G.plan_above(40, 5, thr) == cases
+    with pytest.raises(DdynError, match="thresholds"):
+        G.plan_above(4, 5, {"mass_offset": None})
+
+
 def test_the_mixed_fit_takes_the_steering_delay_one_step_and_refits_the_rest_by_output_error():
     """--fit mixed: a steering delay's value is the one-step fit's; the refit factors are then fitted by output
     error with that value held (so they match an output-error fit given the delay), and nothing else changes."""

@@ -589,7 +589,7 @@ def _run_commonroad(args, out: Path) -> int:
                                           or args.steer_servo or args.nominal_effects):
         raise DdynError("--plant commonroad-mb: the Putnam cases only (--case-set, --eiv-check, --mass-check, "
                         "--mass-inertia, --steer-servo and --nominal-effects are the single-track plant's)")
-    if getattr(args, "case_set", "putnam") not in ("putnam", "sweep"):
+    if getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above"):
         return _run_case_set(args, out)
     if args.eiv_check:
         return _write_check(out / "eiv.json", G.eiv_check(args.cases or 10, G.EIV_SEED if args.seed is None
@@ -741,9 +741,11 @@ def register(subparsers) -> None:
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the cases on this Dask distributed scheduler (e.g. tcp://HOST:8786; its workers need "
                         "this package installed) instead of local processes; --jobs is then ignored")
-    p.add_argument("--case-set", choices=("putnam", "sweep", "oval", "drivetrain"), default="putnam",
+    p.add_argument("--case-set", choices=("putnam", "sweep", "above", "oval", "drivetrain"), default="putnam",
                    help="commonroad: putnam (default: every effect on the road course), sweep (Putnam, one effect "
-                        "per log at SWEEP_LEVELS magnitudes over its range: measures the detection thresholds), oval (the banked oval: bank "
+                        "per log at SWEEP_LEVELS magnitudes over its range: measures the detection thresholds), above "
+                        "(Putnam, only effects with a threshold, drawn between it and the top of the range; needs "
+                        "--thresholds-from), oval (the banked oval: bank "
                         "profile from a flat-road nominal) or drivetrain (throttle map, brake gain, power limit); "
                         "docs/gap_independent.md")
     p.add_argument("--nominal", choices=("mapped", "identified"), default="mapped",

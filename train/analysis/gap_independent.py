@@ -121,6 +121,28 @@ def plan_sweep(n: int, seed: int, levels: int = SWEEP_LEVELS) -> list[dict]:
     return cases
 
 
+def plan_above(n: int, seed: int, thresholds: dict) -> list[dict]:
+    """`--case-set above`: only the effects with a measured threshold, each log's magnitude log-uniform between
+    its threshold and the top of its range (random sign where SIGNED), so that the target "top-1 >= 95 % above
+    the measured thresholds" is scored on more than the few logs a mixed plan puts there. Effects cycled; start,
+    speed and grade phase drawn as in plan(). Case seeds 2000 + 100000 seed + case (plan() uses 1000 + ...)."""
+    effects = tuple(e for e in EFFECT_RANGES if thresholds.get(e) is not None)
+    if not effects:
+        raise DdynError("--case-set above needs measured thresholds (--thresholds-from a calibration sweep)")
+    rng = np.random.default_rng([seed, 4])
+    cases = []
+    for i in range(n):
+        eff = effects[i % len(effects)]
+        lo, hi = float(thresholds[eff]), EFFECT_RANGES[eff][1]
+        mag = math.exp(rng.uniform(math.log(lo), math.log(max(hi, lo))))
+        if eff in SIGNED and rng.uniform() < 0.5:
+            mag = -mag
+        cases.append({"case": i, "effect": eff, "magnitude": mag, "seed": int(2000 + seed * 100000 + i),
+                      "start_fraction": float(rng.uniform()), "target_speed": float(rng.uniform(*SPEEDS)),
+                      "grade_phase": float(rng.uniform(0, 2 * math.pi))})
+    return cases
+
+
 def identified_coefficients(hold: bool = False, vehicle_file=None, make_ident_log=None,
                             seed: int = IDENT_SEED) -> tuple[np.ndarray, dict]:
     """The nominal the issue's option (b) asks for: the 17 coefficients least-squares fitted to one-step
@@ -744,7 +766,9 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
                   "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
                   "evidence": evidence}
-             | diagnosis_vetoes() for c in (plan_sweep if case_set == "sweep" else plan)(n_cases, seed)
+             | diagnosis_vetoes() for c in (plan_sweep(n_cases, seed) if case_set == "sweep" else
+                                            plan_above(n_cases, seed, thresholds or {}) if case_set == "above" else
+                                            plan(n_cases, seed))
              if effects is None or c["effect"] in effects]
     if not cases:
         raise DdynError("--effects: no case of the plan has these effects")
