@@ -578,6 +578,12 @@ def _rms(res: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean(res ** 2, axis=0))
 
 
+def normalised_mse(rmse: dict, scale: dict) -> float:
+    """The held-out normalised MSE of a report's per-channel RMSE ({vx, vy, omega}) with its channel scales
+    (`method.channel_scale`): what gap closed is measured on, for benchmarks comparing reports."""
+    return float(np.mean([(rmse[c] / scale[c]) ** 2 for c in CHANNELS]))
+
+
 def _norm_mse(prob: Problem, rmse: np.ndarray) -> float:
     return float(np.mean((rmse / prob.scale) ** 2))
 

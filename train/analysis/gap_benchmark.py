@@ -148,10 +148,6 @@ def plan(n: int, seed: int = DEFAULT_SEED, vehicles=VEHICLES) -> list[dict]:
     return cases
 
 
-def _normalised_mse(rmse: dict, scale: dict) -> float:
-    return float(np.mean([(rmse[c] / scale[c]) ** 2 for c in D.CHANNELS]))
-
-
 def oracle_error(ds, vehicle: Vehicle, case: dict, diag: dict) -> dict:
     """Held-out one-step RMSE and ADE of the true plant (true coefficients and the true effect)."""
     nominal = D.nominal_from_vehicle(vehicle, ds)
@@ -193,8 +189,8 @@ def run_case(case: dict, vehicle: Vehicle, nominal_coeffs: np.ndarray, tries: in
     orc = oracle_error(ds, vehicle, case, diag)
     scale = diag["method"]["channel_scale"]
     h = diag["model"]["heldout"]
-    e_nom, e_diag, e_orc = (_normalised_mse(h["rmse_before"], scale), _normalised_mse(h["rmse_after"], scale),
-                            _normalised_mse(orc["rmse"], scale))
+    e_nom, e_diag, e_orc = (D.normalised_mse(h["rmse_before"], scale), D.normalised_mse(h["rmse_after"], scale),
+                            D.normalised_mse(orc["rmse"], scale))
     gap = (e_nom - e_diag) / (e_nom - e_orc) if e_nom - e_orc > 1e-12 * e_nom else None
     return out | {
         "status": "ok", "seed_used": seed, "rows": len(ds), "selected": diag["selected"], "top1": top1,

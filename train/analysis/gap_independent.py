@@ -57,9 +57,10 @@ DEFAULT_SEED = 4242            # the default run's seed; scored since (in SEEN_S
 SEEN_SEEDS = (2027, 4242, 6101, 6102, 7301, 7302, 7303, 7304, 7305, 7306, 7307, 7308, 7309, 7310, 8802, 8803)
 TARGET_FALSE_ALARMS = 0.05
 # the oracle: the project's model given the hidden effect at its true value. Only where the plant's effect and
-# the model's candidate share one parameter with the same meaning (a profile along the track has no single
-# value; the multi-body plant's gear steps and tyre relaxation are not the candidates' forms)
-ORACLE_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce")
+# the model's candidate share one parameter with the same meaning: every effect of this set but the profiles
+# (a profile along the track has no single value; the multi-body plant's gear steps and tyre relaxation,
+# gap_mb.py, are not the candidates' forms)
+ORACLE_EFFECTS = tuple(e for e in EFFECT_RANGES if e not in PROFILED)
 
 
 def draw_magnitude(rng: np.random.Generator, eff: str, ranges: dict) -> float:
@@ -276,7 +277,7 @@ def oracle_figures(diag: dict, case: dict) -> dict:
     scale = diag["method"]["channel_scale"]
 
     def e(rmse: dict) -> float:
-        return float(np.mean([(rmse[c] / scale[c]) ** 2 for c in D.CHANNELS]))
+        return D.normalised_mse(rmse, scale)
 
     e_refit = e(diag["nominal"]["refit_only"]["rmse"])
     e_diag = e(diag["model"]["heldout"]["rmse_after"])
@@ -661,11 +662,8 @@ def thresholds_of(paths) -> dict:
 
     if isinstance(paths, (str, Path)):
         paths = [p for p in str(paths).split(",") if p]
-    docs = [json.loads(Path(p).read_text()) for p in paths]
-    if len(docs) == 1:
-        return {e: p.get("measured_threshold") for e, p in docs[0]["per_effect"].items()}
     rows: dict = {}
-    for doc in docs:
+    for doc in (json.loads(Path(p).read_text()) for p in paths):
         for r in doc["results"]:
             if r["status"] == "ok" and r["effect"] != NONE:
                 rows.setdefault(r["effect"], []).append(r)
