@@ -362,10 +362,10 @@ static int fuse(ddyn_ctrl *ctl, int k, const double *z, const double *r)
 
 /* count one rejected reading of sensor k. Returns 1 when this rejection makes the sensor faulty (the
  * filter restarts), 2 after every max_sensor_faults further rejections while it stays faulty (the
- * filter restarts again, wider: REACQUIRE_P0_SCALE; not for the accelerometer, below), else 0. The run stays >= max_sensor_faults
- * (the sensor stays faulty) until a reading fuses; it cycles through max + 1 .. 2 max, so it is
- * bounded. (Before, the filter restarted once per episode: readings that the restarted filter still
- * gated stayed rejected to the end of the run, the controller safe.) */
+ * filter restarts again, wider: REACQUIRE_P0_SCALE; not for the accelerometer, below), else 0. The
+ * run stays >= max_sensor_faults (the sensor stays faulty) until a reading fuses; it cycles through
+ * max + 1 .. 2 max, so it is bounded. (Before, the filter restarted once per episode: readings that the
+ * restarted filter still gated stayed rejected to the end of the run, the controller safe.) */
 static int count_fault(ddyn_ctrl *ctl, int k)
 {
     const int max = ctl->cfg.max_sensor_faults;
