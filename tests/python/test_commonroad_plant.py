@@ -162,6 +162,24 @@ def test_gate_rescoring_and_calibration():
     assert m == pytest.approx(12.0)
     kept = G.with_gate(rows, None, m)
     assert [r["top1"] for r in kept if r["selected"]] == ["mass_offset"] and kept[7]["selected"]
+    # several calibration runs pooled: 5 % of all their effect-free logs (one alarm of 20 + 20 allowed), and
+    # never below a margin a run was recorded with (its weaker alarms were not recorded)
+    import json
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        paths = []
+        quiet = [r | {"selected_without_gate": []} for r in rows]     # 20 more effect-free logs, no alarm
+        for i, rs in enumerate((rows, quiet)):
+            p = Path(d) / f"{i}.json"
+            p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": rs}))
+            paths.append(str(p))
+        assert G.margin_of(paths[0]) == pytest.approx(12.0)
+        # 8 alarms in 40 logs, 2 allowed: the two strongest (-14, -12) stay
+        assert G.margin_of(",".join(paths)) == pytest.approx(10.0) == G.margin_of(paths)
+        p = Path(d) / "strict.json"
+        p.write_text(json.dumps({"settings": {"min_evidence": 20.0}, "results": []}))
+        assert G.margin_of(paths + [str(p)]) == pytest.approx(20.0)
 
 
 def test_diagnose_gate_vetoes_a_selection_inside_the_noise():
@@ -350,10 +368,26 @@ def test_scoring_thresholds_and_delay_vs_lag():
             paths.append(str(p))
         assert G.thresholds_of(paths[0]) == {"throttle_delay": None}
         assert G.thresholds_of(",".join(paths)) == {"throttle_delay": pytest.approx(0.25)}
+        # at a margin the thresholds are measured on the cases rescored with it: the weak finds below it lost
+        weak = [r | {"delta_bic_top": -3.0 if r["magnitude"] < 0.2 else -50.0} for r in two]
+        p = Path(d) / "weak.json"
+        p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": weak}))
+        assert G.thresholds_of(str(p)) == {"throttle_delay": pytest.approx(0.06)}
+        assert G.thresholds_of(str(p), margin=5.0) == {"throttle_delay": pytest.approx(0.25)}
+        with pytest.raises(DdynError, match="can only raise"):
+            G.thresholds_of(str(p), margin=-1.0)
     # tied magnitudes enter the tail together, whichever order they come in
     tie = [row("steer_lag", 0.2, "steer_lag"), row("steer_lag", 0.2, "steer_lag"), row("steer_lag", 0.15, "steer_lag"),
            row("steer_lag", 0.15, G.NONE)]
     assert G.reliable_threshold(tie) == G.reliable_threshold(tie[::-1]) == pytest.approx(0.2)
+    # the tail is judged as a whole: one miss near the top among 20 cases (95 % found) does not lift the threshold
+    # above it; two (18/20) do, above the upper one (every tail holding it has fewer than 20 cases)
+    mags = np.linspace(0.05, 0.3, 20)
+    one_miss = [row("steer_lag", m, G.NONE if k == 17 else "steer_lag") for k, m in enumerate(mags)]
+    assert G.reliable_threshold(one_miss) == pytest.approx(0.05)
+    two_miss = [row("steer_lag", m, G.NONE if k in (3, 17) else "steer_lag") for k, m in enumerate(mags)]
+    assert G.reliable_threshold(two_miss) == pytest.approx(mags[18])
+    assert G.reliable_threshold([row("steer_lag", m, G.NONE) for m in mags]) is None
     # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
     assert G.plan(30, 4242) == G.plan(50, 4242)[:30]
 

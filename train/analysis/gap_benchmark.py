@@ -586,6 +586,8 @@ def _run_commonroad(args, out: Path) -> int:
         raise DdynError("--plant commonroad-mb: the Putnam cases only (--case-set, --eiv-check, --mass-check, "
                         "--mass-inertia, --steer-servo and --nominal-effects are the single-track plant's)")
     if getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above"):
+        if args.min_evidence_from:
+            raise DdynError("--min-evidence-from: the putnam, sweep and above case sets only")
         return _run_case_set(args, out)
     if args.eiv_check:
         return _write_check(out / "eiv.json", G.eiv_check(args.cases or 10, G.EIV_SEED if args.seed is None
@@ -595,6 +597,11 @@ def _run_commonroad(args, out: Path) -> int:
         return _write_check(out / "mass.json", G.mass_check(args.cases or 7, G.EIV_SEED if args.seed is None
                                                              else args.seed, args.jobs,
                                                              progress=not args.no_progress))
+    if args.min_evidence_from:
+        if args.min_evidence is not None:
+            raise DdynError("give --min-evidence or --min-evidence-from, not both")
+        args.min_evidence = G.margin_of(args.min_evidence_from)
+        print(f"evidence margin {args.min_evidence:.6g} from {args.min_evidence_from}")
     if args.rescore:
         path = out / "results.json"
         if not path.is_file():
@@ -609,8 +616,10 @@ def _run_commonroad(args, out: Path) -> int:
         doc["settings"]["gate"], doc["settings"]["min_evidence"] = gate, margin
         doc["settings"]["calibration_seed"] = doc["settings"]["seed"] in G.CALIBRATION_SEEDS   # the list may grow
         if args.thresholds_from:
-            doc["settings"]["thresholds"] = G.thresholds_of(args.thresholds_from)
+            doc["settings"]["thresholds"] = G.thresholds_of(args.thresholds_from, margin)
             doc["settings"]["thresholds_from"] = args.thresholds_from
+        if args.min_evidence_from:
+            doc["settings"]["min_evidence_from"] = args.min_evidence_from
         doc.update(G.score(doc["results"], doc["settings"].get("thresholds")))
         doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"], doc["seconds"])
     else:
@@ -619,7 +628,8 @@ def _run_commonroad(args, out: Path) -> int:
         if args.min_evidence is not None:
             D.MIN_EVIDENCE = args.min_evidence
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
-        thresholds = G.thresholds_of(args.thresholds_from) if args.thresholds_from else None
+        # the thresholds measured at this run's margin (the calibration runs rescored with it)
+        thresholds = G.thresholds_of(args.thresholds_from, D.MIN_EVIDENCE) if args.thresholds_from else None
         if args.plant == "commonroad-mb":     # the multi-body plant (gap_mb.py)
             from ddyn.analysis import gap_mb
 
@@ -631,6 +641,8 @@ def _run_commonroad(args, out: Path) -> int:
                         steer_servo=args.steer_servo, nominal_effects=D.nominal_effects_arg(args.nominal_effects),
                         thresholds=thresholds, case_set=args.case_set, evidence=args.evidence,
                         effects=tuple(e.strip() for e in args.effects.split(",")) if args.effects else None)
+        # where the scoring thresholds and the margin came from (calibration runs), beside their values
+        doc["settings"] |= {"thresholds_from": args.thresholds_from, "min_evidence_from": args.min_evidence_from}
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -752,6 +764,9 @@ def register(subparsers) -> None:
                                                        "(diagnose --hold)")
     p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
                    help="commonroad: the evidence margin for this run or --rescore (default diagnose's)")
+    p.add_argument("--min-evidence-from", default=None, metavar="RESULTS_JSON",
+                   help="commonroad: the evidence margin calibrated on these runs pooled (comma-separated calibration "
+                        "runs recorded with --min-evidence 0): at most 5 %% of all their effect-free logs selected")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--fit", type=D.fit_spec_arg, default=None,
