@@ -455,6 +455,25 @@ def test_the_mixed_fit_takes_the_steering_delay_one_step_and_refits_the_rest_by_
             D.parse_fit_spec(bad)
 
 
+def test_both_steering_effects_fitted_one_step_tell_a_delay_from_a_lag():
+    """--fit mixed:steer_delay,steer_lag (the setting the four calibration sweeps chose, docs/gap_independent.md):
+    each steering effect's value is its one-step fit's, and on plant logs with a hidden delay or lag the
+    diagnosis names the right one with its value close."""
+    for effect, value in (("steer_delay", 0.08), ("steer_lag", 0.12)):
+        log = _log(CP.PlantEffects(**{effect: value}), seed=5, duration=20.0)
+        nominal = D.nominal_from_vehicle(NOMINAL, log)
+        both = D.Problem(log, nominal, 0.7, hold=True, fit_mode="mixed:steer_delay,steer_lag")
+        one = D.Problem(log, nominal, 0.7, hold=True, fit_mode="one-step")
+        assert both.one_step_in_mixed == ("steer_delay", "steer_lag")
+        assert D.fit(both, (effect,), scan=effect).values[effect] == pytest.approx(
+            D.fit(one, (effect,), scan=effect).values[effect])
+        d = D.diagnose(log, nominal, candidates=("steer_delay", "steer_lag", "mass_offset"), max_effects=1,
+                       max_starts=80, gate=None, hold=True, fit_mode="mixed:steer_delay,steer_lag", steer_servo=0.01)
+        assert d["selected"] == [effect], d["verdict"]
+        est = next(iter(d["model"]["effects"][0]["params"].values()))
+        assert est == pytest.approx(value, rel=0.25)
+
+
 def test_cost_minima_find_a_hidden_steering_delay_one_step(monkeypatch):
     """cost_minima: where the fit's cost and the held-out one-step evidence put an effect's value, on a case's
     log; with the one-step fit both sit at the hidden steering delay's grid point, not at the grid's ends."""
