@@ -162,7 +162,7 @@ def test_gate_rescoring_and_calibration():
     assert m == pytest.approx(12.0)
     kept = G.with_gate(rows, None, m)
     assert [r["top1"] for r in kept if r["selected"]] == ["mass_offset"] and kept[7]["selected"]
-    # several calibration runs pooled: 5 % of all their effect-free logs (one alarm of 20 + 20 allowed), and
+    # several calibration runs pooled: 5 % of all their effect-free logs (2 of 40 allowed, 1 of 20 alone), and
     # never below a margin a run was recorded with (its weaker alarms were not recorded)
     import json
     import tempfile
