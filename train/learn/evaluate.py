@@ -26,7 +26,7 @@ from ddyn.data.dataset import Dataset
 from ddyn.data.windows import TARGET_NAMES, make_windows, valid_end_rows
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
-from ddyn.learn.networks import SATURATION_TOL
+from ddyn.learn.networks import bound_shares
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
 
@@ -98,10 +98,8 @@ def coefficient_report(coeffs: np.ndarray, names: list[str], truth: np.ndarray |
             row["true"] = float(t)
             row["rel_error"] = float((c.mean() - t) / abs(t)) if t != 0 else None
         if ranges is not None:
-            lo, hi = ranges["lo"][i], ranges["hi"][i]
-            tol = SATURATION_TOL * (hi - lo)
-            row["at_lower_bound"] = float(np.mean(c <= lo + tol))
-            row["at_upper_bound"] = float(np.mean(c >= hi - tol))
+            lower, upper = bound_shares(c, ranges["lo"][i], ranges["hi"][i])
+            row["at_lower_bound"], row["at_upper_bound"] = float(lower), float(upper)
         out[name] = row
     return out
 

@@ -25,6 +25,13 @@ from ddyn.model.single_track import KnownParams, pacejka, rigid_body, slip_angle
 # a coefficient within this share of its range's width from a guard bound counts as at the bound (saturated)
 SATURATION_TOL = 0.01
 
+
+def bound_shares(coeffs, lo, hi):
+    """Shares of the rows of `coeffs` (numpy, samples x coefficients, or one coefficient's column) at the lower
+    and at the upper guard bound: within SATURATION_TOL of the range's width (ddyn evaluate, training restarts)."""
+    tol = SATURATION_TOL * (hi - lo)
+    return (coeffs <= lo + tol).mean(axis=0), (coeffs >= hi - tol).mean(axis=0)
+
 DPM_OUTPUTS = ("Bf", "Cf", "Df", "Ef", "Br", "Cr", "Dr", "Er", "Frx")
 
 

@@ -19,7 +19,7 @@ from tqdm import tqdm
 from ddyn.data.dataset import Dataset
 from ddyn.data.windows import Windows, split_train_validation
 from ddyn.errors import DdynError
-from ddyn.learn.networks import DPM_OUTPUTS, SATURATION_TOL, DeepDynamics, DeepPacejka
+from ddyn.learn.networks import DPM_OUTPUTS, DeepDynamics, DeepPacejka, bound_shares
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
 
@@ -140,9 +140,8 @@ def validation_saturation(model: torch.nn.Module, va: Windows) -> dict | None:
         return None
     with torch.no_grad():
         c = model.coefficients(_tensor(va.history, model.lo.dtype)).numpy()
-    lo, hi = model.lo.numpy(), model.hi.numpy()
-    tol = SATURATION_TOL * (hi - lo)
-    share = np.mean((c <= lo + tol) | (c >= hi - tol), axis=0)
+    lower, upper = bound_shares(c, model.lo.numpy(), model.hi.numpy())
+    share = lower + upper     # a range is wider than twice the tolerance: no sample is at both bounds
     i = int(np.argmax(share))
     return {"coefficient": COEFF_NAMES[i], "share": float(share[i])}
 
