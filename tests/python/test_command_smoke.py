@@ -44,6 +44,19 @@ def test_study_ddm_real_only_one_run_with_its_seed(tmp_path, shared_data):
     assert ckpt["config"]["seed"] == 3
     with pytest.raises(DdynError, match="unknown real run"):
         _run(["study", "ddm", "real", "--quick", "--only", "ddm_nope", "--out", str(out)], "study")
+    # the guard-prior row trains with its own prior; --guard-prior puts another on every run and says so
+    from ddyn.studies.ddm import REAL_GUARD_PRIOR
+
+    assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain_prior", "ddm_putnam_powertrain",
+                 "--guard-prior", "0.02", "--out", str(out)], "study") == 0
+    real = json.loads((out / "results.json").read_text())["real"]
+    assert [r["guard_prior"] for r in real] == [0.02, 0.02] and all("(guard prior 0.02)" in r["label"] for r in real)
+    _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain_prior" / "model.ckpt")
+    assert ckpt["config"]["guard_prior"] == 0.02
+    assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain_prior", "--out", str(out)],
+                "study") == 0
+    real = json.loads((out / "results.json").read_text())["real"]
+    assert real[0]["guard_prior"] == REAL_GUARD_PRIOR and real[0]["label"].endswith(f"guard prior {REAL_GUARD_PRIOR:g}")
 
 
 def test_codegen_check_passes_with_the_default_tool(tmp_path, shared_data, capsys):

@@ -217,3 +217,25 @@ def test_training_recovers_the_identifiable_coefficients_on_clean_data(orca):
     e0 = {k: abs(evaluate(untrained, ckpt, test_ds)["coefficients"][k]["rel_error"]) for k in identifiable}
     assert max(e0.values()) > 0.03, e0
     assert set(identifiable) <= set(COEFF_NAMES)
+
+
+def test_guard_prior_pulls_logits_toward_the_middle_of_the_ranges(orca, lap):
+    """TrainConfig.guard_prior adds its weight times the mean squared guard logit to the training loss: the same
+    seed and data end with logits nearer 0 (coefficients nearer the middle of their ranges) and fewer samples at
+    a bound; the validation loss that picks the weights stays the data's alone. DDM only, never negative."""
+    def logits_and_share(r):
+        w = make_windows(lap, 1)
+        with torch.no_grad():
+            z = r.model.logits(torch.as_tensor(w.history, dtype=r.model.lo.dtype))
+        return float((z ** 2).mean()), float((z.abs() >= 4.6).double().mean())
+
+    free = _result(lap, orca, seed=2, epochs=10, lbfgs_iterations=100)
+    held = _result(lap, orca, seed=2, epochs=10, lbfgs_iterations=100, guard_prior=1.0)
+    (z_free, at_free), (z_held, at_held) = logits_and_share(free), logits_and_share(held)
+    assert z_held < 0.8 * z_free, (z_held, z_free)      # the data keep the logits that fit them
+    assert at_held <= at_free
+    assert np.isfinite(held.best_val_loss)
+    with pytest.raises(DdynError, match="guard_prior"):
+        TrainConfig(guard_prior=-1.0)
+    with pytest.raises(DdynError, match="DDM only"):
+        TrainConfig(kind="dpm", guard_prior=0.1)

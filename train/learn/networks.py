@@ -74,9 +74,15 @@ class DeepDynamics(nn.Module):
         self.register_buffer("hi", hi.clone())
         self.known, self.sample_time, self.method, self.substeps = known, sample_time, method, substeps
 
+    def logits(self, history: torch.Tensor) -> torch.Tensor:
+        """The guard's inputs z (0: the middle of a range; |z| >= 4.6: within 1 % of a bound)."""
+        return self.head(self.encoder(history))
+
     def coefficients(self, history: torch.Tensor) -> torch.Tensor:
         """The Physics Guard: every coefficient inside its nominal range."""
-        z = self.head(self.encoder(history))
+        return self.guard(self.logits(history))
+
+    def guard(self, z: torch.Tensor) -> torch.Tensor:
         return self.lo + (self.hi - self.lo) * torch.sigmoid(z)
 
     def step(self, state: torch.Tensor, inputs: torch.Tensor, coeffs: torch.Tensor) -> torch.Tensor:
@@ -85,6 +91,12 @@ class DeepDynamics(nn.Module):
     def forward(self, history, state, inputs):
         c = self.coefficients(history)
         return self.step(state, inputs, c), c
+
+    def forward_with_logits(self, history, state, inputs):
+        """forward's prediction and coefficients, and the guard's logits (for TrainConfig.guard_prior)."""
+        z = self.logits(history)
+        c = self.guard(z)
+        return self.step(state, inputs, c), c, z
 
 
 class DeepPacejka(nn.Module):

@@ -44,6 +44,9 @@ class TrainConfig:
     dtype: str = "float64"
     restarts: int = 1              # trainings from seeds seed, seed+1, ...: the lowest validation loss is kept
                                    # (a bad initialisation's local minimum is caught on the validation part)
+    guard_prior: float = 0.0       # DDM only: weight of the mean squared guard logit (a prior toward each range's
+                                   # middle): near a bound the sigmoid's slope, and with it the data's pull, vanishes,
+                                   # so a coefficient the data do not pin can drift onto a bound and stay there
 
     def __post_init__(self):
         if self.kind not in ("ddm", "dpm"):
@@ -51,6 +54,10 @@ class TrainConfig:
         for name in ("tau", "hidden", "layers", "batch_size", "epochs", "restarts"):
             if getattr(self, name) < 1:
                 raise DdynError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.guard_prior < 0:
+            raise DdynError(f"guard_prior must be at least 0, got {self.guard_prior}")
+        if self.guard_prior > 0 and self.kind != "ddm":
+            raise DdynError("guard_prior acts on the Physics Guard: DDM only (the DPM has no guard)")
 
 
 @dataclass
@@ -91,6 +98,18 @@ def build_model(cfg: TrainConfig, vehicle: Vehicle, mean: np.ndarray, std: np.nd
 
 def loss_fn(pred: torch.Tensor, target: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     return (((pred[:, 3:6] - target) / scale) ** 2).mean()
+
+
+def objective(model: torch.nn.Module, cfg: "TrainConfig", h, s, u, t, scale) -> torch.Tensor:
+    """The training loss of one batch: the scaled next-state MSE, the weights' L2 penalty and, with
+    cfg.guard_prior, the mean squared guard logit."""
+    if cfg.guard_prior > 0:
+        pred, _, z = model.forward_with_logits(h, s, u)
+        prior = cfg.guard_prior * (z ** 2).mean()
+    else:
+        pred, _ = model(h, s, u)
+        prior = 0.0
+    return loss_fn(pred, t, scale) + weight_penalty(model, cfg.weight_decay) + prior
 
 
 def weight_penalty(model: torch.nn.Module, weight_decay: float) -> torch.Tensor | float:
@@ -173,8 +192,7 @@ def _train_once(ds: Dataset, vehicle: Vehicle, cfg: TrainConfig, progress: bool,
         order = torch.as_tensor(rng.permutation(len(tr)))
         for i in range(0, len(tr), cfg.batch_size):
             b = order[i:i + cfg.batch_size]
-            pred, _ = model(h_all[b], s_all[b], u_all[b])
-            loss = loss_fn(pred, t_all[b], scale) + weight_penalty(model, cfg.weight_decay)
+            loss = objective(model, cfg, h_all[b], s_all[b], u_all[b], t_all[b], scale)
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -203,7 +221,7 @@ def _polish_lbfgs(model, cfg: TrainConfig, batch, va: Windows, scale, best, log,
 
     def closure():
         opt.zero_grad()
-        loss = loss_fn(model(h, s, u)[0], t, scale) + weight_penalty(model, cfg.weight_decay)
+        loss = objective(model, cfg, h, s, u, t, scale)
         loss.backward()
         return loss
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -38,10 +39,16 @@ PAPER_SIM_DDM = {"vx": 1.506e-5, "vy": 1.839e-4, "omega": 9.6e-3, "ade": 3.77e-5
 PAPER_REAL_DDM = {"vx": 0.0312, "vy": 0.0730, "omega": 0.0187, "ade": 0.1827, "fde": 0.3840}
 TARGET_COEFFS = ("Bf", "Cf", "Df", "Br", "Cr", "Dr", "Cm1", "Cm2", "Cr0", "Iz")
 POWERTRAIN_VEHICLE = "av21_powertrain"
-# (run name, vehicle file, table label, drivetrain ranges from the training part via --ranges)
-REAL_RUNS = (("ddm_putnam", "av21", "DDM, papers' drivetrain, papers' ranges", False),
-             ("ddm_putnam_ranges", "av21", "DDM, papers' drivetrain, ranges from data", True),
-             ("ddm_putnam_powertrain", "av21_powertrain", "DDM, powertrain drivetrain (av21_powertrain)", False))
+# TrainConfig.guard_prior of the last real row, chosen on the training part's validation fifth only: the smallest
+# of 1e-3, 1e-2, 1e-1 with no coefficient at a bound in over 5 % of the validation samples on seeds 0, 1, 2
+# (Gf 21-22 %, 14-19 %, at most 1.8 %; docs/learning.md)
+REAL_GUARD_PRIOR = 0.1
+# (run name, vehicle file, table label, drivetrain ranges from the training part via --ranges, guard prior)
+REAL_RUNS = (("ddm_putnam", "av21", "DDM, papers' drivetrain, papers' ranges", False, 0.0),
+             ("ddm_putnam_ranges", "av21", "DDM, papers' drivetrain, ranges from data", True, 0.0),
+             ("ddm_putnam_powertrain", "av21_powertrain", "DDM, powertrain drivetrain (av21_powertrain)", False, 0.0),
+             ("ddm_putnam_powertrain_prior", "av21_powertrain",
+              f"DDM, powertrain drivetrain, guard prior {REAL_GUARD_PRIOR:g}", False, REAL_GUARD_PRIOR))
 STUDY_BEGIN, STUDY_END = "<!-- study:begin -->", "<!-- study:end -->"
 STUDY_DOC = REPO / "docs" / "learning.md"
 
@@ -93,9 +100,12 @@ def run_sim(out: Path, quick: bool = False) -> list[dict]:
     return results
 
 
-def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...] = (), restarts: int = 1) -> list[dict]:
+def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...] = (), restarts: int = 1,
+             guard_prior: float | None = None, ranges: Path | None = None) -> list[dict]:
     """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run (all if empty);
-    restarts: TrainConfig.restarts (seeds seed..seed+restarts-1, the lowest validation loss kept)."""
+    restarts: TrainConfig.restarts (seeds seed..seed+restarts-1, the lowest validation loss kept);
+    guard_prior: TrainConfig.guard_prior of every run (None: each run's own in REAL_RUNS); ranges: a guard ranges
+    file for the runs that take their vehicle file's ranges (all but ddm_putnam_ranges)."""
     from ddyn.data.importers import load_any
 
     out.mkdir(parents=True, exist_ok=True)
@@ -110,13 +120,15 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
     base = (TrainConfig(epochs=5, lbfgs_iterations=40, seed=seed, restarts=restarts) if quick
             else TrainConfig(seed=seed, restarts=restarts))
     results = []
-    for name, vehicle_name, label, data_ranges in REAL_RUNS:
+    for name, vehicle_name, label, data_ranges, run_prior in REAL_RUNS:
         if only and name not in only:
             continue
+        prior = run_prior if guard_prior is None else guard_prior
+        cfg = replace(base, guard_prior=prior)
         ds = load_any(src, vehicle=vehicle_name)
         cut = int(len(ds) * drivetrain.TRAIN_FRACTION)
         train_part, test_part = ds.subset(slice(0, cut)), ds.subset(slice(cut, None))
-        ranges_file = None
+        ranges_file = ranges
         if data_ranges:
             # the papers' form with ranges from the training part: its own drivetrain fit's, and
             # the other coefficients' from av21_powertrain (derived from the same part), so that
@@ -130,10 +142,13 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
             train_part = train_part.subset(slice(0, 1500))
         train_path = out / f"putnam_train_{vehicle_name}.csv"
         write_canonical(train_part, train_path)
-        results.append(_run_model(name, train_path, None, test_part, base, out, ranges_file)
+        results.append(_run_model(name, train_path, None, test_part, cfg, out, ranges_file)
                        | {"label": label + (f" (seed {seed})" if seed and restarts == 1 else "")
-                          + (f" (seeds {seed}-{seed + restarts - 1}, best validation kept)" if restarts > 1 else ""),
-                          "seed": seed, "restarts": restarts})
+                          + (f" (seeds {seed}-{seed + restarts - 1}, best validation kept)" if restarts > 1 else "")
+                          + (f" (guard prior {prior:g})" if prior != run_prior else "")
+                          + (f" (ranges {ranges.name})" if ranges and not data_ranges else ""),
+                          "seed": seed, "restarts": restarts, "guard_prior": prior,
+                          "ranges": str(ranges_file) if ranges_file else None})
     return results
 
 
@@ -200,7 +215,8 @@ def update_doc(block: str, doc: Path = STUDY_DOC) -> None:
 def _run(args) -> int:
     out = Path(args.out)
     sim = run_sim(out / "sim", args.quick) if args.which in ("sim", "all") else None
-    real = (run_real(out / "real", args.quick, args.seed, tuple(args.only or ()), args.restarts)
+    real = (run_real(out / "real", args.quick, args.seed, tuple(args.only or ()), args.restarts, args.guard_prior,
+                     Path(args.ranges) if args.ranges else None)
             if args.which in ("real", "all") else None)
     results = {"sim": sim, "real": real, "quick": args.quick}
     (out / "results.json").write_text(json.dumps(results, indent=2))
@@ -208,7 +224,8 @@ def _run(args) -> int:
     (out / "results.md").write_text(md)
     print(md)
     if args.update_doc:
-        if args.quick or args.which != "all" or args.only or args.seed or args.restarts != 1:
+        if (args.quick or args.which != "all" or args.only or args.seed or args.restarts != 1
+                or args.guard_prior is not None or args.ranges):
             raise DdynError("--update-doc needs the full study: `ddyn study ddm all` without --quick")
         update_doc(md)
         print(f"{STUDY_DOC.relative_to(REPO)} results block updated")
@@ -224,6 +241,11 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="training seed of the real runs (default: %(default)s)")
     p.add_argument("--restarts", type=int, default=1, help="real runs: train seeds SEED..SEED+N-1 and keep the "
                    "lowest validation loss (TrainConfig.restarts; default: %(default)s)")
+    p.add_argument("--guard-prior", type=float, help="real runs: TrainConfig.guard_prior of every run, the weight "
+                   f"of the mean squared guard logit (default: each run's own: {REAL_GUARD_PRIOR:g} for the last, 0 "
+                   "for the others)")
+    p.add_argument("--ranges", help="real runs with their vehicle file's ranges: a guard ranges file instead "
+                   "(as `ddyn train --ranges`)")
     p.add_argument("--only", nargs="+", metavar="RUN", help="real runs to train, by name (default: all): "
                    + ", ".join(r[0] for r in REAL_RUNS))
     p.set_defaults(func=_run)
