@@ -377,9 +377,15 @@ def test_scoring_thresholds_and_delay_vs_lag():
         with pytest.raises(DdynError, match="can only raise"):
             G.thresholds_of(str(p), margin=-1.0)
     # tied magnitudes enter the tail together, whichever order they come in
-    tie = [row("steer_lag", 0.2, "steer_lag"), row("steer_lag", 0.2, "steer_lag"), row("steer_lag", 0.15, "steer_lag"),
-           row("steer_lag", 0.15, G.NONE)]
+    tie = [row("steer_lag", 0.25, "steer_lag"), row("steer_lag", 0.2, "steer_lag"), row("steer_lag", 0.2, "steer_lag"),
+           row("steer_lag", 0.15, "steer_lag"), row("steer_lag", 0.15, G.NONE)]
     assert G.reliable_threshold(tie) == G.reliable_threshold(tie[::-1]) == pytest.approx(0.2)
+    # a tail of one magnitude level (pooled sweeps' top, one case per seed) measures no threshold, however many
+    # cases it holds: found 4/4 at the largest downforce drawn only, 3/10 above it on a blind seed
+    top_only = [row("downforce", 4e-4, "downforce") for _ in range(4)]
+    top_only += [row("downforce", 3e-4, "downforce" if k < 3 else G.NONE) for k in range(4)]
+    assert G.reliable_threshold(top_only) is None
+    assert G.reliable_threshold(top_only, min_levels=1) == pytest.approx(4e-4)
     # the tail is judged as a whole: one miss near the top among 20 cases (95 % found) does not lift the threshold
     # above it; two (18/20) do, above the upper one (every tail holding it has fewer than 20 cases)
     mags = np.linspace(0.05, 0.3, 20)

@@ -504,19 +504,26 @@ RELIABLE_RATE = 0.95
 DELAY_LAG = ("steer_delay", "steer_lag")
 
 
-def reliable_threshold(rows: list[dict], rate: float = RELIABLE_RATE, min_cases: int = 2) -> float | None:
+def reliable_threshold(rows: list[dict], rate: float = RELIABLE_RATE, min_cases: int = 2,
+                       min_levels: int = 2) -> float | None:
     """The measured detection threshold: the smallest drawn |magnitude| m such that the cases with |magnitude|
-    >= m (at least min_cases of them) are identified (top-1) at >= rate; None when no such tail exists (never
-    reliably identified in the drawn range). The tail is judged as the target scores it, as a whole: a rule that
-    stopped at the first tail below the rate on the way down (this function until 2026-11-24) let one miss in a
-    short tail near the top set the threshold whatever the many cases below it showed, so the more calibration
-    seeds were pooled, the likelier such a miss and the higher the threshold (docs/gap_independent.md)."""
+    >= m (at least min_cases of them, at at least min_levels distinct magnitudes) are identified (top-1) at >= rate;
+    None when no such tail exists (never reliably identified in the drawn range). The tail is judged as the target
+    scores it, as a whole: a rule that stopped at the first tail below the rate on the way down (this function
+    until 2026-11-24) let one miss in a short tail near the top set the threshold whatever the many cases below it
+    showed, so the more calibration seeds were pooled, the likelier such a miss and the higher the threshold
+    (docs/gap_independent.md). min_levels: pooled sweeps share their magnitude grid, so a tail of one level (its
+    top, where every seed's case sits) has as many cases as seeds; a threshold measured there only says the
+    effect is found at the largest magnitude drawn (downforce's 4e-4, found 4/4 on the sweeps and 3/10 above it
+    on blind seeds: until 2026-11-25 one level was enough)."""
     rows = sorted(rows, key=lambda r: abs(r["magnitude"]))
     mags = np.array([abs(r["magnitude"]) for r in rows])
     found = np.array([bool(r["correct"]) for r in rows], dtype=float)
     for i in range(0, len(rows) - min_cases + 1):
         if i > 0 and mags[i - 1] == mags[i]:
             continue    # equal magnitudes (pooled sweeps share their grid) enter the tail together
+        if len(np.unique(mags[i:])) < min_levels:
+            break
         if np.mean(found[i:]) >= rate:
             return float(mags[i])
     return None
