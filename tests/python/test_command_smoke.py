@@ -40,6 +40,7 @@ def test_study_ddm_real_only_one_run_with_its_seed(tmp_path, shared_data):
                  "--out", str(out)], "study") == 0
     real = json.loads((out / "results.json").read_text())["real"]
     assert [r["name"] for r in real] == ["ddm_putnam_powertrain"] and real[0]["seed"] == 3
+    assert isinstance(real[0]["restarts"], list) and real[0]["restarts_requested"] == 1   # the records, not the count
     _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain" / "model.ckpt")
     assert ckpt["config"]["seed"] == 3
     with pytest.raises(DdynError, match="unknown real run"):

@@ -147,7 +147,7 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
                           + (f" (seeds {seed}-{seed + restarts - 1}, best validation kept)" if restarts > 1 else "")
                           + (f" (guard prior {prior:g})" if prior != run_prior else "")
                           + (f" (ranges {ranges.name})" if ranges and not data_ranges else ""),
-                          "seed": seed, "restarts": restarts, "guard_prior": prior,
+                          "seed": seed, "restarts_requested": restarts, "guard_prior": prior,
                           "ranges": str(ranges_file) if ranges_file else None})
     return results
 
