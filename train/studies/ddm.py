@@ -101,11 +101,12 @@ def run_sim(out: Path, quick: bool = False) -> list[dict]:
 
 
 def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...] = (), restarts: int = 1,
-             guard_prior: float | None = None, ranges: Path | None = None) -> list[dict]:
+             guard_prior: float | None = None, ranges: Path | None = None, method: str = "euler") -> list[dict]:
     """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run (all if empty);
     restarts: TrainConfig.restarts (seeds seed..seed+restarts-1, the lowest validation loss kept);
     guard_prior: TrainConfig.guard_prior of every run (None: each run's own in REAL_RUNS); ranges: a guard ranges
-    file for the runs that take their vehicle file's ranges (all but ddm_putnam_ranges)."""
+    file for the runs that take their vehicle file's ranges (all but ddm_putnam_ranges); method: the physics step
+    of the model (TrainConfig.method)."""
     from ddyn.data.importers import load_any
 
     out.mkdir(parents=True, exist_ok=True)
@@ -117,8 +118,8 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
     unknown = set(only) - {r[0] for r in REAL_RUNS}
     if unknown:
         raise DdynError(f"unknown real run(s) {', '.join(sorted(unknown))}; expected {', '.join(r[0] for r in REAL_RUNS)}")
-    base = (TrainConfig(epochs=5, lbfgs_iterations=40, seed=seed, restarts=restarts) if quick
-            else TrainConfig(seed=seed, restarts=restarts))
+    base = (TrainConfig(epochs=5, lbfgs_iterations=40, seed=seed, restarts=restarts, method=method) if quick
+            else TrainConfig(seed=seed, restarts=restarts, method=method))
     results = []
     for name, vehicle_name, label, data_ranges, run_prior in REAL_RUNS:
         if only and name not in only:
@@ -146,7 +147,8 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
                        | {"label": label + (f" (seed {seed})" if seed and restarts == 1 else "")
                           + (f" (seeds {seed}-{seed + restarts - 1}, best validation kept)" if restarts > 1 else "")
                           + (f" (guard prior {prior:g})" if prior != run_prior else "")
-                          + (f" (ranges {ranges.name})" if ranges and not data_ranges else ""),
+                          + (f" (ranges {ranges.name})" if ranges and not data_ranges else "")
+                          + (f" ({method} step)" if method != "euler" else ""),
                           "seed": seed, "restarts_requested": restarts, "guard_prior": prior,
                           "ranges": str(ranges_file) if ranges_file else None})
     return results
@@ -216,7 +218,7 @@ def _run(args) -> int:
     out = Path(args.out)
     sim = run_sim(out / "sim", args.quick) if args.which in ("sim", "all") else None
     real = (run_real(out / "real", args.quick, args.seed, tuple(args.only or ()), args.restarts, args.guard_prior,
-                     Path(args.ranges) if args.ranges else None)
+                     Path(args.ranges) if args.ranges else None, args.method)
             if args.which in ("real", "all") else None)
     results = {"sim": sim, "real": real, "quick": args.quick}
     (out / "results.json").write_text(json.dumps(results, indent=2))
@@ -225,7 +227,7 @@ def _run(args) -> int:
     print(md)
     if args.update_doc:
         if (args.quick or args.which != "all" or args.only or args.seed or args.restarts != 1
-                or args.guard_prior is not None or args.ranges):
+                or args.guard_prior is not None or args.ranges or args.method != "euler"):
             raise DdynError("--update-doc needs the full study: `ddyn study ddm all` without --quick")
         update_doc(md)
         print(f"{STUDY_DOC.relative_to(REPO)} results block updated")
@@ -246,6 +248,8 @@ def register(subparsers) -> None:
                    "for the others)")
     p.add_argument("--ranges", help="real runs with their vehicle file's ranges: a guard ranges file instead "
                    "(as `ddyn train --ranges`)")
+    p.add_argument("--method", choices=("euler", "rk4"), default="euler", help="real runs: the model's physics "
+                   "step (TrainConfig.method; default: %(default)s, as in the papers)")
     p.add_argument("--only", nargs="+", metavar="RUN", help="real runs to train, by name (default: all): "
                    + ", ".join(r[0] for r in REAL_RUNS))
     p.set_defaults(func=_run)
