@@ -30,34 +30,30 @@ def test_study_ddm_quick_writes_its_table(tmp_path, shared_data):
 
 
 def test_study_ddm_real_only_one_run_with_its_seed(tmp_path, shared_data):
-    """`--only` trains the named real run alone and `--seed` reaches its training (recorded in the
-    checkpoint); an unknown run name is an error, not an empty table."""
+    """`--only` trains the named real run alone and `--seed` and `--guard-prior` reach its training (recorded in
+    the checkpoint); without `--guard-prior` each run trains with its own (the prior row's REAL_GUARD_PRIOR); an
+    unknown run name is an error, not an empty table."""
     from ddyn.errors import DdynError
     from ddyn.learn import checkpoint
+    from ddyn.studies.ddm import REAL_GUARD_PRIOR
 
     out = tmp_path / "study"
     assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain", "--seed", "3",
-                 "--out", str(out)], "study") == 0
+                 "--guard-prior", "0.02", "--out", str(out)], "study") == 0
     real = json.loads((out / "results.json").read_text())["real"]
     assert [r["name"] for r in real] == ["ddm_putnam_powertrain"] and real[0]["seed"] == 3
     assert isinstance(real[0]["restarts"], list) and real[0]["restarts_requested"] == 1   # the records, not the count
+    assert real[0]["guard_prior"] == 0.02 and "(guard prior 0.02)" in real[0]["label"]
     _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain" / "model.ckpt")
-    assert ckpt["config"]["seed"] == 3
+    assert ckpt["config"]["seed"] == 3 and ckpt["config"]["guard_prior"] == 0.02
     with pytest.raises(DdynError, match="unknown real run"):
         _run(["study", "ddm", "real", "--quick", "--only", "ddm_nope", "--out", str(out)], "study")
-    # the guard-prior row trains with its own prior; --guard-prior puts another on every run and says so
-    from ddyn.studies.ddm import REAL_GUARD_PRIOR
-
-    assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain_prior", "ddm_putnam_powertrain",
-                 "--guard-prior", "0.02", "--out", str(out)], "study") == 0
-    real = json.loads((out / "results.json").read_text())["real"]
-    assert [r["guard_prior"] for r in real] == [0.02, 0.02] and all("(guard prior 0.02)" in r["label"] for r in real)
-    _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain_prior" / "model.ckpt")
-    assert ckpt["config"]["guard_prior"] == 0.02
     assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain_prior", "--out", str(out)],
                 "study") == 0
     real = json.loads((out / "results.json").read_text())["real"]
     assert real[0]["guard_prior"] == REAL_GUARD_PRIOR and real[0]["label"].endswith(f"guard prior {REAL_GUARD_PRIOR:g}")
+    _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain_prior" / "model.ckpt")
+    assert ckpt["config"]["guard_prior"] == REAL_GUARD_PRIOR
 
 
 def test_codegen_check_passes_with_the_default_tool(tmp_path, shared_data, capsys):
