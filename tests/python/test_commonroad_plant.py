@@ -230,7 +230,7 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     assert s["median_gap_vs_oracle_strict"] == 0.0
 
 
-def test_study_gap_commonroad_cli(tmp_path, monkeypatch):
+def test_study_gap_commonroad_cli(tmp_path, monkeypatch, capsys):
     """Two cases in two processes, then a rescore with a gate: the files and the gate's veto are consistent."""
     import json
 
@@ -248,6 +248,10 @@ def test_study_gap_commonroad_cli(tmp_path, monkeypatch):
     assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--gate", str(huge), "--out", str(out)]) == 0
     doc = json.loads((out / "results.json").read_text())
     assert all(r["top1"] == "none" for r in doc["results"])
+    # detection limits veto by each selection's estimate, which the recorded cases do not hold: a run, no rescore
+    assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--detection-limits-from",
+                 str(out / "results.json"), "--out", str(out)]) == 2
+    assert "needs a run, not --rescore" in capsys.readouterr().err
 
 
 def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):

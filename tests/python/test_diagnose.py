@@ -9,6 +9,7 @@ import pytest
 
 from ddyn.analysis import diagnose as D
 from ddyn.data.dataset import write_canonical
+from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicles
 
 ORCA = vehicles.load("orca_1_43")
@@ -299,6 +300,29 @@ def test_an_estimate_on_a_range_edge_is_never_the_verdict(delay_log, monkeypatch
     assert d["unexplained"]["effect"] == "steer_delay" and d["unexplained"]["delta_bic"] < 0
     assert d["unexplained"]["params"]["delay"] == pytest.approx(0.01, abs=1e-4)
     assert d["greedy"][0]["at_bound"] and d["greedy"][0]["added"] is None
+
+
+def test_a_find_below_its_detection_limit_is_reported_not_selected(delay_log, tmp_path):
+    """Detection limits (diagnose --detection-limits): the 30 ms steering delay is selected under a limit of
+    20 ms or with no limit for it; above its estimate (40 ms) or with a null limit it is reported as below the
+    limit and nothing is selected; an effect without a limit is unaffected."""
+    kw = dict(candidates=("steer_delay",), max_effects=1, max_starts=50)
+    for limits in (None, {"steer_delay": 0.02}, {"steer_lag": 0.5}):
+        assert _diagnose(delay_log, detection_limits=limits, **kw)["selected"] == ["steer_delay"]
+    for limits in ({"steer_delay": 0.04}, {"steer_delay": None}):
+        d = _diagnose(delay_log, detection_limits=limits, **kw)
+        assert d["selected"] == [] and d["model"]["effects"] == [] and d["unexplained"] is None
+        assert d["below_limit"]["effect"] == "steer_delay" and d["below_limit"]["limit"] == limits["steer_delay"]
+        assert d["below_limit"]["params"]["delay"] == pytest.approx(0.03, rel=0.1)
+        assert d["verdict"].startswith("none: steer_delay pays on the held-out data") and "not claimed" in d["verdict"]
+        assert d["greedy"][0]["below_limit"] and d["greedy"][0]["added"] is None
+    assert D.detection_limits_arg('{"steer_delay": 0.04, "downforce": null}') == {"steer_delay": 0.04,
+                                                                                    "downforce": None}
+    f = tmp_path / "limits.json"
+    f.write_text('{"steer_lag": 0.15}')
+    assert D.detection_limits_arg(str(f)) == {"steer_lag": 0.15}
+    with pytest.raises(DdynError, match="unknown effect"):
+        D.detection_limits_arg('{"warp_drive": 1}')
 
 
 @pytest.mark.parametrize("mode", ["smoothed", "output-error"])

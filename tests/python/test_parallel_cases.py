@@ -73,13 +73,17 @@ def test_each_case_carries_the_gate_and_margin_set_here(monkeypatch):
         seen["cases"] = cases
         raise Captured
 
+    limits = {"steer_lag": 0.15, "downforce": None}
     monkeypatch.setattr(D, "MIN_EVIDENCE", 13.02)
     monkeypatch.setattr(D, "NO_GAP_GATE", None)
+    monkeypatch.setattr(D, "DETECTION_LIMITS", limits)
     monkeypatch.setattr(G, "run_cases", capture)
     with pytest.raises(Captured):
         G.run(3, seed=99, progress=False)
-    # what a worker with the module defaults (margin 0, default gate) passes to diagnose
+    # what a worker with the module defaults (margin 0, default gate, no limits) passes to diagnose
     monkeypatch.setattr(D, "MIN_EVIDENCE", 0.0)
     monkeypatch.setattr(D, "NO_GAP_GATE", 1.5)
-    assert [G.vetoes_of(c) for c in seen["cases"]] == [{"gate": None, "min_evidence": 13.02}] * 3
-    assert G.vetoes_of({}) == {"gate": "default", "min_evidence": None}
+    monkeypatch.setattr(D, "DETECTION_LIMITS", None)
+    assert [G.vetoes_of(c) for c in seen["cases"]] == [{"gate": None, "min_evidence": 13.02,
+                                                         "detection_limits": limits}] * 3
+    assert G.vetoes_of({}) == {"gate": "default", "min_evidence": None, "detection_limits": "default"}

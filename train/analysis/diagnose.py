@@ -93,6 +93,12 @@ NO_GAP_GATE: float | None = None
 # plant the nominal's own structural mismatch makes spurious effects pay for themselves by a few to a few tens of
 # dBIC; the margin is calibrated like the gate (docs/gap_independent.md) and stays 0 by default.
 MIN_EVIDENCE = 0.0
+# Detection limits {effect: smallest |value| claimed, or None: never claimed}: an effect that pays on the held-out
+# data with a value below its limit is reported, not selected, and the greedy stops there (a limit of detection).
+# The limits are the detection thresholds measured on calibration runs (`ddyn study gap --detection-limits-from`,
+# `diagnose --detection-limits`): below them the calibration found the effect in under 95 % of its logs, so a
+# selection there is as likely a stand-in as the effect. None by default (no limits).
+DETECTION_LIMITS: dict | None = None
 # The first effect added and the runner-up of its round with evidence closer than this (dBIC) are not told apart
 # by the data: "not worth more than a bare mention" on Kass & Raftery's scale of BIC differences, a textbook
 # constant, not tuned here. The diagnosis still adds the first (the selection is unchanged) and names the other
@@ -729,7 +735,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
              max_starts: int = 400, progress=None, gate: float | None | str = "default", hold: bool = False,
              min_evidence: float | None = None, fit_mode: str | None = None, mass_inertia: bool = False,
              steer_servo: float = 0.0, nominal_effects: dict | None = None, evidence: str | None = None,
-             truth: dict | None = None) -> dict:
+             truth: dict | None = None, detection_limits: dict | None | str = "default") -> dict:
     """truth: {effect: value} a benchmark knows the log holds; its held-out error at exactly that value (the
     refit factors fitted around it, as under every hypothesis) is reported as `truth` (the oracle the
     diagnosis's gap closed is compared with). evidence: what the held-out score compares (EVIDENCE_MODES:
@@ -737,8 +743,10 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     gate: the no-gap gate's ratio (NO_GAP_GATE by default; None: off). hold: the log's commands were held
     between samples (drive-by-wire), not ramped as the model integrates them (see Problem). min_evidence: an
     effect is added only when its dBIC < -min_evidence (default MIN_EVIDENCE). fit_mode: what the fit compares
-    (FIT_MODES, default DEFAULT_FIT). mass_inertia, steer_servo: see Problem."""
+    (FIT_MODES, default DEFAULT_FIT). mass_inertia, steer_servo: see Problem. detection_limits: {effect family:
+    limit or None} (DETECTION_LIMITS by default); an effect not in it has no limit."""
     gate = NO_GAP_GATE if gate == "default" else gate
+    limits = DETECTION_LIMITS if detection_limits == "default" else detection_limits
     margin = MIN_EVIDENCE if min_evidence is None else float(min_evidence)
     fit_mode = fit_mode or DEFAULT_FIT
     t0 = _time.perf_counter()
@@ -801,6 +809,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     current, current_h = base_fit, base
     steps_log = []
     unexplained = None      # the best candidate when it paid for itself only from an edge of its range
+    below_limit = None      # the best candidate when it paid for itself with a value below its detection limit
     while len(selected) < max_effects:
         pool = [c for c in candidates if C.FAMILY[c] not in {C.FAMILY[n] for n in selected}]
         if not pool:
@@ -820,10 +829,16 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         # the library does not hold, so it is never the verdict (and the greedy step stops there)
         main_value = C.summary(name, f.values, f.std, prob.layout)[0]   # a profile: its peak
         edge = bool(dbic < -margin) and at_bound(name, main_value, prob.ctx)
-        steps_log.append({"added": name if dbic < -margin and not edge else None, "best_candidate": name,
-                          "delta_bic": dbic, "at_bound": edge, "after": selected + [name]})
+        weak = bool(dbic < -margin) and not edge and _below_limit(name, main_value, limits)
+        steps_log.append({"added": name if dbic < -margin and not edge and not weak else None,
+                          "best_candidate": name, "delta_bic": dbic, "at_bound": edge, "below_limit": weak,
+                          "after": selected + [name]})
         if edge:
             unexplained = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic}
+            break
+        if weak:
+            below_limit = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
+                           "limit": limits[C.FAMILY.get(name, name)]}
             break
         if not dbic < -margin:
             break
@@ -838,7 +853,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     ratio = _norm_mse(prob, base["rmse"]) / e_floor if e_floor > 0 else math.inf
     gated = gate is not None and bool(selected) and ratio <= gate
     gate_info = {"ratio": ratio, "threshold": gate, "gated": gated, "selected_without_gate": list(selected),
-                 "min_evidence": margin,
+                 "min_evidence": margin, "detection_limits": limits,
                  "rule": "select nothing when the refitted nominal's held-out normalised one-step MSE is at most "
                          "`threshold` times the estimated noise floor's"}
     if gated:
@@ -876,6 +891,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "verdict": (f"none: the nominal's held-out error is within the noise floor ({ratio:.3g}x <= gate {gate:g}x); "
                     f"without the gate: {', '.join(gate_info['selected_without_gate'])}" if gated else
                     _unexplained_verdict(unexplained) if not selected and unexplained else
+                    "none: " + _below_limit_verdict(below_limit) if not selected and below_limit else
                     "none: no candidate effect pays for its parameters on the held-out data"
                     + (f" by the evidence margin (dBIC < -{margin:g})" if margin else "") if not selected else
                     "; ".join(f"{e['effect']} {next(iter(e['params']))} = {next(iter(e['params'].values())):.4g} "
@@ -885,8 +901,10 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                     + (f" (or {rival['effect']}: its held-out evidence is within {rival['evidence_difference']:.1f} "
                        f"dBIC of the first effect's, < {AMBIGUITY_DBIC:g}: not told apart)" if rival else "")
                     + (f"; the rest is not explained by the effect library ({_unexplained_verdict(unexplained)[5:]})"
-                       if selected and unexplained else "")),
+                       if selected and unexplained else "")
+                    + (f"; then {_below_limit_verdict(below_limit)}" if selected and below_limit else "")),
         "unexplained": unexplained,
+        "below_limit": below_limit,
         "rival": rival,
         "candidates": first,
         "model": final,
@@ -933,6 +951,24 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "seconds": _time.perf_counter() - t0,
         "_series": series,
     }
+
+
+def _below_limit(name: str, value: float, limits: dict | None) -> bool:
+    """An effect's value (a profile's peak) under its detection limit; never for an effect without one."""
+    if not limits:
+        return False
+    family = C.FAMILY.get(name, name)
+    if family not in limits:
+        return False
+    return limits[family] is None or abs(value) < limits[family]
+
+
+def _below_limit_verdict(b: dict) -> str:
+    (pn, pv), = b["params"].items()
+    limit = ("never reliably identified in its calibration" if b["limit"] is None
+             else f"below its detection limit {b['limit']:.4g}")
+    return (f"{b['effect']} pays on the held-out data (dBIC {b['delta_bic']:.1f}) with {pn} = {pv:.4g}, {limit}: "
+            "not claimed")
 
 
 def _unexplained_verdict(u: dict) -> str:
@@ -1151,6 +1187,24 @@ def nominal_effects_arg(text: str | None) -> dict:
     return {e.effect: float(e.value) for e in E.parse_effects(text)} if text else {}
 
 
+def detection_limits_arg(text: str | None) -> dict | None:
+    """--detection-limits: JSON {effect: limit or null} inline or in a file (e.g. the `detection_limits` of a
+    `ddyn study gap --detection-limits-from` run's settings: calibration runs' measured thresholds)."""
+    if not text:
+        return None
+    if text.strip().startswith("{"):
+        limits = json.loads(text)
+    else:
+        path = Path(text)
+        if not path.is_file():
+            raise DdynError(f"--detection-limits: {text} is neither JSON nor a file")
+        limits = json.loads(path.read_text())
+    bad = [e for e in limits if e not in C.ALL and e not in C.FAMILY.values()]
+    if bad:
+        raise DdynError(f"--detection-limits: unknown effect(s) {', '.join(bad)}")
+    return {e: None if v is None else float(v) for e, v in limits.items()}
+
+
 def _run(args) -> int:
     ds, nominal = load_inputs(args)
     # the default library is the eleven one-parameter effects the benchmarks calibrated and scored;
@@ -1177,7 +1231,7 @@ def _run(args) -> int:
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
                  hold=args.hold, min_evidence=args.min_evidence, fit_mode=args.fit, mass_inertia=args.mass_inertia,
                  steer_servo=args.steer_servo, nominal_effects=nominal_effects_arg(args.nominal_effects),
-                 evidence=args.evidence)
+                 evidence=args.evidence, detection_limits=detection_limits_arg(args.detection_limits))
     paths = write_report(d, args.out, not args.no_plots)
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
@@ -1222,6 +1276,11 @@ def register(subparsers) -> None:
     p.add_argument("--dbw", action="store_true",
                    help="a drive-by-wire log: --hold --fit {fit} --min-evidence {min_evidence:g} (calibrated on the "
                         "independent plant; explicit --fit/--min-evidence win)".format(**DBW_PRESET))
+    p.add_argument("--detection-limits", default=None, metavar="JSON|FILE",
+                   help="a limit of detection per effect: {\"steer_lag\": 0.15, \"downforce\": null, ...} inline or "
+                        "in a file (`ddyn study gap --detection-limits-from` records the calibration runs' thresholds as "
+                        "settings.detection_limits); an effect found below its limit (null: always) is reported, "
+                        "not selected")
     p.add_argument("--mass-inertia", action="store_true",
                    help="the mass_offset candidate scales the yaw inertia with the mass (with Df, Dr refitted it "
                         "then changes only the longitudinal response, as a heavier car with load-proportional "

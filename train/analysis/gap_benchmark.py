@@ -586,8 +586,8 @@ def _run_commonroad(args, out: Path) -> int:
         raise DdynError("--plant commonroad-mb: the Putnam cases only (--case-set, --eiv-check, --mass-check, "
                         "--mass-inertia, --steer-servo and --nominal-effects are the single-track plant's)")
     if getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above"):
-        if args.min_evidence_from:
-            raise DdynError("--min-evidence-from: the putnam, sweep and above case sets only")
+        if args.min_evidence_from or args.detection_limits_from:
+            raise DdynError("--min-evidence-from, --detection-limits-from: the putnam, sweep and above case sets only")
         return _run_case_set(args, out)
     if args.eiv_check:
         return _write_check(out / "eiv.json", G.eiv_check(args.cases or 10, G.EIV_SEED if args.seed is None
@@ -603,6 +603,9 @@ def _run_commonroad(args, out: Path) -> int:
         args.min_evidence = G.margin_of(args.min_evidence_from)
         print(f"evidence margin {args.min_evidence:.6g} from {args.min_evidence_from}")
     if args.rescore:
+        if args.detection_limits_from:
+            raise DdynError("--detection-limits-from needs a run, not --rescore: a limit vetoes by each selection's "
+                            "estimate, which the recorded cases do not hold")
         path = out / "results.json"
         if not path.is_file():
             raise DdynError(f"--rescore: {path} not found")
@@ -630,6 +633,9 @@ def _run_commonroad(args, out: Path) -> int:
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
         # the thresholds measured at this run's margin (the calibration runs rescored with it)
         thresholds = G.thresholds_of(args.thresholds_from, D.MIN_EVIDENCE) if args.thresholds_from else None
+        if args.detection_limits_from:      # each case carries them (diagnosis_vetoes)
+            D.DETECTION_LIMITS = G.thresholds_of(args.detection_limits_from, D.MIN_EVIDENCE)
+            print(f"detection limits {D.DETECTION_LIMITS} from {args.detection_limits_from}")
         if args.plant == "commonroad-mb":     # the multi-body plant (gap_mb.py)
             from ddyn.analysis import gap_mb
 
@@ -642,7 +648,8 @@ def _run_commonroad(args, out: Path) -> int:
                         thresholds=thresholds, case_set=args.case_set, evidence=args.evidence,
                         effects=tuple(e.strip() for e in args.effects.split(",")) if args.effects else None)
         # where the scoring thresholds and the margin came from (calibration runs), beside their values
-        doc["settings"] |= {"thresholds_from": args.thresholds_from, "min_evidence_from": args.min_evidence_from}
+        doc["settings"] |= {"thresholds_from": args.thresholds_from, "min_evidence_from": args.min_evidence_from,
+                            "detection_limits_from": args.detection_limits_from}
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -767,6 +774,10 @@ def register(subparsers) -> None:
     p.add_argument("--min-evidence-from", default=None, metavar="RESULTS_JSON",
                    help="commonroad: the evidence margin calibrated on these runs pooled (comma-separated calibration "
                         "runs recorded with --min-evidence 0): at most 5 %% of all their effect-free logs selected")
+    p.add_argument("--detection-limits-from", default=None, metavar="RESULTS_JSON",
+                   help="commonroad: diagnose with detection limits (diagnose --detection-limits): the thresholds "
+                        "measured on these calibration runs (comma-separated) at this run's margin; not with "
+                        "--rescore (a limit needs each selection's estimate)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--fit", type=D.fit_spec_arg, default=None,

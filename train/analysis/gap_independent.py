@@ -204,12 +204,14 @@ def diagnosis_vetoes() -> dict:
     """The no-gap gate and the evidence margin in force here (diagnose's NO_GAP_GATE, MIN_EVIDENCE, which
     `ddyn study gap --gate/--min-evidence` set), for each case to carry: a worker of a Dask cluster is
     not a fork of this process and would otherwise diagnose with its own module defaults."""
-    return {"gate": D.NO_GAP_GATE, "min_evidence": D.MIN_EVIDENCE}
+    return {"gate": D.NO_GAP_GATE, "min_evidence": D.MIN_EVIDENCE, "detection_limits": D.DETECTION_LIMITS}
 
 
 def vetoes_of(case: dict) -> dict:
-    """diagnose()'s gate and min_evidence arguments from a case (the module defaults if it carries none)."""
-    return {"gate": case.get("gate", "default"), "min_evidence": case.get("min_evidence")}
+    """diagnose()'s gate, min_evidence and detection_limits arguments from a case (the module defaults if it
+    carries none)."""
+    return {"gate": case.get("gate", "default"), "min_evidence": case.get("min_evidence"),
+            "detection_limits": case.get("detection_limits", "default")}
 
 
 def run_case(case: dict) -> dict:
@@ -253,6 +255,8 @@ def run_case(case: dict) -> dict:
         "correct_without_gate": top1_ungated == case["effect"],
         "selected_without_gate": g["selected_without_gate"], "gate_ratio": g["ratio"], "gate_threshold": g["threshold"],
         "min_evidence": g["min_evidence"],
+        # the best candidate that paid but fell below its detection limit (diagnose --detection-limits)
+        "below_limit": (diag.get("below_limit") or {}).get("effect"),
         "estimate": est, "param_error": perr, **true_cand,
         # the first candidate's figures: what "gap closed" said before the gate could veto it
         "gap_closed_pct": m["gap_closed_pct"], "error_reduction_pct": m["error_reduction_pct"],
@@ -702,6 +706,10 @@ def thresholds_of(paths, margin: float | None = None) -> dict:
     return {e: reliable_threshold(rs) for e, rs in rows.items()}
 
 
+def _limits_text(limits: dict) -> str:
+    return ", ".join(f"{e} {'none (never claimed)' if v is None else f'{v:.3g}'}" for e, v in limits.items())
+
+
 def markdown(sc: dict, settings: dict, seconds: float) -> str:
     s = sc["summary"]
     gate = s["gate_threshold"]
@@ -721,6 +729,8 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                 if settings.get("evidence", "one-step") != "one-step" else "")
              + (f"; steering servo {settings['steer_servo']:g} s in the nominal" if settings.get("steer_servo") else "")
              + (f"; nominal effects {settings['nominal_effects']}" if settings.get("nominal_effects") else "")
+             + (f"; detection limits {_limits_text(settings['detection_limits'])} (an effect found below its limit is "
+                "not claimed)" if settings.get("detection_limits") else "")
              + ".", "",
              "| metric | as diagnosed, gate off | with the gate and margin above |", "|---|---|---|",
              f"| top-1 identification (effect cases) | {_f(s['top1_without_gate'], True)} | {_f(s['top1'], True)} |",
@@ -805,7 +815,8 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
     results = run_cases(run_case, cases, jobs, desc=f"gap-benchmark (commonroad, {case_set})", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad", "case_set": case_set, "cases": n_cases, "seed": seed, "jobs": jobs,
-                "min_evidence": D.MIN_EVIDENCE, "sweep_levels": SWEEP_LEVELS if case_set == "sweep" else None,
+                "min_evidence": D.MIN_EVIDENCE, "detection_limits": D.DETECTION_LIMITS,
+                "sweep_levels": SWEEP_LEVELS if case_set == "sweep" else None,
                 "calibration_seed": seed in CALIBRATION_SEEDS, "calibration_seeds": list(CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": DURATION, "track": TRACK,
                 "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold,
