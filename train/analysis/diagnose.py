@@ -97,7 +97,7 @@ MIN_EVIDENCE = 0.0
 # data with a value below its limit is reported, not selected, and the greedy stops there (a limit of detection).
 # The limits are the detection thresholds measured on calibration runs (`ddyn study gap --detection-limits-from`,
 # `diagnose --detection-limits`): below them the calibration found the effect in under 95 % of its logs, so a
-# selection there is as likely a stand-in as the effect. None by default (no limits).
+# selection there is not one the calibration vouches for. None by default (no limits).
 DETECTION_LIMITS: dict | None = None
 # The first effect added and the runner-up of its round with evidence closer than this (dBIC) are not told apart
 # by the data: "not worth more than a bare mention" on Kass & Raftery's scale of BIC differences, a textbook
@@ -1278,9 +1278,9 @@ def register(subparsers) -> None:
                         "independent plant; explicit --fit/--min-evidence win)".format(**DBW_PRESET))
     p.add_argument("--detection-limits", default=None, metavar="JSON|FILE",
                    help="a limit of detection per effect: {\"steer_lag\": 0.15, \"downforce\": null, ...} inline or "
-                        "in a file (`ddyn study gap --detection-limits-from` records the calibration runs' thresholds as "
-                        "settings.detection_limits); an effect found below its limit (null: always) is reported, "
-                        "not selected")
+                        "in a file (`ddyn study gap --detection-limits-from` records the calibration runs' "
+                        "thresholds as settings.detection_limits); an effect found below its limit (null: always) "
+                        "is reported, not selected")
     p.add_argument("--mass-inertia", action="store_true",
                    help="the mass_offset candidate scales the yaw inertia with the mass (with Df, Dr refitted it "
                         "then changes only the longitudinal response, as a heavier car with load-proportional "

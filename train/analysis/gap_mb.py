@@ -85,7 +85,8 @@ def run(n_cases: int, seed: int, jobs: int = 1, progress: bool = True, hold: boo
     results = run_cases(G.run_case, cases, jobs, desc="gap-benchmark (commonroad-mb)", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad-mb", "plant_model": PLANT_MODEL, "cases": n_cases, "seed": seed, "jobs": jobs,
-                "min_evidence": D.MIN_EVIDENCE, "calibration_seed": seed in G.CALIBRATION_SEEDS,
+                "min_evidence": D.MIN_EVIDENCE, "detection_limits": D.DETECTION_LIMITS,
+                "calibration_seed": seed in G.CALIBRATION_SEEDS,
                 "calibration_seeds": list(G.CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}" if cases else "", "duration": G.DURATION,
                 "track": G.TRACK, "effect_ranges": EFFECT_RANGES, "speeds": G.SPEEDS, "gate": D.NO_GAP_GATE,
