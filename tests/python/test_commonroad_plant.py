@@ -252,6 +252,8 @@ def test_study_gap_commonroad_cli(tmp_path, monkeypatch, capsys):
     assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--detection-limits-from",
                  str(out / "results.json"), "--out", str(out)]) == 2
     assert "needs a run, not --rescore" in capsys.readouterr().err
+    assert main(["study", "gap", "--plant", "commonroad", "--calibrated-only", "--out", str(out)]) == 2
+    assert "--calibrated-only goes with --detection-limits-from" in capsys.readouterr().err
 
 
 def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):

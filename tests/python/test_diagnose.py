@@ -307,17 +307,19 @@ def test_a_find_below_its_detection_limit_is_reported_not_selected(delay_log, tm
     20 ms or with no limit for it; above its estimate (40 ms) or with a null limit it is reported as below the
     limit and nothing is selected; an effect without a limit is unaffected."""
     kw = dict(candidates=("steer_delay",), max_effects=1, max_starts=50)
-    for limits in (None, {"steer_delay": 0.02}, {"steer_lag": 0.5}):
+    for limits in (None, {"steer_delay": 0.02}, {"steer_lag": 0.5}, {"steer_delay": 0.02, "*": None}):
         assert _diagnose(delay_log, detection_limits=limits, **kw)["selected"] == ["steer_delay"]
-    for limits in ({"steer_delay": 0.04}, {"steer_delay": None}):
+    # "*": every effect without an entry ({"*": None}: only the calibrated effects are ever claimed)
+    for limits in ({"steer_delay": 0.04}, {"steer_delay": None}, {"steer_lag": 0.01, "*": None}):
         d = _diagnose(delay_log, detection_limits=limits, **kw)
         assert d["selected"] == [] and d["model"]["effects"] == [] and d["unexplained"] is None
-        assert d["below_limit"]["effect"] == "steer_delay" and d["below_limit"]["limit"] == limits["steer_delay"]
+        assert d["below_limit"]["effect"] == "steer_delay"
+        assert d["below_limit"]["limit"] == limits.get("steer_delay", limits.get("*"))
         assert d["below_limit"]["params"]["delay"] == pytest.approx(0.03, rel=0.1)
         assert d["verdict"].startswith("none: steer_delay pays on the held-out data") and "not claimed" in d["verdict"]
         assert d["greedy"][0]["below_limit"] and d["greedy"][0]["added"] is None
-    assert D.detection_limits_arg('{"steer_delay": 0.04, "downforce": null}') == {"steer_delay": 0.04,
-                                                                                    "downforce": None}
+    assert D.detection_limits_arg('{"steer_delay": 0.04, "downforce": null, "*": null}') == {
+        "steer_delay": 0.04, "downforce": None, "*": None}
     f = tmp_path / "limits.json"
     f.write_text('{"steer_lag": 0.15}')
     assert D.detection_limits_arg(str(f)) == {"steer_lag": 0.15}

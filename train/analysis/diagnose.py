@@ -838,7 +838,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
             break
         if weak:
             below_limit = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
-                           "limit": limits[C.FAMILY.get(name, name)]}
+                           "limit": _limit_of(name, limits)[1]}
             break
         if not dbic < -margin:
             break
@@ -953,19 +953,28 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     }
 
 
+# the key of detection limits for every effect without an entry of its own ({"*": None}: only the effects the
+# calibration measured a threshold for are ever claimed)
+ANY_OTHER = "*"
+
+
+def _limit_of(name: str, limits: dict | None):
+    """(has a limit, the limit or None: never claimed) of an effect's family."""
+    family = C.FAMILY.get(name, name)
+    if not limits or (family not in limits and ANY_OTHER not in limits):
+        return False, None
+    return True, limits[family] if family in limits else limits[ANY_OTHER]
+
+
 def _below_limit(name: str, value: float, limits: dict | None) -> bool:
     """An effect's value (a profile's peak) under its detection limit; never for an effect without one."""
-    if not limits:
-        return False
-    family = C.FAMILY.get(name, name)
-    if family not in limits:
-        return False
-    return limits[family] is None or abs(value) < limits[family]
+    has, limit = _limit_of(name, limits)
+    return has and (limit is None or abs(value) < limit)
 
 
 def _below_limit_verdict(b: dict) -> str:
     (pn, pv), = b["params"].items()
-    limit = ("never reliably identified in its calibration" if b["limit"] is None
+    limit = ("not reliably identified in the calibration (or not calibrated)" if b["limit"] is None
              else f"below its detection limit {b['limit']:.4g}")
     return (f"{b['effect']} pays on the held-out data (dBIC {b['delta_bic']:.1f}) with {pn} = {pv:.4g}, {limit}: "
             "not claimed")
@@ -1199,7 +1208,7 @@ def detection_limits_arg(text: str | None) -> dict | None:
         if not path.is_file():
             raise DdynError(f"--detection-limits: {text} is neither JSON nor a file")
         limits = json.loads(path.read_text())
-    bad = [e for e in limits if e not in C.ALL and e not in C.FAMILY.values()]
+    bad = [e for e in limits if e not in C.ALL and e not in C.FAMILY.values() and e != ANY_OTHER]
     if bad:
         raise DdynError(f"--detection-limits: unknown effect(s) {', '.join(bad)}")
     return {e: None if v is None else float(v) for e, v in limits.items()}
@@ -1277,7 +1286,8 @@ def register(subparsers) -> None:
                    help="a drive-by-wire log: --hold --fit {fit} --min-evidence {min_evidence:g} (calibrated on the "
                         "independent plant; explicit --fit/--min-evidence win)".format(**DBW_PRESET))
     p.add_argument("--detection-limits", default=None, metavar="JSON|FILE",
-                   help="a limit of detection per effect: {\"steer_lag\": 0.15, \"downforce\": null, ...} inline or "
+                   help="a limit of detection per effect: {\"steer_lag\": 0.15, \"downforce\": null, ...} "
+                        "(\"*\": every effect without an entry) inline or "
                         "in a file (`ddyn study gap --detection-limits-from` records the calibration runs' "
                         "thresholds as settings.detection_limits); an effect found below its limit (null: always) "
                         "is reported, not selected")

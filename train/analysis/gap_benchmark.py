@@ -633,8 +633,12 @@ def _run_commonroad(args, out: Path) -> int:
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
         # the thresholds measured at this run's margin (the calibration runs rescored with it)
         thresholds = G.thresholds_of(args.thresholds_from, D.MIN_EVIDENCE) if args.thresholds_from else None
+        if args.calibrated_only and not args.detection_limits_from:
+            raise DdynError("--calibrated-only goes with --detection-limits-from")
         if args.detection_limits_from:      # each case carries them (diagnosis_vetoes)
             D.DETECTION_LIMITS = G.thresholds_of(args.detection_limits_from, D.MIN_EVIDENCE)
+            if args.calibrated_only:
+                D.DETECTION_LIMITS[D.ANY_OTHER] = None
             print(f"detection limits {D.DETECTION_LIMITS} from {args.detection_limits_from}")
         if args.plant == "commonroad-mb":     # the multi-body plant (gap_mb.py)
             from ddyn.analysis import gap_mb
@@ -778,6 +782,9 @@ def register(subparsers) -> None:
                    help="commonroad: diagnose with detection limits (diagnose --detection-limits): the thresholds "
                         "measured on these calibration runs (comma-separated) at this run's margin; not with "
                         "--rescore (a limit needs each selection's estimate)")
+    p.add_argument("--calibrated-only", action="store_true",
+                   help="commonroad, with --detection-limits-from: effects the calibration runs did not sweep are "
+                        "never claimed either (limit \"*\": null)")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--fit", type=D.fit_spec_arg, default=None,

@@ -707,7 +707,8 @@ def thresholds_of(paths, margin: float | None = None) -> dict:
 
 
 def _limits_text(limits: dict) -> str:
-    return ", ".join(f"{e} {'none (never claimed)' if v is None else f'{v:.3g}'}" for e, v in limits.items())
+    return ", ".join(f"{'every other effect' if e == D.ANY_OTHER else e} "
+                     f"{'none (never claimed)' if v is None else f'{v:.3g}'}" for e, v in limits.items())
 
 
 def markdown(sc: dict, settings: dict, seconds: float) -> str:
