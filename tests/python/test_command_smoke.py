@@ -31,11 +31,11 @@ def test_study_ddm_quick_writes_its_table(tmp_path, shared_data):
 
 def test_study_ddm_real_only_one_run_with_its_seed(tmp_path, shared_data):
     """`--only` trains the named real run alone and `--seed` and `--guard-prior` reach its training (recorded in
-    the checkpoint); without `--guard-prior` each run trains with its own (the prior row's REAL_GUARD_PRIOR); an
-    unknown run name is an error, not an empty table."""
+    the checkpoint); without `--guard-prior` each run trains with its own fields (the last row's REAL_GUARD_PRIOR
+    and REAL_TAU); an unknown run name is an error, not an empty table."""
     from ddyn.errors import DdynError
     from ddyn.learn import checkpoint
-    from ddyn.studies.ddm import REAL_GUARD_PRIOR
+    from ddyn.studies.ddm import REAL_GUARD_PRIOR, REAL_TAU
 
     out = tmp_path / "study"
     assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain", "--seed", "3",
@@ -48,12 +48,12 @@ def test_study_ddm_real_only_one_run_with_its_seed(tmp_path, shared_data):
     assert ckpt["config"]["seed"] == 3 and ckpt["config"]["guard_prior"] == 0.02
     with pytest.raises(DdynError, match="unknown real run"):
         _run(["study", "ddm", "real", "--quick", "--only", "ddm_nope", "--out", str(out)], "study")
-    assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain_prior", "--out", str(out)],
+    assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain_prior_tau", "--out", str(out)],
                 "study") == 0
     real = json.loads((out / "results.json").read_text())["real"]
-    assert real[0]["guard_prior"] == REAL_GUARD_PRIOR and real[0]["label"].endswith(f"guard prior {REAL_GUARD_PRIOR:g}")
-    _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain_prior" / "model.ckpt")
-    assert ckpt["config"]["guard_prior"] == REAL_GUARD_PRIOR
+    assert real[0]["guard_prior"] == REAL_GUARD_PRIOR and "(guard prior" not in real[0]["label"]
+    _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain_prior_tau" / "model.ckpt")
+    assert ckpt["config"]["guard_prior"] == REAL_GUARD_PRIOR and ckpt["config"]["tau"] == REAL_TAU
 
 
 def test_codegen_check_passes_with_the_default_tool(tmp_path, shared_data, capsys):

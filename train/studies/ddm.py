@@ -39,16 +39,22 @@ PAPER_SIM_DDM = {"vx": 1.506e-5, "vy": 1.839e-4, "omega": 9.6e-3, "ade": 3.77e-5
 PAPER_REAL_DDM = {"vx": 0.0312, "vy": 0.0730, "omega": 0.0187, "ade": 0.1827, "fde": 0.3840}
 TARGET_COEFFS = ("Bf", "Cf", "Df", "Br", "Cr", "Dr", "Cm1", "Cm2", "Cr0", "Iz")
 POWERTRAIN_VEHICLE = "av21_powertrain"
-# TrainConfig.guard_prior of the last real row, chosen on the training part's validation fifth only: the smallest
+# TrainConfig.guard_prior of the last real rows, chosen on the training part's validation fifth only: the smallest
 # of 1e-3, 1e-2, 1e-1 with no coefficient at a bound in over 5 % of the validation samples on seeds 0, 1, 2
 # (Gf 21-22 %, 14-19 %, at most 1.8 %; docs/learning.md)
 REAL_GUARD_PRIOR = 0.1
-# (run name, vehicle file, table label, drivetrain ranges from the training part via --ranges, guard prior)
-REAL_RUNS = (("ddm_putnam", "av21", "DDM, papers' drivetrain, papers' ranges", False, 0.0),
-             ("ddm_putnam_ranges", "av21", "DDM, papers' drivetrain, ranges from data", True, 0.0),
-             ("ddm_putnam_powertrain", "av21_powertrain", "DDM, powertrain drivetrain (av21_powertrain)", False, 0.0),
+# TrainConfig.tau of the last row, chosen the same way: the lowest mean validation loss of tau 1, 3, 5 on seeds
+# 0, 1, 2 with the prior (docs/learning.md)
+REAL_TAU = 5
+# (run name, vehicle file, table label, drivetrain ranges from the training part via --ranges, TrainConfig fields)
+REAL_RUNS = (("ddm_putnam", "av21", "DDM, papers' drivetrain, papers' ranges", False, {}),
+             ("ddm_putnam_ranges", "av21", "DDM, papers' drivetrain, ranges from data", True, {}),
+             ("ddm_putnam_powertrain", "av21_powertrain", "DDM, powertrain drivetrain (av21_powertrain)", False, {}),
              ("ddm_putnam_powertrain_prior", "av21_powertrain",
-              f"DDM, powertrain drivetrain, guard prior {REAL_GUARD_PRIOR:g}", False, REAL_GUARD_PRIOR))
+              f"DDM, powertrain drivetrain, guard prior {REAL_GUARD_PRIOR:g}", False, {"guard_prior": REAL_GUARD_PRIOR}),
+             ("ddm_putnam_powertrain_prior_tau", "av21_powertrain",
+              f"DDM, powertrain drivetrain, guard prior {REAL_GUARD_PRIOR:g}, history {REAL_TAU}", False,
+              {"guard_prior": REAL_GUARD_PRIOR, "tau": REAL_TAU}))
 STUDY_BEGIN, STUDY_END = "<!-- study:begin -->", "<!-- study:end -->"
 STUDY_DOC = REPO / "docs" / "learning.md"
 
@@ -104,9 +110,9 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
              guard_prior: float | None = None, ranges: Path | None = None, method: str = "euler") -> list[dict]:
     """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run (all if empty);
     restarts: TrainConfig.restarts (seeds seed..seed+restarts-1, the lowest validation loss kept);
-    guard_prior: TrainConfig.guard_prior of every run (None: each run's own in REAL_RUNS); ranges: a guard ranges
-    file for the runs that take their vehicle file's ranges (all but ddm_putnam_ranges); method: the physics step
-    of the model (TrainConfig.method)."""
+    guard_prior: TrainConfig.guard_prior of every run (None: each run's own in REAL_RUNS, like its other fields);
+    ranges: a guard ranges file for the runs that take their vehicle file's ranges (all but ddm_putnam_ranges);
+    method: the physics step of the model (TrainConfig.method)."""
     from ddyn.data.importers import load_any
 
     out.mkdir(parents=True, exist_ok=True)
@@ -121,11 +127,12 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
     base = (TrainConfig(epochs=5, lbfgs_iterations=40, seed=seed, restarts=restarts, method=method) if quick
             else TrainConfig(seed=seed, restarts=restarts, method=method))
     results = []
-    for name, vehicle_name, label, data_ranges, run_prior in REAL_RUNS:
+    for name, vehicle_name, label, data_ranges, fields in REAL_RUNS:
         if only and name not in only:
             continue
+        run_prior = fields.get("guard_prior", 0.0)
         prior = run_prior if guard_prior is None else guard_prior
-        cfg = replace(base, guard_prior=prior)
+        cfg = replace(base, **{**fields, "guard_prior": prior})
         ds = load_any(src, vehicle=vehicle_name)
         cut = int(len(ds) * drivetrain.TRAIN_FRACTION)
         train_part, test_part = ds.subset(slice(0, cut)), ds.subset(slice(cut, None))
@@ -244,7 +251,7 @@ def register(subparsers) -> None:
     p.add_argument("--restarts", type=int, default=1, help="real runs: train seeds SEED..SEED+N-1 and keep the "
                    "lowest validation loss (TrainConfig.restarts; default: %(default)s)")
     p.add_argument("--guard-prior", type=float, help="real runs: TrainConfig.guard_prior of every run, the weight "
-                   f"of the mean squared guard logit (default: each run's own: {REAL_GUARD_PRIOR:g} for the last, 0 "
+                   f"of the mean squared guard logit (default: each run's own: {REAL_GUARD_PRIOR:g} for the last two, 0 "
                    "for the others)")
     p.add_argument("--ranges", help="real runs with their vehicle file's ranges: a guard ranges file instead "
                    "(as `ddyn train --ranges`)")
