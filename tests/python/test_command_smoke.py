@@ -54,6 +54,13 @@ def test_study_ddm_real_only_one_run_with_its_seed(tmp_path, shared_data):
     assert real[0]["guard_prior"] == REAL_GUARD_PRIOR and "(guard prior" not in real[0]["label"]
     _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain_prior_tau" / "model.ckpt")
     assert ckpt["config"]["guard_prior"] == REAL_GUARD_PRIOR and ckpt["config"]["tau"] == REAL_TAU
+    # --tau and --method reach every run's training and its label
+    assert _run(["study", "ddm", "real", "--quick", "--only", "ddm_putnam_powertrain_prior", "--tau", "2",
+                 "--method", "rk4", "--out", str(out)], "study") == 0
+    real = json.loads((out / "results.json").read_text())["real"]
+    assert real[0]["tau"] == 2 and "(history 2)" in real[0]["label"] and "(rk4 step)" in real[0]["label"]
+    _, ckpt = checkpoint.load(out / "real" / "ddm_putnam_powertrain_prior" / "model.ckpt")
+    assert ckpt["config"]["tau"] == 2 and ckpt["config"]["method"] == "rk4"
 
 
 def test_codegen_check_passes_with_the_default_tool(tmp_path, shared_data, capsys):

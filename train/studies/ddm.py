@@ -107,11 +107,10 @@ def run_sim(out: Path, quick: bool = False) -> list[dict]:
 
 
 def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...] = (), restarts: int = 1,
-             guard_prior: float | None = None, ranges: Path | None = None, method: str = "euler") -> list[dict]:
+             guard_prior: float | None = None, method: str = "euler", tau: int | None = None) -> list[dict]:
     """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run (all if empty);
     restarts: TrainConfig.restarts (seeds seed..seed+restarts-1, the lowest validation loss kept);
-    guard_prior: TrainConfig.guard_prior of every run (None: each run's own in REAL_RUNS, like its other fields);
-    ranges: a guard ranges file for the runs that take their vehicle file's ranges (all but ddm_putnam_ranges);
+    guard_prior, tau: TrainConfig.guard_prior, TrainConfig.tau of every run (None: each run's own in REAL_RUNS);
     method: the physics step of the model (TrainConfig.method)."""
     from ddyn.data.importers import load_any
 
@@ -130,13 +129,14 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
     for name, vehicle_name, label, data_ranges, fields in REAL_RUNS:
         if only and name not in only:
             continue
-        run_prior = fields.get("guard_prior", 0.0)
+        run_prior, run_tau = fields.get("guard_prior", 0.0), fields.get("tau", base.tau)
         prior = run_prior if guard_prior is None else guard_prior
-        cfg = replace(base, **{**fields, "guard_prior": prior})
+        history = run_tau if tau is None else tau
+        cfg = replace(base, **{**fields, "guard_prior": prior, "tau": history})
         ds = load_any(src, vehicle=vehicle_name)
         cut = int(len(ds) * drivetrain.TRAIN_FRACTION)
         train_part, test_part = ds.subset(slice(0, cut)), ds.subset(slice(cut, None))
-        ranges_file = ranges
+        ranges_file = None
         if data_ranges:
             # the papers' form with ranges from the training part: its own drivetrain fit's, and
             # the other coefficients' from av21_powertrain (derived from the same part), so that
@@ -154,10 +154,9 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
                        | {"label": label + (f" (seed {seed})" if seed and restarts == 1 else "")
                           + (f" (seeds {seed}-{seed + restarts - 1}, best validation kept)" if restarts > 1 else "")
                           + (f" (guard prior {prior:g})" if prior != run_prior else "")
-                          + (f" (ranges {ranges.name})" if ranges and not data_ranges else "")
+                          + (f" (history {history})" if history != run_tau else "")
                           + (f" ({method} step)" if method != "euler" else ""),
-                          "seed": seed, "restarts_requested": restarts, "guard_prior": prior,
-                          "ranges": str(ranges_file) if ranges_file else None})
+                          "seed": seed, "restarts_requested": restarts, "guard_prior": prior, "tau": history})
     return results
 
 
@@ -225,7 +224,7 @@ def _run(args) -> int:
     out = Path(args.out)
     sim = run_sim(out / "sim", args.quick) if args.which in ("sim", "all") else None
     real = (run_real(out / "real", args.quick, args.seed, tuple(args.only or ()), args.restarts, args.guard_prior,
-                     Path(args.ranges) if args.ranges else None, args.method)
+                     args.method, args.tau)
             if args.which in ("real", "all") else None)
     results = {"sim": sim, "real": real, "quick": args.quick}
     (out / "results.json").write_text(json.dumps(results, indent=2))
@@ -234,7 +233,7 @@ def _run(args) -> int:
     print(md)
     if args.update_doc:
         if (args.quick or args.which != "all" or args.only or args.seed or args.restarts != 1
-                or args.guard_prior is not None or args.ranges or args.method != "euler"):
+                or args.guard_prior is not None or args.tau is not None or args.method != "euler"):
             raise DdynError("--update-doc needs the full study: `ddyn study ddm all` without --quick")
         update_doc(md)
         print(f"{STUDY_DOC.relative_to(REPO)} results block updated")
@@ -253,8 +252,8 @@ def register(subparsers) -> None:
     p.add_argument("--guard-prior", type=float, help="real runs: TrainConfig.guard_prior of every run, the weight "
                    f"of the mean squared guard logit (default: each run's own: {REAL_GUARD_PRIOR:g} for the last two, 0 "
                    "for the others)")
-    p.add_argument("--ranges", help="real runs with their vehicle file's ranges: a guard ranges file instead "
-                   "(as `ddyn train --ranges`)")
+    p.add_argument("--tau", type=int, help="real runs: TrainConfig.tau of every run, the rows of history the "
+                   f"network reads (default: each run's own: {REAL_TAU} for the last, 1 for the others)")
     p.add_argument("--method", choices=("euler", "rk4"), default="euler", help="real runs: the model's physics "
                    "step (TrainConfig.method; default: %(default)s, as in the papers)")
     p.add_argument("--only", nargs="+", metavar="RUN", help="real runs to train, by name (default: all): "
