@@ -215,6 +215,17 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     tie = D.diagnose(ds, nominal, **kw)
     assert tie["selected"] == ["steer_delay"] and tie["rival"]["effect"] == "mass_offset"
     assert tie["rival"]["evidence_difference"] == pytest.approx(gap) and "or mass_offset" in tie["verdict"]
+    assert tie["not_told_apart"] is None        # without detection limits the choice is named, not withheld
+    # with detection limits (the delay above its limit) the same tie is reported and nothing is claimed
+    strict = D.diagnose(ds, nominal, detection_limits={"steer_delay": 0.01, "*": None}, **kw)
+    assert strict["selected"] == [] and strict["below_limit"] is None and strict["rival"] is None
+    t = strict["not_told_apart"]
+    assert t["effect"] == "steer_delay" and t["rival"] == "mass_offset"
+    assert t["evidence_difference"] == pytest.approx(gap) and t["params"]["delay"] == pytest.approx(0.08, rel=0.2)
+    assert strict["verdict"].startswith("none: steer_delay") and "not told apart, not claimed" in strict["verdict"]
+    assert strict["greedy"][0]["not_told_apart"] and strict["greedy"][0]["added"] is None
+    monkeypatch.setattr(D, "AMBIGUITY_DBIC", 2.0)     # far apart again: the delay is claimed under the same limits
+    assert D.diagnose(ds, nominal, detection_limits={"steer_delay": 0.01, "*": None}, **kw)["selected"] == ["steer_delay"]
     far = G.oracle_figures(D.diagnose(ds, nominal, truth={"steer_delay": 0.3}, **kw), case)
     assert far["e_oracle"] > o["e_oracle"]
     row = {"status": "ok", "effect": "steer_delay", "selected_without_gate": ["steer_delay"], "gate_ratio": 1.0,

@@ -323,6 +323,12 @@ def test_a_find_below_its_detection_limit_is_reported_not_selected(delay_log, tm
     f = tmp_path / "limits.json"
     f.write_text('{"steer_lag": 0.15}')
     assert D.detection_limits_arg(str(f)) == {"steer_lag": 0.15}
+    run = tmp_path / "results.json"         # a study gap run's results: the limits its settings record
+    run.write_text('{"settings": {"detection_limits": {"steer_delay": 0.043, "*": null}}, "results": []}')
+    assert D.detection_limits_arg(str(run)) == {"steer_delay": 0.043, "*": None}
+    run.write_text('{"settings": {"detection_limits": null}, "results": []}')
+    with pytest.raises(DdynError, match="without detection limits"):
+        D.detection_limits_arg(str(run))
     with pytest.raises(DdynError, match="unknown effect"):
         D.detection_limits_arg('{"warp_drive": 1}')
 

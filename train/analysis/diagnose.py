@@ -33,6 +33,9 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
                   explained by the effect library" when the best candidate pays for itself only from an edge
                   of its search range (such an estimate is a bound, never the verdict)
   unexplained     that candidate {effect, params, delta_bic}, or None
+  not_told_apart  with detection limits: the first effect {effect, params, delta_bic, rival, rival_params,
+                  rival_delta_bic, evidence_difference} when the runner-up of another family is within
+                  AMBIGUITY_DBIC of it: reported, not selected (a claim needs a choice the data make), else None
   rival           the runner-up of the first effect's round (another family) when its dBIC is within
                   AMBIGUITY_DBIC of the first's: {effect, params, delta_bic, evidence_difference}, else None
                   (the verdict then says the two are not told apart)
@@ -810,6 +813,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     steps_log = []
     unexplained = None      # the best candidate when it paid for itself only from an edge of its range
     below_limit = None      # the best candidate when it paid for itself with a value below its detection limit
+    not_told_apart = None   # under detection limits: the first effect when a rival's evidence is as good
     while len(selected) < max_effects:
         pool = [c for c in candidates if C.FAMILY[c] not in {C.FAMILY[n] for n in selected}]
         if not pool:
@@ -830,15 +834,27 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         main_value = C.summary(name, f.values, f.std, prob.layout)[0]   # a profile: its peak
         edge = bool(dbic < -margin) and at_bound(name, main_value, prob.ctx)
         weak = bool(dbic < -margin) and not edge and _below_limit(name, main_value, limits)
-        steps_log.append({"added": name if dbic < -margin and not edge and not weak else None,
+        # under detection limits a claim must also be a choice the data make: a first effect whose runner-up of
+        # another family is within AMBIGUITY_DBIC of it is reported, not claimed (on the four calibration sweeps
+        # every such first effect lay below its threshold, and 5 of the 9 were the wrong one of the two)
+        tie = (_runner_up(trials, name) if limits and not selected and dbic < -margin and not edge and not weak
+               else None)
+        steps_log.append({"added": name if dbic < -margin and not edge and not weak and not tie else None,
                           "best_candidate": name, "delta_bic": dbic, "at_bound": edge, "below_limit": weak,
-                          "after": selected + [name]})
+                          "not_told_apart": tie is not None, "after": selected + [name]})
         if edge:
             unexplained = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic}
             break
         if weak:
             below_limit = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
                            "limit": _limit_of(name, limits)[1]}
+            break
+        if tie:
+            rdbic, rname, rf, _ = tie
+            not_told_apart = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
+                              "rival": rname,
+                              "rival_params": {C.MAIN_PARAM[rname]: C.summary(rname, rf.values, rf.std, prob.layout)[0]},
+                              "rival_delta_bic": rdbic, "evidence_difference": rdbic - dbic}
             break
         if not dbic < -margin:
             break
@@ -892,6 +908,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                     f"without the gate: {', '.join(gate_info['selected_without_gate'])}" if gated else
                     _unexplained_verdict(unexplained) if not selected and unexplained else
                     "none: " + _below_limit_verdict(below_limit) if not selected and below_limit else
+                    "none: " + _not_told_apart_verdict(not_told_apart) if not_told_apart else
                     "none: no candidate effect pays for its parameters on the held-out data"
                     + (f" by the evidence margin (dBIC < -{margin:g})" if margin else "") if not selected else
                     "; ".join(f"{e['effect']} {next(iter(e['params']))} = {next(iter(e['params'].values())):.4g} "
@@ -905,6 +922,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                     + (f"; then {_below_limit_verdict(below_limit)}" if selected and below_limit else "")),
         "unexplained": unexplained,
         "below_limit": below_limit,
+        "not_told_apart": not_told_apart,
         "rival": rival,
         "candidates": first,
         "model": final,
@@ -978,6 +996,21 @@ def _below_limit_verdict(b: dict) -> str:
              else f"below its detection limit {b['limit']:.4g}")
     return (f"{b['effect']} pays on the held-out data (dBIC {b['delta_bic']:.1f}) with {pn} = {pv:.4g}, {limit}: "
             "not claimed")
+
+
+def _runner_up(trials: list, name: str):
+    """The best trial (dBIC, name, fit, evidence) of another family than `name` when its evidence is within
+    AMBIGUITY_DBIC of `name`'s (trials sorted best first, `name` first), else None."""
+    r = next((t for t in trials[1:] if C.FAMILY[t[1]] != C.FAMILY[name]), None)
+    return r if r is not None and r[0] - trials[0][0] < AMBIGUITY_DBIC else None
+
+
+def _not_told_apart_verdict(t: dict) -> str:
+    (pn, pv), = t["params"].items()
+    (rn, rv), = t["rival_params"].items()
+    return (f"{t['effect']} ({pn} = {pv:.4g}, dBIC {t['delta_bic']:.1f}) and {t['rival']} ({rn} = {rv:.4g}, dBIC "
+            f"{t['rival_delta_bic']:.1f}) pay on the held-out data within {t['evidence_difference']:.1f} dBIC of "
+            f"each other (< {AMBIGUITY_DBIC:g}): not told apart, not claimed")
 
 
 def _unexplained_verdict(u: dict) -> str:
@@ -1197,8 +1230,8 @@ def nominal_effects_arg(text: str | None) -> dict:
 
 
 def detection_limits_arg(text: str | None) -> dict | None:
-    """--detection-limits: JSON {effect: limit or null} inline or in a file (e.g. the `detection_limits` of a
-    `ddyn study gap --detection-limits-from` run's settings: calibration runs' measured thresholds)."""
+    """--detection-limits: JSON {effect: limit or null} inline or in a file, or the results.json of a `ddyn study
+    gap --detection-limits-from` run (its settings' `detection_limits`: calibration runs' measured thresholds)."""
     if not text:
         return None
     if text.strip().startswith("{"):
@@ -1208,6 +1241,11 @@ def detection_limits_arg(text: str | None) -> dict | None:
         if not path.is_file():
             raise DdynError(f"--detection-limits: {text} is neither JSON nor a file")
         limits = json.loads(path.read_text())
+        # a `ddyn study gap --detection-limits-from` run's results.json: the limits its settings record
+        if isinstance(limits.get("settings"), dict):
+            if not limits["settings"].get("detection_limits"):
+                raise DdynError(f"--detection-limits: {text} is a run recorded without detection limits")
+            limits = limits["settings"]["detection_limits"]
     bad = [e for e in limits if e not in C.ALL and e not in C.FAMILY.values() and e != ANY_OTHER]
     if bad:
         raise DdynError(f"--detection-limits: unknown effect(s) {', '.join(bad)}")
@@ -1288,9 +1326,9 @@ def register(subparsers) -> None:
     p.add_argument("--detection-limits", default=None, metavar="JSON|FILE",
                    help="a limit of detection per effect: {\"steer_lag\": 0.15, \"downforce\": null, ...} "
                         "(\"*\": every effect without an entry) inline or "
-                        "in a file (`ddyn study gap --detection-limits-from` records the calibration runs' "
-                        "thresholds as settings.detection_limits); an effect found below its limit (null: always) "
-                        "is reported, not selected")
+                        "in a file, or a `ddyn study gap --detection-limits-from` run's results.json (its "
+                        "settings.detection_limits: the calibration runs' thresholds); an effect found below its "
+                        "limit (null: always), or not told apart from a rival, is reported, not selected")
     p.add_argument("--mass-inertia", action="store_true",
                    help="the mass_offset candidate scales the yaw inertia with the mass (with Df, Dr refitted it "
                         "then changes only the longitudinal response, as a heavier car with load-proportional "

@@ -257,6 +257,8 @@ def run_case(case: dict) -> dict:
         "min_evidence": g["min_evidence"],
         # the best candidate that paid but fell below its detection limit (diagnose --detection-limits)
         "below_limit": (diag.get("below_limit") or {}).get("effect"),
+        # with limits: the first effect withheld because a rival's evidence was as good (diagnose.AMBIGUITY_DBIC)
+        "not_told_apart": ([t["effect"], t["rival"]] if (t := diag.get("not_told_apart")) else None),
         "estimate": est, "param_error": perr, **true_cand,
         # the first candidate's figures: what "gap closed" said before the gate could veto it
         "gap_closed_pct": m["gap_closed_pct"], "error_reduction_pct": m["error_reduction_pct"],
