@@ -370,6 +370,14 @@ def test_scoring_thresholds_and_delay_vs_lag():
     dl = G.delay_vs_lag(rows)
     assert dl["flagged_not_told_apart"] == 2 and dl["told_apart_where_claimed"] == pytest.approx(1.0)
     assert s["false_alarm_rate"] == pytest.approx(0.5)
+    assert s["withheld_below_limit"] == 0 and s["withheld_not_told_apart"] == 0 and "Reported, not claimed" not in \
+        G._threshold_line(s, sc["per_effect"])
+    # under detection limits: the 0.05 s lag withheld below its limit, the 0.02 s delay as not told apart
+    rows[4]["below_limit"] = "steer_lag"
+    rows[0] |= {"not_told_apart": ["steer_delay", "steer_lag"], "top1": G.NONE, "selected": [], "correct": False}
+    s2 = G.score(rows, {"steer_delay": 0.04, "steer_lag": 0.1})["summary"]
+    assert s2["withheld_below_limit"] == 1 and s2["withheld_not_told_apart"] == 1
+    assert "below a limit on 1 logs, not told apart from a rival on 1" in G._threshold_line(s2, {})
     # thresholds pooled over two calibration runs: the union's cases of an effect, its tail from the top still
     # >= 95 % found (one run's miss at 0.2 s left it no threshold; with the other's cases it stops at that miss)
     import json

@@ -835,8 +835,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         edge = bool(dbic < -margin) and at_bound(name, main_value, prob.ctx)
         weak = bool(dbic < -margin) and not edge and _below_limit(name, main_value, limits)
         # under detection limits a claim must also be a choice the data make: a first effect whose runner-up of
-        # another family is within AMBIGUITY_DBIC of it is reported, not claimed (on the four calibration sweeps
-        # every such first effect lay below its threshold, and 5 of the 9 were the wrong one of the two)
+        # another family is within AMBIGUITY_DBIC of it is reported, not claimed (on the four calibration sweeps at
+        # their margin every such first effect lay below its threshold, and 4 of the 7 were the wrong one)
         tie = (_runner_up(trials, name) if limits and not selected and dbic < -margin and not edge and not weak
                else None)
         steps_log.append({"added": name if dbic < -margin and not edge and not weak and not tie else None,

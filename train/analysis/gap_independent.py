@@ -625,6 +625,10 @@ def score(results: list[dict], thresholds: dict | None = None) -> dict:
                                        else None),
         "delay_vs_lag": delay_vs_lag(eff),
         "edge_verdicts": sum(1 for r in ok if r.get("unexplained") and not r["selected"]),
+        # with detection limits: logs where a paying effect was reported and not claimed (below its limit, first
+        # or after others; or, first, not told apart from a rival)
+        "withheld_below_limit": sum(1 for r in ok if r.get("below_limit")),
+        "withheld_not_told_apart": sum(1 for r in ok if r.get("not_told_apart")),
         **oracle_summary(eff),
         "median_gap_vs_oracle_above_thresholds": (_median([min(r["gap_vs_oracle"], 1.0) for r in above_all
                                                            if r.get("gap_vs_oracle") is not None])
@@ -670,7 +674,10 @@ def _threshold_line(s: dict, per: dict) -> str:
             f"cases) any effect selected in {_f(s['any_selected_below_thresholds'], True)}, a wrong one in "
             f"{_f(s['wrong_selected_below_thresholds'], True)}; effect-free and below-threshold logs together: any "
             f"effect selected in {_f(s.get('any_selected_none_or_below'), True)}. Range-edge verdicts (\"not explained by the effect "
-            f"library\"): {s['edge_verdicts']}.")
+            f"library\"): {s['edge_verdicts']}."
+            + (f" Reported, not claimed (detection limits): below a limit on {s['withheld_below_limit']} logs, not "
+               f"told apart from a rival on {s['withheld_not_told_apart']}."
+               if s.get("withheld_below_limit") or s.get("withheld_not_told_apart") else ""))
 
 
 def _oracle_line(s: dict) -> str:
