@@ -226,6 +226,7 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     assert strict["greedy"][0]["not_told_apart"] and strict["greedy"][0]["added"] is None
     monkeypatch.setattr(D, "AMBIGUITY_DBIC", 2.0)     # far apart again: the delay is claimed under the same limits
     assert D.diagnose(ds, nominal, detection_limits={"steer_delay": 0.01, "*": None}, **kw)["selected"] == ["steer_delay"]
+    assert d["runner_up"]["effect"] == "mass_offset" and d["runner_up"]["evidence_difference"] == pytest.approx(gap)
     far = G.oracle_figures(D.diagnose(ds, nominal, truth={"steer_delay": 0.3}, **kw), case)
     assert far["e_oracle"] > o["e_oracle"]
     row = {"status": "ok", "effect": "steer_delay", "selected_without_gate": ["steer_delay"], "gate_ratio": 1.0,

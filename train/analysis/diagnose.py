@@ -39,6 +39,7 @@ diagnosis.json ("schema": "ddyn-diagnosis 1"):
   rival           the runner-up of the first effect's round (another family) when its dBIC is within
                   AMBIGUITY_DBIC of the first's: {effect, params, delta_bic, evidence_difference}, else None
                   (the verdict then says the two are not told apart)
+  runner_up       the same for the best candidate of round 1 whatever the distance (None: no other family)
   truth           with diagnose(truth=...) (benchmarks): that hypothesis's held-out scores, else None
   candidates      best first (by dBIC), one per effect tried alone against the refitted nominal:
                   effect, params {name: value}, uncertainty {name: std}, unit, at_bound (the estimate sits
@@ -878,12 +879,13 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
     # the first effect's rival: the runner-up of round 1 within AMBIGUITY_DBIC of it (another family)
+    # (runner_up: the same for the best candidate of round 1 whatever the distance, selected or not)
+    r = next((c for c in first[1:] if C.FAMILY[c["effect"]] != C.FAMILY[first[0]["effect"]]), None)
+    runner_up = (None if r is None else {"effect": r["effect"], "params": r["params"], "delta_bic": r["delta_bic"],
+                                         "evidence_difference": r["delta_bic"] - first[0]["delta_bic"]})
     rival = None
-    if selected and len(first) > 1 and first[0]["effect"] == selected[0]:
-        r = next((c for c in first[1:] if C.FAMILY[c["effect"]] != C.FAMILY[selected[0]]), None)
-        if r is not None and r["delta_bic"] - first[0]["delta_bic"] < AMBIGUITY_DBIC:
-            rival = {"effect": r["effect"], "params": r["params"], "delta_bic": r["delta_bic"],
-                     "evidence_difference": r["delta_bic"] - first[0]["delta_bic"]}
+    if selected and runner_up and first[0]["effect"] == selected[0] and runner_up["evidence_difference"] < AMBIGUITY_DBIC:
+        rival = runner_up
     truth_info = None
     if truth:
         tf = fit(prob, (), start_rho=base_fit.rho, fixed=dict(truth))
@@ -924,6 +926,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "below_limit": below_limit,
         "not_told_apart": not_told_apart,
         "rival": rival,
+        "runner_up": runner_up,
         "candidates": first,
         "model": final,
         "greedy": steps_log,

@@ -268,6 +268,9 @@ def run_case(case: dict) -> dict:
         "delta_bic_top_one_step": first.get("delta_bic_one_step"),
         "unexplained": diag.get("unexplained"), **oracle_figures(diag, case),
         "rival": (diag.get("rival") or {}).get("effect"),
+        # how far the best candidate's runner-up of another family is behind it (dBIC): what tells the two apart
+        "runner_up": (diag.get("runner_up") or {}).get("effect"),
+        "runner_up_gap": (diag.get("runner_up") or {}).get("evidence_difference"),
         "rmse_over_noise_floor": diag["where"]["rmse_over_noise_floor"], "diagnose_seconds": seconds,
     }
 
