@@ -52,6 +52,9 @@ def test_roll_check_accepts_a_road_and_names_each_failure():
     assert roll_check.check(drifting, t, ay)["failed"] == ["drift"]
     unrelated = 0.2 * np.sin(2 * np.pi * t / 7.3)                  # smooth, in range, but not the car's roll
     assert roll_check.check(unrelated, t, ay)["failed"] == ["lateral"]
+    # a pitch channel: the same checks against the longitudinal acceleration, named as such
+    v = roll_check.check(unrelated, t, ay, "pitch", "longitudinal")
+    assert v["failed"] == ["longitudinal"] and "pitch moves" in v["reason"] and "pitch_per_longitudinal_g_rad" in v
 
 
 def test_profile_candidate_keys_and_effect_set():
@@ -65,6 +68,7 @@ def test_profile_candidate_keys_and_effect_set():
     keys = C.keys("bank_profile", lay)
     assert 0 < len(keys) < len(lay.knots)                     # knots beyond the fit part are not fitted
     assert not C.available("bank_from_roll", lay)             # no roll channel
+    assert not C.available("grade_from_pitch", lay) and lay.pitch is None   # nor a pitch channel
     fx = C.effect_set({keys[0]: 0.1, "steer_delay": 0.02}, lay)
     assert fx.steer_delay == 0.02 and fx.bank.kind == "linear" and fx.bank.at(0.0) == pytest.approx(0.1)
     val, _, prof = C.summary("bank_profile", {k: -0.2 if i == 1 else 0.05 for i, k in enumerate(keys)}, {}, lay)
@@ -294,3 +298,27 @@ def test_plant_tyre_wear_and_yaw_rate_bias():
     worn = CP.make_log(t, CP.PlantEffects(tire_wear=0.05), 2, settings)
     assert np.array_equal(worn.states[:2], base.states[:2])               # t = 0: the same grip
     assert not np.allclose(worn.states[-50:, 4:6], base.states[-50:, 4:6], atol=1e-3)   # later: less grip
+
+
+def test_the_grade_read_from_a_plausible_pitch_channel_on_a_log_shorter_than_a_lap():
+    """On 60 s of Putnam (under half a lap: the grade profile's knots beyond the fit part stay unfitted) a
+    logged pitch channel (grade plus body squat plus noise) passes the plausibility check, and the grade read
+    from it comes out with a gain near 1 and ahead of the other grade hypotheses; without the channel the
+    candidate is not tried."""
+    from ddyn.model.tracks import load_track
+
+    track = load_track("putnam")
+    ds = CP.make_log(track, CP.PlantEffects(grade=0.04, grade_phase=1.0), 3,
+                     CP.LogSettings(duration=60.0, target_speed=23.0, pitch_channel=True))
+    verdict = roll_check.check_dataset(ds, "pitch")
+    assert verdict["plausible"] and abs(verdict["pitch_per_longitudinal_g_rad"]) < 0.1
+    kw = dict(candidates=("grade", "grade_profile", "grade_from_pitch"), hold=True, steer_servo=CP.SERVO_TAU,
+              nominal_effects={"power_limit": 92021.0}, gate=None, max_effects=1, max_starts=50, track=track)
+    d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), **kw)
+    assert d["data"]["pitch_channel"]["plausible"] and d["candidates"][0]["effect"] == "grade_from_pitch"
+    assert d["candidates"][0]["params"]["gain"] == pytest.approx(1.0, abs=0.2)
+    without = CP.make_log(track, CP.PlantEffects(grade=0.04, grade_phase=1.0), 3,
+                          CP.LogSettings(duration=60.0, target_speed=23.0))
+    assert np.array_equal(without.states, ds.states)          # the channel has its own random stream
+    d0 = D.diagnose(without, D.nominal_from_vehicle(NOMINAL, without), **kw)
+    assert "grade_from_pitch" not in [c["effect"] for c in d0["candidates"]] and d0["data"]["pitch_channel"] is None

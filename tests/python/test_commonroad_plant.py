@@ -294,6 +294,27 @@ def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
         G.run(8, 3, evidence="rollout")
 
 
+def test_study_gap_pitch_channel(tmp_path, monkeypatch, capsys):
+    """--pitch-channel: the grade case's log carries the plant's pitch channel and its diagnosis tries the grade
+    read from it; recorded in the settings and the table; refused where it does not apply."""
+    import json
+
+    from ddyn.cli import main
+
+    monkeypatch.setattr(G, "DURATION", 24.0)
+    out = tmp_path / "gap"
+    assert main(["study", "gap", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--gate", "0", "--hold",
+                 "--effects", "grade", "--pitch-channel", "--out", str(out), "--no-progress"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["settings"]["pitch_channel"] and "--pitch-channel" in (out / "results.md").read_text()
+    (r,) = doc["results"]
+    assert r["effect"] == "grade" and r["status"] == "ok" and r["candidates"][-1] == "grade_from_pitch"
+    log, _, _ = G.make_case_log(r)
+    assert "pitch" in log.extras and "pitch" not in G.make_case_log(r | {"pitch_channel": False})[0].extras
+    assert main(["study", "gap", "--plant", "commonroad-mb", "--pitch-channel", "--out", str(out)]) == 2
+    assert "--pitch-channel: the single-track plant's" in capsys.readouterr().err
+
+
 def test_the_command_hold_explains_the_dbw_delay():
     """On an effect-free log of the plant, the ramped commands of the nominal lag the DBW's held ones by about
     half a sample plus the servo: without --hold a steering delay of about that size is selected; with the hold

@@ -386,6 +386,21 @@ def test_racecar_mapping(racecar_file):
     assert ds.vehicle == "av21" and ds.sample_time == pytest.approx(RACECAR_TS, rel=1e-6)
 
 
+def test_racecar_pitch_column_is_kept_and_checked(tmp_path):
+    """A pitch column (none in the Putnam log) is imported like roll: kept in rad, its plausibility verdict in
+    the metadata (the grade is read from it only when plausible)."""
+    head, *rows = racecar_text().splitlines()
+    path = tmp_path / "pitch.csv"
+    path.write_text(head + ",pitch(rad)\n" + "".join(f"{r},{0.001 * i:.3f}\n" for i, r in enumerate(rows)))
+    ds = read_racecar_csv(path)
+    assert ds.extras["pitch"] == pytest.approx(0.001 * np.arange(len(rows)))
+    assert json.loads(ds.metadata["pitch_check"])["channel"] == "pitch" and "roll_check" in ds.metadata
+    plain = tmp_path / "plain.csv"
+    plain.write_text(racecar_text())
+    without = read_racecar_csv(plain)
+    assert "pitch" not in without.extras and "pitch_check" not in without.metadata
+
+
 def test_racecar_segments_from_speed(tmp_path):
     vx = np.array([6, 6, 6, 4, 6, 3, 7, 8, 9, 9, 1, 9], dtype=float)   # runs: 3 rows, 1 row (dropped), 4, 1
     path = tmp_path / "slow.csv"

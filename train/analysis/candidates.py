@@ -11,7 +11,9 @@ has both signs. So:
                                 the log travelled), sign free; one parameter per knot the fit rows visit
                                 (knots the fit part never reaches stay at zero: nothing could fit them);
   bank_from_roll                bank = gain x the log's roll channel, per row; tried only when the channel
-                                passes ddyn.data.roll_check (the verdict is reported either way).
+                                passes ddyn.data.roll_check (the verdict is reported either way);
+  grade_from_pitch              grade = gain x the log's pitch channel, the same way (a grade needs no lap:
+                                on a log shorter than one the profile's knots stay unfitted, the channel does not).
 
 A hypothesis with bank_profile or bank_from_roll keeps the nominal's tyre refit factors (HOLDS_REFIT); when either is
 among the candidates, so does the constant bank_angle (holds_refit).
@@ -32,17 +34,20 @@ from ddyn.data import roll_check
 from ddyn.model import effects as E
 
 PROFILE_OF = {"bank_profile": "bank_angle", "grade_profile": "grade"}
-ROLL_OF = {"bank_from_roll": ("bank_angle", "roll")}
+ROLL_OF = {"bank_from_roll": ("bank_angle", "roll"), "grade_from_pitch": ("grade", "pitch")}
 EXTRA = tuple(PROFILE_OF) + tuple(ROLL_OF)
 ALL = E.ALL_EFFECTS + EXTRA
 # what a candidate stands for (so two candidates of one family are never selected together)
 FAMILY = {**{n: n for n in E.ALL_EFFECTS}, **PROFILE_OF, **{k: v[0] for k, v in ROLL_OF.items()}}
-MAIN_PARAM = {**E.MAIN_PARAM, "bank_profile": "peak", "grade_profile": "peak", "bank_from_roll": "gain"}
-UNITS = {**E.UNITS, "bank_profile": "rad", "grade_profile": "rad", "bank_from_roll": "-"}
-UNIT = {"bank_profile": 0.01, "grade_profile": 0.01, "bank_from_roll": 0.1, "gear_step": 0.05}   # fit scaling
+MAIN_PARAM = {**E.MAIN_PARAM, "bank_profile": "peak", "grade_profile": "peak", "bank_from_roll": "gain",
+              "grade_from_pitch": "gain"}
+UNITS = {**E.UNITS, "bank_profile": "rad", "grade_profile": "rad", "bank_from_roll": "-", "grade_from_pitch": "-"}
+UNIT = {"bank_profile": 0.01, "grade_profile": 0.01, "bank_from_roll": 0.1, "grade_from_pitch": 0.1,
+        "gear_step": 0.05}   # fit scaling
 BOUNDS = {"bank_profile": (-0.6, 0.6), "grade_profile": (-0.3, 0.3), "bank_from_roll": (-2.0, 2.0),
-          "gear_step": (-0.5, 1.0)}
+          "grade_from_pitch": (-2.0, 2.0), "gear_step": (-0.5, 1.0)}
 GRID = {"bank_from_roll": (2.5, 5, 7.5, 10, 12.5),   # in units: gains 0.25-1.25
+        "grade_from_pitch": (2.5, 5, 7.5, 10, 12.5),
         "gear_step": (-4, 2, 4, 8)}                  # force steps -0.2 to 0.4 between gears
 
 KNOT_SPACING = 50.0      # m between knots: a bank changes over a turn entry (tens of metres), not faster
@@ -90,6 +95,10 @@ class Layout:
     free: list                      # knot indices the fit rows inform
     source: str                     # "track NAME" or "distance travelled"
     roll: dict | None               # roll_check verdict of the log's roll channel (None: none logged)
+    pitch: dict | None = None       # the same for its pitch channel
+
+    def channel_check(self, channel: str) -> dict | None:
+        return self.roll if channel == "roll" else self.pitch if channel == "pitch" else None
 
 
 def _distance(ds) -> np.ndarray:
@@ -124,8 +133,9 @@ def layout(ds, track, rows_fit: np.ndarray) -> Layout:
     else:
         prev, nxt = np.r_[-np.inf, knots[:-1]], np.r_[knots[1:], np.inf]
         free = [i for i in range(k) if np.any((sf > prev[i]) & (sf < nxt[i]))]
-    roll = roll_check.check_dataset(ds) if "roll" in ds.extras else None
-    return Layout(np.asarray(s, float), length, knots, free, src, roll)
+    roll = roll_check.check_dataset(ds, "roll")
+    pitch = roll_check.check_dataset(ds, "pitch")
+    return Layout(np.asarray(s, float), length, knots, free, src, roll, pitch)
 
 
 def curvature_knots(track) -> np.ndarray | None:
@@ -167,7 +177,8 @@ def available(name: str, lay: Layout | None) -> bool:
     if name in PROFILE_OF:
         return lay is not None and len(lay.free) > 0
     if name in ROLL_OF:
-        return lay is not None and lay.roll is not None and bool(lay.roll["plausible"])
+        verdict = None if lay is None else lay.channel_check(ROLL_OF[name][1])
+        return verdict is not None and bool(verdict["plausible"])
     return True
 
 

@@ -967,8 +967,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         "data": {"source": ds.source, "rows": len(ds), "sample_time": ds.sample_time,
                  "effects_in_metadata": ds.metadata.get("effects"),
                  # track positions of the bank/grade profiles; the roll channel's plausibility (bank_from_roll)
+                 # and the pitch channel's (grade_from_pitch)
                  "positions_from": prob.layout.source, "profile_knots": len(prob.layout.knots),
-                 "roll_channel": prob.layout.roll},
+                 "roll_channel": prob.layout.roll, "pitch_channel": prob.layout.pitch},
         "seconds": _time.perf_counter() - t0,
         "_series": series,
     }
@@ -1037,9 +1038,18 @@ def _fmt(x) -> str:
 def _roll_line(d: dict) -> str:
     r = d["data"].get("roll_channel")
     if r is None:
-        return "Roll channel: none logged (bank only from the fitted profiles)."
+        return ("Roll channel: none logged (bank only from the fitted profiles)."
+                + _pitch_line(d["data"].get("pitch_channel")))
+    p = d["data"].get("pitch_channel")
     return (f"Roll channel: {'plausible, bank_from_roll tried' if r['plausible'] else 'NOT plausible, not used'} "
-            f"({r['reason']}).")
+            f"({r['reason']})." + _pitch_line(p))
+
+
+def _pitch_line(p: dict | None) -> str:
+    if p is None:
+        return ""
+    return (f" Pitch channel: {'plausible, grade_from_pitch tried' if p['plausible'] else 'NOT plausible, not used'} "
+            f"({p['reason']}).")
 
 
 def markdown(d: dict, figures: list[str]) -> str:
@@ -1314,7 +1324,7 @@ def register(subparsers) -> None:
                    help="share of the log (by time) to fit on; the rest is held out (default 0.6)")
     p.add_argument("--candidates", default=None,
                    help="comma-separated effects to try; 'extended': the eleven effects plus the bank/grade "
-                        "profiles, bank from roll and the drivetrain (default: the eleven effects)")
+                        "profiles, bank from roll, grade from pitch and the drivetrain (default: the eleven effects)")
     p.add_argument("--refit", default=",".join(DEFAULT_REFIT),
                    help="nominal coefficients refitted (as factors) under every hypothesis (default Df,Dr; 'none')")
     p.add_argument("--max-effects", type=int, default=3)

@@ -191,7 +191,8 @@ def make_case_log(case: dict, tries: int = 3):
         try:
             settings = CP.LogSettings(duration=DURATION, target_speed=case["target_speed"],
                                       start_s=case["start_fraction"] * track.length,
-                                      driver_grip=case.get("driver_grip"))
+                                      driver_grip=case.get("driver_grip"),
+                                      pitch_channel=bool(case.get("pitch_channel", False)))
             if case.get("plant") == "mb":   # the multi-body plant (gap_mb.py)
                 return MB.make_log(track, effects, seed, settings), seed, None
             return CP.make_log(track, effects, seed, settings), seed, None
@@ -742,6 +743,8 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                 if settings.get("evidence", "one-step") != "one-step" else "")
              + (f"; steering servo {settings['steer_servo']:g} s in the nominal" if settings.get("steer_servo") else "")
              + (f"; nominal effects {settings['nominal_effects']}" if settings.get("nominal_effects") else "")
+             + ("; every log carries a pitch channel, grade_from_pitch among the candidates (--pitch-channel)"
+                if settings.get("pitch_channel") else "")
              + (f"; detection limits {_limits_text(settings['detection_limits'])} (an effect found below its limit is "
                 "not claimed)" if settings.get("detection_limits") else "")
              + ".", "",
@@ -795,7 +798,7 @@ def ladder_markdown(per: dict) -> str:
 def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = True, hold: bool = False,
         nominal: str = "mapped", fit: str | None = None, thresholds: dict | None = None, mass_inertia: bool = False,
         steer_servo: float = 0.0, nominal_effects: dict | None = None, case_set: str = "putnam",
-        evidence: str | None = None, effects: tuple | None = None) -> dict:
+        evidence: str | None = None, effects: tuple | None = None, pitch_channel: bool = False) -> dict:
     """case_set: "putnam" (plan(): effects cycled, magnitudes drawn) or "sweep" (plan_sweep(): the threshold
     sweep). hold: diagnose with the command hold modelled (diagnose --hold). nominal: "mapped" (the vehicle file)
     or "identified" (identified_coefficients). mass_inertia, steer_servo: diagnose's (--mass-inertia,
@@ -816,9 +819,12 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
         bad = [e for e in effects if e not in EFFECT_RANGES and e != NONE]
         if bad:
             raise DdynError(f"--effects: unknown {', '.join(bad)}; expected some of {', '.join(EFFECT_RANGES)}, none")
+    # pitch_channel: every log carries the plant's pitch channel and the diagnosis may read the grade from it
+    extra = ({"pitch_channel": True, "candidates": list(E.EFFECT_NAMES) + ["grade_from_pitch"]}
+             if pitch_channel else {})
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
                   "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
-                  "evidence": evidence}
+                  "evidence": evidence} | extra
              | diagnosis_vetoes() for c in (plan_sweep(n_cases, seed) if case_set == "sweep" else
                                             plan_above(n_cases, seed, thresholds or {}) if case_set == "above" else
                                             plan(n_cases, seed))
@@ -835,7 +841,8 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
                 "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold,
                 "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds,
                 "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
-                "evidence": evidence or D.DEFAULT_EVIDENCE, "effects": None if effects is None else list(effects)}
+                "evidence": evidence or D.DEFAULT_EVIDENCE, "effects": None if effects is None else list(effects),
+                "pitch_channel": pitch_channel}
     sc = score(results, thresholds)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
            "calibrated_gate": calibrate(results), "calibrated_margin": calibrate_margin(results)}

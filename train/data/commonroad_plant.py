@@ -29,7 +29,8 @@ How a log is made (the way a car with a drive-by-wire unit is logged):
   - a track with its own banking (Track.bank: the oval of ddyn.model.track_oval) banks the road for every
     log on it, on top of a drawn bank_angle effect; LogSettings.roll_channel logs an EKF-like roll
     (extras "roll": the road's bank minus the body's roll on its springs, ROLL_GRADIENT per g of lateral
-    acceleration, plus ROLL_NOISE);
+    acceleration, plus ROLL_NOISE); LogSettings.pitch_channel an EKF-like pitch (extras "pitch": the road's
+    grade plus the body's squat, PITCH_GRADIENT per g of longitudinal acceleration, plus PITCH_NOISE);
   - tyre wear scales CommonRoad's friction coefficients p_dx1, p_dy1 by exp(-rate t); a yaw-rate bias is
     added to the logged omega only (a sensor effect; the driver steers on the true state);
   - drivetrain effects: throttle_map (the pedal reaches the engine as T^gamma, a power law, not the
@@ -89,6 +90,8 @@ PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "d
                  "gear_step")
 ROLL_GRADIENT = 0.05         # rad of body roll per g of lateral acceleration (a saloon's springs: ~3 deg/g)
 ROLL_NOISE = 0.003           # rad: an EKF's roll noise
+PITCH_GRADIENT = 0.02        # rad of body pitch (nose up) per g of longitudinal acceleration (squat; ~1 deg/g)
+PITCH_NOISE = 0.003          # rad: an EKF's pitch noise
 MIN_RELAXATION = 0.05        # m: sigma / v stays above the RK4 step up to 50 m/s (RK4 is stable down to 0.36 steps)
 
 
@@ -341,6 +344,7 @@ class LogSettings:
     start_s: float = 0.0
     extra: dict = field(default_factory=dict)
     roll_channel: bool = False   # log extras "roll" (bank minus body roll, plus noise)
+    pitch_channel: bool = False  # log extras "pitch" (grade plus body pitch, plus noise)
     dbw_period: float | None = None   # s between the DBW unit's commands (None: the log's sample time)
     driver_grip: float | None = None  # share of the nominal's grip the driver's speed profile uses (None: simulate's)
 
@@ -419,6 +423,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     true_delta = np.empty(n)
     body_roll = np.zeros(n)
     road_bank = np.zeros(n)
+    road_grade = np.zeros(n)
     gears = np.zeros(n, dtype=np.int64)
     T_hist: list[float] = []
     D_hist: list[float] = []
@@ -484,6 +489,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
                 p.tire.p_dx1, p.tire.p_dy1 = grip[0] * w, grip[1] * w
             if grade is not None:
                 env.grade = float(track.interpolate(grade, s))
+                road_grade[k] = env.grade
         if effects.gear_step:
             # the stepped gearbox: shift on the true speed, cut the drive while the clutch is open
             new = gear_for(vx, gear or 1)
@@ -521,6 +527,12 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         roll_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[4])
         lean = body_roll if model.name != "std" else -ROLL_GRADIENT * rows[:, 3] * rows[:, 5] / G
         extras["roll"] = road_bank + lean + ROLL_NOISE * roll_rng.standard_normal(n)
+    if settings.pitch_channel:
+        # grade (+: uphill, nose up) plus the body's squat under the longitudinal acceleration dvx/dt - vy omega
+        # (nose up when accelerating); its own random stream, so the other channels are those of a log without it
+        pitch_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(6)[5])
+        ax = np.gradient(rows[:, 3], Ts) - rows[:, 4] * rows[:, 5] if n > 1 else np.zeros(n)
+        extras["pitch"] = road_grade + PITCH_GRADIENT * ax / G + PITCH_NOISE * pitch_rng.standard_normal(n)
     noisy = states.copy()
     if settings.noise_scale > 0:
         std = np.array([settings.noise_scale * veh.sensor_noise_std[c] for c in NOISY])

@@ -393,7 +393,7 @@ def _check_ddm_shapes(path: Path, a: dict[str, np.ndarray]) -> tuple[int, str]:
 _RACECAR_UNITS = {
     "time": "s", "x": "m", "y": "m", "vx": "m/s", "vy": "m/s", "phi": "rad", "delta": "rad", "omega": "rad/s",
     "ax": "m/s^2", "deltadelta": "rad/s", "wheel_fl": "kmph", "wheel_fr": "kmph", "wheel_rl": "kmph",
-    "wheel_rr": "kmph", "roll": "rad", "throttle_ped_cmd": "%", "brake_ped_cmd": "kPa",
+    "wheel_rr": "kmph", "roll": "rad", "pitch": "rad", "throttle_ped_cmd": "%", "brake_ped_cmd": "kPa",
 }
 _RACECAR_REQUIRED = ("time", "x", "y", "vx", "vy", "phi", "delta", "omega", "throttle_ped_cmd", "brake_ped_cmd")
 # columns kept as extras: source column -> (extra's name, factor to the extra's unit, that unit)
@@ -408,6 +408,7 @@ _RACECAR_EXTRAS = {
     "brake_ped_cmd": ("brake_ped_cmd_kpa", 1.0, "kPa"),
     # kept, but checked before anything reads the bank from it (ddyn.data.roll_check; the Putnam log's fails)
     "roll": ("roll", 1.0, "rad"),
+    "pitch": ("pitch", 1.0, "rad"),     # the same for the grade (none in the Putnam log)
 }
 _HEADER_FIELD = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*(?:\((.*)\))?$")
 
@@ -441,9 +442,10 @@ def read_racecar_csv(path: str | Path, vehicle: str = "av21", min_vx: float = DE
     ds = _racecar_dataset(col, keep, segment, ts, brake_full_scale_kpa)
     ds.vehicle, ds.source = vehicle_name, path.name
     ds.metadata = _racecar_metadata(names, ignored, len(table), len(keep), segment, min_vx, brake_full_scale_kpa)
-    verdict = roll_check.check_dataset(ds)
-    if verdict is not None:
-        ds.metadata["roll_check"] = json.dumps(verdict)
+    for channel in ("roll", "pitch"):
+        verdict = roll_check.check_dataset(ds, channel)
+        if verdict is not None:
+            ds.metadata[f"{channel}_check"] = json.dumps(verdict)
     return _require_finite_result(path, ds, line_of[keep])
 
 

@@ -1,4 +1,4 @@
-"""Is a logged roll channel plausible enough to read the road's bank from it?
+"""Is a logged roll (or pitch) channel plausible enough to read the road's bank (grade) from it?
 
 Why: a roll channel (an EKF's roll, relative to gravity) is the road's bank plus the body's roll on its
 springs, so on a banked track it gives the bank profile directly, with no fit along the track. The RACECAR
@@ -29,8 +29,10 @@ MAX_UNEXPLAINED = 0.9    # share of roll's standard deviation left by const + k 
 MAX_PER_G = 1.0          # rad/g
 
 
-def check(roll, time, lateral_acceleration=None) -> dict:
-    """The checks' figures and the verdict {plausible, failed: [names], reason: text}."""
+def check(roll, time, lateral_acceleration=None, label: str = "roll", motion: str = "lateral") -> dict:
+    """The checks' figures and the verdict {plausible, failed: [names], reason: text}. label, motion: the
+    channel's and the acceleration's names (a pitch channel: "pitch" against the "longitudinal" acceleration,
+    the same physical bounds: a grade is steeper than no bank, and a body pitches less than it rolls)."""
     r = np.asarray(roll, float)
     t = np.asarray(time, float)
     out: dict = {"thresholds": {"max_abs_rad": MAX_ABS, "max_rate_rad_s": MAX_RATE, "max_drift_rad": MAX_DRIFT,
@@ -38,7 +40,7 @@ def check(roll, time, lateral_acceleration=None) -> dict:
                                 "max_rad_per_g": MAX_PER_G}}
     ok = np.isfinite(r) & np.isfinite(t)
     if ok.sum() < 10:
-        return out | {"plausible": False, "failed": ["finite"], "reason": "fewer than 10 finite roll samples"}
+        return out | {"plausible": False, "failed": ["finite"], "reason": f"fewer than 10 finite {label} samples"}
     r, t = r[ok], t[ok]
     failed = []
     out["abs_p999_rad"] = float(np.percentile(np.abs(r), 99.9))
@@ -47,7 +49,7 @@ def check(roll, time, lateral_acceleration=None) -> dict:
     if np.max(np.abs(r)) > 1e3:
         # not an angle in radians at all: the rate, drift and regression below would only overflow
         return out | {"plausible": False, "failed": failed or ["range"],
-                      "reason": f"roll reaches {np.max(np.abs(r)):.3g} rad: not an angle (range limit {MAX_ABS} rad)"}
+                      "reason": f"{label} reaches {np.max(np.abs(r)):.3g} rad: not an angle (range limit {MAX_ABS} rad)"}
     dt = np.diff(t)
     good = dt > 0
     rate = np.abs(np.diff(r))[good] / dt[good]
@@ -66,25 +68,29 @@ def check(roll, time, lateral_acceleration=None) -> dict:
         coef, *_ = np.linalg.lstsq(A, r, rcond=None)
         spread = float(np.std(r))
         out["unexplained_share"] = float(np.std(r - A @ coef) / spread) if spread > 0 else 0.0
-        out["roll_per_lateral_g_rad"] = float(coef[1] * 9.81)
-        if (spread >= MAX_ABS / 10 and out["unexplained_share"] > MAX_UNEXPLAINED) or \
-                abs(out["roll_per_lateral_g_rad"]) > MAX_PER_G:
-            failed.append("lateral")
-    names = {"range": f"|roll| reaches {out['abs_p999_rad']:.2f} rad (> {MAX_ABS} rad)",
-             "rate": f"roll changes at {out['rate_p99_rad_s']:.2f} rad/s (99th percentile, > {MAX_RATE} rad/s)",
-             "drift": f"roll drifts {out['drift_rad']:+.2f} rad over the log (> {MAX_DRIFT} rad)",
-             "lateral": f"roll moves {out.get('roll_per_lateral_g_rad', 0):.2f} rad per g of lateral acceleration "
-                        f"(limit {MAX_PER_G}) and {100 * out.get('unexplained_share', 0):.0f} % of its spread is "
-                        f"unrelated to it (limit {100 * MAX_UNEXPLAINED:.0f} %)"}
-    reason = "; ".join(names[f] for f in failed) if failed else "range, rate, drift and lateral checks passed"
+        per_g = f"{label}_per_{motion}_g_rad"
+        out[per_g] = float(coef[1] * 9.81)
+        if (spread >= MAX_ABS / 10 and out["unexplained_share"] > MAX_UNEXPLAINED) or abs(out[per_g]) > MAX_PER_G:
+            failed.append(motion)
+    names = {"range": f"|{label}| reaches {out['abs_p999_rad']:.2f} rad (> {MAX_ABS} rad)",
+             "rate": f"{label} changes at {out['rate_p99_rad_s']:.2f} rad/s (99th percentile, > {MAX_RATE} rad/s)",
+             "drift": f"{label} drifts {out['drift_rad']:+.2f} rad over the log (> {MAX_DRIFT} rad)",
+             motion: f"{label} moves {out.get(f'{label}_per_{motion}_g_rad', 0):.2f} rad per g of {motion} "
+                     f"acceleration (limit {MAX_PER_G}) and {100 * out.get('unexplained_share', 0):.0f} % of its "
+                     f"spread is unrelated to it (limit {100 * MAX_UNEXPLAINED:.0f} %)"}
+    reason = "; ".join(names[f] for f in failed) if failed else f"range, rate, drift and {motion} checks passed"
     return out | {"plausible": not failed, "failed": failed, "reason": reason}
 
 
 def check_dataset(ds, channel: str = "roll") -> dict | None:
-    """check() on a dataset's extra channel (None when the log has none), with vx omega as the lateral
-    acceleration."""
+    """check() on a dataset's extra channel (None when the log has none): "roll" against vx omega as the
+    lateral acceleration, "pitch" against dvx/dt - vy omega as the longitudinal one."""
     if channel not in ds.extras:
         return None
     with np.errstate(over="ignore", invalid="ignore"):   # a corrupt log's states: the check reports them
+        if channel == "pitch":
+            vx = ds.states[:, 3]
+            a = (np.gradient(vx, ds.sample_time) if len(vx) > 1 else np.zeros_like(vx)) - ds.states[:, 4] * ds.states[:, 5]
+            return {"channel": channel, **check(ds.extras[channel], ds.time, a, "pitch", "longitudinal")}
         ay = ds.states[:, 3] * ds.states[:, 5]
     return {"channel": channel, **check(ds.extras[channel], ds.time, ay)}
