@@ -312,7 +312,14 @@ def test_study_gap_pitch_channel(tmp_path, monkeypatch, capsys):
     log, _, _ = G.make_case_log(r)
     assert "pitch" in log.extras and "pitch" not in G.make_case_log(r | {"pitch_channel": False})[0].extras
     assert main(["study", "gap", "--plant", "commonroad-mb", "--pitch-channel", "--out", str(out)]) == 2
-    assert "--pitch-channel: the single-track plant's" in capsys.readouterr().err
+    assert "--pitch-channel, --roll-channel: the single-track plant's" in capsys.readouterr().err
+    # --roll-channel: the same for the bank (the bank case of the plan)
+    assert main(["study", "gap", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--gate", "0", "--hold",
+                 "--effects", "bank_angle", "--roll-channel", "--out", str(out), "--no-progress"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    (r,) = doc["results"]
+    assert doc["settings"]["roll_channel"] and r["status"] == "ok" and r["candidates"][-1] == "bank_from_roll"
+    assert "roll" in G.make_case_log(r)[0].extras
 
 
 def test_the_command_hold_explains_the_dbw_delay():

@@ -585,9 +585,10 @@ def _run_commonroad(args, out: Path) -> int:
                                           or args.steer_servo or args.nominal_effects):
         raise DdynError("--plant commonroad-mb: the Putnam cases only (--case-set, --eiv-check, --mass-check, "
                         "--mass-inertia, --steer-servo and --nominal-effects are the single-track plant's)")
-    if getattr(args, "pitch_channel", False) and (args.plant != "commonroad" or getattr(args, "case_set", "putnam") not in
-                               ("putnam", "sweep", "above")):
-        raise DdynError("--pitch-channel: the single-track plant's putnam, sweep and above case sets only")
+    if (getattr(args, "pitch_channel", False) or getattr(args, "roll_channel", False)) and (
+            args.plant != "commonroad" or getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above")):
+        raise DdynError("--pitch-channel, --roll-channel: the single-track plant's putnam, sweep and above case sets "
+                        "only (the oval set has its own roll-channel slots)")
     if getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above"):
         if args.min_evidence_from or args.detection_limits_from:
             raise DdynError("--min-evidence-from, --detection-limits-from: the putnam, sweep and above case sets only")
@@ -654,7 +655,8 @@ def _run_commonroad(args, out: Path) -> int:
                         steer_servo=args.steer_servo, nominal_effects=D.nominal_effects_arg(args.nominal_effects),
                         thresholds=thresholds, case_set=args.case_set, evidence=args.evidence,
                         effects=tuple(e.strip() for e in args.effects.split(",")) if args.effects else None,
-                        pitch_channel=getattr(args, "pitch_channel", False))
+                        pitch_channel=getattr(args, "pitch_channel", False),
+                        roll_channel=getattr(args, "roll_channel", False))
         # where the scoring thresholds and the margin came from (calibration runs), beside their values
         doc["settings"] |= {"thresholds_from": args.thresholds_from, "min_evidence_from": args.min_evidence_from,
                             "detection_limits_from": args.detection_limits_from}
@@ -801,6 +803,9 @@ def register(subparsers) -> None:
     p.add_argument("--pitch-channel", action="store_true",
                    help="commonroad (putnam, sweep, above): every log carries the plant's pitch channel (grade plus "
                         "body squat plus noise) and the diagnosis may read the grade from it (grade_from_pitch)")
+    p.add_argument("--roll-channel", action="store_true",
+                   help="commonroad (putnam, sweep, above): every log carries the plant's roll channel (bank minus "
+                        "body roll plus noise) and the diagnosis may read the bank from it (bank_from_roll)")
     p.add_argument("--mass-inertia", action="store_true",
                    help="commonroad: diagnose --mass-inertia (the mass_offset candidate scales Iz with the mass)")
     p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",

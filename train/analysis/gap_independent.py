@@ -192,6 +192,7 @@ def make_case_log(case: dict, tries: int = 3):
             settings = CP.LogSettings(duration=DURATION, target_speed=case["target_speed"],
                                       start_s=case["start_fraction"] * track.length,
                                       driver_grip=case.get("driver_grip"),
+                                      roll_channel=bool(case.get("roll_channel", False)),
                                       pitch_channel=bool(case.get("pitch_channel", False)))
             if case.get("plant") == "mb":   # the multi-body plant (gap_mb.py)
                 return MB.make_log(track, effects, seed, settings), seed, None
@@ -745,6 +746,8 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
              + (f"; nominal effects {settings['nominal_effects']}" if settings.get("nominal_effects") else "")
              + ("; every log carries a pitch channel, grade_from_pitch among the candidates (--pitch-channel)"
                 if settings.get("pitch_channel") else "")
+             + ("; every log carries a roll channel, bank_from_roll among the candidates (--roll-channel)"
+                if settings.get("roll_channel") else "")
              + (f"; detection limits {_limits_text(settings['detection_limits'])} (an effect found below its limit is "
                 "not claimed)" if settings.get("detection_limits") else "")
              + ".", "",
@@ -798,7 +801,8 @@ def ladder_markdown(per: dict) -> str:
 def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = True, hold: bool = False,
         nominal: str = "mapped", fit: str | None = None, thresholds: dict | None = None, mass_inertia: bool = False,
         steer_servo: float = 0.0, nominal_effects: dict | None = None, case_set: str = "putnam",
-        evidence: str | None = None, effects: tuple | None = None, pitch_channel: bool = False) -> dict:
+        evidence: str | None = None, effects: tuple | None = None, pitch_channel: bool = False,
+        roll_channel: bool = False) -> dict:
     """case_set: "putnam" (plan(): effects cycled, magnitudes drawn) or "sweep" (plan_sweep(): the threshold
     sweep). hold: diagnose with the command hold modelled (diagnose --hold). nominal: "mapped" (the vehicle file)
     or "identified" (identified_coefficients). mass_inertia, steer_servo: diagnose's (--mass-inertia,
@@ -819,9 +823,11 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
         bad = [e for e in effects if e not in EFFECT_RANGES and e != NONE]
         if bad:
             raise DdynError(f"--effects: unknown {', '.join(bad)}; expected some of {', '.join(EFFECT_RANGES)}, none")
-    # pitch_channel: every log carries the plant's pitch channel and the diagnosis may read the grade from it
-    extra = ({"pitch_channel": True, "candidates": list(E.EFFECT_NAMES) + ["grade_from_pitch"]}
-             if pitch_channel else {})
+    # pitch_channel (roll_channel): every log carries the plant's pitch (roll) channel and the diagnosis may read
+    # the grade (bank) from it
+    extra = ({"pitch_channel": pitch_channel, "roll_channel": roll_channel,
+              "candidates": list(E.EFFECT_NAMES) + ["grade_from_pitch"] * pitch_channel + ["bank_from_roll"] * roll_channel}
+             if pitch_channel or roll_channel else {})
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
                   "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
                   "evidence": evidence} | extra
@@ -842,7 +848,7 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
                 "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds,
                 "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
                 "evidence": evidence or D.DEFAULT_EVIDENCE, "effects": None if effects is None else list(effects),
-                "pitch_channel": pitch_channel}
+                "pitch_channel": pitch_channel, "roll_channel": roll_channel}
     sc = score(results, thresholds)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
            "calibrated_gate": calibrate(results), "calibrated_margin": calibrate_margin(results)}
