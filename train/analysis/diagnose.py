@@ -807,6 +807,10 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         if progress:
             progress(name)
     first.sort(key=lambda c: c["delta_bic"])
+    # round 1's runner-up: its best candidate of another family than the first, and how far behind it is
+    r = next((c for c in first[1:] if C.FAMILY[c["effect"]] != C.FAMILY[first[0]["effect"]]), None)
+    runner_up = (None if r is None else {"effect": r["effect"], "params": r["params"], "delta_bic": r["delta_bic"],
+                                         "evidence_difference": r["delta_bic"] - first[0]["delta_bic"]})
 
     # greedy: add the best while it pays for itself
     selected: list[str] = []
@@ -838,11 +842,11 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         # under detection limits a claim must also be a choice the data make: a first effect whose runner-up of
         # another family is within AMBIGUITY_DBIC of it is reported, not claimed (on the four calibration sweeps at
         # their margin every such first effect lay below its threshold, and 4 of the 7 were the wrong one)
-        tie = (_runner_up(trials, name) if limits and not selected and dbic < -margin and not edge and not weak
-               else None)
+        tie = bool(limits and not selected and dbic < -margin and not edge and not weak and runner_up
+                   and first[0]["effect"] == name and runner_up["evidence_difference"] < AMBIGUITY_DBIC)
         steps_log.append({"added": name if dbic < -margin and not edge and not weak and not tie else None,
                           "best_candidate": name, "delta_bic": dbic, "at_bound": edge, "below_limit": weak,
-                          "not_told_apart": tie is not None, "after": selected + [name]})
+                          "not_told_apart": tie, "after": selected + [name]})
         if edge:
             unexplained = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic}
             break
@@ -851,11 +855,10 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
                            "limit": _limit_of(name, limits)[1]}
             break
         if tie:
-            rdbic, rname, rf, _ = tie
             not_told_apart = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
-                              "rival": rname,
-                              "rival_params": {C.MAIN_PARAM[rname]: C.summary(rname, rf.values, rf.std, prob.layout)[0]},
-                              "rival_delta_bic": rdbic, "evidence_difference": rdbic - dbic}
+                              "rival": runner_up["effect"], "rival_params": runner_up["params"],
+                              "rival_delta_bic": runner_up["delta_bic"],
+                              "evidence_difference": runner_up["evidence_difference"]}
             break
         if not dbic < -margin:
             break
@@ -878,11 +881,7 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
     for c in first:
         c["gap_closed_pct"], c["error_reduction_pct"] = _gap(prob, before, {"rmse": _rms(c.pop("_res"))}, floor)
     gap, red = _gap(prob, before, current_h, floor)
-    # the first effect's rival: the runner-up of round 1 within AMBIGUITY_DBIC of it (another family)
-    # (runner_up: the same for the best candidate of round 1 whatever the distance, selected or not)
-    r = next((c for c in first[1:] if C.FAMILY[c["effect"]] != C.FAMILY[first[0]["effect"]]), None)
-    runner_up = (None if r is None else {"effect": r["effect"], "params": r["params"], "delta_bic": r["delta_bic"],
-                                         "evidence_difference": r["delta_bic"] - first[0]["delta_bic"]})
+    # the first effect's rival: round 1's runner-up when within AMBIGUITY_DBIC of it
     rival = None
     if selected and runner_up and first[0]["effect"] == selected[0] and runner_up["evidence_difference"] < AMBIGUITY_DBIC:
         rival = runner_up
@@ -1000,13 +999,6 @@ def _below_limit_verdict(b: dict) -> str:
              else f"below its detection limit {b['limit']:.4g}")
     return (f"{b['effect']} pays on the held-out data (dBIC {b['delta_bic']:.1f}) with {pn} = {pv:.4g}, {limit}: "
             "not claimed")
-
-
-def _runner_up(trials: list, name: str):
-    """The best trial (dBIC, name, fit, evidence) of another family than `name` when its evidence is within
-    AMBIGUITY_DBIC of `name`'s (trials sorted best first, `name` first), else None."""
-    r = next((t for t in trials[1:] if C.FAMILY[t[1]] != C.FAMILY[name]), None)
-    return r if r is not None and r[0] - trials[0][0] < AMBIGUITY_DBIC else None
 
 
 def _not_told_apart_verdict(t: dict) -> str:

@@ -825,9 +825,9 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
             raise DdynError(f"--effects: unknown {', '.join(bad)}; expected some of {', '.join(EFFECT_RANGES)}, none")
     # pitch_channel (roll_channel): every log carries the plant's pitch (roll) channel and the diagnosis may read
     # the grade (bank) from it
+    from_channels = [c for c, on in (("grade_from_pitch", pitch_channel), ("bank_from_roll", roll_channel)) if on]
     extra = ({"pitch_channel": pitch_channel, "roll_channel": roll_channel,
-              "candidates": list(E.EFFECT_NAMES) + ["grade_from_pitch"] * pitch_channel + ["bank_from_roll"] * roll_channel}
-             if pitch_channel or roll_channel else {})
+              "candidates": list(E.EFFECT_NAMES) + from_channels} if from_channels else {})
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
                   "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
                   "evidence": evidence} | extra
