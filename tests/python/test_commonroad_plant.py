@@ -264,8 +264,9 @@ def test_study_gap_commonroad_cli(tmp_path, monkeypatch, capsys):
     assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--detection-limits-from",
                  str(out / "results.json"), "--out", str(out)]) == 2
     assert "needs a run, not --rescore" in capsys.readouterr().err
-    assert main(["study", "gap", "--plant", "commonroad", "--calibrated-only", "--out", str(out)]) == 2
-    assert "--calibrated-only goes with --detection-limits-from" in capsys.readouterr().err
+    for alone in ("--calibrated-only", "--decision-limits"):
+        assert main(["study", "gap", "--plant", "commonroad", alone, "--out", str(out)]) == 2
+        assert "--decision-limits go with --detection-limits-from" in capsys.readouterr().err
 
 
 def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
@@ -450,6 +451,39 @@ def test_scoring_thresholds_and_delay_vs_lag():
     assert G.reliable_threshold([row("steer_lag", m, G.NONE) for m in mags]) is None
     # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
     assert G.plan(30, 4242) == G.plan(50, 4242)[:30]
+
+
+def test_decision_limits_sit_below_the_thresholds_by_the_estimate_spread_there(tmp_path):
+    """Currie's decision level: threshold + bias - 1.645 sd of (|estimate| - |magnitude|) over the calibration
+    cases within a factor two of the threshold; a case far from it does not count; no threshold, no limit; the
+    threshold itself when too few cases measure a spread; and never below zero."""
+    import json
+
+    def row(e, mag, est, top1=None):
+        top1 = top1 or e
+        return {"status": "ok", "effect": e, "magnitude": mag, "estimate": est, "top1": top1,
+                "correct": top1 == e, "selected_without_gate": [top1], "gate_ratio": 1.2, "delta_bic_top": -50.0}
+    # found from 0.1 s up: threshold 0.1; the estimates' errors in the band [0.05, 0.2]: +0.03, -0.01, +0.01, -0.03
+    rs = [row("steer_lag", 0.02, 0.2, G.NONE), row("steer_lag", 0.04, 0.01, G.NONE)]
+    rs += [row("steer_lag", m, m + e) for m, e in ((0.1, -0.01), (0.15, 0.01), (0.2, -0.03), (0.4, 0.03))]
+    rs += [row("steer_lag", 0.05, 0.08, G.NONE), row("steer_lag", 0.6, 0.2)]     # 0.6: outside the band
+    rs += [row("downforce", 4e-4, 1e-4, G.NONE) for _ in range(3)]
+    p = tmp_path / "cal.json"
+    p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": rs}))
+    assert G.thresholds_of(str(p)) == {"steer_lag": pytest.approx(0.1), "downforce": None}
+    lim = G.decision_limits_of(str(p))
+    err = np.array([0.03, -0.01, 0.01, -0.03])       # at 0.05, 0.1, 0.15, 0.2: 0.4 and 0.6 are outside [0.05, 0.2]
+    assert lim["downforce"] is None
+    assert lim["steer_lag"] == pytest.approx(0.1 + err.mean() - G.DECISION_Z * err.std(ddof=1))
+    assert lim["steer_lag"] < 0.1
+    # a wide spread would put the limit below zero: zero, every find claimed
+    wide = [r | {"estimate": r["magnitude"] + (0.2 if k % 2 else -0.2)} for k, r in enumerate(rs)]
+    p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": wide}))
+    assert G.decision_limits_of(str(p))["steer_lag"] == 0.0
+    # one case in the band measures no spread: the threshold itself
+    few = [row("throttle_delay", m, m, "throttle_delay" if m >= 0.1 else G.NONE) for m in (0.02, 0.1, 0.3, 0.5)]
+    p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": few}))
+    assert G.decision_limits_of(str(p)) == {"throttle_delay": pytest.approx(0.1)}
 
 
 def test_the_threshold_sweep_draws_every_effect_over_its_range_largest_first():

@@ -637,10 +637,11 @@ def _run_commonroad(args, out: Path) -> int:
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
         # the thresholds measured at this run's margin (the calibration runs rescored with it)
         thresholds = G.thresholds_of(args.thresholds_from, D.MIN_EVIDENCE) if args.thresholds_from else None
-        if args.calibrated_only and not args.detection_limits_from:
-            raise DdynError("--calibrated-only goes with --detection-limits-from")
+        if (args.calibrated_only or args.decision_limits) and not args.detection_limits_from:
+            raise DdynError("--calibrated-only and --decision-limits go with --detection-limits-from")
         if args.detection_limits_from:      # each case carries them (diagnosis_vetoes)
-            D.DETECTION_LIMITS = G.thresholds_of(args.detection_limits_from, D.MIN_EVIDENCE)
+            D.DETECTION_LIMITS = (G.decision_limits_of if args.decision_limits else G.thresholds_of)(
+                args.detection_limits_from, D.MIN_EVIDENCE)
             if args.calibrated_only:
                 D.DETECTION_LIMITS[D.ANY_OTHER] = None
             print(f"detection limits {D.DETECTION_LIMITS} from {args.detection_limits_from}")
@@ -659,7 +660,11 @@ def _run_commonroad(args, out: Path) -> int:
                         roll_channel=getattr(args, "roll_channel", False))
         # where the scoring thresholds and the margin came from (calibration runs), beside their values
         doc["settings"] |= {"thresholds_from": args.thresholds_from, "min_evidence_from": args.min_evidence_from,
-                            "detection_limits_from": args.detection_limits_from}
+                            "detection_limits_from": args.detection_limits_from,
+                            "decision_limits": bool(args.decision_limits)}
+        if args.decision_limits:    # the table names the limits' kind
+            doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"],
+                                         doc["seconds"])
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
     (out / "results.md").write_text(doc["markdown"])
@@ -791,6 +796,10 @@ def register(subparsers) -> None:
     p.add_argument("--calibrated-only", action="store_true",
                    help="commonroad, with --detection-limits-from: effects the calibration runs did not sweep are "
                         "never claimed either (limit \"*\": null)")
+    p.add_argument("--decision-limits", action="store_true",
+                   help="commonroad, with --detection-limits-from: the limit on each estimate is the decision level "
+                        "below its threshold (a case at the threshold is estimated above it 95 %% of the time, from "
+                        "the calibration cases' estimate spread near the threshold), not the threshold itself")
     p.add_argument("--gate", type=float, default=None, metavar="RATIO",
                    help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
     p.add_argument("--fit", type=D.fit_spec_arg, default=None,
