@@ -99,9 +99,11 @@ NO_GAP_GATE: float | None = None
 MIN_EVIDENCE = 0.0
 # Detection limits {effect: smallest |value| claimed, or None: never claimed}: an effect that pays on the held-out
 # data with a value below its limit is reported, not selected, and the greedy stops there (a limit of detection).
-# The limits are the detection thresholds measured on calibration runs (`ddyn study gap --detection-limits-from`,
-# `diagnose --detection-limits`): below them the calibration found the effect in under 95 % of its logs, so a
-# selection there is not one the calibration vouches for. None by default (no limits).
+# The limits come from calibration runs (`ddyn study gap --detection-limits-from`, `diagnose --detection-limits`):
+# the detection thresholds measured there (below them the calibration found the effect in under 95 % of its logs,
+# so a selection there is not one the calibration vouches for), or with `--decision-limits` the decision levels
+# below them (an effect at its threshold is estimated above its level 95 % of the time; Currie's L_C for the
+# threshold's L_D). None by default (no limits).
 DETECTION_LIMITS: dict | None = None
 # The first effect added and the runner-up of its round with evidence closer than this (dBIC) are not told apart
 # by the data: "not worth more than a bare mention" on Kass & Raftery's scale of BIC differences, a textbook
@@ -1236,7 +1238,8 @@ def nominal_effects_arg(text: str | None) -> dict:
 
 def detection_limits_arg(text: str | None) -> dict | None:
     """--detection-limits: JSON {effect: limit or null} inline or in a file, or the results.json of a `ddyn study
-    gap --detection-limits-from` run (its settings' `detection_limits`: calibration runs' measured thresholds)."""
+    gap --detection-limits-from` run (its settings' `detection_limits`: calibration runs' measured thresholds, or
+    their decision levels when run with --decision-limits)."""
     if not text:
         return None
     if text.strip().startswith("{"):
@@ -1332,7 +1335,8 @@ def register(subparsers) -> None:
                    help="a limit of detection per effect: {\"steer_lag\": 0.15, \"downforce\": null, ...} "
                         "(\"*\": every effect without an entry) inline or "
                         "in a file, or a `ddyn study gap --detection-limits-from` run's results.json (its "
-                        "settings.detection_limits: the calibration runs' thresholds); an effect found below its "
+                        "settings.detection_limits: the calibration runs' thresholds, or their decision levels "
+                        "with --decision-limits); an effect found below its "
                         "limit (null: always), or not told apart from a rival, is reported, not selected")
     p.add_argument("--mass-inertia", action="store_true",
                    help="the mass_offset candidate scales the yaw inertia with the mass (with Df, Dr refitted it "
