@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import time
+from statistics import NormalDist
 from pathlib import Path
 
 import numpy as np
@@ -720,9 +721,9 @@ def thresholds_of(paths, margin: float | None = None) -> dict:
     return {e: reliable_threshold(rs) for e, rs in rows.items()}
 
 
-# The decision limit's quantile: a case exactly at its threshold is estimated above the limit 95 % of the time
-# (one-sided normal quantile), the same rate the threshold itself is measured at (RELIABLE_RATE).
-DECISION_Z = 1.6448536269514722
+# The decision limit's quantile: a case exactly at its threshold is estimated above the limit at the rate the
+# threshold itself is measured at (one-sided normal quantile of RELIABLE_RATE, 1.645)
+DECISION_Z = NormalDist().inv_cdf(RELIABLE_RATE)
 # The calibration cases that measure the estimate's spread at a threshold: those within this factor of it.
 DECISION_BAND = 2.0
 
@@ -741,10 +742,8 @@ def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z
     decision; its spread is roughly constant in absolute terms there). Never negative."""
     thresholds = thresholds_of(paths, margin)
     rows: dict = {}
-    for doc in _runs(paths):
-        results = doc["results"] if margin is None else with_gate(doc["results"], doc["settings"].get("gate"),
-                                                                  margin)
-        for r in results:
+    for doc in _runs(paths):     # the hidden effect's estimate is recorded whatever was selected: no rescoring
+        for r in doc["results"]:
             if r["status"] == "ok" and r["effect"] != NONE and r.get("estimate") is not None:
                 rows.setdefault(r["effect"], []).append(r)
     limits = {}
