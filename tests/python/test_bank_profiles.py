@@ -317,6 +317,15 @@ def test_the_grade_read_from_a_plausible_pitch_channel_on_a_log_shorter_than_a_l
     d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), **kw)
     assert d["data"]["pitch_channel"]["plausible"] and d["candidates"][0]["effect"] == "grade_from_pitch"
     assert d["candidates"][0]["params"]["gain"] == pytest.approx(1.0, abs=0.2)
+    # its size is the grade it reads (gain x the channel's largest reading), not the gain: what a limit judges
+    size = d["candidates"][0]["magnitude"]
+    assert size == pytest.approx(d["candidates"][0]["params"]["gain"] * verdict["abs_p999_rad"])
+    assert 0.03 < size < 0.08        # a 0.04 rad grade, with squat and noise on top
+    capped = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), **kw, detection_limits={"grade": 0.1})
+    assert capped["selected"] == [] and capped["below_limit"]["magnitude"] == pytest.approx(size)
+    assert "at the channel's largest reading" in capped["verdict"]
+    kept = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), **kw, detection_limits={"grade": 0.02})
+    assert kept["selected"] == ["grade_from_pitch"]
     without = CP.make_log(track, CP.PlantEffects(grade=0.04, grade_phase=1.0), 3,
                           CP.LogSettings(duration=60.0, target_speed=23.0))
     assert np.array_equal(without.states, ds.states)          # the channel has its own random stream

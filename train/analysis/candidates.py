@@ -243,6 +243,18 @@ def summary(name: str, values: dict, std: dict, lay: Layout | None) -> tuple[flo
         "free": list(lay.free), "periodic_length_m": lay.length, "position_from": lay.source}
 
 
+def magnitude(name: str, value: float, lay: Layout | None) -> float:
+    """A fitted candidate's size in its family's unit, the one detection limits are set in: a channel
+    candidate's gain times the channel's largest reading (its 99.9th percentile |angle|: the bank or grade the
+    candidate reads at its steepest, body roll or pitch included), every other candidate's main value (a
+    profile's peak)."""
+    if name in ROLL_OF:
+        verdict = None if lay is None else lay.channel_check(ROLL_OF[name][1])
+        if verdict and "abs_p999_rad" in verdict:
+            return abs(value) * float(verdict["abs_p999_rad"])
+    return value
+
+
 def profile_at(profile: dict, s) -> np.ndarray:
     """A reported profile (summary's third value) evaluated at positions s."""
     knots, angle = np.asarray(profile["knots_m"]), np.asarray(profile["angle_rad"])

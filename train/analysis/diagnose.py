@@ -785,7 +785,9 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         val, sd, prof = C.summary(name, f.values, f.std, prob.layout)
         return {"effect": name, "params": {C.MAIN_PARAM[name]: val}, "uncertainty": {C.MAIN_PARAM[name]: sd},
                 "unit": C.UNITS[name], "at_bound": at_bound(name, val, prob.ctx),
-                **({"profile": prof} if prof is not None else {})}
+                **({"profile": prof} if prof is not None else {}),
+                # a channel candidate's gain is not its size: the angle it reads (what a limit is set in)
+                **({"magnitude": C.magnitude(name, val, prob.layout)} if name in C.ROLL_OF else {})}
 
     def entry(name: str, f: Fit, ev: dict) -> dict:
         h = ev["heldout"]
@@ -840,7 +842,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
         # the library does not hold, so it is never the verdict (and the greedy step stops there)
         main_value = C.summary(name, f.values, f.std, prob.layout)[0]   # a profile: its peak
         edge = bool(dbic < -margin) and at_bound(name, main_value, prob.ctx)
-        weak = bool(dbic < -margin) and not edge and _below_limit(name, main_value, limits)
+        size = C.magnitude(name, main_value, prob.layout)      # a channel candidate: the angle it reads
+        weak = bool(dbic < -margin) and not edge and _below_limit(name, size, limits)
         # under detection limits a claim must also be a choice the data make: a first effect whose runner-up of
         # another family is within AMBIGUITY_DBIC of it is reported, not claimed (on the four calibration sweeps at
         # their margin every such first effect lay below its threshold, and 4 of the 7 were the wrong one)
@@ -854,7 +857,8 @@ def diagnose(ds: Dataset, nominal: Nominal, fit_fraction: float = DEFAULT_FIT_FR
             break
         if weak:
             below_limit = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
-                           "limit": _limit_of(name, limits)[1]}
+                           "limit": _limit_of(name, limits)[1],
+                           **({"magnitude": size} if name in C.ROLL_OF else {})}
             break
         if tie:
             not_told_apart = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
@@ -990,7 +994,8 @@ def _limit_of(name: str, limits: dict | None):
 
 
 def _below_limit(name: str, value: float, limits: dict | None) -> bool:
-    """An effect's value (a profile's peak) under its detection limit; never for an effect without one."""
+    """An effect's size (a profile's peak, a channel's angle: candidates.magnitude) under its detection limit;
+    never for an effect without one."""
     has, limit = _limit_of(name, limits)
     return has and (limit is None or abs(value) < limit)
 
@@ -999,8 +1004,10 @@ def _below_limit_verdict(b: dict) -> str:
     (pn, pv), = b["params"].items()
     limit = ("not reliably identified in the calibration (or not calibrated)" if b["limit"] is None
              else f"below its detection limit {b['limit']:.4g}")
-    return (f"{b['effect']} pays on the held-out data (dBIC {b['delta_bic']:.1f}) with {pn} = {pv:.4g}, {limit}: "
-            "not claimed")
+    size = (f" (a {C.FAMILY[b['effect']].replace('_', ' ')} of {b['magnitude']:.4g} rad at the channel's largest "
+            "reading)" if "magnitude" in b else "")
+    return (f"{b['effect']} pays on the held-out data (dBIC {b['delta_bic']:.1f}) with {pn} = {pv:.4g}{size}, "
+            f"{limit}: not claimed")
 
 
 def _not_told_apart_verdict(t: dict) -> str:

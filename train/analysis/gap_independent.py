@@ -242,6 +242,11 @@ def run_case(case: dict) -> dict:
     if case["effect"] != NONE:
         pick = next(c for c in diag["candidates"] if c["effect"] == case["effect"])
         est = next(iter(pick["params"].values()))
+        if case["effect"] in PROFILED:
+            # a bank or grade: the size of the family's best candidate (constant, profile or channel), what a
+            # detection limit is compared with (candidates.magnitude)
+            best = next(c for c in diag["candidates"] if C.FAMILY.get(c["effect"], c["effect"]) == case["effect"])
+            est = best.get("magnitude", next(iter(best["params"].values())))
         if case["effect"] not in PROFILED:
             perr = abs(est - case["magnitude"]) / abs(case["magnitude"])
         # the hidden effect's own candidate in round 1: a miss with a right estimate but dBIC > 0 is weak
