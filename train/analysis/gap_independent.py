@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import math
 import time
-from statistics import NormalDist
 from pathlib import Path
+from statistics import NormalDist
 
 import numpy as np
 
