@@ -177,9 +177,14 @@ def available(name: str, lay: Layout | None) -> bool:
     if name in PROFILE_OF:
         return lay is not None and len(lay.free) > 0
     if name in ROLL_OF:
-        verdict = None if lay is None else lay.channel_check(ROLL_OF[name][1])
+        verdict = _channel_verdict(name, lay)
         return verdict is not None and bool(verdict["plausible"])
     return True
+
+
+def _channel_verdict(name: str, lay: Layout | None) -> dict | None:
+    """The plausibility verdict of a channel candidate's channel (None: no layout or no such channel logged)."""
+    return None if lay is None else lay.channel_check(ROLL_OF[name][1])
 
 
 def keys(name: str, lay: Layout | None) -> tuple[str, ...]:
@@ -249,7 +254,7 @@ def magnitude(name: str, value: float, lay: Layout | None) -> float:
     candidate reads at its steepest, body roll or pitch included), every other candidate's main value (a
     profile's peak)."""
     if name in ROLL_OF:
-        verdict = None if lay is None else lay.channel_check(ROLL_OF[name][1])
+        verdict = _channel_verdict(name, lay)
         if verdict and "abs_p999_rad" in verdict:
             return abs(value) * float(verdict["abs_p999_rad"])
     return value

@@ -754,12 +754,13 @@ def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z
                 rows.setdefault(r["effect"], []).append(r)
     limits = {}
     for eff, t in thresholds.items():
-        near = [abs(r["estimate"]) - abs(r["magnitude"]) for r in rows.get(eff, [])
-                if t is not None and t / band <= abs(r["magnitude"]) <= t * band]
-        if t is None or len(near) < 2:
-            limits[eff] = None if t is None else t     # too few cases to measure a spread: the threshold itself
+        if t is None:
+            limits[eff] = None
             continue
-        limits[eff] = max(0.0, t + float(np.mean(near)) - z * float(np.std(near, ddof=1)))
+        near = [abs(r["estimate"]) - abs(r["magnitude"]) for r in rows.get(eff, [])
+                if t / band <= abs(r["magnitude"]) <= t * band]
+        # too few cases to measure a spread: the threshold itself
+        limits[eff] = t if len(near) < 2 else max(0.0, t + float(np.mean(near)) - z * float(np.std(near, ddof=1)))
     return limits
 
 
