@@ -269,6 +269,34 @@ def test_study_gap_commonroad_cli(tmp_path, monkeypatch, capsys):
         assert "--decision-limits go with --detection-limits-from" in capsys.readouterr().err
 
 
+def test_study_gap_duration_sets_the_log_length_and_calibrations_must_match_it(tmp_path, capsys):
+    """--duration: every case's log has that many seconds (recorded in the settings and the table); a margin,
+    threshold or limit calibrated on logs of another length is refused, one of the same length taken."""
+    import json
+
+    from ddyn.cli import main
+
+    out = tmp_path / "gap"
+    assert main(["study", "gap", "--plant", "commonroad", "--cases", "1", "--seed", "3", "--gate", "0",
+                 "--duration", "20", "--min-evidence", "0", "--out", str(out), "--no-progress"]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["settings"]["duration"] == 20.0 and doc["results"][0]["rows"] == 501
+    assert "20 s logs" in (out / "results.md").read_text()
+    cal = str(out / "results.json")
+    for flag in ("--min-evidence-from", "--thresholds-from", "--detection-limits-from"):
+        assert main(["study", "gap", "--plant", "commonroad", "--cases", "1", "--seed", "5", flag, cal,
+                     "--out", str(tmp_path / "other"), "--no-progress"]) == 2
+        assert f"{flag} {cal}: its logs are 20 s, this run's {G.DURATION:g} s" in capsys.readouterr().err
+    # a rescore keeps the recorded run's length: the same calibration is taken
+    assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--thresholds-from", cal,
+                 "--out", str(out)]) == 0
+    assert main(["study", "gap", "--plant", "commonroad", "--case-set", "oval", "--duration", "20",
+                 "--out", str(out)]) == 2
+    assert "--duration: a run of the single-track plant's" in capsys.readouterr().err
+    with pytest.raises(DdynError, match="--duration"):
+        G.run(1, 3, duration=0.0)
+
+
 def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
     """--effects keeps only those cases, with the whole plan's case numbers and seeds; --evidence reaches every
     case (the multi-step dBIC decides, the one-step one is recorded beside it); a bad effect or spec fails."""

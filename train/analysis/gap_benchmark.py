@@ -589,6 +589,16 @@ def _run_commonroad(args, out: Path) -> int:
             args.plant != "commonroad" or getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above")):
         raise DdynError("--pitch-channel, --roll-channel: the single-track plant's putnam, sweep and above case sets "
                         "only (the oval set has its own roll-channel slots)")
+    duration = getattr(args, "duration", None)
+    if duration is not None and (args.plant != "commonroad" or args.eiv_check or args.mass_check or args.rescore
+                                 or getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above")):
+        raise DdynError("--duration: a run of the single-track plant's putnam, sweep and above case sets only")
+    if args.rescore and (out / "results.json").is_file():    # the recorded run's log length
+        duration = json.loads((out / "results.json").read_text())["settings"].get("duration")
+    for what in ("min_evidence_from", "thresholds_from", "detection_limits_from"):
+        if getattr(args, what, None):   # a margin, threshold or limit holds for the log length it was measured on
+            G.require_duration(getattr(args, what), G.DURATION if duration is None else duration,
+                               "--" + what.replace("_", "-"))
     if getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above"):
         if args.min_evidence_from or args.detection_limits_from:
             raise DdynError("--min-evidence-from, --detection-limits-from: the putnam, sweep and above case sets only")
@@ -657,7 +667,7 @@ def _run_commonroad(args, out: Path) -> int:
                         thresholds=thresholds, case_set=args.case_set, evidence=args.evidence,
                         effects=tuple(e.strip() for e in args.effects.split(",")) if args.effects else None,
                         pitch_channel=getattr(args, "pitch_channel", False),
-                        roll_channel=getattr(args, "roll_channel", False))
+                        roll_channel=getattr(args, "roll_channel", False), duration=duration)
         # where the scoring thresholds and the margin came from (calibration runs), beside their values
         doc["settings"] |= {"thresholds_from": args.thresholds_from, "min_evidence_from": args.min_evidence_from,
                             "detection_limits_from": args.detection_limits_from,
@@ -815,6 +825,10 @@ def register(subparsers) -> None:
     p.add_argument("--roll-channel", action="store_true",
                    help="commonroad (putnam, sweep, above): every log carries the plant's roll channel (bank minus "
                         "body roll plus noise) and the diagnosis may read the bank from it (bank_from_roll)")
+    p.add_argument("--duration", type=float, default=None, metavar="SECONDS",
+                   help=f"commonroad (putnam, sweep, above): seconds of log per case (default {gap_independent.DURATION:g}); "
+                        "the runs given to --min-evidence-from, --thresholds-from and --detection-limits-from must "
+                        "have logs of the same length (a margin or threshold holds for the length it was measured on)")
     p.add_argument("--mass-inertia", action="store_true",
                    help="commonroad: diagnose --mass-inertia (the mass_offset candidate scales Iz with the mass)")
     p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",

@@ -47,7 +47,7 @@ EFFECT_RANGES = {"steer_delay": (0.02, 0.12), "throttle_delay": (0.05, 0.3), "st
 SIGNED = ("mass_offset", "bank_angle", "grade")
 PROFILED = ("bank_angle", "grade")
 SLOTS = tuple(EFFECT_RANGES) + (NONE, NONE, NONE)
-DURATION = 60.0                # s of log per case (1500 rows at 25 Hz)
+DURATION = 60.0                # s of log per case (1500 rows at 25 Hz); `study gap --duration` sets another
 SPEEDS = (20.0, 26.0)          # m/s: range of the driver's target speed
 CALIBRATION_SEEDS = (11, 13, 15, 17)   # the gate, margins and thresholds are chosen on these (sweeps of each)
 IDENT_SEED = 9000              # the effect-free log the identified nominal is fitted on (neither set)
@@ -191,7 +191,7 @@ def make_case_log(case: dict, tries: int = 3):
     seed, err = case["seed"], None
     for _ in range(tries):
         try:
-            settings = CP.LogSettings(duration=DURATION, target_speed=case["target_speed"],
+            settings = CP.LogSettings(duration=case.get("duration", DURATION), target_speed=case["target_speed"],
                                       start_s=case["start_fraction"] * track.length,
                                       driver_grip=case.get("driver_grip"),
                                       roll_channel=bool(case.get("roll_channel", False)),
@@ -495,6 +495,20 @@ def _runs(paths) -> list[dict]:
     return [json.loads(Path(p).read_text()) for p in paths]
 
 
+MAX_DURATION = 900.0           # s: the longest log a case may ask for (the plant holds the whole run in memory)
+
+
+def require_duration(paths, duration: float, what: str) -> None:
+    """Refuse calibration runs recorded on logs of another length than `duration`: a dBIC sums over the held-out
+    rows and a fit's spread shrinks with the rows, so a margin, threshold or decision level measured on 60 s logs
+    is not one for 180 s logs (a run without a recorded duration made DURATION logs)."""
+    for p, doc in zip([q for q in str(paths).split(",") if q], _runs(paths)):
+        got = float(doc["settings"].get("duration") or DURATION)
+        if abs(got - duration) > 1e-9:
+            raise DdynError(f"{what} {p}: its logs are {got:g} s, this run's {duration:g} s; calibrate on logs of "
+                            "the same length (--duration)")
+
+
 def margin_of(paths, target: float = TARGET_FALSE_ALARMS) -> float:
     """The evidence margin from several calibration runs pooled: the smallest margin leaving at most `target` of
     all their effect-free logs with a selection (calibrate_margin over the union). A run recorded with margin m
@@ -774,7 +788,7 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
     gate = s["gate_threshold"]
     seen = settings["seed"] in SEEN_SEEDS
     lines = [f"Independent plant (CommonRoad {settings.get('plant_model', 'vehicle_dynamics_std')}, parameters_vehicle2) on {TRACK}, "
-             f"{DURATION:.0f} s logs; seed {settings['seed']} "
+             f"{settings.get('duration', DURATION):.0f} s logs; seed {settings['seed']} "
              + ("(a calibration seed: chooses the gate, not a blind test)" if settings["calibration_seed"]
                 else "(seen: scored before and looked at since, not blind)" if seen else "(blind: chose nothing)")
              + f"; {s['cases']} cases ({s['cases'] - s['simulated']} not simulated), {s['effect_cases']} with an "
@@ -848,14 +862,18 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
         nominal: str = "mapped", fit: str | None = None, thresholds: dict | None = None, mass_inertia: bool = False,
         steer_servo: float = 0.0, nominal_effects: dict | None = None, case_set: str = "putnam",
         evidence: str | None = None, effects: tuple | None = None, pitch_channel: bool = False,
-        roll_channel: bool = False) -> dict:
+        roll_channel: bool = False, duration: float | None = None) -> dict:
     """case_set: "putnam" (plan(): effects cycled, magnitudes drawn) or "sweep" (plan_sweep(): the threshold
     sweep). hold: diagnose with the command hold modelled (diagnose --hold). nominal: "mapped" (the vehicle file)
     or "identified" (identified_coefficients). mass_inertia, steer_servo: diagnose's (--mass-inertia,
     --steer-servo; the plant's servo is CP.SERVO_TAU). evidence: diagnose's (--evidence). effects: only the cases
     of these hidden effects ("none": the effect-free ones), drawn as in the whole plan (same case numbers and seeds,
-    the others skipped)."""
+    the others skipped). duration: seconds of log per case (a margin, threshold or limit holds for the log length
+    it was calibrated on: require_duration); None: DURATION."""
     CP.require_commonroad()
+    duration = DURATION if duration is None else float(duration)
+    if not 0 < duration <= MAX_DURATION:
+        raise DdynError(f"--duration {duration:g}: expected 0 < seconds <= {MAX_DURATION:g}")
     t0 = time.perf_counter()
     coeffs, ident = None, None
     if nominal == "identified":
@@ -876,7 +894,7 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
               "candidates": list(E.EFFECT_NAMES) + from_channels} if from_channels else {})
     cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
                   "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
-                  "evidence": evidence} | extra
+                  "evidence": evidence, "duration": duration} | extra
              | diagnosis_vetoes() for c in (plan_sweep(n_cases, seed) if case_set == "sweep" else
                                             plan_above(n_cases, seed, thresholds or {}) if case_set == "above" else
                                             plan(n_cases, seed))
@@ -889,7 +907,7 @@ def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = 
                 "min_evidence": D.MIN_EVIDENCE, "detection_limits": D.DETECTION_LIMITS,
                 "sweep_levels": SWEEP_LEVELS if case_set == "sweep" else None,
                 "calibration_seed": seed in CALIBRATION_SEEDS, "calibration_seeds": list(CALIBRATION_SEEDS),
-                "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": DURATION, "track": TRACK,
+                "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": duration, "track": TRACK,
                 "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold,
                 "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds,
                 "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
