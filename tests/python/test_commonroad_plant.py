@@ -514,6 +514,56 @@ def test_decision_limits_sit_below_the_thresholds_by_the_estimate_spread_there(t
     assert G.decision_limits_of(str(p)) == {"throttle_delay": pytest.approx(0.1)}
 
 
+def test_diagnose_calibration_takes_the_runs_settings_margin_and_decision_levels(tmp_path, capsys):
+    """diagnose --calibration RUNS: the runs' diagnosis settings (hold, fit, servo, nominal effects, gate), their
+    pooled margin and decision levels, every uncalibrated effect never claimed, recorded in diagnosis.json; a log
+    of another length, a clashing setting, --dbw and runs with different settings are refused."""
+    import json
+
+    from ddyn.cli import main
+    from ddyn.data.dataset import write_canonical
+    from ddyn.model.tracks import load_track
+
+    def row(e, mag, est, top1, dbic=-50.0):
+        return {"status": "ok", "effect": e, "magnitude": mag, "estimate": est, "top1": top1, "correct": top1 == e,
+                "selected_without_gate": [] if top1 == G.NONE else [top1], "gate_ratio": 1.2,
+                "delta_bic_top": dbic}
+    rs = [row("steer_delay", m, m * 1.05, "steer_delay" if m >= 0.03 else G.NONE) for m in (0.02, 0.03, 0.05, 0.08)]
+    rs += [row(G.NONE, 0.0, None, G.NONE), row(G.NONE, 0.0, None, "mass_offset", dbic=-7.5)]
+    settings = {"min_evidence": 0.0, "hold": True, "fit": "mixed:steer_delay,steer_lag", "mass_inertia": True,
+                "steer_servo": 0.01, "nominal_effects": {"power_limit": 92021.0}, "evidence": "one-step",
+                "gate": None, "duration": 24.0}
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps({"settings": settings, "results": rs}))
+    log = write_canonical(CP.make_log(load_track("putnam"), CP.PlantEffects(steer_delay=0.06), 5,
+                                      CP.LogSettings(duration=24.0, target_speed=22.0)), tmp_path / "log.csv")
+    base = ["diagnose", "--vehicle", str(CP.NOMINAL_VEHICLE), "--data", str(log), "--no-plots", "--calibration"]
+    assert main(base + [str(cal), "--out", str(tmp_path / "d")]) == 0
+    d = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
+    want = G.calibrated_diagnosis(str(cal))
+    assert want["min_evidence"] == pytest.approx(7.5) and want["detection_limits"]["*"] is None
+    assert d["calibration"]["min_evidence"] == pytest.approx(7.5) and d["gate"]["min_evidence"] == pytest.approx(7.5)
+    assert d["calibration"]["detection_limits"] == pytest.approx(want["detection_limits"])
+    assert d["gate"]["threshold"] is None and d["method"]["fit_mode"] == "mixed:steer_delay,steer_lag"
+    assert d["nominal"]["steer_servo_tau"] == 0.01 and d["nominal"]["mass_offset_scales_iz"] is True
+    assert d["nominal"]["command_hold_delay"] > 0
+    assert "evidence margin dBIC < -7.5" in (tmp_path / "d" / "diagnosis.md").read_text()
+    # the same setting given explicitly is fine; another one, --dbw or another log length is not
+    assert main(base + [str(cal), "--hold", "--steer-servo", "0.01", "--gate", "0", "--out", str(tmp_path / "e")]) == 0
+    for extra, msg in ((["--steer-servo", "0.02"], "--steer-servo differ"), (["--gate", "1.5"], "--gate differ"),
+                       (["--fit", "one-step"], "--fit differ"), (["--dbw"], "not with --detection-limits, --dbw")):
+        assert main(base + [str(cal), *extra, "--out", str(tmp_path / "x")]) == 2
+        assert msg in capsys.readouterr().err
+    cal60 = tmp_path / "cal60.json"
+    cal60.write_text(json.dumps({"settings": settings | {"duration": 60.0}, "results": rs}))
+    assert main(base + [str(cal60), "--out", str(tmp_path / "x")]) == 2
+    assert "measured on 60 s logs, this log is 24 s" in capsys.readouterr().err
+    unheld = tmp_path / "unheld.json"
+    unheld.write_text(json.dumps({"settings": settings | {"hold": False}, "results": rs}))
+    with pytest.raises(DdynError, match="differs from .* in hold"):
+        G.calibrated_diagnosis(f"{cal},{unheld}")
+
+
 def test_the_threshold_sweep_draws_every_effect_over_its_range_largest_first():
     """plan_sweep: each effect at SWEEP_LEVELS log-spaced magnitudes spanning its whole drawn range, largest
     first (a run cut short keeps the top of every effect's range, where reliable_threshold starts), one effect

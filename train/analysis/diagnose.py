@@ -1053,6 +1053,16 @@ def _pitch_line(p: dict | None) -> str:
             f"({p['reason']}).")
 
 
+def _calibration_lines(d: dict) -> list[str]:
+    c = d.get("calibration")
+    if not c:
+        return []
+    limits = ", ".join(f"{e} {_fmt(v)}" for e, v in c["detection_limits"].items() if v is not None and e != ANY_OTHER)
+    return [f"Calibrated by {', '.join(c['runs'])} ({c['duration']:g} s logs): evidence margin dBIC < "
+            f"-{c['min_evidence']:.3g}; decision levels {limits or 'none'}; every other effect reported, never "
+            "claimed.", ""]
+
+
 def markdown(d: dict, figures: list[str]) -> str:
     m = d["model"]
     h = m["heldout"]
@@ -1061,7 +1071,7 @@ def markdown(d: dict, figures: list[str]) -> str:
              f"fit on {d['split']['fit_rows']}, held out {d['split']['heldout_rows']} (from t = "
              f"{d['split']['heldout_from_time']:.1f} s).", "",
              f"**Selected: {', '.join(d['selected']) if d['selected'] else 'none'}** — {d['verdict']}", "",
-             _roll_line(d), "",
+             *_calibration_lines(d), _roll_line(d), "",
              "## How far (held-out)", "",
              "| | vx (m/s) | vy (m/s) | omega (rad/s) | ADE (m) | FDE (m) |", "|---|---|---|---|---|---|",
              "| nominal | " + " | ".join(_fmt(h["rmse_before"][c]) for c in CHANNELS)
@@ -1267,6 +1277,46 @@ def detection_limits_arg(text: str | None) -> dict | None:
     return {e: None if v is None else float(v) for e, v in limits.items()}
 
 
+# how far a log's length may be from the calibration's: a dBIC sums over the held-out rows, so a margin measured
+# on 60 s logs does not hold on 90 s ones
+CALIBRATION_LENGTH_TOLERANCE = 0.1
+
+
+def calibrated_settings(args, ds) -> dict:
+    """--calibration RUNS: the diagnosis the calibration runs scored (gap_independent.calibrated_diagnosis), put
+    into args where the user gave nothing; a setting given otherwise, --detection-limits, --dbw, --candidates or
+    a log of another length than the calibration's is refused (the margin and the limits hold only as calibrated)."""
+    from ddyn.analysis import gap_independent as G
+
+    if args.detection_limits or args.dbw or args.candidates:
+        raise DdynError("--calibration sets the margin, the limits and the candidates: not with --detection-limits, "
+                        "--dbw or --candidates")
+    cal = G.calibrated_diagnosis(args.calibration)
+    length = len(ds) * ds.sample_time
+    if abs(length - cal["duration"]) > CALIBRATION_LENGTH_TOLERANCE * cal["duration"]:
+        raise DdynError(f"--calibration: measured on {cal['duration']:g} s logs, this log is {length:.0f} s; "
+                        f"calibrate on logs of its length (`ddyn study gap --case-set sweep --duration "
+                        f"{length:.0f}`) or cut the log")
+    def off(gate):      # a run's gate None and diagnose's --gate 0 both mean no gate
+        return "off" if gate is None or gate <= 0 else gate
+
+    given = {"hold": (args.hold, False), "fit": (args.fit, None), "mass_inertia": (args.mass_inertia, False),
+             "steer_servo": (args.steer_servo, 0.0), "evidence": (args.evidence, None),
+             "nominal_effects": (nominal_effects_arg(args.nominal_effects) or None, None),
+             "min_evidence": (args.min_evidence, None),
+             "gate": (None if args.gate is None else off(args.gate), None)}
+    wanted = cal | {"gate": off(cal["gate"]), "nominal_effects": cal["nominal_effects"] or None}
+    clash = [k for k, (v, default) in given.items() if v != default and v != wanted[k]]
+    if clash:
+        raise DdynError(f"--calibration: {', '.join('--' + k.replace('_', '-') for k in clash)} differ from the "
+                        "calibration's (leave them out: the calibration sets them)")
+    args.hold, args.fit, args.mass_inertia = cal["hold"], cal["fit"], cal["mass_inertia"]
+    args.steer_servo, args.evidence, args.min_evidence = cal["steer_servo"], cal["evidence"], cal["min_evidence"]
+    args.nominal_effects = ",".join(f"{k}={v!r}" for k, v in cal["nominal_effects"].items()) or None
+    args.gate = 0.0 if cal["gate"] is None else cal["gate"]
+    return cal
+
+
 def _run(args) -> int:
     ds, nominal = load_inputs(args)
     # the default library is the eleven one-parameter effects the benchmarks calibrated and scored;
@@ -1285,6 +1335,10 @@ def _run(args) -> int:
     bad = [c for c in refit if c not in COEFF_NAMES]
     if bad:
         raise DdynError(f"--refit: unknown coefficient(s) {', '.join(bad)}")
+    calibration = None
+    if args.calibration:    # the settings, margin and decision levels of calibration runs (calibrated_settings)
+        calibration = calibrated_settings(args, ds)
+        cands = tuple(cands) + tuple(c for c in calibration["channel_candidates"] if c not in cands)
     gate = "default" if args.gate is None else (None if args.gate <= 0 else args.gate)
     if args.dbw:        # the preset fills what was not given explicitly
         args.hold = args.hold or True
@@ -1293,8 +1347,13 @@ def _run(args) -> int:
     d = diagnose(ds, nominal, args.fit_fraction, cands, refit, args.max_effects, _track(args.track, ds), gate=gate,
                  hold=args.hold, min_evidence=args.min_evidence, fit_mode=args.fit, mass_inertia=args.mass_inertia,
                  steer_servo=args.steer_servo, nominal_effects=nominal_effects_arg(args.nominal_effects),
-                 evidence=args.evidence, detection_limits=detection_limits_arg(args.detection_limits))
+                 evidence=args.evidence, detection_limits=(calibration["detection_limits"] if calibration else
+                                                           detection_limits_arg(args.detection_limits)))
+    if calibration:
+        d["calibration"] = {k: calibration[k] for k in ("runs", "duration", "min_evidence", "detection_limits")}
     paths = write_report(d, args.out, not args.no_plots)
+    if calibration:
+        print(_calibration_lines(d)[0])
     print(f"selected: {', '.join(d['selected']) if d['selected'] else 'none'} ({d['verdict']})")
     h = d["model"]["heldout"]
     print("held-out one-step RMSE " + ", ".join(f"{c} {h['rmse_before'][c]:.3e} -> {h['rmse_after'][c]:.3e}"
@@ -1345,6 +1404,11 @@ def register(subparsers) -> None:
                         "settings.detection_limits: the calibration runs' thresholds, or their decision levels "
                         "with --decision-limits); an effect found below its "
                         "limit (null: always), or not told apart from a rival, is reported, not selected")
+    p.add_argument("--calibration", default=None, metavar="RESULTS_JSON[,...]",
+                   help="diagnose as these calibration runs scored it (`ddyn study gap --case-set sweep ... "
+                        "--min-evidence 0` on logs of this log's length): their settings (hold, fit, servo, nominal "
+                        "effects, ...), their pooled evidence margin and Currie's decision levels below their "
+                        "detection thresholds; effects they did not calibrate are reported, never claimed")
     p.add_argument("--mass-inertia", action="store_true",
                    help="the mass_offset candidate scales the yaw inertia with the mass (with Df, Dr refitted it "
                         "then changes only the longitudinal response, as a heavier car with load-proportional "

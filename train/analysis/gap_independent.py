@@ -778,6 +778,38 @@ def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z
     return limits
 
 
+# What a calibration run records of the diagnosis it scored and `ddyn diagnose --calibration` takes over: the margin
+# and the limits measured under these settings hold under them only
+CALIBRATED_SETTINGS = ("hold", "fit", "mass_inertia", "steer_servo", "nominal_effects", "evidence", "gate",
+                       "pitch_channel", "roll_channel", "duration")
+
+
+def calibrated_diagnosis(paths) -> dict:
+    """The diagnosis that calibration runs (`study gap --case-set sweep ... --min-evidence 0`, comma-separated)
+    calibrated, for `ddyn diagnose --calibration`: their diagnosis settings (CALIBRATED_SETTINGS, which pooled runs
+    must share), their pooled evidence margin (margin_of), Currie's decision levels at that margin
+    (decision_limits_of) with every effect they did not calibrate never claimed ("*": None), the log length they
+    were measured on and the candidates read from channels."""
+    names = [p for p in str(paths).split(",") if p]
+    docs = _runs(paths)
+    first = docs[0]["settings"]
+    for name, doc in zip(names[1:], docs[1:]):
+        differ = [k for k in CALIBRATED_SETTINGS if doc["settings"].get(k) != first.get(k)]
+        if differ:
+            raise DdynError(f"--calibration: {name} differs from {names[0]} in {', '.join(differ)}; runs pooled "
+                            "as one calibration must share their diagnosis settings")
+    margin = margin_of(paths)
+    return {"runs": names, "hold": bool(first.get("hold")), "fit": first.get("fit"),
+            "mass_inertia": bool(first.get("mass_inertia")), "steer_servo": float(first.get("steer_servo") or 0.0),
+            "nominal_effects": dict(first.get("nominal_effects") or {}),
+            "evidence": first.get("evidence") or D.DEFAULT_EVIDENCE, "gate": first.get("gate"),
+            "min_evidence": margin, "detection_limits": decision_limits_of(paths, margin) | {D.ANY_OTHER: None},
+            "duration": float(first.get("duration") or DURATION),
+            "channel_candidates": [c for c, k in (("grade_from_pitch", "pitch_channel"), ("bank_from_roll",
+                                                                                          "roll_channel"))
+                                   if first.get(k)]}
+
+
 def _limits_text(limits: dict) -> str:
     return ", ".join(f"{'every other effect' if e == D.ANY_OTHER else e} "
                      f"{'none (never claimed)' if v is None else f'{v:.3g}'}" for e, v in limits.items())
