@@ -281,6 +281,7 @@ def test_study_gap_duration_sets_the_log_length_and_calibrations_must_match_it(t
                  "--duration", "20", "--min-evidence", "0", "--out", str(out), "--no-progress"]) == 0
     doc = json.loads((out / "results.json").read_text())
     assert doc["settings"]["duration"] == 20.0 and doc["results"][0]["rows"] == 501
+    assert isinstance(doc["results"][0]["estimate_top"], float)     # the top candidate's size, whatever it is
     assert "20 s logs" in (out / "results.md").read_text()
     cal = str(out / "results.json")
     for flag in ("--min-evidence-from", "--thresholds-from", "--detection-limits-from"):

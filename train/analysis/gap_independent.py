@@ -274,6 +274,8 @@ def run_case(case: dict) -> dict:
         "gap_closed_pct_top_candidate": first["gap_closed_pct"],
         "error_reduction_pct_top_candidate": first["error_reduction_pct"],
         "delta_bic_top": first["delta_bic"], "top_candidate": first["effect"], "at_bound_top": first["at_bound"],
+        # the top candidate's size (what a limit compares): tells a wrong effect's claim from its withholding
+        "estimate_top": first.get("magnitude", next(iter(first["params"].values()))),
         "delta_bic_top_one_step": first.get("delta_bic_one_step"),
         "unexplained": diag.get("unexplained"), **oracle_figures(diag, case),
         "rival": (diag.get("rival") or {}).get("effect"),
