@@ -77,6 +77,7 @@ from scipy import optimize, stats
 
 from ddyn.analysis import candidates as C
 from ddyn.analysis import eiv, hold_estimate
+from ddyn.analysis.calibration import calibrated_diagnosis
 from ddyn.data.dataset import Dataset
 from ddyn.errors import DdynError
 from ddyn.model import effects as E
@@ -1286,12 +1287,13 @@ def calibrated_settings(args, ds) -> dict:
     """--calibration RUNS: the diagnosis the calibration runs scored (gap_independent.calibrated_diagnosis), put
     into args where the user gave nothing; a setting given otherwise, --detection-limits, --dbw, --candidates or
     a log of another length than the calibration's is refused (the margin and the limits hold only as calibrated)."""
-    from ddyn.analysis import gap_independent as G
-
     if args.detection_limits or args.dbw or args.candidates:
         raise DdynError("--calibration sets the margin, the limits and the candidates: not with --detection-limits, "
                         "--dbw or --candidates")
-    cal = G.calibrated_diagnosis(args.calibration)
+    cal = calibrated_diagnosis(args.calibration)
+    # every effect the calibration did not sweep is reported, never claimed; its recorded evidence or the default
+    cal |= {"detection_limits": cal["detection_limits"] | {ANY_OTHER: None},
+            "evidence": cal["evidence"] or DEFAULT_EVIDENCE}
     length = len(ds) * ds.sample_time
     if abs(length - cal["duration"]) > CALIBRATION_LENGTH_TOLERANCE * cal["duration"]:
         raise DdynError(f"--calibration: measured on {cal['duration']:g} s logs, this log is {length:.0f} s; "

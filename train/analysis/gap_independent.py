@@ -26,12 +26,17 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from statistics import NormalDist
 
 import numpy as np
 
 from ddyn.analysis import candidates as C
 from ddyn.analysis import diagnose as D
+# the calibration's read-back lives in its own module (diagnose --calibration uses it); the names stay here too
+from ddyn.analysis.calibration import (CALIBRATED_SETTINGS, DECISION_BAND, DECISION_Z, NONE, RELIABLE_RATE,  # noqa: F401
+                                       TARGET_FALSE_ALARMS, calibrate, calibrate_margin, calibrated_diagnosis,
+                                       decision_limits_of, margin_of, reliable_threshold, require_duration, runs,
+                                       thresholds_of, with_gate)
+from ddyn.analysis.calibration import DURATION as RECORDED_DURATION
 from ddyn.analysis.parallel import run_cases
 from ddyn.data import commonroad_mb_plant as MB
 from ddyn.data import commonroad_plant as CP
@@ -39,7 +44,6 @@ from ddyn.errors import DdynError
 from ddyn.model import effects as E
 from ddyn.model.vehicle import load as load_vehicle
 
-NONE = "none"
 TRACK = "putnam"
 EFFECT_RANGES = {"steer_delay": (0.02, 0.12), "throttle_delay": (0.05, 0.3), "steer_lag": (0.03, 0.2),
                  "mass_offset": (0.05, 0.3), "downforce": (5e-5, 4e-4), "bank_angle": (0.02, 0.1),
@@ -47,7 +51,7 @@ EFFECT_RANGES = {"steer_delay": (0.02, 0.12), "throttle_delay": (0.05, 0.3), "st
 SIGNED = ("mass_offset", "bank_angle", "grade")
 PROFILED = ("bank_angle", "grade")
 SLOTS = tuple(EFFECT_RANGES) + (NONE, NONE, NONE)
-DURATION = 60.0                # s of log per case (1500 rows at 25 Hz); `study gap --duration` sets another
+DURATION = RECORDED_DURATION   # s of log per case (1500 rows at 25 Hz); `study gap --duration` sets another
 SPEEDS = (20.0, 26.0)          # m/s: range of the driver's target speed
 CALIBRATION_SEEDS = (11, 13, 15, 17)   # the gate, margins and thresholds are chosen on these (sweeps of each)
 IDENT_SEED = 9000              # the effect-free log the identified nominal is fitted on (neither set)
@@ -58,7 +62,6 @@ DEFAULT_SEED = 4242            # the default run's seed; scored since (in SEEN_S
 SEEN_SEEDS = (2027, 4242, 6101, 6102, 7301, 7302, 7303, 7304, 7305, 7306, 7307, 7308, 7309, 7310, 7311, 7312, 7313,
               7314, 7315, 7316, 7317, 7318, 7319, 7320, 7321, 7322, 7323, 7324, 7325, 7326, 7327,
               7328, 7329, 8802, 8803)
-TARGET_FALSE_ALARMS = 0.05
 # the oracle: the project's model given the hidden effect at its true value. Only where the plant's effect and
 # the model's candidate share one parameter with the same meaning: every effect of this set but the profiles
 # (a profile along the track has no single value; the multi-body plant's gear steps and tyre relaxation,
@@ -448,6 +451,10 @@ def cost_minima(case: dict, effect: str, values, **kw) -> dict:
 
 # ----------------------------------------------------------------------------------------------- scoring
 
+MAX_DURATION = 900.0           # s: the longest log a case may ask for (the plant holds the whole run in memory)
+DELAY_LAG = ("steer_delay", "steer_lag")
+
+
 def _median(xs):
     xs = [x for x in xs if x is not None and math.isfinite(x)]
     return float(np.median(xs)) if xs else None
@@ -455,112 +462,6 @@ def _median(xs):
 
 def _rate(rows, key):
     return float(np.mean([bool(r[key]) for r in rows])) if rows else None
-
-
-def with_gate(results: list[dict], threshold: float | None, margin: float = 0.0) -> list[dict]:
-    """The results as the diagnosis would have given them with the gate at `threshold` (None: off) and the
-    evidence margin `margin`: both only veto, the gate a whole selection, the margin the first effect (whose
-    dBIC is the top candidate's), so top-1 and false alarms follow exactly from the recorded cases of a run
-    with neither (a later effect the margin would also refuse does not change either score)."""
-    out = []
-    for r in results:
-        if r["status"] != "ok":
-            out.append(r)
-            continue
-        sel = r["selected_without_gate"]
-        weak = bool(sel) and not r["delta_bic_top"] < -margin
-        gated = threshold is not None and bool(sel) and r["gate_ratio"] <= threshold
-        top1 = NONE if gated or weak or not sel else C.FAMILY.get(sel[0], sel[0])
-        vetoed = gated or weak
-        out.append(r | {"selected": [] if vetoed else sel, "top1": top1, "correct": top1 == r["effect"],
-                        "gate_threshold": threshold, "min_evidence": margin}
-                   # a vetoed selection leaves the refitted nominal: nothing of the oracle's gap closed
-                   | ({"gap_vs_oracle": 0.0, "e_diagnosed": r["e_refit"]}
-                      if vetoed and r.get("gap_vs_oracle") is not None else {}))
-    return out
-
-
-def calibrate_margin(results: list[dict], target: float = TARGET_FALSE_ALARMS) -> float:
-    """The smallest evidence margin that leaves at most `target` of the effect-free cases with a selection."""
-    none = [r for r in results if r["status"] == "ok" and r["effect"] == NONE]
-    alarms = sorted(-r["delta_bic_top"] for r in none if r["selected_without_gate"])
-    allowed = int(math.floor(target * len(none)))
-    return 0.0 if len(alarms) <= allowed else float(alarms[len(alarms) - allowed - 1])
-
-
-def _runs(paths) -> list[dict]:
-    """The results.json documents of one run's path or of several separated by commas."""
-    import json
-
-    if isinstance(paths, (str, Path)):
-        paths = [p for p in str(paths).split(",") if p]
-    return [json.loads(Path(p).read_text()) for p in paths]
-
-
-MAX_DURATION = 900.0           # s: the longest log a case may ask for (the plant holds the whole run in memory)
-
-
-def require_duration(paths, duration: float, what: str) -> None:
-    """Refuse calibration runs recorded on logs of another length than `duration`: a dBIC sums over the held-out
-    rows and a fit's spread shrinks with the rows, so a margin, threshold or decision level measured on 60 s logs
-    is not one for 180 s logs (a run without a recorded duration made DURATION logs)."""
-    for p, doc in zip([q for q in str(paths).split(",") if q], _runs(paths)):
-        got = float(doc["settings"].get("duration") or DURATION)
-        if abs(got - duration) > 1e-9:
-            raise DdynError(f"{what} {p}: its logs are {got:g} s, this run's {duration:g} s; calibrate on logs of "
-                            "the same length (--duration)")
-
-
-def margin_of(paths, target: float = TARGET_FALSE_ALARMS) -> float:
-    """The evidence margin from several calibration runs pooled: the smallest margin leaving at most `target` of
-    all their effect-free logs with a selection (calibrate_margin over the union). A run recorded with margin m
-    shows no alarm weaker than m, so the pooled margin is never below the largest recorded one (record
-    calibration runs with --min-evidence 0)."""
-    docs = _runs(paths)
-    results = [r for d in docs for r in d["results"]]
-    recorded = max(float(d["settings"].get("min_evidence") or 0.0) for d in docs)
-    return max(recorded, calibrate_margin(results, target))
-
-
-def calibrate(results: list[dict], target: float = TARGET_FALSE_ALARMS) -> float | None:
-    """The smallest gate ratio that leaves at most `target` of the effect-free cases with a selection."""
-    none = [r for r in results if r["status"] == "ok" and r["effect"] == NONE]
-    if not none:
-        return None
-    alarms = sorted(r["gate_ratio"] for r in none if r["selected_without_gate"])
-    allowed = int(math.floor(target * len(none)))
-    if len(alarms) <= allowed:
-        return None     # no gate needed
-    return float(alarms[len(alarms) - allowed - 1])
-
-
-RELIABLE_RATE = 0.95
-DELAY_LAG = ("steer_delay", "steer_lag")
-
-
-def reliable_threshold(rows: list[dict], rate: float = RELIABLE_RATE, min_cases: int = 2,
-                       min_levels: int = 2) -> float | None:
-    """The measured detection threshold: the smallest drawn |magnitude| m such that the cases with |magnitude|
-    >= m (at least min_cases of them, at at least min_levels distinct magnitudes) are identified (top-1) at >= rate;
-    None when no such tail exists (never reliably identified in the drawn range). The tail is judged as the target
-    scores it, as a whole: a rule that stopped at the first tail below the rate on the way down (this function
-    until 2026-11-24) let one miss in a short tail near the top set the threshold whatever the many cases below it
-    showed, so the more calibration seeds were pooled, the likelier such a miss and the higher the threshold
-    (docs/gap_independent.md). min_levels: pooled sweeps share their magnitude grid, so a tail of one level (its
-    top, where every seed's case sits) has as many cases as seeds; a threshold measured there only says the
-    effect is found at the largest magnitude drawn (downforce's 4e-4, found 4/4 on the sweeps and 3/10 above it
-    on blind seeds: until 2026-11-25 one level was enough)."""
-    rows = sorted(rows, key=lambda r: abs(r["magnitude"]))
-    mags = np.array([abs(r["magnitude"]) for r in rows])
-    found = np.array([bool(r["correct"]) for r in rows], dtype=float)
-    for i in range(0, len(rows) - min_cases + 1):
-        if i > 0 and mags[i - 1] == mags[i]:
-            continue    # equal magnitudes (pooled sweeps share their grid) enter the tail together
-        if len(np.unique(mags[i:])) < min_levels:
-            break
-        if np.mean(found[i:]) >= rate:
-            return float(mags[i])
-    return None
 
 
 def oracle_summary(rows: list[dict]) -> dict:
@@ -721,95 +622,6 @@ def _oracle_line(s: dict) -> str:
             f"{_f(s.get('median_gap_vs_oracle_above_thresholds'), True)} above the thresholds, "
             f"{_f(s['median_gap_vs_oracle_found'], True)} where the effect was identified; the hidden effect's own "
             f"fit (its value estimated) {_f(s['median_own_fit_vs_oracle'], True)}.")
-
-
-def thresholds_of(paths, margin: float | None = None) -> dict:
-    """{effect: measured threshold} of one calibration run's results.json, or of several pooled: their cases of
-    each effect together (reliable_threshold over the union). `paths`: a path, or several separated by commas.
-    margin: the evidence margin the thresholds are for (each run's cases rescored with it, with_gate; a margin
-    only vetoes, so it must be at least the runs' own); None: as recorded."""
-    rows: dict = {}
-    for doc in _runs(paths):
-        results = doc["results"]
-        if margin is not None:
-            recorded = float(doc["settings"].get("min_evidence") or 0.0)
-            if margin < recorded:
-                raise DdynError(f"thresholds for margin {margin:g} from a run recorded with margin {recorded:g}: "
-                                "a rescore can only raise the margin")
-            results = with_gate(results, doc["settings"].get("gate"), margin)
-        for r in results:
-            if r["status"] == "ok" and r["effect"] != NONE:
-                rows.setdefault(r["effect"], []).append(r)
-    return {e: reliable_threshold(rs) for e, rs in rows.items()}
-
-
-# The decision limit's quantile: a case exactly at its threshold is estimated above the limit at the rate the
-# threshold itself is measured at (one-sided normal quantile of RELIABLE_RATE, 1.645)
-DECISION_Z = NormalDist().inv_cdf(RELIABLE_RATE)
-# The calibration cases that measure the estimate's spread at a threshold: those within this factor of it.
-DECISION_BAND = 2.0
-
-
-def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z,
-                       band: float = DECISION_BAND) -> dict:
-    """{effect: decision limit} for the effects with a measured threshold (thresholds_of), the others None.
-
-    The threshold is a true magnitude (above it the calibration named the effect in >= 95 % of its logs); a claim
-    can only be judged by the estimate. Using the threshold as the limit on the estimate (until 2026-11-25)
-    withholds about half of the right finds at the threshold itself, whose estimates scatter around it (blind
-    7317-7319: 4 of 5 misses above the thresholds). Currie's (1968) split of a detection limit: the decision
-    level L_C is the estimate's (1 - 0.95) quantile for an effect exactly at the detection limit L_D, here the
-    threshold: L_C = L_D + bias - z sd, bias and sd of (|estimate| - |magnitude|) over the calibration cases of
-    that effect within a factor `band` of the threshold (where the estimate's error is measured near the
-    decision; its spread is roughly constant in absolute terms there). Never negative."""
-    thresholds = thresholds_of(paths, margin)
-    rows: dict = {}
-    for doc in _runs(paths):     # the hidden effect's estimate is recorded whatever was selected: no rescoring
-        for r in doc["results"]:
-            if r["status"] == "ok" and r["effect"] != NONE and r.get("estimate") is not None:
-                rows.setdefault(r["effect"], []).append(r)
-    limits = {}
-    for eff, t in thresholds.items():
-        if t is None:
-            limits[eff] = None
-            continue
-        near = [abs(r["estimate"]) - abs(r["magnitude"]) for r in rows.get(eff, [])
-                if t / band <= abs(r["magnitude"]) <= t * band]
-        # too few cases to measure a spread: the threshold itself
-        limits[eff] = t if len(near) < 2 else max(0.0, t + float(np.mean(near)) - z * float(np.std(near, ddof=1)))
-    return limits
-
-
-# What a calibration run records of the diagnosis it scored and `ddyn diagnose --calibration` takes over: the margin
-# and the limits measured under these settings hold under them only
-CALIBRATED_SETTINGS = ("hold", "fit", "mass_inertia", "steer_servo", "nominal_effects", "evidence", "gate",
-                       "pitch_channel", "roll_channel", "duration")
-
-
-def calibrated_diagnosis(paths) -> dict:
-    """The diagnosis that calibration runs (`study gap --case-set sweep ... --min-evidence 0`, comma-separated)
-    calibrated, for `ddyn diagnose --calibration`: their diagnosis settings (CALIBRATED_SETTINGS, which pooled runs
-    must share), their pooled evidence margin (margin_of), Currie's decision levels at that margin
-    (decision_limits_of) with every effect they did not calibrate never claimed ("*": None), the log length they
-    were measured on and the candidates read from channels."""
-    names = [p for p in str(paths).split(",") if p]
-    docs = _runs(paths)
-    first = docs[0]["settings"]
-    for name, doc in zip(names[1:], docs[1:]):
-        differ = [k for k in CALIBRATED_SETTINGS if doc["settings"].get(k) != first.get(k)]
-        if differ:
-            raise DdynError(f"--calibration: {name} differs from {names[0]} in {', '.join(differ)}; runs pooled "
-                            "as one calibration must share their diagnosis settings")
-    margin = margin_of(paths)
-    return {"runs": names, "hold": bool(first.get("hold")), "fit": first.get("fit"),
-            "mass_inertia": bool(first.get("mass_inertia")), "steer_servo": float(first.get("steer_servo") or 0.0),
-            "nominal_effects": dict(first.get("nominal_effects") or {}),
-            "evidence": first.get("evidence") or D.DEFAULT_EVIDENCE, "gate": first.get("gate"),
-            "min_evidence": margin, "detection_limits": decision_limits_of(paths, margin) | {D.ANY_OTHER: None},
-            "duration": float(first.get("duration") or DURATION),
-            "channel_candidates": [c for c, k in (("grade_from_pitch", "pitch_channel"), ("bank_from_roll",
-                                                                                          "roll_channel"))
-                                   if first.get(k)]}
 
 
 def _limits_text(limits: dict) -> str:
