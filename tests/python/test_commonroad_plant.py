@@ -298,6 +298,34 @@ def test_study_gap_duration_sets_the_log_length_and_calibrations_must_match_it(t
         G.run(1, 3, duration=0.0)
 
 
+def test_a_lost_car_is_retried_on_other_seeds_then_slower(monkeypatch):
+    """make_case_log: `tries` seeds at the drawn speed, then as many more each RETRY_SLOWER slower (not below
+    SLOWEST_RETRY); the log that came through carries the speed it was driven at, and a case lost at every speed
+    comes back as not simulated with the last error."""
+    tried, fastest = [], [19.0]
+
+    def make_log(track, effects, seed, settings):
+        tried.append((seed, settings.target_speed))
+        if settings.target_speed > fastest[0]:
+            raise DdynError(f"the driver lost the CommonRoad car (seed {seed})")
+        return "log"
+
+    monkeypatch.setattr(CP, "make_log", make_log)
+    case = G.plan(1, 5)[0] | {"target_speed": 22.5}
+    log, seed, err = G.make_case_log(case)
+    assert log == "log" and err is None
+    assert [v for _, v in tried] == [22.5, 22.5, 22.5, 22.5 - G.RETRY_SLOWER, 22.5 - 2 * G.RETRY_SLOWER]
+    assert len({s for s, _ in tried}) == len(tried) and seed == tried[-1][0]
+    tried.clear()
+    log, _, err = G.make_case_log(case | {"target_speed": 40.0})
+    assert log is None and "lost the CommonRoad car" in err
+    assert [v for _, v in tried][3:] == [38.0, 36.0, 34.0]
+    tried.clear()
+    fastest[0] = 10.0
+    G.make_case_log(case | {"target_speed": 15.0}, tries=2)
+    assert [v for _, v in tried] == [15.0, 15.0, G.SLOWEST_RETRY, G.SLOWEST_RETRY]
+
+
 def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
     """--effects keeps only those cases, with the whole plan's case numbers and seeds; --evidence reaches every
     case (the multi-step dBIC decides, the one-step one is recorded beside it); a bad effect or spec fails."""
