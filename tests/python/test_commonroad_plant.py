@@ -260,6 +260,21 @@ def test_study_gap_commonroad_cli(tmp_path, monkeypatch, capsys):
     assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--gate", str(huge), "--out", str(out)]) == 0
     doc = json.loads((out / "results.json").read_text())
     assert all(r["top1"] == "none" for r in doc["results"])
+    # --claim-precision: a calibration that names steering delay on throttle-delay logs too gives it no threshold
+    def row(e, mag, top1):
+        return {"status": "ok", "effect": e, "magnitude": mag, "estimate": mag, "top1": top1, "correct": top1 == e,
+                "selected_without_gate": [top1], "gate_ratio": 1.2, "delta_bic_top": -50.0}
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps({"settings": {"min_evidence": 0.0, "duration": 24.0},
+                               "results": [row("steer_delay", m, "steer_delay") for m in (0.02, 0.05, 0.1)]
+                               + [row("throttle_delay", m, "steer_delay") for m in (0.1, 0.2)]}))
+    for flags, want in (([], 0.02), (["--claim-precision"], None)):
+        assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--thresholds-from", str(cal), *flags,
+                     "--out", str(out)]) == 0
+        doc = json.loads((out / "results.json").read_text())
+        assert doc["settings"]["thresholds"]["steer_delay"] == want
+    assert doc["settings"]["claim_precision"] == {"steer_delay": [3, 5]}
+    assert "right/claims: steer_delay 3/5" in (out / "results.md").read_text()
     # detection limits veto by each selection's estimate, which the recorded cases do not hold: a run, no rescore
     assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--detection-limits-from",
                  str(out / "results.json"), "--out", str(out)]) == 2
@@ -543,6 +558,31 @@ def test_decision_limits_sit_below_the_thresholds_by_the_estimate_spread_there(t
     assert G.decision_limits_of(str(p)) == {"throttle_delay": pytest.approx(0.1)}
 
 
+def test_claim_precision_withdraws_the_threshold_of_an_effect_named_where_it_is_not(tmp_path):
+    """--claim-precision: an effect found at every magnitude but also named first on other effects' logs (downforce
+    on banked ones) gets no threshold and no decision level when under 95 % of its first selections were right; an
+    effect whose claims hold keeps its own; a margin that vetoes the wrong claims restores it."""
+    import json
+
+    def row(e, mag, top1, dbic=-50.0):
+        return {"status": "ok", "effect": e, "magnitude": mag, "estimate": mag, "top1": top1,
+                "correct": top1 == e, "selected_without_gate": [] if top1 == G.NONE else [top1],
+                "gate_ratio": 1.2, "delta_bic_top": dbic}
+    rs = [row("downforce", m, "downforce") for m in (5e-5, 1e-4, 2e-4, 4e-4)]
+    rs += [row("steer_lag", m, "steer_lag") for m in (0.03, 0.06, 0.1, 0.2)]
+    rs += [row("bank_angle", b, "downforce", dbic=-12.0) for b in (0.05, 0.1)] + [row(G.NONE, 0.0, G.NONE)]
+    p = tmp_path / "cal.json"
+    p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": rs}))
+    assert G.claim_precisions(str(p)) == {"downforce": [4, 6], "steer_lag": [4, 4]}
+    assert G.thresholds_of(str(p))["downforce"] == pytest.approx(5e-5)
+    got = G.thresholds_of(str(p), precision=True)
+    assert got["downforce"] is None and got["steer_lag"] == pytest.approx(0.03) and got["bank_angle"] is None
+    assert G.decision_limits_of(str(p), precision=True)["downforce"] is None
+    # at a margin of 20 the banked logs' downforce (dBIC -12) is not selected: every claim of it is right again
+    assert G.claim_precisions(str(p), 20.0)["downforce"] == [4, 4]
+    assert G.thresholds_of(str(p), 20.0, precision=True)["downforce"] == pytest.approx(5e-5)
+
+
 def test_diagnose_calibration_takes_the_runs_settings_margin_and_decision_levels(tmp_path, capsys):
     """diagnose --calibration RUNS: the runs' diagnosis settings (hold, fit, servo, nominal effects, gate), their
     pooled margin and decision levels, every uncalibrated effect never claimed, recorded in diagnosis.json; a log
@@ -570,9 +610,10 @@ def test_diagnose_calibration_takes_the_runs_settings_margin_and_decision_levels
     assert main(base + [str(cal), "--out", str(tmp_path / "d")]) == 0
     d = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     want = G.calibrated_diagnosis(str(cal))
-    assert want["min_evidence"] == pytest.approx(7.5) and want["detection_limits"]["*"] is None
+    assert want["min_evidence"] == pytest.approx(7.5) and want["claim_precision"] == {"steer_delay": [3, 3]}
     assert d["calibration"]["min_evidence"] == pytest.approx(7.5) and d["gate"]["min_evidence"] == pytest.approx(7.5)
-    assert d["calibration"]["detection_limits"] == pytest.approx(want["detection_limits"])
+    # every effect the calibration did not sweep: reported, never claimed
+    assert d["calibration"]["detection_limits"] == pytest.approx(want["detection_limits"] | {"*": None})
     assert d["gate"]["threshold"] is None and d["method"]["fit_mode"] == "mixed:steer_delay,steer_lag"
     assert d["nominal"]["steer_servo_tau"] == 0.01 and d["nominal"]["mass_offset_scales_iz"] is True
     assert d["nominal"]["command_hold_delay"] > 0

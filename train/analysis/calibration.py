@@ -127,12 +127,9 @@ def reliable_threshold(rows: list[dict], rate: float = RELIABLE_RATE, min_cases:
 
 
 
-def thresholds_of(paths, margin: float | None = None) -> dict:
-    """{effect: measured threshold} of one calibration run's results.json, or of several pooled: their cases of
-    each effect together (reliable_threshold over the union). `paths`: a path, or several separated by commas.
-    margin: the evidence margin the thresholds are for (each run's cases rescored with it, with_gate; a margin
-    only vetoes, so it must be at least the runs' own); None: as recorded."""
-    rows: dict = {}
+def _rescored(paths, margin: float | None) -> list[dict]:
+    """Every case of the runs, as the diagnosis gives it at `margin` (with_gate; None: as recorded)."""
+    out = []
     for doc in runs(paths):
         results = doc["results"]
         if margin is not None:
@@ -141,10 +138,45 @@ def thresholds_of(paths, margin: float | None = None) -> dict:
                 raise DdynError(f"thresholds for margin {margin:g} from a run recorded with margin {recorded:g}: "
                                 "a rescore can only raise the margin")
             results = with_gate(results, doc["settings"].get("gate"), margin)
-        for r in results:
-            if r["status"] == "ok" and r["effect"] != NONE:
-                rows.setdefault(r["effect"], []).append(r)
-    return {e: reliable_threshold(rs) for e, rs in rows.items()}
+        out += results
+    return out
+
+
+def claim_precisions(paths, margin: float | None = None) -> dict:
+    """{effect: [right, claims]}: of the calibration logs whose first selection (top-1) at `margin` is the effect,
+    how many had it hidden. A threshold says how reliably an effect is found where it is; this says how far a
+    claim of it can be trusted where it is not (on 300 s Putnam logs downforce was named first on 5 of 22 banked,
+    graded or heavier/lighter logs of one sweep: the tyres' extra grip in the turns reads as either)."""
+    counts: dict = {}
+    for r in _rescored(paths, margin):
+        if r["status"] == "ok" and r["top1"] != NONE:
+            c = counts.setdefault(r["top1"], [0, 0])
+            c[0] += r["effect"] == r["top1"]
+            c[1] += 1
+    return counts
+
+
+def thresholds_of(paths, margin: float | None = None, precision: bool = False) -> dict:
+    """{effect: measured threshold} of one calibration run's results.json, or of several pooled: their cases of
+    each effect together (reliable_threshold over the union). `paths`: a path, or several separated by commas.
+    margin: the evidence margin the thresholds are for (each run's cases rescored with it, with_gate; a margin
+    only vetoes, so it must be at least the runs' own); None: as recorded. precision: an effect also needs at
+    least RELIABLE_RATE of its first selections on the calibration to be right (claim_precisions), or it has no
+    threshold: found reliably where it is and seldom named where it is not, the two halves of "reliably
+    identified"."""
+    results = _rescored(paths, margin)
+    rows: dict = {}
+    for r in results:
+        if r["status"] == "ok" and r["effect"] != NONE:
+            rows.setdefault(r["effect"], []).append(r)
+    thresholds = {e: reliable_threshold(rs) for e, rs in rows.items()}
+    if precision:
+        counts = claim_precisions(paths, margin)
+        for e, t in thresholds.items():
+            right, claims = counts.get(e, (0, 0))
+            if t is not None and claims and right / claims < RELIABLE_RATE:
+                thresholds[e] = None
+    return thresholds
 
 
 # The decision limit's quantile: a case exactly at its threshold is estimated above the limit at the rate the
@@ -155,7 +187,7 @@ DECISION_BAND = 2.0
 
 
 def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z,
-                       band: float = DECISION_BAND) -> dict:
+                       band: float = DECISION_BAND, precision: bool = False) -> dict:
     """{effect: decision limit} for the effects with a measured threshold (thresholds_of), the others None.
 
     The threshold is a true magnitude (above it the calibration named the effect in >= 95 % of its logs); a claim
@@ -165,8 +197,9 @@ def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z
     level L_C is the estimate's (1 - 0.95) quantile for an effect exactly at the detection limit L_D, here the
     threshold: L_C = L_D + bias - z sd, bias and sd of (|estimate| - |magnitude|) over the calibration cases of
     that effect within a factor `band` of the threshold (where the estimate's error is measured near the
-    decision; its spread is roughly constant in absolute terms there). Never negative."""
-    thresholds = thresholds_of(paths, margin)
+    decision; its spread is roughly constant in absolute terms there). Never negative. precision: thresholds_of's
+    (an effect whose claims the calibration shows unreliable gets none)."""
+    thresholds = thresholds_of(paths, margin, precision)
     rows: dict = {}
     for doc in runs(paths):     # the hidden effect's estimate is recorded whatever was selected: no rescoring
         for r in doc["results"]:
@@ -190,13 +223,14 @@ CALIBRATED_SETTINGS = ("hold", "fit", "mass_inertia", "steer_servo", "nominal_ef
                        "pitch_channel", "roll_channel", "duration")
 
 
-def calibrated_diagnosis(paths) -> dict:
+def calibrated_diagnosis(paths, precision: bool = True) -> dict:
     """The diagnosis that calibration runs (`study gap --case-set sweep ... --min-evidence 0`, comma-separated)
     calibrated, for `ddyn diagnose --calibration`: their diagnosis settings (CALIBRATED_SETTINGS, which pooled runs
     must share), their pooled evidence margin (margin_of), Currie's decision levels at that margin
     (decision_limits_of; diagnose.calibrated_settings adds that every effect they did not calibrate is never
     claimed), the log length they were measured on and the candidates read from channels. evidence: as recorded
-    (None: the diagnosis's default)."""
+    (None: the diagnosis's default). precision: only effects whose calibration claims were right at RELIABLE_RATE
+    get a level (thresholds_of)."""
     names = [p for p in str(paths).split(",") if p]
     docs = runs(paths)
     first = docs[0]["settings"]
@@ -210,7 +244,8 @@ def calibrated_diagnosis(paths) -> dict:
             "mass_inertia": bool(first.get("mass_inertia")), "steer_servo": float(first.get("steer_servo") or 0.0),
             "nominal_effects": dict(first.get("nominal_effects") or {}),
             "evidence": first.get("evidence"), "gate": first.get("gate"),
-            "min_evidence": margin, "detection_limits": decision_limits_of(paths, margin),
+            "min_evidence": margin, "detection_limits": decision_limits_of(paths, margin, precision=precision),
+            "claim_precision": claim_precisions(paths, margin) if precision else None,
             "duration": float(first.get("duration") or DURATION),
             "channel_candidates": [c for c, k in (("grade_from_pitch", "pitch_channel"), ("bank_from_roll",
                                                                                           "roll_channel"))

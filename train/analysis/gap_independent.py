@@ -34,8 +34,8 @@ from ddyn.analysis import diagnose as D
 # the calibration's read-back lives in its own module (diagnose --calibration uses it); the names stay here too
 from ddyn.analysis.calibration import (CALIBRATED_SETTINGS, DECISION_BAND, DECISION_Z, NONE, RELIABLE_RATE,  # noqa: F401
                                        TARGET_FALSE_ALARMS, calibrate, calibrate_margin, calibrated_diagnosis,
-                                       decision_limits_of, margin_of, reliable_threshold, require_duration, runs,
-                                       thresholds_of, with_gate)
+                                       claim_precisions, decision_limits_of, margin_of, reliable_threshold,
+                                       require_duration, runs, thresholds_of, with_gate)
 from ddyn.analysis.calibration import DURATION as RECORDED_DURATION
 from ddyn.analysis.parallel import run_cases
 from ddyn.data import commonroad_mb_plant as MB
@@ -636,6 +636,10 @@ def _oracle_line(s: dict) -> str:
             f"fit (its value estimated) {_f(s['median_own_fit_vs_oracle'], True)}.")
 
 
+def _precision_text(counts: dict) -> str:
+    return ", ".join(f"{e} {right}/{claims}" for e, (right, claims) in sorted(counts.items()))
+
+
 def _limits_text(limits: dict) -> str:
     return ", ".join(f"{'every other effect' if e == D.ANY_OTHER else e} "
                      f"{'none (never claimed)' if v is None else f'{v:.3g}'}" for e, v in limits.items())
@@ -668,6 +672,9 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                 f"{_limits_text(settings['detection_limits'])} (an effect found below its limit is not claimed"
                 f"{'; the limits are the decision levels below the thresholds, --decision-limits' if settings.get('decision_limits') else ''})"
                 if settings.get("detection_limits") else "")
+             + (f"; thresholds only for effects whose calibration claims were right in >= {RELIABLE_RATE:.0%} "
+                f"(--claim-precision; right/claims: {_precision_text(settings['claim_precision'])})"
+                if settings.get("claim_precision") else "")
              + ".", "",
              "| metric | as diagnosed, gate off | with the gate and margin above |", "|---|---|---|",
              f"| top-1 identification (effect cases) | {_f(s['top1_without_gate'], True)} | {_f(s['top1'], True)} |",
