@@ -559,9 +559,9 @@ def test_decision_limits_sit_below_the_thresholds_by_the_estimate_spread_there(t
 
 
 def test_claim_precision_withdraws_the_threshold_of_an_effect_named_where_it_is_not(tmp_path):
-    """--claim-precision: an effect found at every magnitude but also named first on other effects' logs (downforce
-    on banked ones) gets no threshold and no decision level when under 95 % of its first selections were right; an
-    effect whose claims hold keeps its own; a margin that vetoes the wrong claims restores it."""
+    """--claim-precision: an effect found at every magnitude but also claimed first on other effects' logs (downforce
+    on banked ones) gets no threshold and no decision level when under 95 % of those claims were right; an effect
+    whose claims hold keeps its own; a margin, a limit or the tie veto that withholds the wrong claims restores it."""
     import json
 
     def row(e, mag, top1, dbic=-50.0):
@@ -581,6 +581,20 @@ def test_claim_precision_withdraws_the_threshold_of_an_effect_named_where_it_is_
     # at a margin of 20 the banked logs' downforce (dBIC -12) is not selected: every claim of it is right again
     assert G.claim_precisions(str(p), 20.0)["downforce"] == [4, 4]
     assert G.thresholds_of(str(p), 20.0, precision=True)["downforce"] == pytest.approx(5e-5)
+    # only the claims the diagnosis would make count: a lag named steering delay with an estimate under the
+    # delay's limit, or with the lag within AMBIGUITY_DBIC behind (the tie veto), is not one; a clear one is
+    delay = [row("steer_delay", m, "steer_delay") for m in (0.02, 0.05, 0.1)]
+    vetoed = [row("steer_lag", 0.03, "steer_delay") | {"estimate_top": 0.005, "runner_up_gap": 10.0},
+              row("steer_lag", 0.04, "steer_delay") | {"estimate_top": 0.03, "runner_up_gap": 1.0}]
+    p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": delay + vetoed}))
+    assert G.claim_precisions(str(p)) == {"steer_delay": [3, 5]}
+    assert G.precision_record(str(p)) == {"steer_delay": [3, 3]}
+    assert G.thresholds_of(str(p), precision=True)["steer_delay"] == pytest.approx(0.02)
+    clear = row("steer_lag", 0.05, "steer_delay") | {"estimate_top": 0.03, "runner_up_gap": 10.0}
+    p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": delay + vetoed + [clear]}))
+    assert G.precision_record(str(p)) == {"steer_delay": [3, 4]}
+    assert G.thresholds_of(str(p), precision=True)["steer_delay"] is None
+    assert G.decision_limits_of(str(p), precision=True)["steer_delay"] is None
 
 
 def test_diagnose_calibration_takes_the_runs_settings_margin_and_decision_levels(tmp_path, capsys):

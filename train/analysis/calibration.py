@@ -142,40 +142,73 @@ def _rescored(paths, margin: float | None) -> list[dict]:
     return out
 
 
-def claim_precisions(paths, margin: float | None = None) -> dict:
-    """{effect: [right, claims]}: of the calibration logs whose first selection (top-1) at `margin` is the effect,
-    how many had it hidden. A threshold says how reliably an effect is found where it is; this says how far a
-    claim of it can be trusted where it is not (on 300 s Putnam logs downforce was named first on 5 of 22 banked,
-    graded or heavier/lighter logs of one sweep: the tyres' extra grip in the turns reads as either)."""
+# The first effect added and the runner-up of its round with evidence closer than this (dBIC) are not told apart by
+# the data: "not worth more than a bare mention" on Kass & Raftery's scale of BIC differences, a textbook constant,
+# not tuned here. With detection limits such a first effect is reported, not claimed (diagnose's tie veto, which
+# reads it from here; claim_precisions applies it to recorded runs).
+AMBIGUITY_DBIC = 2.0
+
+
+def claim_precisions(paths, margin: float | None = None, limits: dict | None = None) -> dict:
+    """{effect: [right, claims]}: of the calibration logs where the diagnosis would claim the effect first, how
+    many had it hidden. A claim: the first selection (top-1) at `margin`; with `limits` ({effect: the smallest
+    |estimate| claimed}), also the top candidate's estimate at or above its effect's limit and its runner-up of
+    another family more than AMBIGUITY_DBIC behind (diagnose's vetoes under limits; an effect without a limit is
+    never claimed). A threshold says how reliably an effect is found where it is; this says how far a claim of it
+    can be trusted where it is not (on 300 s Putnam logs downforce was named first on 5 of 22 banked, graded or
+    heavier/lighter logs of one sweep, with estimates that clear any level its own logs give)."""
     counts: dict = {}
     for r in _rescored(paths, margin):
-        if r["status"] == "ok" and r["top1"] != NONE:
-            c = counts.setdefault(r["top1"], [0, 0])
-            c[0] += r["effect"] == r["top1"]
-            c[1] += 1
+        if r["status"] != "ok" or r["top1"] == NONE:
+            continue
+        e = r["top1"]
+        if limits is not None:
+            if limits.get(e) is None:
+                continue
+            if r.get("estimate_top") is not None and abs(r["estimate_top"]) < limits[e]:
+                continue
+            if r.get("runner_up_gap") is not None and r["runner_up_gap"] < AMBIGUITY_DBIC:
+                continue
+        c = counts.setdefault(e, [0, 0])
+        c[0] += r["effect"] == e
+        c[1] += 1
     return counts
 
 
-def thresholds_of(paths, margin: float | None = None, precision: bool = False) -> dict:
+def precision_record(paths, margin: float | None = None, decision: bool = False) -> dict:
+    """claim_precisions under the limits a run with --claim-precision checks them with: the decision levels with
+    `decision`, else the thresholds (what a run records beside its thresholds)."""
+    thresholds = _measured_thresholds(paths, margin)
+    return claim_precisions(paths, margin, _decision_levels(paths, thresholds) if decision else thresholds)
+
+
+def _measured_thresholds(paths, margin: float | None) -> dict:
+    rows: dict = {}
+    for r in _rescored(paths, margin):
+        if r["status"] == "ok" and r["effect"] != NONE:
+            rows.setdefault(r["effect"], []).append(r)
+    return {e: reliable_threshold(rs) for e, rs in rows.items()}
+
+
+def _imprecise(paths, margin: float | None, limits: dict) -> set:
+    """The effects whose claims under `limits` were right in under RELIABLE_RATE of the calibration's logs."""
+    counts = claim_precisions(paths, margin, limits)
+    return {e for e, (right, claims) in counts.items() if claims and right / claims < RELIABLE_RATE}
+
+
+def thresholds_of(paths, margin: float | None = None, precision: bool = False, decision: bool = False) -> dict:
     """{effect: measured threshold} of one calibration run's results.json, or of several pooled: their cases of
     each effect together (reliable_threshold over the union). `paths`: a path, or several separated by commas.
     margin: the evidence margin the thresholds are for (each run's cases rescored with it, with_gate; a margin
     only vetoes, so it must be at least the runs' own); None: as recorded. precision: an effect also needs at
-    least RELIABLE_RATE of its first selections on the calibration to be right (claim_precisions), or it has no
-    threshold: found reliably where it is and seldom named where it is not, the two halves of "reliably
-    identified"."""
-    results = _rescored(paths, margin)
-    rows: dict = {}
-    for r in results:
-        if r["status"] == "ok" and r["effect"] != NONE:
-            rows.setdefault(r["effect"], []).append(r)
-    thresholds = {e: reliable_threshold(rs) for e, rs in rows.items()}
+    least RELIABLE_RATE of the claims the diagnosis would make of it on the calibration to be right
+    (claim_precisions under the limits in force: the decision levels with `decision`, else the thresholds), or
+    it has no threshold: found reliably where it is and seldom claimed where it is not, the two halves of
+    "reliably identified"."""
+    thresholds = _measured_thresholds(paths, margin)
     if precision:
-        counts = claim_precisions(paths, margin)
-        for e, t in thresholds.items():
-            right, claims = counts.get(e, (0, 0))
-            if t is not None and claims and right / claims < RELIABLE_RATE:
-                thresholds[e] = None
+        limits = _decision_levels(paths, thresholds) if decision else thresholds
+        thresholds = {e: None if e in _imprecise(paths, margin, limits) else t for e, t in thresholds.items()}
     return thresholds
 
 
@@ -186,20 +219,7 @@ DECISION_Z = NormalDist().inv_cdf(RELIABLE_RATE)
 DECISION_BAND = 2.0
 
 
-def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z,
-                       band: float = DECISION_BAND, precision: bool = False) -> dict:
-    """{effect: decision limit} for the effects with a measured threshold (thresholds_of), the others None.
-
-    The threshold is a true magnitude (above it the calibration named the effect in >= 95 % of its logs); a claim
-    can only be judged by the estimate. Using the threshold as the limit on the estimate (until 2026-11-25)
-    withholds about half of the right finds at the threshold itself, whose estimates scatter around it (blind
-    7317-7319: 4 of 5 misses above the thresholds). Currie's (1968) split of a detection limit: the decision
-    level L_C is the estimate's (1 - 0.95) quantile for an effect exactly at the detection limit L_D, here the
-    threshold: L_C = L_D + bias - z sd, bias and sd of (|estimate| - |magnitude|) over the calibration cases of
-    that effect within a factor `band` of the threshold (where the estimate's error is measured near the
-    decision; its spread is roughly constant in absolute terms there). Never negative. precision: thresholds_of's
-    (an effect whose claims the calibration shows unreliable gets none)."""
-    thresholds = thresholds_of(paths, margin, precision)
+def _decision_levels(paths, thresholds: dict, z: float = DECISION_Z, band: float = DECISION_BAND) -> dict:
     rows: dict = {}
     for doc in runs(paths):     # the hidden effect's estimate is recorded whatever was selected: no rescoring
         for r in doc["results"]:
@@ -214,6 +234,25 @@ def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z
                 if t / band <= abs(r["magnitude"]) <= t * band]
         # too few cases to measure a spread: the threshold itself
         limits[eff] = t if len(near) < 2 else max(0.0, t + float(np.mean(near)) - z * float(np.std(near, ddof=1)))
+    return limits
+
+
+def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z,
+                       band: float = DECISION_BAND, precision: bool = False) -> dict:
+    """{effect: decision limit} for the effects with a measured threshold (thresholds_of), the others None.
+
+    The threshold is a true magnitude (above it the calibration named the effect in >= 95 % of its logs); a claim
+    can only be judged by the estimate. Using the threshold as the limit on the estimate (until 2026-11-25)
+    withholds about half of the right finds at the threshold itself, whose estimates scatter around it (blind
+    7317-7319: 4 of 5 misses above the thresholds). Currie's (1968) split of a detection limit: the decision
+    level L_C is the estimate's (1 - 0.95) quantile for an effect exactly at the detection limit L_D, here the
+    threshold: L_C = L_D + bias - z sd, bias and sd of (|estimate| - |magnitude|) over the calibration cases of
+    that effect within a factor `band` of the threshold (where the estimate's error is measured near the
+    decision; its spread is roughly constant in absolute terms there). Never negative. precision: an effect
+    whose claims under these levels the calibration shows unreliable gets none (thresholds_of)."""
+    limits = _decision_levels(paths, _measured_thresholds(paths, margin), z, band)
+    if precision:
+        limits = {e: None if e in _imprecise(paths, margin, limits) else v for e, v in limits.items()}
     return limits
 
 
@@ -245,7 +284,7 @@ def calibrated_diagnosis(paths, precision: bool = True) -> dict:
             "nominal_effects": dict(first.get("nominal_effects") or {}),
             "evidence": first.get("evidence"), "gate": first.get("gate"),
             "min_evidence": margin, "detection_limits": decision_limits_of(paths, margin, precision=precision),
-            "claim_precision": claim_precisions(paths, margin) if precision else None,
+            "claim_precision": precision_record(paths, margin, decision=True) if precision else None,
             "duration": float(first.get("duration") or DURATION),
             "channel_candidates": [c for c, k in (("grade_from_pitch", "pitch_channel"), ("bank_from_roll",
                                                                                           "roll_channel"))

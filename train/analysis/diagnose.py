@@ -77,7 +77,7 @@ from scipy import optimize, stats
 
 from ddyn.analysis import candidates as C
 from ddyn.analysis import eiv, hold_estimate
-from ddyn.analysis.calibration import calibrated_diagnosis
+from ddyn.analysis.calibration import AMBIGUITY_DBIC, calibrated_diagnosis
 from ddyn.data.dataset import Dataset
 from ddyn.errors import DdynError
 from ddyn.model import effects as E
@@ -106,11 +106,10 @@ MIN_EVIDENCE = 0.0
 # below them (an effect at its threshold is estimated above its level 95 % of the time; Currie's L_C for the
 # threshold's L_D). None by default (no limits).
 DETECTION_LIMITS: dict | None = None
-# The first effect added and the runner-up of its round with evidence closer than this (dBIC) are not told apart
-# by the data: "not worth more than a bare mention" on Kass & Raftery's scale of BIC differences, a textbook
-# constant, not tuned here. The diagnosis still adds the first (the selection is unchanged) and names the other
-# as its rival, so a report never states a choice the held-out data cannot make (docs/gap_independent.md).
-AMBIGUITY_DBIC = 2.0
+# AMBIGUITY_DBIC (calibration.py, where recorded runs are scored by the same rule): the first effect added and the
+# runner-up of its round with evidence closer than this are not told apart by the data. The diagnosis still adds
+# the first (the selection is unchanged) and names the other as its rival, so a report never states a choice the
+# held-out data cannot make (docs/gap_independent.md).
 # What the fit compares (errors in variables, ddyn.analysis.eiv): "one-step" the step from the logged state,
 # "smoothed" the step from a local polynomial estimate of the state that leaves out the sample being predicted,
 # "output-error" OE_STEPS-step rollouts from the logged states. Held-out scores are one-step in every mode.

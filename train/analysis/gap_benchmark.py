@@ -634,7 +634,7 @@ def _run_commonroad(args, out: Path) -> int:
         doc["settings"]["calibration_seed"] = doc["settings"]["seed"] in G.CALIBRATION_SEEDS   # the list may grow
         if args.thresholds_from:
             doc["settings"]["thresholds"] = G.thresholds_of(args.thresholds_from, margin, args.claim_precision)
-            doc["settings"]["claim_precision"] = (G.claim_precisions(args.thresholds_from, margin)
+            doc["settings"]["claim_precision"] = (G.precision_record(args.thresholds_from, margin)
                                                   if args.claim_precision else None)
             doc["settings"]["thresholds_from"] = args.thresholds_from
         if args.min_evidence_from:
@@ -648,8 +648,9 @@ def _run_commonroad(args, out: Path) -> int:
             D.MIN_EVIDENCE = args.min_evidence
         seed = G.DEFAULT_SEED if args.seed is None else args.seed
         # the thresholds measured at this run's margin (the calibration runs rescored with it)
-        thresholds = (G.thresholds_of(args.thresholds_from, D.MIN_EVIDENCE, args.claim_precision)
-                      if args.thresholds_from else None)
+        # with --claim-precision, checked under the limits in force (the decision levels with --decision-limits)
+        thresholds = (G.thresholds_of(args.thresholds_from, D.MIN_EVIDENCE, args.claim_precision,
+                                      decision=args.decision_limits) if args.thresholds_from else None)
         if (args.calibrated_only or args.decision_limits) and not args.detection_limits_from:
             raise DdynError("--calibrated-only and --decision-limits go with --detection-limits-from")
         if args.detection_limits_from:      # each case carries them (diagnosis_vetoes)
@@ -677,8 +678,8 @@ def _run_commonroad(args, out: Path) -> int:
                             "detection_limits_from": args.detection_limits_from,
                             "decision_limits": bool(args.decision_limits),
                             # --claim-precision: the calibration's first selections of each effect, [right, all]
-                            "claim_precision": (G.claim_precisions(args.thresholds_from or args.detection_limits_from,
-                                                                   D.MIN_EVIDENCE)
+                            "claim_precision": (G.precision_record(args.thresholds_from or args.detection_limits_from,
+                                                                   D.MIN_EVIDENCE, decision=args.decision_limits)
                                                 if args.claim_precision and (args.thresholds_from
                                                                              or args.detection_limits_from) else None)}
         if args.decision_limits or args.claim_precision:    # the table names the limits' kind, the precisions
@@ -836,8 +837,9 @@ def register(subparsers) -> None:
                         "body roll plus noise) and the diagnosis may read the bank from it (bank_from_roll)")
     p.add_argument("--claim-precision", action="store_true",
                    help="commonroad: with --thresholds-from / --detection-limits-from, an effect has a threshold (and "
-                        "is claimed) only if at least 95 %% of the calibration runs' first selections of it were right "
-                        "(found reliably where it is and seldom named where it is not)")
+                        "is claimed) only if at least 95 %% of the claims the diagnosis would make of it on the "
+                        "calibration runs (under the limits in force) were right (found reliably where it is and "
+                        "seldom claimed where it is not)")
     p.add_argument("--duration", type=float, default=None, metavar="SECONDS",
                    help=f"commonroad (putnam, sweep, above): seconds of log per case (default {gap_independent.DURATION:g}); "
                         "the runs given to --min-evidence-from, --thresholds-from and --detection-limits-from must "

@@ -35,7 +35,7 @@ from ddyn.analysis import diagnose as D
 from ddyn.analysis.calibration import (CALIBRATED_SETTINGS, DECISION_BAND, DECISION_Z, NONE, RELIABLE_RATE,  # noqa: F401
                                        TARGET_FALSE_ALARMS, calibrate, calibrate_margin, calibrated_diagnosis,
                                        claim_precisions, decision_limits_of, margin_of, reliable_threshold,
-                                       require_duration, runs, thresholds_of, with_gate)
+                                       precision_record, require_duration, runs, thresholds_of, with_gate)
 from ddyn.analysis.calibration import DURATION as RECORDED_DURATION
 from ddyn.analysis.parallel import run_cases
 from ddyn.data import commonroad_mb_plant as MB
