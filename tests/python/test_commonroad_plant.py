@@ -23,6 +23,11 @@ REPO = Path(__file__).resolve().parents[2]
 NOMINAL = load_vehicle(CP.NOMINAL_VEHICLE)
 
 
+def _claims(claims, right, on_no_claim_logs):
+    """A calibration's claim counts of one effect (calibration.claim_precisions)."""
+    return {"claims": claims, "right": right, "on_no_claim_logs": on_no_claim_logs}
+
+
 def _log(effects=CP.PlantEffects(), seed=4, duration=12.0, noise=1.0, color=0.0, track="putnam"):
     return CP.make_log(track, effects, seed, CP.LogSettings(duration=duration, noise_scale=noise, noise_color=color))
 
@@ -273,8 +278,9 @@ def test_study_gap_commonroad_cli(tmp_path, monkeypatch, capsys):
                      "--out", str(out)]) == 0
         doc = json.loads((out / "results.json").read_text())
         assert doc["settings"]["thresholds"]["steer_delay"] == want
-    assert doc["settings"]["claim_precision"] == {"steer_delay": [3, 5]}
-    assert "right/claims: steer_delay 3/5" in (out / "results.md").read_text()
+    assert doc["settings"]["claim_precision"] == {"counts": {"steer_delay": _claims(5, 3, 2)},
+                                                  "withdrawn": ["steer_delay"]}
+    assert "such claims/claims: steer_delay 2/5 (3 right); withdrawn: steer_delay" in (out / "results.md").read_text()
     # detection limits veto by each selection's estimate, which the recorded cases do not hold: a run, no rescore
     assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--detection-limits-from",
                  str(out / "results.json"), "--out", str(out)]) == 2
@@ -559,9 +565,10 @@ def test_decision_limits_sit_below_the_thresholds_by_the_estimate_spread_there(t
 
 
 def test_claim_precision_withdraws_the_threshold_of_an_effect_named_where_it_is_not(tmp_path):
-    """--claim-precision: an effect found at every magnitude but also claimed first on other effects' logs (downforce
-    on banked ones) gets no threshold and no decision level when under 95 % of those claims were right; an effect
-    whose claims hold keeps its own; a margin, a limit or the tie veto that withholds the wrong claims restores it."""
+    """--claim-precision: an effect found at every magnitude but also claimed first on logs where nothing should be
+    claimed (downforce on banked ones, which have no threshold) gets no threshold and no decision level when over
+    5 % of its claims land there; an effect whose claims hold keeps its own; a margin, a limit or the tie veto that
+    withholds the wrong claims restores it."""
     import json
 
     def row(e, mag, top1, dbic=-50.0):
@@ -573,13 +580,13 @@ def test_claim_precision_withdraws_the_threshold_of_an_effect_named_where_it_is_
     rs += [row("bank_angle", b, "downforce", dbic=-12.0) for b in (0.05, 0.1)] + [row(G.NONE, 0.0, G.NONE)]
     p = tmp_path / "cal.json"
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": rs}))
-    assert G.claim_precisions(str(p)) == {"downforce": [4, 6], "steer_lag": [4, 4]}
+    assert G.claim_precisions(str(p)) == {"downforce": _claims(6, 4, 2), "steer_lag": _claims(4, 4, 0)}
     assert G.thresholds_of(str(p))["downforce"] == pytest.approx(5e-5)
     got = G.thresholds_of(str(p), precision=True)
     assert got["downforce"] is None and got["steer_lag"] == pytest.approx(0.03) and got["bank_angle"] is None
     assert G.decision_limits_of(str(p), precision=True)["downforce"] is None
     # at a margin of 20 the banked logs' downforce (dBIC -12) is not selected: every claim of it is right again
-    assert G.claim_precisions(str(p), 20.0)["downforce"] == [4, 4]
+    assert G.claim_precisions(str(p), 20.0)["downforce"] == _claims(4, 4, 0)
     assert G.thresholds_of(str(p), 20.0, precision=True)["downforce"] == pytest.approx(5e-5)
     # only the claims the diagnosis would make count: a lag named steering delay with an estimate under the
     # delay's limit, or with the lag within AMBIGUITY_DBIC behind (the tie veto), is not one; a clear one is
@@ -587,14 +594,18 @@ def test_claim_precision_withdraws_the_threshold_of_an_effect_named_where_it_is_
     vetoed = [row("steer_lag", 0.03, "steer_delay") | {"estimate_top": 0.005, "runner_up_gap": 10.0},
               row("steer_lag", 0.04, "steer_delay") | {"estimate_top": 0.03, "runner_up_gap": 1.0}]
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": delay + vetoed}))
-    assert G.claim_precisions(str(p)) == {"steer_delay": [3, 5]}
-    assert G.precision_record(str(p)) == {"steer_delay": [3, 3]}
+    assert G.claim_precisions(str(p)) == {"steer_delay": _claims(5, 3, 2)}
+    assert G.precision_record(str(p)) == {"counts": {"steer_delay": _claims(3, 3, 0)}, "withdrawn": []}
     assert G.thresholds_of(str(p), precision=True)["steer_delay"] == pytest.approx(0.02)
     clear = row("steer_lag", 0.05, "steer_delay") | {"estimate_top": 0.03, "runner_up_gap": 10.0}
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": delay + vetoed + [clear]}))
-    assert G.precision_record(str(p)) == {"steer_delay": [3, 4]}
+    assert G.precision_record(str(p)) == {"counts": {"steer_delay": _claims(4, 3, 1)}, "withdrawn": ["steer_delay"]}
     assert G.thresholds_of(str(p), precision=True)["steer_delay"] is None
     assert G.decision_limits_of(str(p), precision=True)["steer_delay"] is None
+    # the same claim on a lag above the lag's threshold is a top-1 miss there (the top-1 and delay-vs-lag targets
+    # score it), not a claim where nothing should be claimed
+    assert G.claim_precisions(str(p), limits={"steer_delay": 0.02},
+                              thresholds={"steer_delay": 0.02, "steer_lag": 0.04}) == {"steer_delay": _claims(4, 3, 0)}
 
 
 def test_diagnose_calibration_takes_the_runs_settings_margin_and_decision_levels(tmp_path, capsys):
@@ -624,7 +635,8 @@ def test_diagnose_calibration_takes_the_runs_settings_margin_and_decision_levels
     assert main(base + [str(cal), "--out", str(tmp_path / "d")]) == 0
     d = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
     want = G.calibrated_diagnosis(str(cal))
-    assert want["min_evidence"] == pytest.approx(7.5) and want["claim_precision"] == {"steer_delay": [3, 3]}
+    assert want["min_evidence"] == pytest.approx(7.5)
+    assert want["claim_precision"] == {"counts": {"steer_delay": _claims(3, 3, 0)}, "withdrawn": []}
     assert d["calibration"]["min_evidence"] == pytest.approx(7.5) and d["gate"]["min_evidence"] == pytest.approx(7.5)
     # every effect the calibration did not sweep: reported, never claimed
     assert d["calibration"]["detection_limits"] == pytest.approx(want["detection_limits"] | {"*": None})

@@ -149,14 +149,29 @@ def _rescored(paths, margin: float | None) -> list[dict]:
 AMBIGUITY_DBIC = 2.0
 
 
-def claim_precisions(paths, margin: float | None = None, limits: dict | None = None) -> dict:
-    """{effect: [right, claims]}: of the calibration logs where the diagnosis would claim the effect first, how
-    many had it hidden. A claim: the first selection (top-1) at `margin`; with `limits` ({effect: the smallest
-    |estimate| claimed}), also the top candidate's estimate at or above its effect's limit and its runner-up of
-    another family more than AMBIGUITY_DBIC behind (diagnose's vetoes under limits; an effect without a limit is
-    never claimed). A threshold says how reliably an effect is found where it is; this says how far a claim of it
-    can be trusted where it is not (on 300 s Putnam logs downforce was named first on 5 of 22 banked, graded or
-    heavier/lighter logs of one sweep, with estimates that clear any level its own logs give)."""
+def _no_claim_log(r: dict, thresholds: dict) -> bool:
+    """A log on which the calibration vouches for no claim: effect-free, or its hidden effect has no threshold or
+    lies below it (the logs of the 5 % target)."""
+    t = thresholds.get(r["effect"])
+    return r["effect"] == NONE or t is None or abs(r["magnitude"]) < t
+
+
+def claim_precisions(paths, margin: float | None = None, limits: dict | None = None,
+                     thresholds: dict | None = None) -> dict:
+    """{effect: {"claims", "right", "on_no_claim_logs"}}: the calibration logs where the diagnosis would claim the
+    effect first, those that had it hidden, and those where no claim is vouched for (effect-free, or the hidden
+    effect without a threshold or below it: _no_claim_log under `thresholds`, by default the measured ones).
+    A claim: the first selection (top-1) at `margin`; with `limits` ({effect: the smallest |estimate| claimed}),
+    also the top candidate's estimate at or above its effect's limit and its runner-up of another family more than
+    AMBIGUITY_DBIC behind (diagnose's vetoes under limits; an effect without a limit is never claimed).
+
+    A threshold says how reliably an effect is found where it is; this says how often a claim of it lands where
+    nothing should be claimed (on 300 s Putnam logs downforce was named first on 5 of 22 banked, graded or
+    heavier/lighter logs of one sweep, with estimates that clear any level its own logs give). A claim on another
+    effect's log above that effect's threshold (a 40 ms steering lag named a 25 ms delay) is a top-1 miss there,
+    scored by the top-1 and delay-vs-lag targets, not a claim on a no-claim log."""
+    if thresholds is None:
+        thresholds = _measured_thresholds(paths, margin)
     counts: dict = {}
     for r in _rescored(paths, margin):
         if r["status"] != "ok" or r["top1"] == NONE:
@@ -169,17 +184,11 @@ def claim_precisions(paths, margin: float | None = None, limits: dict | None = N
                 continue
             if r.get("runner_up_gap") is not None and r["runner_up_gap"] < AMBIGUITY_DBIC:
                 continue
-        c = counts.setdefault(e, [0, 0])
-        c[0] += r["effect"] == e
-        c[1] += 1
+        c = counts.setdefault(e, {"claims": 0, "right": 0, "on_no_claim_logs": 0})
+        c["claims"] += 1
+        c["right"] += r["effect"] == e
+        c["on_no_claim_logs"] += _no_claim_log(r, thresholds)
     return counts
-
-
-def precision_record(paths, margin: float | None = None, decision: bool = False) -> dict:
-    """claim_precisions under the limits a run with --claim-precision checks them with: the decision levels with
-    `decision`, else the thresholds (what a run records beside its thresholds)."""
-    thresholds = _measured_thresholds(paths, margin)
-    return claim_precisions(paths, margin, _decision_levels(paths, thresholds) if decision else thresholds)
 
 
 def _measured_thresholds(paths, margin: float | None) -> dict:
@@ -190,10 +199,32 @@ def _measured_thresholds(paths, margin: float | None) -> dict:
     return {e: reliable_threshold(rs) for e, rs in rows.items()}
 
 
-def _imprecise(paths, margin: float | None, limits: dict) -> set:
-    """The effects whose claims under `limits` were right in under RELIABLE_RATE of the calibration's logs."""
-    counts = claim_precisions(paths, margin, limits)
-    return {e for e, (right, claims) in counts.items() if claims and right / claims < RELIABLE_RATE}
+def _precise(paths, margin: float | None, decision: bool) -> tuple[dict, dict]:
+    """The measured thresholds with those of imprecise effects withdrawn, and the record: an effect whose claims
+    (under the limits in force: the decision levels with `decision`, else the thresholds) land on no-claim logs
+    more than 1 - RELIABLE_RATE of the time keeps no threshold. Withdrawing one makes its logs no-claim logs for
+    the others, so repeated until nothing changes (at most once per effect). The record: the first round's claim
+    counts (every effect with a measured threshold) and the effects withdrawn."""
+    thresholds = _measured_thresholds(paths, margin)
+    first: dict | None = None
+    withdrawn: list = []
+    for _ in range(len(thresholds) + 1):
+        limits = _decision_levels(paths, thresholds) if decision else thresholds
+        counts = claim_precisions(paths, margin, limits, thresholds)
+        first = counts if first is None else first
+        drop = {e for e, c in counts.items() if thresholds.get(e) is not None
+                and c["on_no_claim_logs"] > (1.0 - RELIABLE_RATE) * c["claims"] + 1e-9}
+        if not drop:
+            break
+        withdrawn += sorted(drop)
+        thresholds = {e: None if e in drop else t for e, t in thresholds.items()}
+    return thresholds, {"counts": first or {}, "withdrawn": withdrawn}
+
+
+def precision_record(paths, margin: float | None = None, decision: bool = False) -> dict:
+    """What a run with --claim-precision records beside its thresholds: {"counts": {effect: claim counts},
+    "withdrawn": [effects]} (_precise)."""
+    return _precise(paths, margin, decision)[1]
 
 
 def thresholds_of(paths, margin: float | None = None, precision: bool = False, decision: bool = False) -> dict:
@@ -201,15 +232,11 @@ def thresholds_of(paths, margin: float | None = None, precision: bool = False, d
     each effect together (reliable_threshold over the union). `paths`: a path, or several separated by commas.
     margin: the evidence margin the thresholds are for (each run's cases rescored with it, with_gate; a margin
     only vetoes, so it must be at least the runs' own); None: as recorded. precision: an effect also needs at
-    least RELIABLE_RATE of the claims the diagnosis would make of it on the calibration to be right
-    (claim_precisions under the limits in force: the decision levels with `decision`, else the thresholds), or
-    it has no threshold: found reliably where it is and seldom claimed where it is not, the two halves of
-    "reliably identified"."""
-    thresholds = _measured_thresholds(paths, margin)
-    if precision:
-        limits = _decision_levels(paths, thresholds) if decision else thresholds
-        thresholds = {e: None if e in _imprecise(paths, margin, limits) else t for e, t in thresholds.items()}
-    return thresholds
+    most 1 - RELIABLE_RATE of the claims the diagnosis would make of it on the calibration to land on logs where
+    no claim is vouched for (_precise, under the limits in force: the decision levels with `decision`, else the
+    thresholds), or it has no threshold: found reliably where it is and seldom claimed where nothing should be,
+    the two halves of "reliably identified"."""
+    return _precise(paths, margin, decision)[0] if precision else _measured_thresholds(paths, margin)
 
 
 # The decision limit's quantile: a case exactly at its threshold is estimated above the limit at the rate the
@@ -249,11 +276,9 @@ def decision_limits_of(paths, margin: float | None = None, z: float = DECISION_Z
     threshold: L_C = L_D + bias - z sd, bias and sd of (|estimate| - |magnitude|) over the calibration cases of
     that effect within a factor `band` of the threshold (where the estimate's error is measured near the
     decision; its spread is roughly constant in absolute terms there). Never negative. precision: an effect
-    whose claims under these levels the calibration shows unreliable gets none (thresholds_of)."""
-    limits = _decision_levels(paths, _measured_thresholds(paths, margin), z, band)
-    if precision:
-        limits = {e: None if e in _imprecise(paths, margin, limits) else v for e, v in limits.items()}
-    return limits
+    whose claims under these levels land where nothing should be claimed too often gets none (thresholds_of)."""
+    thresholds = _precise(paths, margin, True)[0] if precision else _measured_thresholds(paths, margin)
+    return _decision_levels(paths, thresholds, z, band)
 
 
 # What a calibration run records of the diagnosis it scored and `ddyn diagnose --calibration` takes over: the margin
@@ -268,8 +293,8 @@ def calibrated_diagnosis(paths, precision: bool = True) -> dict:
     must share), their pooled evidence margin (margin_of), Currie's decision levels at that margin
     (decision_limits_of; diagnose.calibrated_settings adds that every effect they did not calibrate is never
     claimed), the log length they were measured on and the candidates read from channels. evidence: as recorded
-    (None: the diagnosis's default). precision: only effects whose calibration claims were right at RELIABLE_RATE
-    get a level (thresholds_of)."""
+    (None: the diagnosis's default). precision: only effects whose claims on the calibration seldom land where
+    nothing should be claimed get a level (thresholds_of)."""
     names = [p for p in str(paths).split(",") if p]
     docs = runs(paths)
     first = docs[0]["settings"]

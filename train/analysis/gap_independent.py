@@ -636,8 +636,10 @@ def _oracle_line(s: dict) -> str:
             f"fit (its value estimated) {_f(s['median_own_fit_vs_oracle'], True)}.")
 
 
-def _precision_text(counts: dict) -> str:
-    return ", ".join(f"{e} {right}/{claims}" for e, (right, claims) in sorted(counts.items()))
+def _precision_text(record: dict) -> str:
+    counts = ", ".join(f"{e} {c['on_no_claim_logs']}/{c['claims']} ({c['right']} right)"
+                       for e, c in sorted(record["counts"].items()))
+    return counts + (f"; withdrawn: {', '.join(record['withdrawn'])}" if record["withdrawn"] else "")
 
 
 def _limits_text(limits: dict) -> str:
@@ -672,8 +674,9 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
                 f"{_limits_text(settings['detection_limits'])} (an effect found below its limit is not claimed"
                 f"{'; the limits are the decision levels below the thresholds, --decision-limits' if settings.get('decision_limits') else ''})"
                 if settings.get("detection_limits") else "")
-             + (f"; thresholds only for effects whose calibration claims were right in >= {RELIABLE_RATE:.0%} "
-                f"(--claim-precision; right/claims: {_precision_text(settings['claim_precision'])})"
+             + (f"; thresholds only for effects whose calibration claims landed on logs where nothing should be "
+                f"claimed in <= {1 - RELIABLE_RATE:.0%} (--claim-precision; such claims/claims: "
+                f"{_precision_text(settings['claim_precision'])})"
                 if settings.get("claim_precision") else "")
              + ".", "",
              "| metric | as diagnosed, gate off | with the gate and margin above |", "|---|---|---|",
