@@ -677,7 +677,8 @@ def _run_commonroad(args, out: Path) -> int:
         doc["settings"] |= {"thresholds_from": args.thresholds_from, "min_evidence_from": args.min_evidence_from,
                             "detection_limits_from": args.detection_limits_from,
                             "decision_limits": bool(args.decision_limits),
-                            # --claim-precision: the calibration's first selections of each effect, [right, all]
+                            # --claim-precision: each effect's claims on the calibration (how many right, how many on
+                            # logs where nothing should be claimed) and the effects withdrawn
                             "claim_precision": (G.precision_record(args.thresholds_from or args.detection_limits_from,
                                                                    D.MIN_EVIDENCE, decision=args.decision_limits)
                                                 if args.claim_precision and (args.thresholds_from
@@ -837,9 +838,10 @@ def register(subparsers) -> None:
                         "body roll plus noise) and the diagnosis may read the bank from it (bank_from_roll)")
     p.add_argument("--claim-precision", action="store_true",
                    help="commonroad: with --thresholds-from / --detection-limits-from, an effect has a threshold (and "
-                        "is claimed) only if at least 95 %% of the claims the diagnosis would make of it on the "
-                        "calibration runs (under the limits in force) were right (found reliably where it is and "
-                        "seldom claimed where it is not)")
+                        "is claimed) only if at most 5 %% of the claims the diagnosis would make of it on the "
+                        "calibration runs (under the limits in force) land on logs where nothing should be claimed: "
+                        "effect-free, or the hidden effect without a threshold or below it (found reliably where it "
+                        "is and seldom claimed where nothing should be)")
     p.add_argument("--duration", type=float, default=None, metavar="SECONDS",
                    help=f"commonroad (putnam, sweep, above): seconds of log per case (default {gap_independent.DURATION:g}); "
                         "the runs given to --min-evidence-from, --thresholds-from and --detection-limits-from must "
