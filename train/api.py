@@ -183,20 +183,23 @@ def evaluate(checkpoint: "Checkpoint | str | Path", log: "str | Path | Dataset")
 # ----------------------------------------------------------------------------------------------- diagnosis
 
 def diagnose(log: "str | Path | Dataset", nominal: Any, config: Any = None, out_dir: str | Path | None = None,
-             track: Any = None) -> dict:
-    """The sim-to-real gap diagnosis of a log against a nominal model (ddyn.gap; `ddyn gap diagnose`): where
-    the model's error lies, which unmodelled effect (delays, lags, bank, grade, mass offset, ...) explains it,
-    its size and how much of the gap it closes.
+             track: Any = None, calibration: str | Path | None = None) -> dict:
+    """The sim-to-real gap diagnosis of a log against a nominal model, as `ddyn gap diagnose` runs it (ddyn.gap):
+    where the model's error lies, which unmodelled effect (delays, lags, bank, grade, mass offset, ...)
+    explains it, its size and how much of the gap it closes.
 
     log: a Dataset or a log file. nominal: what the log is compared with: a vehicle (name, JSON file or
     Vehicle: its true coefficients), a Checkpoint or a checkpoint file (the network's coefficients, row by
     row), or a nominal already made with ddyn.gap.nominal_from_vehicle / nominal_from_checkpoint. config:
-    None (the defaults of ddyn.gap.DiagnosisConfig), a DiagnosisConfig, or a TOML/JSON settings file.
-    out_dir: also write the report there (diagnosis.json, diagnosis.md, figures). track: the track the log
-    was driven on (default: the one the log names, if known). Returns the diagnosis.json dictionary:
-    "selected" (the effects found, in order), "verdict", "model" (held-out errors before and after, the
-    fitted parameters, the gap closed), "where", ... Raises DdynError on a bad log, nominal or config file
-    (naming the file and key).
+    None (the defaults of ddyn.gap.DiagnosisConfig), a DiagnosisConfig, or a TOML/JSON settings file (or the
+    name of a shipped one, e.g. "dbw"). calibration: None (a shipped calibration that covers the log's length
+    and sample time, if any: its margin and thresholds), a calibration's name or file, or "none"
+    (uncalibrated); which one was used and why is recorded under "calibration". out_dir: also write the report
+    there (diagnosis.json, diagnosis.md, figures). track: the track the log was driven on (a name or Track;
+    default: the one the log names, if known). Returns the diagnosis.json dictionary: "selected" (the effects
+    found, in order), "verdict", "model" ("effects" with their fitted parameters and uncertainty, held-out
+    errors before and after, "gap_closed_pct"), "where", "calibration", ... Raises DdynError on a bad log,
+    nominal, config or calibration (naming the file and key).
     """
     from ddyn import gap
 
@@ -219,18 +222,16 @@ def diagnose(log: "str | Path | Dataset", nominal: Any, config: Any = None, out_
     else:
         nom = gap.nominal_from_vehicle(vehicle, ds)
     if config is None:
-        cfg = gap.DiagnosisConfig()
+        cfg = None      # the defaults, or a covering calibration's settings
     elif isinstance(config, (str, Path)):
         cfg = gap.DiagnosisConfig.from_file(_path(config, "config"))
     elif isinstance(config, gap.DiagnosisConfig):
         cfg = config
     else:
         raise DdynError(f"diagnose: config must be a DiagnosisConfig or a TOML/JSON file, not {type(config).__name__}")
-    if isinstance(track, str):
-        from ddyn.model.track_files import open_track
-
-        track = open_track(track)
-    d = gap.diagnose(ds, nom, cfg, track=track)
+    if track is None or isinstance(track, str):     # a name, a user's files, or the one the log names
+        track = gap.track_for(track, ds)
+    d = gap.diagnose_log(ds, nom, cfg, calibration=None if calibration is None else str(calibration), track=track)
     if out_dir is not None:
         gap.write_report(d, out_dir)
     return d

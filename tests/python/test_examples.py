@@ -149,7 +149,13 @@ def test_03_train_a_tiny_ddm(tmp_path):
         assert ddm < still / 5, f"{ch}: the DDM ({ddm}) is not clearly better than nothing-changes ({still})"
     for name in ("Df", "Dr", "Cm1", "Iz"):          # the guard's estimates near the truth after a few epochs
         assert abs(number(rf"coefficient {name}\s+mean .*error ([+-][\d.]+) %", out)) < 30, name
-    assert ddyn.load_checkpoint(tmp_path / "ddm.ckpt").kind == "ddm"
+    ck = ddyn.load_checkpoint(tmp_path / "ddm.ckpt")
+    assert ck.kind == "ddm" and ck.vehicle.name == "orca_1_43" and ck.tau == 1
+    # the API's diagnosis against a checkpoint (its coefficients row by row), from the file and from the object
+    for nominal in (tmp_path / "ddm.ckpt", ck):
+        d = ddyn.diagnose(tmp_path / "test.csv", nominal)
+        assert d["nominal"]["source"].startswith("DDM checkpoint ddm.ckpt"), d["nominal"]
+        assert d["model"]["heldout"]["rmse_before"]["vx"] > 0
 
 
 def test_04_diagnose_a_hidden_effect(tmp_path):
@@ -159,6 +165,7 @@ def test_04_diagnose_a_hidden_effect(tmp_path):
     assert number(r"gap closed: ([\d.]+) %", out) > 80
     d = json.loads((tmp_path / "diagnosis" / "diagnosis.json").read_text())
     assert d["selected"] == ["throttle_delay"]
+    assert re.search(r"^calibration: ", out, re.M) and "calibration" in d
 
 
 def test_05_generate_c():
