@@ -39,10 +39,12 @@ COMMANDS: tuple[Command, ...] = (
             "racing lines (CasADi + IPOPT) and closed-loop laps of the C MPC on the host"),
     Command("sil", ("ddyn.sil.run", "ddyn.sil.table", "ddyn.sil.tracks"),
             "software in the loop: plant and controller as processes over virtual CAN"),
-    Command("diagnose", ("ddyn.analysis.diagnose",)),
+    Command("gap", ("ddyn.gap.cli",),
+            "the sim-to-real gap diagnosis: diagnose a log, calibrate, benchmark, rescore (docs/gap.md)"),
+    Command("diagnose", ("ddyn.gap.cli:register_alias",)),
     Command("study", ("ddyn.studies.ddm", "ddyn.studies.fthd", "ddyn.studies.denoise", "ddyn.studies.drivetrain",
-                      "ddyn.analysis.gap_benchmark", "ddyn.analysis.fidelity"),
-            "the papers' tables and the project's studies (DDM/DPM, FTHD, denoising, gap diagnosis, fidelity)"),
+                      "ddyn.analysis.fidelity"),
+            "the papers' tables and the project's studies (DDM/DPM, FTHD, denoising, fidelity)"),
     Command("bench", ("ddyn.bench.runtime", "ddyn.bench.controller", "ddyn.bench.large_net", "ddyn.bench.qp"),
             "timing of the C runtime against Python (median, p99, max)"),
     Command("can", ("ddyn.codegen.can", "ddyn.data.can_log", "ddyn.bench.can"),
@@ -65,7 +67,8 @@ def build_parser(commands: tuple[Command, ...] | None = None) -> argparse.Argume
     for cmd in COMMANDS if commands is None else commands:
         if cmd.help is None:
             (module,) = cmd.modules
-            importlib.import_module(module).register(sub)
+            module, _, fn = module.partition(":")     # "module:function": another register function of it
+            getattr(importlib.import_module(module), fn or "register")(sub)
             continue
         group = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
         group_sub = group.add_subparsers(dest="subcommand", required=True, metavar="SUBCOMMAND")

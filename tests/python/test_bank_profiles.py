@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from ddyn.analysis import candidates as C
+from ddyn.gap import calibration as CAL
+from ddyn.gap import candidates as C
 from ddyn.data import roll_check
 from ddyn.model import effects as E
 from ddyn.model.track_oval import bank_at, oval_track
@@ -123,8 +124,8 @@ def test_profile_knots_sit_on_the_curvature_changes():
 vehiclemodels = pytest.importorskip("vehiclemodels", reason="COMMONROAD MISSING: pip install "
                                     "commonroad-vehicle-models (requirements.in); CI installs it")
 
-from ddyn.analysis import diagnose as D  # noqa: E402
-from ddyn.data import commonroad_plant as CP  # noqa: E402
+from ddyn.gap import config as CFG, fit as F, heldout as HO, problem as P, report as R, selection as SEL  # noqa: E402
+from ddyn.plants import commonroad_st as CP  # noqa: E402
 from ddyn.model.vehicle import load as load_vehicle  # noqa: E402
 
 NOMINAL = load_vehicle(CP.NOMINAL_VEHICLE)
@@ -153,12 +154,12 @@ def _oval_log(oval_logs, roll_channel: bool):
 def test_flat_nominal_gets_bank_first_on_the_banked_oval(roll_channel, oval_logs):
     """The issue's target on the independent plant: a model from a flat track gets bank first, with the bank in
     the turns within 3 degrees of the true one (from the fitted profile, or from the plausible roll channel)."""
-    from ddyn.analysis.gap_sets import bank_estimate
+    from ddyn.gap.benchmark.case_sets import bank_estimate
 
     t, ds = _oval_log(oval_logs, roll_channel)
     assert np.degrees(ds.extras["true_bank"].max()) == pytest.approx(20.0)
     cands = ("bank_angle", "bank_profile", "bank_from_roll", "mass_offset", "steer_delay", "power_limit")
-    d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), candidates=cands, track=t, max_effects=1, hold=True)
+    d = SEL.diagnose(ds, P.nominal_from_vehicle(NOMINAL, ds), candidates=cands, track=t, max_effects=1, hold=True)
     assert d["selected"] == ["bank_from_roll" if roll_channel else "bank_profile"], d["verdict"]
     assert (d["data"]["roll_channel"] is not None) == roll_channel
     assert "bank_angle" in d["nominal"]["refit_held_by"]     # a profile is a candidate: the family holds the tyre
@@ -178,19 +179,19 @@ def test_a_bank_profile_keeps_the_nominal_tyre(oval_logs):
     """A bank that follows the turns and the tyre's friction scale are confounded in steady cornering, so the
     bank hypotheses keep the nominal's Df, Dr (candidates.HOLDS_REFIT); every other hypothesis refits them."""
     t, ds = _oval_log(oval_logs, True)
-    prob = D.Problem(ds, D.nominal_from_vehicle(NOMINAL, ds), D.DEFAULT_FIT_FRACTION, hold=True)
+    prob = P.Problem(ds, P.nominal_from_vehicle(NOMINAL, ds), CFG.DiagnosisConfig().fit_fraction, hold=True)
     prob.layout = C.layout(ds, t, prob.rows_fit)
     C.attach(prob.lm, prob.layout)
     for name in ("bank_profile", "bank_from_roll"):
-        f = D.fit(prob, C.keys(name, prob.layout) + ("steer_lag",), start_rho=np.full(2, 0.2))
+        f = F.fit(prob, C.keys(name, prob.layout) + ("steer_lag",), start_rho=np.full(2, 0.2))
         assert np.all(f.rho == 0.0) and len(f.rho) == 2 and f.values["steer_lag"] >= 0.0
-    f = D.fit(prob, ("bank_angle",))
+    f = F.fit(prob, ("bank_angle",))
     assert np.any(f.rho != 0.0)
     assert C.holds_refit(("bank_profile@3", "mass_offset")) and not C.holds_refit(("bank_angle", "grade_profile@1"))
     # with a profile among the candidates the constant bank holds the tyre too (one footing for the bank family)
     assert C.holds_refit(("bank_angle",), bank_family=True) and not C.holds_refit(("mass_offset",), bank_family=True)
     prob.bank_family_held = True
-    assert np.all(D.fit(prob, ("bank_angle",)).rho == 0.0)
+    assert np.all(F.fit(prob, ("bank_angle",)).rho == 0.0)
 
 
 def test_an_implausible_roll_channel_is_reported_and_not_used(oval_logs):
@@ -199,11 +200,11 @@ def test_an_implausible_roll_channel_is_reported_and_not_used(oval_logs):
     t, ds = oval_logs
     rng = np.random.default_rng(1)
     ds = replace(ds, extras={**ds.extras, "roll": np.cumsum(rng.standard_normal(len(ds))) * 0.05})   # drifts, jumps
-    d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), candidates=("bank_from_roll", "bank_angle"), track=t,
+    d = SEL.diagnose(ds, P.nominal_from_vehicle(NOMINAL, ds), candidates=("bank_from_roll", "bank_angle"), track=t,
                    max_effects=1, hold=True)
     assert not d["data"]["roll_channel"]["plausible"]
     assert "bank_from_roll" not in {c["effect"] for c in d["candidates"]}
-    assert "NOT plausible" in D.markdown(d, [])
+    assert "NOT plausible" in R.markdown(d, [])
 
 
 def _drive(effects=CP.PlantEffects(), throttle=0.0, v0=25.0, seconds=0.5):
@@ -241,12 +242,12 @@ def test_plant_drivetrain_effects_act_physically():
 def test_power_limit_candidate_finds_commonroads_own_limit():
     """The drivetrain candidate on an effect-free plant log: the vx gap is CommonRoad's own power limit
     (a_max v_switch m = 92 kW), which the mapped nominal cannot carry; fitted alone it comes out near it."""
-    from ddyn.analysis.gap_sets import OWN_POWER
+    from ddyn.gap.benchmark.case_sets import OWN_POWER
     from ddyn.model.tracks import load_track
 
     t = load_track("putnam")
     ds = CP.make_log(t, CP.PlantEffects(), 7, CP.LogSettings(duration=60.0, target_speed=24.0, start_s=0.3 * t.length))
-    d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), candidates=("power_limit", "throttle_map", "brake_gain"),
+    d = SEL.diagnose(ds, P.nominal_from_vehicle(NOMINAL, ds), candidates=("power_limit", "throttle_map", "brake_gain"),
                    max_effects=1, hold=True)
     best = d["candidates"][0]
     assert best["effect"] == "power_limit" and best["delta_bic"] < 0
@@ -255,7 +256,7 @@ def test_power_limit_candidate_finds_commonroads_own_limit():
 
 
 def test_case_sets_plan_and_score():
-    from ddyn.analysis import gap_sets as S
+    from ddyn.gap.benchmark import case_sets as S
 
     oval = S.plan("oval", 8, 11)
     assert [(c["effect"], c["roll_channel"]) for c in oval[:4]] == list(S.OVAL_SLOTS)
@@ -280,8 +281,8 @@ def test_case_sets_plan_and_score():
     none = [{"status": "ok", "effect": "none", "selected": sel, "greedy": [[e, d, False]]}
             for sel, e, d in ((["mass_offset"], "mass_offset", -68.3), ([], "steer_delay", 4.0),
                               (["mass_offset"], "mass_offset", -115.9))]
-    assert S.calibrate_margin(none) == pytest.approx(115.9)
-    assert S.calibrate_margin(none[1:2]) == 0.0
+    assert CAL.calibrate_margin(none) == pytest.approx(115.9)
+    assert CAL.calibrate_margin(none[1:2]) == 0.0
 
 
 def test_plant_tyre_wear_and_yaw_rate_bias():
@@ -314,20 +315,20 @@ def test_the_grade_read_from_a_plausible_pitch_channel_on_a_log_shorter_than_a_l
     assert verdict["plausible"] and abs(verdict["pitch_per_longitudinal_g_rad"]) < 0.1
     kw = dict(candidates=("grade", "grade_profile", "grade_from_pitch"), hold=True, steer_servo=CP.SERVO_TAU,
               nominal_effects={"power_limit": 92021.0}, gate=None, max_effects=1, max_starts=50, track=track)
-    d = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), **kw)
+    d = SEL.diagnose(ds, P.nominal_from_vehicle(NOMINAL, ds), **kw)
     assert d["data"]["pitch_channel"]["plausible"] and d["candidates"][0]["effect"] == "grade_from_pitch"
     assert d["candidates"][0]["params"]["gain"] == pytest.approx(1.0, abs=0.2)
     # its size is the grade it reads (gain x the channel's largest reading), not the gain: what a limit judges
     size = d["candidates"][0]["magnitude"]
     assert size == pytest.approx(d["candidates"][0]["params"]["gain"] * verdict["abs_p999_rad"])
     assert 0.03 < size < 0.08        # a 0.04 rad grade, with squat and noise on top
-    capped = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), **kw, detection_limits={"grade": 0.1})
+    capped = SEL.diagnose(ds, P.nominal_from_vehicle(NOMINAL, ds), **kw, detection_limits={"grade": 0.1})
     assert capped["selected"] == [] and capped["below_limit"]["magnitude"] == pytest.approx(size)
     assert "at the channel's largest reading" in capped["verdict"]
-    kept = D.diagnose(ds, D.nominal_from_vehicle(NOMINAL, ds), **kw, detection_limits={"grade": 0.02})
+    kept = SEL.diagnose(ds, P.nominal_from_vehicle(NOMINAL, ds), **kw, detection_limits={"grade": 0.02})
     assert kept["selected"] == ["grade_from_pitch"]
     without = CP.make_log(track, CP.PlantEffects(grade=0.04, grade_phase=1.0), 3,
                           CP.LogSettings(duration=60.0, target_speed=23.0))
     assert np.array_equal(without.states, ds.states)          # the channel has its own random stream
-    d0 = D.diagnose(without, D.nominal_from_vehicle(NOMINAL, without), **kw)
+    d0 = SEL.diagnose(without, P.nominal_from_vehicle(NOMINAL, without), **kw)
     assert "grade_from_pitch" not in [c["effect"] for c in d0["candidates"]] and d0["data"]["pitch_channel"] is None

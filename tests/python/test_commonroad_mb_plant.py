@@ -9,13 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ddyn.errors import DdynError
+
 vehiclemodels = pytest.importorskip("vehiclemodels", reason="COMMONROAD MISSING: pip install "
                                     "commonroad-vehicle-models (requirements.in); CI installs it")
 
-from ddyn.analysis import diagnose as D  # noqa: E402
-from ddyn.analysis import gap_mb, hold_estimate  # noqa: E402
-from ddyn.data import commonroad_mb_plant as MB  # noqa: E402
-from ddyn.data import commonroad_plant as CP  # noqa: E402
+from ddyn.gap import config as CFG, fit as F, heldout as HO, problem as P, report as R, selection as SEL  # noqa: E402
+from ddyn.gap import hold_estimate
+from ddyn.gap.benchmark import multibody as gap_mb  # noqa: E402
+from ddyn.plants import commonroad_mb as MB  # noqa: E402
+from ddyn.plants import commonroad_st as CP  # noqa: E402
 from ddyn.model import backends, mathns  # noqa: E402
 from ddyn.model import effects as E  # noqa: E402
 from ddyn.model.single_track import COEFF_NAMES  # noqa: E402
@@ -154,8 +157,8 @@ def test_dbw_period_apart_from_the_log_rate_and_its_detection():
 def test_hold_estimate_is_bounded_and_recorded():
     """diagnose(hold="estimate") fits the hold delay on [0, Ts/2] and records the grid and the step structure."""
     ds = CP.make_log("putnam", CP.PlantEffects(), 11, CP.LogSettings(duration=12.0))
-    nominal = D.nominal_from_vehicle(load_vehicle(CP.NOMINAL_VEHICLE), ds)
-    d = D.diagnose(ds, nominal, candidates=("steer_delay",), max_effects=1, max_starts=30, gate=None, hold="estimate")
+    nominal = P.nominal_from_vehicle(load_vehicle(CP.NOMINAL_VEHICLE), ds)
+    d = SEL.diagnose(ds, nominal, candidates=("steer_delay",), max_effects=1, max_starts=30, gate=None, hold="estimate")
     info = d["nominal"]["hold_estimate"]
     assert 0.0 <= info["hold"] <= 0.5 * ds.sample_time + 1e-12 == info["bound"] + 1e-12
     assert d["nominal"]["command_hold_delay"] == pytest.approx(info["hold"])
@@ -172,17 +175,16 @@ def test_mb_case_plan_covers_the_new_effects():
     assert len({c["seed"] for c in cases}) == 12
 
 
-def test_cli_hold_takes_estimate():
-    import argparse
-
-    parser = argparse.ArgumentParser()
-    D.register(parser.add_subparsers())
-    base = ["diagnose", "--vehicle", "x", "--data", "y", "--out", "z"]
-    assert parser.parse_args(base).hold is False
-    assert parser.parse_args(base + ["--hold"]).hold is True
-    assert parser.parse_args(base + ["--hold", "estimate"]).hold == "estimate"
-    with pytest.raises(SystemExit):
-        parser.parse_args(base + ["--hold", "0.02"])
+def test_config_hold_takes_estimate(tmp_path):
+    """hold: false (default), true, or "estimate" (the hold delay fitted); anything else is refused naming the key."""
+    assert CFG.DiagnosisConfig().hold is False
+    for text, want in (("true", True), ('"estimate"', "estimate")):
+        f = tmp_path / "c.toml"
+        f.write_text(f"hold = {text}\n")
+        assert CFG.DiagnosisConfig.from_file(f).hold == want
+    f.write_text("hold = 0.02\n")
+    with pytest.raises(DdynError, match="hold"):
+        CFG.DiagnosisConfig.from_file(f)
 
 
 def test_identified_mb_nominal_is_fitted_on_an_effect_free_mb_log(monkeypatch):
@@ -190,7 +192,8 @@ def test_identified_mb_nominal_is_fitted_on_an_effect_free_mb_log(monkeypatch):
     effect-free multi-body log (its own seed, driven as the cases are), stay inside the mapped file's ranges,
     differ from the mapped file and predict that log better than it (a short log here: 17 s, about the
     shortest whose 95 % fit part leaves the 20 held-out rows the fit needs)."""
-    from ddyn.analysis import gap_independent as G
+    from ddyn.gap import calibration as CAL
+    from ddyn.gap.benchmark import commonroad as G
 
     monkeypatch.setattr(G, "IDENT_DURATION", 17.0)
     logs, real = [], MB.make_log
@@ -213,7 +216,7 @@ def test_identified_mb_nominal_is_fitted_on_an_effect_free_mb_log(monkeypatch):
     assert np.max(np.abs(c - mapped) / np.where(mapped != 0, np.abs(mapped), 1.0)) > 0.01
 
     def err(coeffs):
-        p = D.Problem(log, D.nominal_from_vehicle(NOMINAL, log, coeffs), 0.95, refit=(), hold=True)
+        p = P.Problem(log, P.nominal_from_vehicle(NOMINAL, log, coeffs), 0.95, refit=(), hold=True)
         return float(np.sum(p.residuals({}, np.zeros(0), p.rows_all) ** 2))
 
     assert err(c) < err(mapped)

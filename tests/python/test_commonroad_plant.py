@@ -11,9 +11,10 @@ import pytest
 vehiclemodels = pytest.importorskip("vehiclemodels", reason="COMMONROAD MISSING: pip install "
                                     "commonroad-vehicle-models (requirements.in); CI installs it")
 
-from ddyn.analysis import diagnose as D  # noqa: E402
-from ddyn.analysis import gap_independent as G  # noqa: E402
-from ddyn.data import commonroad_plant as CP  # noqa: E402
+from ddyn.gap import config as CFG, fit as F, heldout as HO, problem as P, report as R, selection as SEL  # noqa: E402
+from ddyn.gap import calibration as CAL
+from ddyn.gap.benchmark import commonroad as G  # noqa: E402
+from ddyn.plants import commonroad_st as CP  # noqa: E402
 from ddyn.data.dataset import COLUMNS  # noqa: E402
 from ddyn.errors import DdynError  # noqa: E402
 from ddyn.model import backends  # noqa: E402
@@ -155,17 +156,17 @@ def test_effects_act_physically(clean):
 def test_gate_rescoring_and_calibration():
     rows = [{"status": "ok", "effect": "none", "selected_without_gate": ["mass_offset"] if i < 8 else [],
              "gate_ratio": 1.0 + 0.01 * i, "correct_without_gate": i >= 8, "delta_bic_top": -1.0} for i in range(20)]
-    thr = G.calibrate(rows)     # 8 alarms, at most 1 allowed (5 % of 20): the 7th largest alarm ratio
+    thr = CAL.calibrate(rows)     # 8 alarms, at most 1 allowed (5 % of 20): the 7th largest alarm ratio
     assert thr == pytest.approx(1.06)
-    gated = G.with_gate(rows, thr)
+    gated = CAL.with_gate(rows, thr)
     assert sum(bool(r["selected"]) for r in gated) == 1
-    assert sum(bool(r["selected"]) for r in G.with_gate(rows, None)) == 8
+    assert sum(bool(r["selected"]) for r in CAL.with_gate(rows, None)) == 8
     # the evidence margin: the first effect needs dBIC < -margin
     for i, r in enumerate(rows):
         r["delta_bic_top"] = -2.0 * i if r["selected_without_gate"] else 3.0
-    m = G.calibrate_margin(rows)           # alarms at dBIC 0, -2, ..., -14: all but the strongest refused
+    m = CAL.calibrate_margin(rows)           # alarms at dBIC 0, -2, ..., -14: all but the strongest refused
     assert m == pytest.approx(12.0)
-    kept = G.with_gate(rows, None, m)
+    kept = CAL.with_gate(rows, None, m)
     assert [r["top1"] for r in kept if r["selected"]] == ["mass_offset"] and kept[7]["selected"]
     # several calibration runs pooled: 5 % of all their effect-free logs (2 of 40 allowed, 1 of 20 alone), and
     # never below a margin a run was recorded with (its weaker alarms were not recorded)
@@ -179,21 +180,21 @@ def test_gate_rescoring_and_calibration():
             p = Path(d) / f"{i}.json"
             p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": rs}))
             paths.append(str(p))
-        assert G.margin_of(paths[0]) == pytest.approx(12.0)
+        assert CAL.margin_of(paths[0]) == pytest.approx(12.0)
         # 8 alarms in 40 logs, 2 allowed: the two strongest (-14, -12) stay
-        assert G.margin_of(",".join(paths)) == pytest.approx(10.0) == G.margin_of(paths)
+        assert CAL.margin_of(",".join(paths)) == pytest.approx(10.0) == CAL.margin_of(paths)
         p = Path(d) / "strict.json"
         p.write_text(json.dumps({"settings": {"min_evidence": 20.0}, "results": []}))
-        assert G.margin_of(paths + [str(p)]) == pytest.approx(20.0)
+        assert CAL.margin_of(paths + [str(p)]) == pytest.approx(20.0)
 
 
 def test_diagnose_gate_vetoes_a_selection_inside_the_noise():
     ds = _log(CP.PlantEffects(steer_delay=0.08), duration=24.0)
-    nominal = D.nominal_from_vehicle(NOMINAL, ds)
+    nominal = P.nominal_from_vehicle(NOMINAL, ds)
     kw = dict(candidates=("steer_delay", "mass_offset"), max_effects=1, max_starts=50)
-    open_ = D.diagnose(ds, nominal, gate=None, **kw)
+    open_ = SEL.diagnose(ds, nominal, gate=None, **kw)
     assert open_["selected"] == ["steer_delay"] and open_["gate"]["ratio"] > 1.0
-    shut = D.diagnose(ds, nominal, gate=open_["gate"]["ratio"] * 1.01, **kw)
+    shut = SEL.diagnose(ds, nominal, gate=open_["gate"]["ratio"] * 1.01, **kw)
     assert shut["selected"] == [] and shut["gate"]["gated"] and shut["gate"]["selected_without_gate"] == ["steer_delay"]
     assert shut["verdict"].startswith("none: the nominal's held-out error is within the noise floor")
     # the gated verdict keeps only the refit: it claims less of the error than the open one
@@ -205,11 +206,11 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     log with a clear steering delay the oracle closes a real gap, a far-off value does worse, and the diagnosis
     that finds the delay closes most of the oracle's gap, a vetoed one none of it."""
     ds = _log(CP.PlantEffects(steer_delay=0.08), seed=5, duration=40.0)
-    nominal = D.nominal_from_vehicle(NOMINAL, ds)
+    nominal = P.nominal_from_vehicle(NOMINAL, ds)
     kw = dict(candidates=("steer_delay", "mass_offset"), max_effects=1, max_starts=50, gate=None, hold=True,
               steer_servo=CP.SERVO_TAU)     # the servo in the nominal: the delay on top of it is the plant's own
     case = {"effect": "steer_delay", "magnitude": 0.08}
-    d = D.diagnose(ds, nominal, truth={"steer_delay": 0.08}, **kw)
+    d = SEL.diagnose(ds, nominal, truth={"steer_delay": 0.08}, **kw)
     assert d["selected"] == ["steer_delay"] and d["truth"]["delta_bic"] < 0
     o = G.oracle_figures(d, case)
     assert o["e_oracle"] < o["e_refit"] and 0.8 < o["gap_vs_oracle"] < 1.2 and 0.8 < o["own_fit_vs_oracle"] < 1.2
@@ -217,12 +218,12 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     assert d["rival"] is None and "not told apart" not in d["verdict"]
     gap = d["candidates"][1]["delta_bic"] - d["candidates"][0]["delta_bic"]
     monkeypatch.setattr(D, "AMBIGUITY_DBIC", gap + 1.0)
-    tie = D.diagnose(ds, nominal, **kw)
+    tie = SEL.diagnose(ds, nominal, **kw)
     assert tie["selected"] == ["steer_delay"] and tie["rival"]["effect"] == "mass_offset"
     assert tie["rival"]["evidence_difference"] == pytest.approx(gap) and "or mass_offset" in tie["verdict"]
     assert tie["not_told_apart"] is None        # without detection limits the choice is named, not withheld
     # with detection limits (the delay above its limit) the same tie is reported and nothing is claimed
-    strict = D.diagnose(ds, nominal, detection_limits={"steer_delay": 0.01, "*": None}, **kw)
+    strict = SEL.diagnose(ds, nominal, detection_limits={"steer_delay": 0.01, "*": None}, **kw)
     assert strict["selected"] == [] and strict["below_limit"] is None and strict["rival"] is None
     t = strict["not_told_apart"]
     assert t["effect"] == "steer_delay" and t["rival"] == "mass_offset"
@@ -230,13 +231,13 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     assert strict["verdict"].startswith("none: steer_delay") and "not told apart, not claimed" in strict["verdict"]
     assert strict["greedy"][0]["not_told_apart"] and strict["greedy"][0]["added"] is None
     monkeypatch.setattr(D, "AMBIGUITY_DBIC", 2.0)     # far apart again: the delay is claimed under the same limits
-    assert D.diagnose(ds, nominal, detection_limits={"steer_delay": 0.01, "*": None}, **kw)["selected"] == ["steer_delay"]
+    assert SEL.diagnose(ds, nominal, detection_limits={"steer_delay": 0.01, "*": None}, **kw)["selected"] == ["steer_delay"]
     assert d["runner_up"]["effect"] == "mass_offset" and d["runner_up"]["evidence_difference"] == pytest.approx(gap)
-    far = G.oracle_figures(D.diagnose(ds, nominal, truth={"steer_delay": 0.3}, **kw), case)
+    far = G.oracle_figures(SEL.diagnose(ds, nominal, truth={"steer_delay": 0.3}, **kw), case)
     assert far["e_oracle"] > o["e_oracle"]
     row = {"status": "ok", "effect": "steer_delay", "selected_without_gate": ["steer_delay"], "gate_ratio": 1.0,
            "delta_bic_top": -5.0, **o}
-    vetoed = G.with_gate([row], None, margin=10.0)[0]
+    vetoed = CAL.with_gate([row], None, margin=10.0)[0]
     assert vetoed["gap_vs_oracle"] == 0.0 and vetoed["e_diagnosed"] == o["e_refit"]
     s = G.oracle_summary([row | {"correct": True}, vetoed | {"correct": False}])
     assert s["oracle_cases"] == 2 and s["median_gap_vs_oracle_found"] == pytest.approx(min(o["gap_vs_oracle"], 1.0))
@@ -247,74 +248,80 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     assert s["median_gap_vs_oracle_strict"] == 0.0
 
 
-def test_study_gap_commonroad_cli(tmp_path, monkeypatch, capsys):
-    """Two cases in two processes, then a rescore with a gate: the files and the gate's veto are consistent."""
+def _sweep_doc(results: list[dict], duration: float = 24.0, seed: int = 11, **diag) -> dict:
+    """A recorded sweep run (what `ddyn gap benchmark --case-set sweep` writes) around these cases."""
+    from ddyn.gap.config import DiagnosisConfig
+
+    return {"settings": {"plant": "commonroad", "case_set": "sweep", "duration": duration, "seed": seed,
+                         "track": "putnam", "car": "commonroad_vehicle2", "nominal": "mapped", "sample_time": 0.04,
+                         "pitch_channel": False, "roll_channel": False, "min_evidence": 0.0, "gate": None,
+                         "diagnosis": DiagnosisConfig(**diag).to_dict()}, "results": results}
+
+
+def test_gap_benchmark_commonroad_cli(tmp_path, monkeypatch, capsys):
+    """Two cases in two processes, then rescores: at a margin that vetoes every selection, and against a
+    calibration (its thresholds, its claim record); the files agree with what was scored."""
     import json
 
     from ddyn.cli import main
 
     monkeypatch.setattr(G, "DURATION", 24.0)   # workers are forked: they see the shorter logs
     out = tmp_path / "gap"
-    assert main(["study", "gap", "--plant", "commonroad", "--cases", "2", "--jobs", "2", "--seed", "3",
-                 "--gate", "0", "--out", str(out), "--no-progress"]) == 0
+    assert main(["gap", "benchmark", "--plant", "commonroad", "--cases", "2", "--jobs", "2", "--seed", "3",
+                 "--out", str(out), "--no-progress"]) == 0
     doc = json.loads((out / "results.json").read_text())
     assert [r["effect"] for r in doc["results"]] == ["steer_delay", "throttle_delay"]
     assert all(r["status"] == "ok" and r["rows"] == 601 for r in doc["results"])
-    assert doc["settings"]["gate"] is None and "with gate" in (out / "results.md").read_text()
-    huge = max(r["gate_ratio"] for r in doc["results"]) * 2
-    assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--gate", str(huge), "--out", str(out)]) == 0
-    doc = json.loads((out / "results.json").read_text())
-    assert all(r["top1"] == "none" for r in doc["results"])
-    # --claim-precision: a calibration that names steering delay on throttle-delay logs too gives it no threshold
+    assert doc["settings"]["gate"] is None and doc["settings"]["diagnosis"] == G.DiagnosisConfig().to_dict()
+    # claim precision: a calibration that names steering delay on throttle-delay logs too gives it no threshold
     def row(e, mag, top1):
         return {"status": "ok", "effect": e, "magnitude": mag, "estimate": mag, "top1": top1, "correct": top1 == e,
                 "selected_without_gate": [top1], "gate_ratio": 1.2, "delta_bic_top": -50.0}
-    cal = tmp_path / "cal.json"
-    cal.write_text(json.dumps({"settings": {"min_evidence": 0.0, "duration": 24.0},
-                               "results": [row("steer_delay", m, "steer_delay") for m in (0.02, 0.05, 0.1)]
-                               + [row("throttle_delay", m, "steer_delay") for m in (0.1, 0.2)]}))
-    for flags, want in (([], 0.02), (["--claim-precision"], None)):
-        assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--thresholds-from", str(cal), *flags,
-                     "--out", str(out)]) == 0
-        doc = json.loads((out / "results.json").read_text())
-        assert doc["settings"]["thresholds"]["steer_delay"] == want
-    assert doc["settings"]["claim_precision"] == {"counts": {"steer_delay": _claims(5, 3, 2)},
-                                                  "withdrawn": ["steer_delay"]}
+    rows = [row("steer_delay", m, "steer_delay") for m in (0.02, 0.05, 0.1)]
+    cal = CAL.from_runs("t", [_sweep_doc(rows + [row("throttle_delay", m, "steer_delay") for m in (0.1, 0.2)])])
+    assert cal.measured_thresholds["steer_delay"] == 0.02 and cal.thresholds["steer_delay"] is None
+    assert cal.claim_record == {"counts": {"steer_delay": _claims(5, 3, 2)}, "withdrawn": ["steer_delay"]}
+    path = CAL.write(cal, tmp_path / "t.json")
+    assert main(["gap", "rescore", "--calibration", str(path), "--out", str(out)]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["settings"]["thresholds"]["steer_delay"] is None and doc["settings"]["calibration"]["name"] == "t"
     assert "such claims/claims: steer_delay 2/5 (3 right); withdrawn: steer_delay" in (out / "results.md").read_text()
-    # detection limits veto by each selection's estimate, which the recorded cases do not hold: a run, no rescore
-    assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--detection-limits-from",
-                 str(out / "results.json"), "--out", str(out)]) == 2
-    assert "needs a run, not --rescore" in capsys.readouterr().err
-    for alone in ("--calibrated-only", "--decision-limits"):
-        assert main(["study", "gap", "--plant", "commonroad", alone, "--out", str(out)]) == 2
-        assert "--decision-limits go with --detection-limits-from" in capsys.readouterr().err
+    huge = max(-r["delta_bic_top"] for r in doc["results"]) * 2
+    assert main(["gap", "rescore", "--min-evidence", str(huge), "--out", str(out)]) == 0
+    doc = json.loads((out / "results.json").read_text())
+    assert all(r["top1"] == "none" for r in doc["results"]) and doc["settings"]["min_evidence"] == huge
+    assert main(["gap", "rescore", "--min-evidence", "0", "--out", str(out)]) == 2     # a margin only rises
+    assert "can only raise the margin" in capsys.readouterr().err
+    kept = CAL.from_runs("k", [_sweep_doc(rows)])
+    assert kept.thresholds["steer_delay"] == 0.02 and kept.claim_record["withdrawn"] == []
+    # a calibration reads sweeps recorded with margin 0 and no limits, of one plant, length and setting
+    with pytest.raises(DdynError, match="not a sweep recorded with margin 0"):
+        CAL.from_runs("x", [_sweep_doc(rows, min_evidence=3.0)])
+    with pytest.raises(DdynError, match="differs from run 0 in duration"):
+        CAL.from_runs("x", [_sweep_doc(rows), _sweep_doc(rows, duration=60.0)])
 
 
-def test_study_gap_duration_sets_the_log_length_and_calibrations_must_match_it(tmp_path, capsys):
-    """--duration: every case's log has that many seconds (recorded in the settings and the table); a margin,
-    threshold or limit calibrated on logs of another length is refused, one of the same length taken."""
+def test_gap_benchmark_duration_sets_the_log_length_and_a_calibration_must_match_it(tmp_path, capsys):
+    """--duration: every case's log has that many seconds (recorded in the settings and the table); a calibration
+    made on logs of another length is refused, and one applies to the case sets it was made for only."""
     import json
 
     from ddyn.cli import main
 
     out = tmp_path / "gap"
-    assert main(["study", "gap", "--plant", "commonroad", "--cases", "1", "--seed", "3", "--gate", "0",
-                 "--duration", "20", "--min-evidence", "0", "--out", str(out), "--no-progress"]) == 0
+    assert main(["gap", "benchmark", "--plant", "commonroad", "--cases", "1", "--seed", "3",
+                 "--duration", "20", "--out", str(out), "--no-progress"]) == 0
     doc = json.loads((out / "results.json").read_text())
     assert doc["settings"]["duration"] == 20.0 and doc["results"][0]["rows"] == 501
     assert isinstance(doc["results"][0]["estimate_top"], float)     # the top candidate's size, whatever it is
     assert "20 s logs" in (out / "results.md").read_text()
-    cal = str(out / "results.json")
-    for flag in ("--min-evidence-from", "--thresholds-from", "--detection-limits-from"):
-        assert main(["study", "gap", "--plant", "commonroad", "--cases", "1", "--seed", "5", flag, cal,
-                     "--out", str(tmp_path / "other"), "--no-progress"]) == 2
-        assert f"{flag} {cal}: its logs are 20 s, this run's {G.DURATION:g} s" in capsys.readouterr().err
-    # a rescore keeps the recorded run's length: the same calibration is taken
-    assert main(["study", "gap", "--plant", "commonroad", "--rescore", "--thresholds-from", cal,
-                 "--out", str(out)]) == 0
-    assert main(["study", "gap", "--plant", "commonroad", "--case-set", "oval", "--duration", "20",
+    cal = CAL.write(CAL.from_runs("c20", [_sweep_doc(doc["results"], duration=20.0)]), tmp_path / "c20.json")
+    assert main(["gap", "benchmark", "--plant", "commonroad", "--cases", "1", "--seed", "5", "--duration", "60",
+                 "--calibration", str(cal), "--out", str(tmp_path / "other"), "--no-progress"]) == 2
+    assert "calibration c20 was made on 20 s logs" in capsys.readouterr().err
+    assert main(["gap", "benchmark", "--plant", "commonroad", "--case-set", "oval", "--calibration", str(cal),
                  "--out", str(out)]) == 2
-    assert "--duration: a run of the single-track plant's" in capsys.readouterr().err
+    assert "--calibration: the CommonRoad plants' putnam, sweep and above case sets only" in capsys.readouterr().err
     with pytest.raises(DdynError, match="--duration"):
         G.run(1, 3, duration=0.0)
 
@@ -347,18 +354,20 @@ def test_a_lost_car_is_retried_on_other_seeds_then_slower(monkeypatch):
     assert [v for _, v in tried] == [15.0, 15.0, G.SLOWEST_RETRY, G.SLOWEST_RETRY]
 
 
-def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
-    """--effects keeps only those cases, with the whole plan's case numbers and seeds; --evidence reaches every
-    case (the multi-step dBIC decides, the one-step one is recorded beside it); a bad effect or spec fails."""
+def test_gap_benchmark_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
+    """[benchmark] effects keeps only those cases, with the whole plan's case numbers and seeds; [diagnosis]
+    evidence reaches every case (the multi-step dBIC decides, the one-step one is recorded beside it); a bad effect
+    or spec fails."""
     import json
 
     from ddyn.cli import main
 
     monkeypatch.setattr(G, "DURATION", 24.0)
     out = tmp_path / "gap"
-    assert main(["study", "gap", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--gate", "0",
-                 "--effects", "mass_offset,none", "--evidence", "multistep:10", "--out", str(out),
-                 "--no-progress"]) == 0
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[diagnosis]\nevidence = "multistep:10"\n[benchmark]\neffects = ["mass_offset", "none"]\n')
+    assert main(["gap", "benchmark", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--config", str(cfg),
+                 "--out", str(out), "--no-progress"]) == 0
     doc = json.loads((out / "results.json").read_text())
     whole = G.plan(8, 3)
     assert [(r["case"], r["seed"]) for r in doc["results"]] == [(c["case"], c["seed"]) for c in whole
@@ -367,37 +376,40 @@ def test_study_gap_effects_filter_and_multistep_evidence(tmp_path, monkeypatch):
     r = doc["results"][0]
     assert r["effect"] == "mass_offset" and r["status"] == "ok"
     assert r["delta_bic_true_one_step"] != r["delta_bic_true"]
-    with pytest.raises(DdynError, match="--effects"):
-        G.run(8, 3, effects=("mass",))
+    with pytest.raises(DdynError, match="effects"):
+        G.run(8, 3, bench=G.BenchmarkConfig(effects=("mass",)))
     with pytest.raises(DdynError, match="evidence"):
-        G.run(8, 3, evidence="rollout")
+        G.DiagnosisConfig(evidence="rollout")
 
 
-def test_study_gap_pitch_channel(tmp_path, monkeypatch, capsys):
-    """--pitch-channel: the grade case's log carries the plant's pitch channel and its diagnosis tries the grade
-    read from it; recorded in the settings and the table; refused where it does not apply."""
+def test_gap_benchmark_pitch_channel(tmp_path, monkeypatch, capsys):
+    """[benchmark] pitch_channel: the grade case's log carries the plant's pitch channel and its diagnosis tries the
+    grade read from it; recorded in the settings and the table; refused where it does not apply."""
     import json
 
     from ddyn.cli import main
 
     monkeypatch.setattr(G, "DURATION", 24.0)
     out = tmp_path / "gap"
-    assert main(["study", "gap", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--gate", "0", "--hold",
-                 "--effects", "grade", "--pitch-channel", "--out", str(out), "--no-progress"]) == 0
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[diagnosis]\nhold = true\n[benchmark]\neffects = ["grade"]\npitch_channel = true\n')
+    assert main(["gap", "benchmark", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--config", str(cfg),
+                 "--out", str(out), "--no-progress"]) == 0
     doc = json.loads((out / "results.json").read_text())
-    assert doc["settings"]["pitch_channel"] and "--pitch-channel" in (out / "results.md").read_text()
+    assert doc["settings"]["pitch_channel"] and "pitch channel" in (out / "results.md").read_text()
     (r,) = doc["results"]
-    assert r["effect"] == "grade" and r["status"] == "ok" and r["candidates"][-1] == "grade_from_pitch"
+    assert r["effect"] == "grade" and r["status"] == "ok" and r["config"]["candidates"][-1] == "grade_from_pitch"
     log, _, _ = G.make_case_log(r)
     assert "pitch" in log.extras and "pitch" not in G.make_case_log(r | {"pitch_channel": False})[0].extras
-    assert main(["study", "gap", "--plant", "commonroad-mb", "--pitch-channel", "--out", str(out)]) == 2
-    assert "--pitch-channel, --roll-channel: the single-track plant's" in capsys.readouterr().err
-    # --roll-channel: the same for the bank (the bank case of the plan)
-    assert main(["study", "gap", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--gate", "0", "--hold",
-                 "--effects", "bank_angle", "--roll-channel", "--out", str(out), "--no-progress"]) == 0
+    assert main(["gap", "benchmark", "--plant", "commonroad-mb", "--config", str(cfg), "--out", str(out)]) == 2
+    assert "pitch_channel, roll_channel: the single-track plant's" in capsys.readouterr().err
+    # roll_channel: the same for the bank (the bank case of the plan)
+    cfg.write_text('[diagnosis]\nhold = true\n[benchmark]\neffects = ["bank_angle"]\nroll_channel = true\n')
+    assert main(["gap", "benchmark", "--plant", "commonroad", "--cases", "8", "--seed", "3", "--config", str(cfg),
+                 "--out", str(out), "--no-progress"]) == 0
     doc = json.loads((out / "results.json").read_text())
     (r,) = doc["results"]
-    assert doc["settings"]["roll_channel"] and r["status"] == "ok" and r["candidates"][-1] == "bank_from_roll"
+    assert doc["settings"]["roll_channel"] and r["status"] == "ok" and r["config"]["candidates"][-1] == "bank_from_roll"
     assert "roll" in G.make_case_log(r)[0].extras
 
 
@@ -407,13 +419,13 @@ def test_the_command_hold_explains_the_dbw_delay():
     modelled, nothing is, and a real 60 ms delay is estimated on top of the hold."""
     kw = dict(candidates=("steer_delay", "throttle_delay", "mass_offset"), max_effects=1, max_starts=50, gate=None)
     clean = _log(seed=5, duration=60.0)
-    nominal = D.nominal_from_vehicle(NOMINAL, clean)
-    ramp = D.diagnose(clean, nominal, **kw)
+    nominal = P.nominal_from_vehicle(NOMINAL, clean)
+    ramp = SEL.diagnose(clean, nominal, **kw)
     assert ramp["selected"] == ["steer_delay"]
     assert 0.02 < ramp["model"]["effects"][0]["params"]["delay"] < 0.06
-    assert D.diagnose(clean, nominal, hold=True, **kw)["selected"] == []
+    assert SEL.diagnose(clean, nominal, hold=True, **kw)["selected"] == []
     late = _log(CP.PlantEffects(steer_delay=0.06), seed=5, duration=60.0)
-    d = D.diagnose(late, D.nominal_from_vehicle(NOMINAL, late), hold=True, **kw)
+    d = SEL.diagnose(late, P.nominal_from_vehicle(NOMINAL, late), hold=True, **kw)
     assert d["selected"] == ["steer_delay"]
     assert d["model"]["effects"][0]["params"]["delay"] == pytest.approx(0.06 + CP.SERVO_TAU, abs=0.015)
 
@@ -428,7 +440,7 @@ def test_identified_nominal_fits_the_plant_better(monkeypatch):
     log = CP.make_log(G.TRACK, CP.PlantEffects(), G.IDENT_SEED, CP.LogSettings(duration=20.0))
 
     def err(coeffs):
-        p = D.Problem(log, D.nominal_from_vehicle(NOMINAL, log, coeffs), 0.95, refit=(), hold=True)
+        p = P.Problem(log, P.nominal_from_vehicle(NOMINAL, log, coeffs), 0.95, refit=(), hold=True)
         return float(np.sum(p.residuals({}, np.zeros(0), p.rows_all) ** 2))
 
     assert err(c) < err(NOMINAL.true_vector())
@@ -459,7 +471,7 @@ def test_scoring_thresholds_and_delay_vs_lag():
     rows = [row("steer_delay", m, "steer_delay" if m >= 0.05 else "steer_lag") for m in (0.02, 0.04, 0.06, 0.1)]
     rows += [row("steer_lag", m, "steer_lag" if m >= 0.1 else G.NONE) for m in (0.05, 0.1, 0.15)]
     rows += [row(G.NONE, 0.0, G.NONE), row(G.NONE, 0.0, "mass_offset")]
-    assert G.reliable_threshold([r for r in rows if r["effect"] == "steer_delay"]) == pytest.approx(0.06)
+    assert CAL.reliable_threshold([r for r in rows if r["effect"] == "steer_delay"]) == pytest.approx(0.06)
     sc = G.score(rows, {"steer_delay": 0.04, "steer_lag": 0.1})
     s = sc["summary"]
     assert sc["per_effect"]["steer_lag"]["measured_threshold"] == pytest.approx(0.1)
@@ -499,34 +511,34 @@ def test_scoring_thresholds_and_delay_vs_lag():
             p = Path(d) / f"{i}.json"
             p.write_text(json.dumps({"results": rs, **G.score(rs)}))
             paths.append(str(p))
-        assert G.thresholds_of(paths[0]) == {"throttle_delay": None}
-        assert G.thresholds_of(",".join(paths)) == {"throttle_delay": pytest.approx(0.25)}
+        assert CAL.thresholds_of(paths[0]) == {"throttle_delay": None}
+        assert CAL.thresholds_of(",".join(paths)) == {"throttle_delay": pytest.approx(0.25)}
         # at a margin the thresholds are measured on the cases rescored with it: the weak finds below it lost
         weak = [r | {"delta_bic_top": -3.0 if r["magnitude"] < 0.2 else -50.0} for r in two]
         p = Path(d) / "weak.json"
         p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": weak}))
-        assert G.thresholds_of(str(p)) == {"throttle_delay": pytest.approx(0.06)}
-        assert G.thresholds_of(str(p), margin=5.0) == {"throttle_delay": pytest.approx(0.25)}
+        assert CAL.thresholds_of(str(p)) == {"throttle_delay": pytest.approx(0.06)}
+        assert CAL.thresholds_of(str(p), margin=5.0) == {"throttle_delay": pytest.approx(0.25)}
         with pytest.raises(DdynError, match="can only raise"):
-            G.thresholds_of(str(p), margin=-1.0)
+            CAL.thresholds_of(str(p), margin=-1.0)
     # tied magnitudes enter the tail together, whichever order they come in
     tie = [row("steer_lag", 0.25, "steer_lag"), row("steer_lag", 0.2, "steer_lag"), row("steer_lag", 0.2, "steer_lag"),
            row("steer_lag", 0.15, "steer_lag"), row("steer_lag", 0.15, G.NONE)]
-    assert G.reliable_threshold(tie) == G.reliable_threshold(tie[::-1]) == pytest.approx(0.2)
+    assert CAL.reliable_threshold(tie) == CAL.reliable_threshold(tie[::-1]) == pytest.approx(0.2)
     # a tail of one magnitude level (pooled sweeps' top, one case per seed) measures no threshold, however many
     # cases it holds: found 4/4 at the largest downforce drawn only, 3/10 above it on a blind seed
     top_only = [row("downforce", 4e-4, "downforce") for _ in range(4)]
     top_only += [row("downforce", 3e-4, "downforce" if k < 3 else G.NONE) for k in range(4)]
-    assert G.reliable_threshold(top_only) is None
-    assert G.reliable_threshold(top_only, min_levels=1) == pytest.approx(4e-4)
+    assert CAL.reliable_threshold(top_only) is None
+    assert CAL.reliable_threshold(top_only, min_levels=1) == pytest.approx(4e-4)
     # the tail is judged as a whole: one miss near the top among 20 cases (95 % found) does not lift the threshold
     # above it; two (18/20) do, above the upper one (every tail holding it has fewer than 20 cases)
     mags = np.linspace(0.05, 0.3, 20)
     one_miss = [row("steer_lag", m, G.NONE if k == 17 else "steer_lag") for k, m in enumerate(mags)]
-    assert G.reliable_threshold(one_miss) == pytest.approx(0.05)
+    assert CAL.reliable_threshold(one_miss) == pytest.approx(0.05)
     two_miss = [row("steer_lag", m, G.NONE if k in (3, 17) else "steer_lag") for k, m in enumerate(mags)]
-    assert G.reliable_threshold(two_miss) == pytest.approx(mags[18])
-    assert G.reliable_threshold([row("steer_lag", m, G.NONE) for m in mags]) is None
+    assert CAL.reliable_threshold(two_miss) == pytest.approx(mags[18])
+    assert CAL.reliable_threshold([row("steer_lag", m, G.NONE) for m in mags]) is None
     # a run with --cases 30 holds the first 30 cases of one with 50 (rescore --cases 30 compares like with like)
     assert G.plan(30, 4242) == G.plan(50, 4242)[:30]
 
@@ -548,20 +560,20 @@ def test_decision_limits_sit_below_the_thresholds_by_the_estimate_spread_there(t
     rs += [row("downforce", 4e-4, 1e-4, G.NONE) for _ in range(3)]
     p = tmp_path / "cal.json"
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": rs}))
-    assert G.thresholds_of(str(p)) == {"steer_lag": pytest.approx(0.1), "downforce": None}
-    lim = G.decision_limits_of(str(p))
+    assert CAL.thresholds_of(str(p)) == {"steer_lag": pytest.approx(0.1), "downforce": None}
+    lim = CAL.decision_limits_of(str(p))
     err = np.array([0.03, -0.01, 0.01, -0.03])       # at 0.05, 0.1, 0.15, 0.2: 0.4 and 0.6 are outside [0.05, 0.2]
     assert lim["downforce"] is None
-    assert lim["steer_lag"] == pytest.approx(0.1 + err.mean() - G.DECISION_Z * err.std(ddof=1))
+    assert lim["steer_lag"] == pytest.approx(0.1 + err.mean() - CAL.DECISION_Z * err.std(ddof=1))
     assert lim["steer_lag"] < 0.1
     # a wide spread would put the limit below zero: zero, every find claimed
     wide = [r | {"estimate": r["magnitude"] + (0.2 if k % 2 else -0.2)} for k, r in enumerate(rs)]
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": wide}))
-    assert G.decision_limits_of(str(p))["steer_lag"] == 0.0
+    assert CAL.decision_limits_of(str(p))["steer_lag"] == 0.0
     # one case in the band measures no spread: the threshold itself
     few = [row("throttle_delay", m, m, "throttle_delay" if m >= 0.1 else G.NONE) for m in (0.02, 0.1, 0.3, 0.5)]
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": few}))
-    assert G.decision_limits_of(str(p)) == {"throttle_delay": pytest.approx(0.1)}
+    assert CAL.decision_limits_of(str(p)) == {"throttle_delay": pytest.approx(0.1)}
 
 
 def test_claim_precision_withdraws_the_threshold_of_an_effect_named_where_it_is_not(tmp_path):
@@ -580,38 +592,39 @@ def test_claim_precision_withdraws_the_threshold_of_an_effect_named_where_it_is_
     rs += [row("bank_angle", b, "downforce", dbic=-12.0) for b in (0.05, 0.1)] + [row(G.NONE, 0.0, G.NONE)]
     p = tmp_path / "cal.json"
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": rs}))
-    assert G.claim_precisions(str(p)) == {"downforce": _claims(6, 4, 2), "steer_lag": _claims(4, 4, 0)}
-    assert G.thresholds_of(str(p))["downforce"] == pytest.approx(5e-5)
-    got = G.thresholds_of(str(p), precision=True)
+    assert CAL.claim_precisions(str(p)) == {"downforce": _claims(6, 4, 2), "steer_lag": _claims(4, 4, 0)}
+    assert CAL.thresholds_of(str(p))["downforce"] == pytest.approx(5e-5)
+    got = CAL.thresholds_of(str(p), precision=True)
     assert got["downforce"] is None and got["steer_lag"] == pytest.approx(0.03) and got["bank_angle"] is None
-    assert G.decision_limits_of(str(p), precision=True)["downforce"] is None
+    assert CAL.decision_limits_of(str(p), precision=True)["downforce"] is None
     # at a margin of 20 the banked logs' downforce (dBIC -12) is not selected: every claim of it is right again
-    assert G.claim_precisions(str(p), 20.0)["downforce"] == _claims(4, 4, 0)
-    assert G.thresholds_of(str(p), 20.0, precision=True)["downforce"] == pytest.approx(5e-5)
+    assert CAL.claim_precisions(str(p), 20.0)["downforce"] == _claims(4, 4, 0)
+    assert CAL.thresholds_of(str(p), 20.0, precision=True)["downforce"] == pytest.approx(5e-5)
     # only the claims the diagnosis would make count: a lag named steering delay with an estimate under the
     # delay's limit, or with the lag within AMBIGUITY_DBIC behind (the tie veto), is not one; a clear one is
     delay = [row("steer_delay", m, "steer_delay") for m in (0.02, 0.05, 0.1)]
     vetoed = [row("steer_lag", 0.03, "steer_delay") | {"estimate_top": 0.005, "runner_up_gap": 10.0},
               row("steer_lag", 0.04, "steer_delay") | {"estimate_top": 0.03, "runner_up_gap": 1.0}]
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": delay + vetoed}))
-    assert G.claim_precisions(str(p)) == {"steer_delay": _claims(5, 3, 2)}
-    assert G.precision_record(str(p)) == {"counts": {"steer_delay": _claims(3, 3, 0)}, "withdrawn": []}
-    assert G.thresholds_of(str(p), precision=True)["steer_delay"] == pytest.approx(0.02)
+    assert CAL.claim_precisions(str(p)) == {"steer_delay": _claims(5, 3, 2)}
+    assert CAL.precision_record(str(p)) == {"counts": {"steer_delay": _claims(3, 3, 0)}, "withdrawn": []}
+    assert CAL.thresholds_of(str(p), precision=True)["steer_delay"] == pytest.approx(0.02)
     clear = row("steer_lag", 0.05, "steer_delay") | {"estimate_top": 0.03, "runner_up_gap": 10.0}
     p.write_text(json.dumps({"settings": {"min_evidence": 0.0}, "results": delay + vetoed + [clear]}))
-    assert G.precision_record(str(p)) == {"counts": {"steer_delay": _claims(4, 3, 1)}, "withdrawn": ["steer_delay"]}
-    assert G.thresholds_of(str(p), precision=True)["steer_delay"] is None
-    assert G.decision_limits_of(str(p), precision=True)["steer_delay"] is None
+    assert CAL.precision_record(str(p)) == {"counts": {"steer_delay": _claims(4, 3, 1)}, "withdrawn": ["steer_delay"]}
+    assert CAL.thresholds_of(str(p), precision=True)["steer_delay"] is None
+    assert CAL.decision_limits_of(str(p), precision=True)["steer_delay"] is None
     # the same claim on a lag above the lag's threshold is a top-1 miss there (the top-1 and delay-vs-lag targets
     # score it), not a claim where nothing should be claimed
-    assert G.claim_precisions(str(p), limits={"steer_delay": 0.02},
+    assert CAL.claim_precisions(str(p), limits={"steer_delay": 0.02},
                               thresholds={"steer_delay": 0.02, "steer_lag": 0.04}) == {"steer_delay": _claims(4, 3, 0)}
 
 
-def test_diagnose_calibration_takes_the_runs_settings_margin_and_decision_levels(tmp_path, capsys):
-    """diagnose --calibration RUNS: the runs' diagnosis settings (hold, fit, servo, nominal effects, gate), their
-    pooled margin and decision levels, every uncalibrated effect never claimed, recorded in diagnosis.json; a log
-    of another length, a clashing setting, --dbw and runs with different settings are refused."""
+def test_diagnose_under_a_calibration_takes_its_settings_margin_and_decision_levels(tmp_path, capsys, monkeypatch):
+    """gap diagnose --calibration FILE: the sweeps' settings (hold, fit, mass inertia), the pooled margin and decision
+    levels, every uncalibrated effect never claimed, recorded in diagnosis.json and the report; a log of another
+    length and a config whose settings differ are refused; by default a shipped calibration that covers the log is
+    used, and a log none covers is diagnosed uncalibrated, saying why; a stale one is refused."""
     import json
 
     from ddyn.cli import main
@@ -624,40 +637,64 @@ def test_diagnose_calibration_takes_the_runs_settings_margin_and_decision_levels
                 "delta_bic_top": dbic}
     rs = [row("steer_delay", m, m * 1.05, "steer_delay" if m >= 0.03 else G.NONE) for m in (0.02, 0.03, 0.05, 0.08)]
     rs += [row(G.NONE, 0.0, None, G.NONE), row(G.NONE, 0.0, None, "mass_offset", dbic=-7.5)]
-    settings = {"min_evidence": 0.0, "hold": True, "fit": "mixed:steer_delay,steer_lag", "mass_inertia": True,
-                "steer_servo": 0.01, "nominal_effects": {"power_limit": 92021.0}, "evidence": "one-step",
-                "gate": None, "duration": 24.0}
-    cal = tmp_path / "cal.json"
-    cal.write_text(json.dumps({"settings": settings, "results": rs}))
+    diag = {"hold": True, "fit": "mixed:steer_delay,steer_lag", "mass_inertia": True}
+    cal = CAL.from_runs("cr24", [_sweep_doc(rs, **diag)], "test")
+    assert cal.margin == pytest.approx(7.5) and cal.claim_record["counts"] == {"steer_delay": _claims(3, 3, 0)}
+    path = CAL.write(cal, tmp_path / "cr24.json")
     log = write_canonical(CP.make_log(load_track("putnam"), CP.PlantEffects(steer_delay=0.06), 5,
                                       CP.LogSettings(duration=24.0, target_speed=22.0)), tmp_path / "log.csv")
-    base = ["diagnose", "--vehicle", str(CP.NOMINAL_VEHICLE), "--data", str(log), "--no-plots", "--calibration"]
-    assert main(base + [str(cal), "--out", str(tmp_path / "d")]) == 0
+    base = ["gap", "diagnose", "--vehicle", str(CP.NOMINAL_VEHICLE), "--data", str(log), "--no-plots"]
+    assert main(base + ["--calibration", str(path), "--out", str(tmp_path / "d")]) == 0
     d = json.loads((tmp_path / "d" / "diagnosis.json").read_text())
-    want = G.calibrated_diagnosis(str(cal))
-    assert want["min_evidence"] == pytest.approx(7.5)
-    assert want["claim_precision"] == {"counts": {"steer_delay": _claims(3, 3, 0)}, "withdrawn": []}
-    assert d["calibration"]["min_evidence"] == pytest.approx(7.5) and d["gate"]["min_evidence"] == pytest.approx(7.5)
-    # every effect the calibration did not sweep: reported, never claimed
-    assert d["calibration"]["detection_limits"] == pytest.approx(want["detection_limits"] | {"*": None})
+    assert d["calibration"]["name"] == "cr24" and d["gate"]["min_evidence"] == pytest.approx(7.5)
+    assert d["config"]["detection_limits"] == pytest.approx(cal.decision_levels | {"*": None})
     assert d["gate"]["threshold"] is None and d["method"]["fit_mode"] == "mixed:steer_delay,steer_lag"
-    assert d["nominal"]["steer_servo_tau"] == 0.01 and d["nominal"]["mass_offset_scales_iz"] is True
-    assert d["nominal"]["command_hold_delay"] > 0
+    assert d["nominal"]["mass_offset_scales_iz"] is True and d["nominal"]["command_hold_delay"] > 0
     assert "evidence margin dBIC < -7.5" in (tmp_path / "d" / "diagnosis.md").read_text()
-    # the same setting given explicitly is fine; another one, --dbw or another log length is not
-    assert main(base + [str(cal), "--hold", "--steer-servo", "0.01", "--gate", "0", "--out", str(tmp_path / "e")]) == 0
-    for extra, msg in ((["--steer-servo", "0.02"], "--steer-servo differ"), (["--gate", "1.5"], "--gate differ"),
-                       (["--fit", "one-step"], "--fit differ"), (["--dbw"], "not with --detection-limits, --dbw")):
-        assert main(base + [str(cal), *extra, "--out", str(tmp_path / "x")]) == 2
-        assert msg in capsys.readouterr().err
-    cal60 = tmp_path / "cal60.json"
-    cal60.write_text(json.dumps({"settings": settings | {"duration": 60.0}, "results": rs}))
-    assert main(base + [str(cal60), "--out", str(tmp_path / "x")]) == 2
-    assert "measured on 60 s logs, this log is 24 s" in capsys.readouterr().err
-    unheld = tmp_path / "unheld.json"
-    unheld.write_text(json.dumps({"settings": settings | {"hold": False}, "results": rs}))
-    with pytest.raises(DdynError, match="differs from .* in hold"):
-        G.calibrated_diagnosis(f"{cal},{unheld}")
+    # a config with the same calibrated settings is fine; another one is not
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('hold = true\nfit = "mixed:steer_delay,steer_lag"\nmass_inertia = true\n')
+    assert main(base + ["--calibration", str(path), "--config", str(cfg), "--out", str(tmp_path / "e")]) == 0
+    cfg.write_text('hold = true\nfit = "one-step"\nmass_inertia = true\n')
+    assert main(base + ["--calibration", str(path), "--config", str(cfg), "--out", str(tmp_path / "x")]) == 2
+    assert "the config's fit differ from the calibration's settings" in capsys.readouterr().err
+    cal60 = CAL.write(CAL.from_runs("cr60", [_sweep_doc(rs, duration=60.0, **diag)]), tmp_path / "cr60.json")
+    assert main(base + ["--calibration", str(cal60), "--out", str(tmp_path / "x")]) == 2
+    assert "cr60 covers 54-66 s logs (60 s +- 10 %), this log is 24 s" in capsys.readouterr().err
+    # shipped calibrations: the one covering the log is taken by default; none covering: uncalibrated, and why
+    shipped = tmp_path / "shipped"
+    shipped.mkdir()
+    monkeypatch.setattr(CAL, "SHIPPED_DIR", shipped)
+    assert main(base + ["--out", str(tmp_path / "u")]) == 0
+    d = json.loads((tmp_path / "u" / "diagnosis.json").read_text())
+    assert d["calibration"] == {"name": None, "why": "uncalibrated: no calibration ships with this version"}
+    CAL.write(cal, shipped / "cr24.json")
+    CAL.write(CAL.load(cal60), shipped / "cr60.json")
+    assert main(base + ["--out", str(tmp_path / "s")]) == 0
+    d = json.loads((tmp_path / "s" / "diagnosis.json").read_text())
+    assert d["calibration"]["name"] == "cr24" and "covers 22-26 s logs" in d["calibration"]["why"]
+    assert main(base + ["--calibration", "none", "--out", str(tmp_path / "n")]) == 0
+    assert json.loads((tmp_path / "n" / "diagnosis.json").read_text())["gate"]["min_evidence"] == 0.0
+    cfg.write_text('fit = "one-step"\n')     # a config whose settings differ: the shipped one does not apply
+    assert main(base + ["--config", str(cfg), "--out", str(tmp_path / "o")]) == 0
+    why = json.loads((tmp_path / "o" / "diagnosis.json").read_text())["calibration"]["why"]
+    assert why.startswith("uncalibrated: cr24 would cover this log, but the config's hold, fit, mass_inertia differ")
+    # made by other fitting code: refused when asked for, and not taken by default
+    stale = json.loads(path.read_text()) | {"code_version": {"fitting": "0" * 16, "plant": cal.code_version["plant"]}}
+    (shipped / "cr24.json").write_text(json.dumps(stale))
+    assert main(base + ["--calibration", "cr24", "--out", str(tmp_path / "x")]) == 2
+    assert "was made by other fitting code" in capsys.readouterr().err
+
+
+def test_calibration_files_are_checked_and_name_what_is_wrong(tmp_path):
+    for text, msg in (("{bad", "not a calibration file"), ('{"schema": "x"}', "schema 'x'"),
+                      ('{"schema": "ddyn-gap-calibration 1"}', "missing")):
+        f = tmp_path / "c.json"
+        f.write_text(text)
+        with pytest.raises(DdynError, match=msg):
+            CAL.load(f)
+    with pytest.raises(DdynError, match="no such file, nor a shipped calibration"):
+        CAL.load("no-such-calibration")
 
 
 def test_the_threshold_sweep_draws_every_effect_over_its_range_largest_first():
@@ -698,29 +735,29 @@ def test_the_mixed_fit_takes_the_steering_delay_one_step_and_refits_the_rest_by_
     log = _log(CP.PlantEffects(steer_delay=0.06), seed=5, duration=12.0)
 
     def prob(mode):
-        return D.Problem(log, D.nominal_from_vehicle(NOMINAL, log), 0.7, hold=True, fit_mode=mode)
+        return P.Problem(log, P.nominal_from_vehicle(NOMINAL, log), 0.7, hold=True, fit=mode)
 
     one, mixed, oe = prob("one-step"), prob("mixed"), prob("output-error")
-    f1 = D.fit(one, ("steer_delay",), scan="steer_delay")
-    fm = D.fit(mixed, ("steer_delay",), scan="steer_delay")
-    fo = D.fit(oe, (), fixed={"steer_delay": f1.values["steer_delay"]})
+    f1 = F.fit(one, ("steer_delay",), scan="steer_delay")
+    fm = F.fit(mixed, ("steer_delay",), scan="steer_delay")
+    fo = F.fit(oe, (), fixed={"steer_delay": f1.values["steer_delay"]})
     assert fm.values["steer_delay"] == pytest.approx(f1.values["steer_delay"])
     assert np.allclose(fm.rho, fo.rho, atol=1e-6) and not np.allclose(fm.rho, f1.rho, atol=1e-4)
     assert not mixed.one_step_now
     # without a steering delay the mixed fit is the output-error fit
-    assert np.allclose(D.fit(mixed, ("mass_offset",)).rho, D.fit(oe, ("mass_offset",)).rho)
+    assert np.allclose(F.fit(mixed, ("mass_offset",)).rho, F.fit(oe, ("mass_offset",)).rho)
     # mixed:downforce takes downforce one-step instead, and the steering delay by output error
     md = prob("mixed:downforce")
     assert md.fit_mode == "mixed" and md.one_step_in_mixed == ("downforce",)
-    fd = D.fit(md, ("downforce",))
-    assert fd.values["downforce"] == pytest.approx(D.fit(one, ("downforce",)).values["downforce"])
-    assert np.allclose(D.fit(md, ("steer_delay",), scan="steer_delay").rho,
-                       D.fit(oe, ("steer_delay",), scan="steer_delay").rho)
-    assert D.parse_fit_spec("mixed") == ("mixed", ("steer_delay",))
-    assert D.parse_fit_spec("mixed:downforce,steer_delay") == ("mixed", ("downforce", "steer_delay"))
+    fd = F.fit(md, ("downforce",))
+    assert fd.values["downforce"] == pytest.approx(F.fit(one, ("downforce",)).values["downforce"])
+    assert np.allclose(F.fit(md, ("steer_delay",), scan="steer_delay").rho,
+                       F.fit(oe, ("steer_delay",), scan="steer_delay").rho)
+    assert CFG.parse_fit_spec("mixed") == ("mixed", ("steer_delay",))
+    assert CFG.parse_fit_spec("mixed:downforce,steer_delay") == ("mixed", ("downforce", "steer_delay"))
     for bad in ("mixed:wings", "output-error:downforce", "rollout"):
         with pytest.raises(DdynError, match="fit"):
-            D.parse_fit_spec(bad)
+            CFG.parse_fit_spec(bad)
 
 
 def test_both_steering_effects_fitted_one_step_tell_a_delay_from_a_lag():
@@ -729,14 +766,14 @@ def test_both_steering_effects_fitted_one_step_tell_a_delay_from_a_lag():
     diagnosis names the right one with its value close."""
     for effect, value in (("steer_delay", 0.08), ("steer_lag", 0.12)):
         log = _log(CP.PlantEffects(**{effect: value}), seed=5, duration=20.0)
-        nominal = D.nominal_from_vehicle(NOMINAL, log)
-        both = D.Problem(log, nominal, 0.7, hold=True, fit_mode="mixed:steer_delay,steer_lag")
-        one = D.Problem(log, nominal, 0.7, hold=True, fit_mode="one-step")
+        nominal = P.nominal_from_vehicle(NOMINAL, log)
+        both = P.Problem(log, nominal, 0.7, hold=True, fit="mixed:steer_delay,steer_lag")
+        one = P.Problem(log, nominal, 0.7, hold=True, fit="one-step")
         assert both.one_step_in_mixed == ("steer_delay", "steer_lag")
-        assert D.fit(both, (effect,), scan=effect).values[effect] == pytest.approx(
-            D.fit(one, (effect,), scan=effect).values[effect])
-        d = D.diagnose(log, nominal, candidates=("steer_delay", "steer_lag", "mass_offset"), max_effects=1,
-                       max_starts=80, gate=None, hold=True, fit_mode="mixed:steer_delay,steer_lag", steer_servo=0.01)
+        assert F.fit(both, (effect,), scan=effect).values[effect] == pytest.approx(
+            F.fit(one, (effect,), scan=effect).values[effect])
+        d = SEL.diagnose(log, nominal, candidates=("steer_delay", "steer_lag", "mass_offset"), max_effects=1,
+                       max_starts=80, gate=None, hold=True, fit="mixed:steer_delay,steer_lag", steer_servo=0.01)
         assert d["selected"] == [effect], d["verdict"]
         est = next(iter(d["model"]["effects"][0]["params"].values()))
         assert est == pytest.approx(value, rel=0.25)

@@ -1,13 +1,13 @@
 """ddyn diagnose: finds a hidden effect on short simulated logs, says "none" without one, reads the real log."""
 from __future__ import annotations
 
-import argparse
 import json
 
 import numpy as np
 import pytest
 
-from ddyn.analysis import diagnose as D
+from ddyn.cli import main
+from ddyn.gap import config as CFG, fit as F, heldout as HO, problem as P, report as R, selection as SEL
 from ddyn.data.dataset import write_canonical
 from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicles
@@ -27,7 +27,7 @@ def delay_log(shared_data):
 
 
 def _diagnose(ds, **kw):
-    return D.diagnose(ds, D.nominal_from_vehicle(ORCA, ds), **kw)
+    return SEL.diagnose(ds, P.nominal_from_vehicle(ORCA, ds), **kw)
 
 
 def test_finds_a_hidden_steer_delay(delay_log):
@@ -70,14 +70,14 @@ def test_noise_floor_matches_the_true_models_error(shared_data):
     """The floor (what a perfect model leaves under white sensor noise, fed through the model's Jacobian) equals
     the true plant's one-step MSE, and a slowly varying model error (a constant bank) does not raise it."""
     ds = _sim("bank_angle=0.03", seed=22)
-    prob = D.Problem(ds, D.nominal_from_vehicle(ORCA, ds), 0.6, refit=())
+    prob = P.Problem(ds, P.nominal_from_vehicle(ORCA, ds), 0.6, refit=())
     rows = prob.rows_all
     res_true = prob.target[rows + 1] - prob.predict({"bank_angle": 0.03}, np.zeros(0), rows)
     res_nominal = prob.target[rows + 1] - prob.predict({}, np.zeros(0), rows)
     mse_true = np.mean(res_true ** 2, axis=0)
-    assert D._noise_floor(prob, res_true) == pytest.approx(mse_true, rel=0.05)
+    assert HO._noise_floor(prob, res_true) == pytest.approx(mse_true, rel=0.05)
     assert np.mean(res_nominal[:, 1] ** 2) > 1.5 * mse_true[1]              # the bank shows in vy ...
-    assert D._noise_floor(prob, res_nominal) == pytest.approx(mse_true, rel=0.05)   # ... but not in the floor
+    assert HO._noise_floor(prob, res_nominal) == pytest.approx(mse_true, rel=0.05)   # ... but not in the floor
 
 
 SCHEMA_KEYS = {"selected", "candidates", "where", "model", "nominal", "split", "method", "schema", "verdict"}
@@ -99,13 +99,15 @@ def _check_schema(d: dict):
 
 def test_cli_writes_json_markdown_and_plots(delay_log, tmp_path):
     data = write_canonical(delay_log, tmp_path / "log.csv")
-    parser = argparse.ArgumentParser()
-    D.register(parser.add_subparsers())
     out = tmp_path / "diag"
-    args = parser.parse_args(["diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out),
-                              "--candidates", "steer_delay,steer_lag,bank_angle"])
-    assert args.func(args) == 0
+    cfg = tmp_path / "cands.toml"
+    cfg.write_text('candidates = "steer_delay,steer_lag,bank_angle"\n')
+    assert main(["gap", "diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out),
+                 "--config", str(cfg)]) == 0
     d = json.loads((out / "diagnosis.json").read_text())
+    assert d["config"]["candidates"] == ["steer_delay", "steer_lag", "bank_angle"]
+    assert d["calibration"]["name"] is None and d["calibration"]["why"].startswith("uncalibrated")
+    assert "Uncalibrated" in (out / "diagnosis.md").read_text()
     _check_schema(d)
     assert d["selected"] == ["steer_delay"]
     assert "track_position" in d["where"]["factors"]         # the log names its track
@@ -121,12 +123,12 @@ def test_reads_the_racecar_csv(shared_data, tmp_path):
     lines = src.read_text().splitlines()
     piece = tmp_path / "putnam_piece.csv"
     piece.write_text("\n".join([lines[0]] + lines[3000:4500]) + "\n")
-    parser = argparse.ArgumentParser()
-    D.register(parser.add_subparsers())
     out = tmp_path / "real"
-    args = parser.parse_args(["diagnose", "--vehicle", "av21", "--data", str(piece), "--out", str(out),
-                              "--no-plots", "--candidates", "steer_delay,yaw_rate_bias,grade"])
-    assert args.func(args) == 0
+    cfg = tmp_path / "cands.json"
+    cfg.write_text('{"candidates": ["steer_delay", "yaw_rate_bias", "grade"]}')
+    # `ddyn diagnose` is the alias of `ddyn gap diagnose`
+    assert main(["diagnose", "--vehicle", "av21", "--data", str(piece), "--out", str(out), "--no-plots",
+                 "--config", str(cfg)]) == 0
     d = json.loads((out / "diagnosis.json").read_text())
     _check_schema(d)
     assert d["nominal"]["vehicle"] == "av21" and d["split"]["heldout_rows"] > 100
@@ -146,22 +148,22 @@ def test_checkpoint_nominal(delay_log, tmp_path):
     model = build_model(cfg, ORCA, f.mean(axis=0), np.maximum(f.std(axis=0), 1e-9))
     path = checkpoint.save(checkpoint.make(TrainResult(model, cfg, np.ones(3), [], 0.0, 0.0), ORCA, "x", "x", 0),
                            tmp_path / "ddm.ckpt")
-    from ddyn.analysis import gap_benchmark as GB
+    from ddyn.gap.benchmark import own as GB
     from ddyn.errors import DdynError
 
     with pytest.raises(DdynError, match="av21"):          # --real --model wants a model of the Putnam car
         GB.run_real(tmp_path / "real", model=str(path))
-    nominal = D.nominal_from_checkpoint(path, delay_log)
+    nominal = P.nominal_from_checkpoint(path, delay_log)
     assert nominal.coeffs.shape == (len(delay_log), 17) and not nominal.valid[:2].any() and nominal.valid[2:-1].all()
-    d = D.diagnose(delay_log, nominal, candidates=("steer_delay", "grade"), refit=())
-    _check_schema(D.public(d))
+    d = SEL.diagnose(delay_log, nominal, candidates=("steer_delay", "grade"), refit=())
+    _check_schema(R.public(d))
     assert d["nominal"]["source"].startswith("DDM checkpoint")
 
 
 # ---------------------------------------------------------------------------------------------- gap benchmark
 
 def test_benchmark_plan_and_scoring():
-    from ddyn.analysis import gap_benchmark as GB
+    from ddyn.gap.benchmark import own as GB
     from ddyn.model import effects as E
 
     cases = GB.plan(390, seed=3)
@@ -183,8 +185,10 @@ def test_benchmark_plan_and_scoring():
 
     rows = [{"magnitude": m, "correct": ok} for m, ok in [(1, False), (2, True), (3, False), (4, True), (5, True),
                                                           (6, True)]]
-    assert GB.reliable_threshold(rows) == 4
-    assert GB.reliable_threshold(rows[:5] + [{"magnitude": 6, "correct": False}]) is None   # the largest missed
+    from ddyn.gap import calibration as CAL    # the one threshold rule, shared by every benchmark
+
+    assert CAL.reliable_threshold(rows) == 4
+    assert CAL.reliable_threshold(rows[:5] + [{"magnitude": 6, "correct": False}]) is None   # the largest missed
 
     # detection depends on magnitude: found from 1.5 x the prior guess up, missed below; one false alarm
     def outcome(c):
@@ -222,16 +226,15 @@ def test_benchmark_plan_and_scoring():
 
 def test_benchmark_cli_tiny_run(shared_data, tmp_path):
     """Two cases end to end on the 1:43 car: simulate, identify the nominal, diagnose blind, score, write."""
-    from ddyn.analysis import gap_benchmark as GB
+    from ddyn.gap.benchmark import own as GB
 
-    parser = argparse.ArgumentParser()
-    GB.register(parser.add_subparsers())
     out = tmp_path / "gb"
+    cfg = tmp_path / "orca.toml"
+    cfg.write_text('[benchmark]\nvehicles = ["orca_1_43"]\n')
     # the plan's first two slots: steer_delay and throttle_delay at random magnitudes (maybe below detection),
     # so the bookkeeping is checked, not the verdicts
-    args = parser.parse_args(["gap", "--cases", "2", "--vehicles", "orca_1_43", "--out", str(out),
-                              "--no-progress", "--seed", "5"])
-    assert args.func(args) == 0
+    assert main(["gap", "benchmark", "--plant", "own", "--cases", "2", "--config", str(cfg), "--out", str(out),
+                 "--no-progress", "--seed", "5"]) == 0
     doc = json.loads((out / "results.json").read_text())
     assert [r["effect"] for r in doc["results"]] == ["steer_delay", "throttle_delay"]
     assert all(r["status"] == "ok" and r["rows"] > 500 for r in doc["results"])
@@ -242,14 +245,13 @@ def test_benchmark_cli_tiny_run(shared_data, tmp_path):
     assert "top-1" in (out / "results.md").read_text() and (out / "detection.png").stat().st_size > 1000
     # --rescore: the same cases scored again from results.json give the same summary
     (out / "results.md").unlink()
-    args = parser.parse_args(["gap", "--rescore", "--out", str(out)])
-    assert args.func(args) == 0
+    assert main(["gap", "rescore", "--out", str(out)]) == 0
     again = json.loads((out / "results.json").read_text())
     assert again["summary"] == doc["summary"] and (out / "results.md").is_file()
 
 
 def test_benchmark_case_runs(shared_data):
-    from ddyn.analysis import gap_benchmark as GB
+    from ddyn.gap.benchmark import own as GB
 
     case = {"case": 0, "vehicle": "orca_1_43", "track": "ethzMobil", "effect": "bank_angle", "magnitude": 0.03,
             "seed": 99}
@@ -260,15 +262,15 @@ def test_benchmark_case_runs(shared_data):
 
 def test_estimate_at_a_range_edge_is_flagged():
     ctx = {"dt": 0.02, "v_ref": 2.0, "v_max": 4.0, "duration": 30.0}
-    assert D.at_bound("mass_offset", -0.5, ctx) and D.at_bound("combined_slip", 5.0, ctx)
-    assert not D.at_bound("mass_offset", 0.1, ctx)
-    assert not D.at_bound("steer_delay", 0.0, ctx)          # zero is "off", not an edge
-    assert D.at_bound("steer_delay", 12 * 0.02, ctx)
+    assert P.at_bound("mass_offset", -0.5, ctx) and P.at_bound("combined_slip", 5.0, ctx)
+    assert not P.at_bound("mass_offset", 0.1, ctx)
+    assert not P.at_bound("steer_delay", 0.0, ctx)          # zero is "off", not an edge
+    assert P.at_bound("steer_delay", 12 * 0.02, ctx)
 
 
 def test_benchmark_real_log(shared_data, tmp_path):
     """--real: the nominal identified on the first half of the Putnam log, the rest diagnosed; honest caveats."""
-    from ddyn.analysis import gap_benchmark as GB
+    from ddyn.gap.benchmark import own as GB
 
     if not (shared_data / "real" / "Putnam_park2023_run4_2.csv").is_file():
         pytest.skip("SHARED DATA MISSING: the Putnam log")
@@ -292,8 +294,10 @@ def test_an_estimate_on_a_range_edge_is_never_the_verdict(delay_log, monkeypatch
     only from the range's edge, so the verdict is "not explained by the effect library", nothing is selected."""
     kw = dict(candidates=("steer_delay",), max_effects=1, max_starts=50)
     assert _diagnose(delay_log, **kw)["selected"] == ["steer_delay"]
-    bounds = D._bounds
-    monkeypatch.setattr(D, "_bounds", lambda n, ctx: (0.0, 0.01) if n == "steer_delay" else bounds(n, ctx))
+    bounds = P._bounds
+    cut = lambda n, ctx: (0.0, 0.01) if n == "steer_delay" else bounds(n, ctx)  # noqa: E731
+    monkeypatch.setattr(P, "_bounds", cut)      # the edge test (at_bound) and the fit's range
+    monkeypatch.setattr(F, "_bounds", cut)
     d = _diagnose(delay_log, **kw)
     assert d["selected"] == [] and d["model"]["effects"] == []
     assert d["verdict"].startswith("none: not explained by the effect library")
@@ -318,35 +322,29 @@ def test_a_find_below_its_detection_limit_is_reported_not_selected(delay_log, tm
         assert d["below_limit"]["params"]["delay"] == pytest.approx(0.03, rel=0.1)
         assert d["verdict"].startswith("none: steer_delay pays on the held-out data") and "not claimed" in d["verdict"]
         assert d["greedy"][0]["below_limit"] and d["greedy"][0]["added"] is None
-    assert D.detection_limits_arg('{"steer_delay": 0.04, "downforce": null, "*": null}') == {
-        "steer_delay": 0.04, "downforce": None, "*": None}
+    # limits in a config file: validated, unknown effects refused with the key named
     f = tmp_path / "limits.json"
-    f.write_text('{"steer_lag": 0.15}')
-    assert D.detection_limits_arg(str(f)) == {"steer_lag": 0.15}
-    run = tmp_path / "results.json"         # a study gap run's results: the limits its settings record
-    run.write_text('{"settings": {"detection_limits": {"steer_delay": 0.043, "*": null}}, "results": []}')
-    assert D.detection_limits_arg(str(run)) == {"steer_delay": 0.043, "*": None}
-    run.write_text('{"settings": {"detection_limits": null}, "results": []}')
-    with pytest.raises(DdynError, match="without detection limits"):
-        D.detection_limits_arg(str(run))
-    with pytest.raises(DdynError, match="unknown effect"):
-        D.detection_limits_arg('{"warp_drive": 1}')
+    f.write_text('{"detection_limits": {"steer_delay": 0.04, "downforce": null, "*": null}}')
+    assert CFG.DiagnosisConfig.from_file(f).detection_limits == {"steer_delay": 0.04, "downforce": None, "*": None}
+    f.write_text('{"detection_limits": {"warp_drive": 1}}')
+    with pytest.raises(DdynError, match="detection_limits: unknown effect 'warp_drive'"):
+        CFG.DiagnosisConfig.from_file(f)
 
 
 @pytest.mark.parametrize("mode", ["smoothed", "output-error"])
 def test_every_fit_mode_finds_the_delay(delay_log, mode):
     """The errors-in-variables fits find the same hidden 30 ms delay; held-out scores stay one-step."""
-    d = _diagnose(delay_log, candidates=("steer_delay", "mass_offset"), max_effects=1, max_starts=50, fit_mode=mode)
+    d = _diagnose(delay_log, candidates=("steer_delay", "mass_offset"), max_effects=1, max_starts=50, fit=mode)
     assert d["selected"] == ["steer_delay"] and d["method"]["fit_mode"] == mode
     assert d["model"]["effects"][0]["params"]["delay"] == pytest.approx(0.03, rel=0.15)
     with pytest.raises(Exception, match="unknown fit"):
-        _diagnose(delay_log, fit_mode="two-step")
+        _diagnose(delay_log, fit="two-step")
 
 
 def test_leave_out_smoother():
     """The smoother reproduces a quadratic exactly (edges included), leaves the predicted sample out, and cuts
     white noise's variance to sum(w^2) of it."""
-    from ddyn.analysis import eiv
+    from ddyn.gap import eiv
 
     t = np.arange(60.0)
     states = np.zeros((60, 8))
@@ -367,26 +365,28 @@ def test_leave_out_smoother():
     assert abs(np.corrcoef(sm[10:-11, 3], noise[11:-10, 3])[0, 1]) < 0.05
 
 
-def test_cli_dbw_preset(delay_log, tmp_path):
-    """--dbw: the hold, output error and the calibrated margin, recorded in diagnosis.json; an explicit
-    --min-evidence wins; --mass-inertia and --steer-servo are recorded."""
+def test_cli_dbw_config(delay_log, tmp_path):
+    """--config dbw (shipped): the hold, output error and the calibrated margin, recorded in diagnosis.json; a
+    file's own settings; mass_inertia and steer_servo are recorded."""
     data = write_canonical(delay_log, tmp_path / "log.csv")
-    parser = argparse.ArgumentParser()
-    D.register(parser.add_subparsers())
     out = tmp_path / "diag"
-    args = parser.parse_args(["diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out),
-                              "--candidates", "steer_delay,mass_offset", "--no-plots", "--dbw", "--min-evidence", "2"])
-    assert args.func(args) == 0
+    cfg = tmp_path / "dbw2.toml"
+    cfg.write_text('[diagnosis]\nhold = true\nfit = "output-error"\nmin_evidence = 2\n'
+                   'candidates = ["steer_delay", "mass_offset"]\n')
+    assert main(["gap", "diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out), "--no-plots",
+                 "--config", str(cfg)]) == 0
     d = json.loads((out / "diagnosis.json").read_text())
-    assert d["method"]["fit_mode"] == D.DBW_PRESET["fit"] == "output-error"
+    assert d["method"]["fit_mode"] == "output-error"
     assert d["nominal"]["command_hold_delay"] == pytest.approx(0.5 * delay_log.sample_time)
     assert d["gate"]["min_evidence"] == 2.0
     assert d["nominal"]["mass_offset_scales_iz"] is False and d["nominal"]["steer_servo_tau"] == 0.0
+    shipped = CFG.DiagnosisConfig.from_file("dbw")
+    assert shipped.hold is True and shipped.fit == "output-error" and shipped.min_evidence == pytest.approx(13.02)
+    cfg.write_text('[diagnosis]\nhold = true\nfit = "output-error"\ncandidates = ["steer_lag"]\n'
+                   'mass_inertia = true\nsteer_servo = 0.01\n')
     out2 = tmp_path / "diag2"
-    args = parser.parse_args(["diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out2),
-                              "--candidates", "steer_lag", "--no-plots", "--dbw", "--mass-inertia",
-                              "--steer-servo", "0.01"])
-    assert args.func(args) == 0
+    assert main(["gap", "diagnose", "--vehicle", "orca_1_43", "--data", str(data), "--out", str(out2), "--no-plots",
+                 "--config", str(cfg)]) == 0
     d = json.loads((out2 / "diagnosis.json").read_text())
     assert d["nominal"]["mass_offset_scales_iz"] is True and d["nominal"]["steer_servo_tau"] == 0.01
 
@@ -395,14 +395,14 @@ def test_multistep_evidence(shared_data):
     """--evidence multistep:N (opt-in): windows start after the fit/held-out cut and do not overlap; a hidden mass
     offset pays under it, an effect-free log selects nothing; the one-step figure is kept beside it; bad specs fail;
     the default stays one-step."""
-    assert D.parse_evidence_spec(None) == (0, False) and D.parse_evidence_spec("one-step") == (0, False)
-    assert D.parse_evidence_spec("multistep") == (D.MULTISTEP_DEFAULT_STEPS, False)
-    assert D.parse_evidence_spec("multistep:7") == (7, False)
+    assert CFG.parse_evidence_spec(None) == (0, False) and CFG.parse_evidence_spec("one-step") == (0, False)
+    assert CFG.parse_evidence_spec("multistep") == (CFG.MULTISTEP_DEFAULT_STEPS, False)
+    assert CFG.parse_evidence_spec("multistep:7") == (7, False)
     for bad in ("multistep:1", "multistep:x", "rollout:5"):
         with pytest.raises(Exception, match="evidence"):
-            D.parse_evidence_spec(bad)
+            CFG.parse_evidence_spec(bad)
     ds = _sim("mass_offset=0.15", seed=24)
-    prob = D.Problem(ds, D.nominal_from_vehicle(ORCA, ds), D.DEFAULT_FIT_FRACTION)
+    prob = P.Problem(ds, P.nominal_from_vehicle(ORCA, ds), CFG.DiagnosisConfig().fit_fraction)
     prob.set_evidence(10)
     s = prob.ev_starts
     assert len(s) >= 20 and s.min() >= prob.rows_held[0] and np.all(np.diff(s) >= 10)
@@ -427,11 +427,11 @@ def test_endpoint_evidence(shared_data):
     the penalty counts windows (one roughly independent sample each, so the correlated errors within a window are
     not counted as independent evidence): the score is that formula; it is weaker than the all-steps score; a hidden
     mass offset still pays; an effect-free log selects nothing."""
-    assert D.parse_evidence_spec("endpoint:7") == (7, True) and D.parse_evidence_spec("endpoint") == (25, True)
-    assert D.parse_evidence_spec("multistep:7") == (7, False) and D.parse_evidence_spec(None) == (0, False)
+    assert CFG.parse_evidence_spec("endpoint:7") == (7, True) and CFG.parse_evidence_spec("endpoint") == (25, True)
+    assert CFG.parse_evidence_spec("multistep:7") == (7, False) and CFG.parse_evidence_spec(None) == (0, False)
     for bad in ("endpoint:1", "endpoint:x", "end:5"):
         with pytest.raises(Exception, match="evidence"):
-            D.parse_evidence_spec(bad)
+            CFG.parse_evidence_spec(bad)
     ds = _sim("mass_offset=0.15", seed=24)
     kw = dict(candidates=("mass_offset", "steer_delay"), max_effects=1, max_starts=50)
     d = _diagnose(ds, evidence="endpoint:10", **kw)
@@ -443,13 +443,13 @@ def test_endpoint_evidence(shared_data):
     assert c["delta_bic_one_step"] == pytest.approx(cm["delta_bic_one_step"])
     assert cm["delta_bic"] < c["delta_bic"]
     # the formula: dLL of the last step's (vx, vy, omega) errors over the windows, the penalty ln(windows)
-    prob = D.Problem(ds, D.nominal_from_vehicle(ORCA, ds), D.DEFAULT_FIT_FRACTION)
+    prob = P.Problem(ds, P.nominal_from_vehicle(ORCA, ds), CFG.DiagnosisConfig().fit_fraction)
     prob.set_evidence(10, endpoint=True)
     nw = len(prob.ev_starts)
     base = {"rss": np.ones(3), "ms_rss": np.full((10, 3), 4.0)}
     cand = {"rss": np.ones(3), "ms_rss": np.full((10, 3), 4.0)}
     cand["ms_rss"][-1] = 1.0
-    s = D._score(prob, base, cand, 1, 1)
+    s = SEL._score(prob, base, cand, 1, 1)
     f2 = prob.floor ** 2
     dll = -0.5 * nw * (np.sum(np.log(1.0 / nw + f2)) - np.sum(np.log(4.0 / nw + f2)))
     assert s["delta_loglik"] == pytest.approx(dll) and s["delta_bic"] == pytest.approx(-2 * dll + np.log(nw))

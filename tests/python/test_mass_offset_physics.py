@@ -11,8 +11,8 @@ import pytest
 vehiclemodels = pytest.importorskip("vehiclemodels", reason="COMMONROAD MISSING: pip install "
                                     "commonroad-vehicle-models (requirements.in); CI installs it")
 
-from ddyn.analysis import diagnose as D  # noqa: E402
-from ddyn.data import commonroad_plant as CP  # noqa: E402
+from ddyn.gap import config as CFG, fit as F, heldout as HO, problem as P, report as R, selection as SEL  # noqa: E402
+from ddyn.plants import commonroad_st as CP  # noqa: E402
 from ddyn.model import effects as E  # noqa: E402
 from ddyn.model import mathns  # noqa: E402
 from ddyn.model.single_track import COEFF_NAMES  # noqa: E402
@@ -64,22 +64,22 @@ def test_a_heavier_plant_is_estimated_heavier():
     ds = _log(CP.PlantEffects(mass_offset=0.25), seed=7, duration=30.0)
 
     def estimate(mass_inertia):
-        prob = D.Problem(ds, D.nominal_from_vehicle(NOMINAL, ds), D.DEFAULT_FIT_FRACTION, hold=True,
+        prob = P.Problem(ds, P.nominal_from_vehicle(NOMINAL, ds), CFG.DiagnosisConfig().fit_fraction, hold=True,
                          mass_inertia=mass_inertia)
-        return D.fit(prob, ("mass_offset",)).values["mass_offset"]
+        return F.fit(prob, ("mass_offset",)).values["mass_offset"]
 
     assert estimate(True) == pytest.approx(0.25, abs=0.1)
     assert estimate(False) < 0.1
 
 
 def test_the_known_servo_and_nominal_effects_a_hypothesis_replaces_them(short):
-    prob = D.Problem(short, D.nominal_from_vehicle(NOMINAL, short), 0.6, hold=True, steer_servo=0.01)
+    prob = P.Problem(short, P.nominal_from_vehicle(NOMINAL, short), 0.6, hold=True, steer_servo=0.01)
     assert prob.effects({}).steer_lag == pytest.approx(0.01)
     assert prob.effects({"steer_lag": 0.05}).steer_lag == pytest.approx(0.05)
     fx = prob.effects({"steer_delay": 0.03})
     assert fx.steer_lag == pytest.approx(0.01) and fx.steer_delay == pytest.approx(0.03 + 0.5 * short.sample_time)
-    assert D.Problem(short, D.nominal_from_vehicle(NOMINAL, short), 0.6).effects({}).steer_lag == 0.0
+    assert P.Problem(short, P.nominal_from_vehicle(NOMINAL, short), 0.6).effects({}).steer_lag == 0.0
     # any effect the nominal carries (a data sheet's power limit), replaced by a hypothesis of the same effect
-    prob = D.Problem(short, D.nominal_from_vehicle(NOMINAL, short), 0.6,
-                     nominal_effects=D.nominal_effects_arg("power_limit=92000"))
+    prob = P.Problem(short, P.nominal_from_vehicle(NOMINAL, short), 0.6,
+                     nominal_effects=CFG.DiagnosisConfig.from_dict({"nominal_effects": "power_limit=92000"}).nominal_effects)
     assert prob.effects({}).power_limit == 92000.0 and prob.effects({"power_limit": 5e4}).power_limit == 5e4

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from ddyn.analysis import parallel
+from ddyn.gap.benchmark import parallel
 
 
 def _slow_square(x: int) -> tuple[int, int]:
@@ -38,7 +38,7 @@ def test_cases_run_on_a_dask_cluster_in_input_order():
 
 
 def test_the_gap_command_hands_its_cases_to_the_scheduler(monkeypatch):
-    from ddyn.analysis import gap_benchmark
+    from ddyn.gap.benchmark import own as gap_benchmark
 
     seen = []
 
@@ -56,13 +56,13 @@ def test_the_gap_command_hands_its_cases_to_the_scheduler(monkeypatch):
     assert parallel._scheduler is None  # reset afterwards, so later runs in this process are local
 
 
-def test_each_case_carries_the_gate_and_margin_set_here(monkeypatch):
-    """`study gap --min-evidence/--gate` set diagnose's module defaults in this process; a Dask worker is no
-    fork of it, so every case must carry them to the worker's diagnose (else it diagnoses with margin 0)."""
+def test_each_case_carries_the_runs_config(monkeypatch):
+    """Every case carries the run's DiagnosisConfig (a Dask worker is no fork of this process), and running a
+    benchmark changes nothing in the diagnosis's module state: a later diagnose() sees the defaults."""
     import pytest
 
-    from ddyn.analysis import diagnose as D
-    from ddyn.analysis import gap_independent as G
+    from ddyn.gap import config as CFG
+    from ddyn.gap.benchmark import commonroad as G
 
     class Captured(Exception):
         pass
@@ -73,17 +73,9 @@ def test_each_case_carries_the_gate_and_margin_set_here(monkeypatch):
         seen["cases"] = cases
         raise Captured
 
-    limits = {"steer_lag": 0.15, "downforce": None}
-    monkeypatch.setattr(D, "MIN_EVIDENCE", 13.02)
-    monkeypatch.setattr(D, "NO_GAP_GATE", None)
-    monkeypatch.setattr(D, "DETECTION_LIMITS", limits)
+    cfg = CFG.DiagnosisConfig(min_evidence=13.02, detection_limits={"steer_lag": 0.15, "downforce": None}, hold=True)
     monkeypatch.setattr(G, "run_cases", capture)
     with pytest.raises(Captured):
-        G.run(3, seed=99, progress=False)
-    # what a worker with the module defaults (margin 0, default gate, no limits) passes to diagnose
-    monkeypatch.setattr(D, "MIN_EVIDENCE", 0.0)
-    monkeypatch.setattr(D, "NO_GAP_GATE", 1.5)
-    monkeypatch.setattr(D, "DETECTION_LIMITS", None)
-    assert [G.vetoes_of(c) for c in seen["cases"]] == [{"gate": None, "min_evidence": 13.02,
-                                                         "detection_limits": limits}] * 3
-    assert G.vetoes_of({}) == {"gate": "default", "min_evidence": None, "detection_limits": "default"}
+        G.run(3, seed=99, config=cfg, progress=False)
+    assert [CFG.DiagnosisConfig.from_dict(c["config"]) for c in seen["cases"]] == [cfg] * 3
+    assert CFG.DiagnosisConfig() == CFG.DiagnosisConfig(min_evidence=0.0, detection_limits=None, hold=False)

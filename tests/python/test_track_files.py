@@ -138,7 +138,7 @@ def test_sil_plant_gets_a_users_track(tmp_path, shared_data):
 
 def test_simulate_and_diagnose_take_a_users_track(tmp_path):
     """`ddyn simulate --track <files>` drives the user's track; `ddyn diagnose --track <files>` loads it."""
-    from ddyn.analysis.diagnose import _track
+    from ddyn.gap.problem import track_for as _track
     from ddyn.data.simulate import simulate
 
     write_track(open_track("random:4"), tmp_path / "mine")

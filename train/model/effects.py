@@ -533,7 +533,7 @@ class LogModel:
                  substeps: int = 1, extras: dict | None = None):
         self.time, self.segment = np.asarray(time, float), np.asarray(segment)
         # track position per row (bank/grade profiles along the track) and the lap length (None: not periodic);
-        # set by the caller that knows the track (ddyn.analysis.diagnose)
+        # set by the caller that knows the track (ddyn.gap.selection)
         self.position: np.ndarray | None = None
         self.track_length: float | None = None
         self.extras = dict(extras or {})   # logged channels a "channel" profile reads (roll)

@@ -1,7 +1,7 @@
 """A banked oval: two straights joined by two semicircular turns, with its banking along the lap.
 
 Why: the issue's real oval (about 20 degrees in the turns, 9 on the front straight) is the case the
-flat-track diagnosis got wrong; the independent plant (ddyn.data.commonroad_plant) drives this one so the
+flat-track diagnosis got wrong; the independent plant (ddyn.plants.commonroad_st) drives this one so the
 bank profile the diagnosis fits can be compared with the true one. The banking belongs to the track (the
 world), not to a drawn effect: `Track.bank` holds it per centre-line point (rad, positive tilting the road
 so that gravity pulls to the left of the direction of travel: into the turns of this counter-clockwise

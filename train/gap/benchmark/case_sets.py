@@ -1,9 +1,9 @@
 """`ddyn study gap --plant commonroad --case-set oval|drivetrain`: the bank profile and the drivetrain on the
 independent plant.
 
-Why: on Putnam (gap_independent.py) the bank and grade profiles are never found, and nothing spoke to vx
-gaps of the drivetrain. These two case sets score the candidates added for them (ddyn.analysis.candidates,
-the drivetrain effects of ddyn.model.effects) on logs of the CommonRoad plant (ddyn.data.commonroad_plant),
+Why: on Putnam (commonroad.py) the bank and grade profiles are never found, and nothing spoke to vx
+gaps of the drivetrain. These two case sets score the candidates added for them (ddyn.gap.candidates,
+the drivetrain effects of ddyn.model.effects) on logs of the CommonRoad plant (ddyn.plants.commonroad_st),
 the nominal being the flat-road vehicle file (a model from a flat track):
 
   oval        the banked oval of ddyn.model.track_oval, 120 s logs (2.4 laps at 24 m/s, so the fit part
@@ -18,7 +18,7 @@ the nominal being the flat-road vehicle file (a model from a flat track):
               power-law pedal map; power_limit replaces CommonRoad's own 92 kW). Scored: top-1, false alarms,
               relative parameter error.
 
-The nominal: the mapped vehicle file, or (nominal="identified") the coefficients gap_independent fits on an
+The nominal: the mapped vehicle file, or (nominal="identified") the coefficients commonroad.py fits on an
 effect-free plant log on Putnam (a flat track); the fit mode and the evidence margin (diagnose.MIN_EVIDENCE) as
 for the Putnam set. Each log records its greedy steps' dBICs, from which calibrate_margin reads the margin that
 silences the effect-free logs (chosen on the calibration seed 11 only).
@@ -32,13 +32,16 @@ import time
 
 import numpy as np
 
-from ddyn.analysis import candidates as C
-from ddyn.analysis import diagnose as D
-from ddyn.analysis.gap_independent import NONE, SPEEDS, _f, _median, vetoes_of
-from ddyn.analysis.parallel import run_cases
-from ddyn.data import commonroad_plant as CP
 from ddyn.errors import DdynError
+from ddyn.gap import candidates as C
+from ddyn.gap.benchmark.commonroad import NONE, SPEEDS, _f, _median, identified_coefficients
+from ddyn.gap.benchmark.parallel import run_cases
+from ddyn.gap.calibration import calibrate_margin
+from ddyn.gap.config import DiagnosisConfig
+from ddyn.gap.problem import nominal_from_vehicle
+from ddyn.gap.selection import diagnose
 from ddyn.model.vehicle import load as load_vehicle
+from ddyn.plants import commonroad_st as CP
 
 SETS = ("oval", "drivetrain")
 OVAL_BANKS = {"turns": (15.0, 24.0), "front": (6.0, 10.0), "back": (2.0, 6.0)}   # deg, drawn uniformly
@@ -119,13 +122,14 @@ def run_case(case: dict) -> dict:
     veh = load_vehicle(CP.NOMINAL_VEHICLE)
     t0 = time.perf_counter()
     coeffs = np.asarray(case["coefficients"]) if case.get("coefficients") is not None else None
-    diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), candidates=C.ALL, track=track,
-                      hold=bool(case.get("hold", False)), fit_mode=case.get("fit"), **vetoes_of(case))
+    diag = diagnose(ds, nominal_from_vehicle(veh, ds, coeffs), DiagnosisConfig.from_dict(case["config"]),
+                    track=track)
     seconds = time.perf_counter() - t0
     top1 = diag["selected"][0] if diag["selected"] else NONE
     family = C.FAMILY.get(top1, top1)
     res = {"status": "ok", "seed_used": seed, "rows": len(ds), "selected": diag["selected"], "top1": top1,
            "correct": family == case["effect"], "verdict": diag["verdict"],
+           "selected_without_gate": diag["gate"]["selected_without_gate"],
            "delta_bic_top": diag["candidates"][0]["delta_bic"], "top_candidate": diag["candidates"][0]["effect"],
            "roll_plausible": (diag["data"]["roll_channel"] or {}).get("plausible"), "diagnose_seconds": seconds,
            # each greedy step's best candidate and dBIC (an evidence margin is calibrated from them)
@@ -194,22 +198,13 @@ def score(results: list[dict]) -> dict:
             "per_group": per}
 
 
-def calibrate_margin(results: list[dict], target: float = 0.05) -> float:
-    """The smallest evidence margin (diagnose --min-evidence) that leaves at most `target` of the effect-free
-    logs with a selection: a margin only stops the greedy step earlier, so it is read off each log's first step."""
-    none = [r for r in results if r["status"] == "ok" and r["effect"] == NONE]
-    alarms = sorted(-r["greedy"][0][1] for r in none if r["selected"])
-    allowed = math.floor(target * len(none))
-    return 0.0 if len(alarms) <= allowed else float(alarms[len(alarms) - allowed - 1])
-
-
 def markdown(sc: dict, settings: dict, seconds: float) -> str:
     s = sc["summary"]
     lines = [f"Independent plant, case set {settings['case_set']}, seed {settings['seed']}; {s['cases']} cases "
              f"({s['cases'] - s['simulated']} not simulated), {s['effect_cases']} with an effect, {s['none_cases']} "
              f"without; command hold {'modelled' if settings['hold'] else 'not modelled'}; nominal: "
              f"{'identified on a flat-track plant log' if settings.get('nominal') == 'identified' else 'the flat-road vehicle file'}; "
-             f"fit {settings.get('fit') or D.DEFAULT_FIT}; evidence margin {settings.get('min_evidence') or 0:g}; "
+             f"fit {settings.get('fit') or 'one-step'}; evidence margin {settings.get('min_evidence') or 0:g}; "
              f"{seconds / 60:.1f} min with {settings['jobs']} job(s).", "",
              f"Top-1 {_f(s['top1'], True)}; false alarms {_f(s['false_alarm_rate'], True)} "
              f"({', '.join(s['false_alarm_effects']) or 'none selected'}); median parameter error (found) "
@@ -228,29 +223,27 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(case_set: str, n_cases: int, seed: int, jobs: int = 1, progress: bool = True, hold: bool = False,
-        nominal: str = "mapped", fit: str | None = None) -> dict:
-    """nominal: "mapped" (the vehicle file) or "identified" (gap_independent.identified_coefficients: fitted on
-    an effect-free 120 s plant log on Putnam, a flat track). fit: the diagnosis's fit mode (D.FIT_MODES)."""
-    from ddyn.analysis import gap_independent as G
-
+def run(case_set: str, n_cases: int, seed: int, config: DiagnosisConfig | None = None, nominal: str = "mapped",
+        jobs: int = 1, progress: bool = True) -> dict:
+    """nominal: "mapped" (the vehicle file) or "identified" (commonroad.identified_coefficients: fitted on an
+    effect-free 120 s plant log on Putnam, a flat track). config: the diagnosis's settings; its candidates are
+    the whole library here (the profiles, the channel readings and the drivetrain are what these sets test)."""
     CP.require_commonroad()
     if case_set not in SETS:
         raise DdynError(f"unknown case set {case_set!r}; expected one of {', '.join(SETS)}")
+    config = (config or DiagnosisConfig()).with_(candidates=C.ALL)
     t0 = time.perf_counter()
     coeffs, ident = None, None
     if nominal == "identified":
-        coeffs, ident = G.identified_coefficients(hold)
-    elif nominal != "mapped":
-        raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
-    cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist()}
-             | G.diagnosis_vetoes() for c in plan(case_set, n_cases, seed)]
+        coeffs, ident = identified_coefficients(config.hold is True)
+    cases = [c | {"config": config.to_dict(), "coefficients": None if coeffs is None else coeffs.tolist()}
+             for c in plan(case_set, n_cases, seed)]
     results = run_cases(run_case, cases, jobs, desc=f"gap-benchmark (commonroad, {case_set})", progress=progress)
     seconds = time.perf_counter() - t0
     settings = {"plant": "commonroad", "case_set": case_set, "cases": n_cases, "seed": seed, "jobs": jobs,
-                "hold": hold, "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT,
-                "oval_banks_deg": OVAL_BANKS, "drivetrain_ranges": DRIVETRAIN_RANGES,
-                "gate": D.NO_GAP_GATE, "min_evidence": D.MIN_EVIDENCE, "calibration_seed": False}
+                "diagnosis": config.to_dict(), "nominal": nominal, "identification": ident,
+                "oval_banks_deg": OVAL_BANKS, "drivetrain_ranges": DRIVETRAIN_RANGES, "calibration_seed": False,
+                "hold": config.hold, "fit": config.fit, "gate": config.gate, "min_evidence": config.min_evidence}
     sc = score(results)
     return {"settings": settings, **sc, "results": results, "seconds": seconds,
             "calibrated_margin": calibrate_margin(results), "markdown": markdown(sc, settings, seconds)}

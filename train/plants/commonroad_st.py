@@ -44,7 +44,7 @@ How a log is made (the way a car with a drive-by-wire unit is logged):
     torque interruption at each shift;
   - LogSettings.dbw_period: a DBW unit at another rate than the log (the driver decides at each DBW tick, the
     log records the command in force at each row);
-  - the model is pluggable (StdModel here; ddyn.data.commonroad_mb_plant.MbModel: the multi-body model).
+  - the model is pluggable (StdModel here; ddyn.plants.commonroad_mb.MbModel: the multi-body model).
 
 State mapping (CommonRoad -> canonical): x, y; yaw = psi; vx = v cos(beta), vy = v sin(beta);
 omega = psi_dot. The noise-free values and the actual wheel angle are kept as extras true_*.
@@ -183,7 +183,7 @@ class _Env:
     grade: float = 0.0
     gamma: float = 1.0           # pedal map T^gamma (throttle)
     brake_gain: float = 0.0
-    model: object = field(default_factory=lambda: StdModel())   # or ddyn.data.commonroad_mb_plant.MbModel
+    model: object = field(default_factory=lambda: StdModel())   # or ddyn.plants.commonroad_mb.MbModel
     n_model: int = 9             # the model's own states (relaxed slip angles follow them)
     hook: object = None          # _TyreHook when tyre relaxation is on
     relaxation: float = 0.0      # m
@@ -359,7 +359,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
              settings: LogSettings = LogSettings(), nominal: Vehicle | str | Path = NOMINAL_VEHICLE,
              model=None) -> Dataset:
     """One log of the CommonRoad plant driven around `track` (see the module docstring). model: StdModel()
-    (default) or ddyn.data.commonroad_mb_plant.MbModel()."""
+    (default) or ddyn.plants.commonroad_mb.MbModel()."""
     require_commonroad()
     model = model or StdModel()
     track = load_track(track) if isinstance(track, str) else track

@@ -1,7 +1,6 @@
-"""`ddyn study gap`: does `ddyn diagnose` find an effect it was not told about?
-
---plant own (default, below): logs of the project's own model, the easy case. --plant commonroad: logs of
-an independent plant (gap_independent.py, docs/gap_independent.md). --jobs N runs the cases in N processes.
+"""`ddyn gap benchmark --plant own`: does the diagnosis find an effect it was not told about, on logs of the
+project's own model (the easy case: the logs are made with the model code the diagnosis fits)? The independent
+plants: commonroad.py, multibody.py, case_sets.py (docs/gap.md). --jobs N runs the cases in N processes.
 
 Each case: a nominal model identified on effect-free simulated data (per vehicle, once: the
 17 coefficients fitted by least squares to one-step predictions of a separate noisy log,
@@ -22,9 +21,9 @@ the oracle (the true plant with its true effect): (E_nominal - E_diagnosed) / (E
 E_oracle) on the held-out normalised one-step MSE; false alarms (anything selected on an
 effect-free log).
 
-Detection thresholds are MEASURED: per vehicle and effect, reliable_threshold is the smallest
-drawn |magnitude| from which the cases are identified at >= 95 % (every larger drawn magnitude
-included). Accuracy "above the threshold" computed on the cases that set the threshold would
+Detection thresholds are MEASURED: per vehicle and effect, by the one threshold rule of
+ddyn.gap.calibration (reliable_threshold: the smallest drawn |magnitude| whose whole tail, over at
+least two magnitude levels, is identified at >= 95 %). Accuracy "above the threshold" computed on the cases that set the threshold would
 be >= 95 % by construction, so it is cross-fitted: the cases are split into two folds (blocks of
 39 cases, each holding every effect and vehicle) and each fold is scored above the threshold
 measured on the other fold. Accuracy above the prior guesses is reported beside it.
@@ -36,7 +35,7 @@ Seeds: the case seeds are 1000 + 100000 seed + case. Settings (draw range, tries
 were chosen with --seed 0 and 7 (DEVELOPMENT_SEEDS) and the tests' simulator seeds 21-24, 99;
 the reported benchmark uses --seed 2026 (the default), which none of them touches.
 
---real: the Putnam log of the AV-21, split by time: the first part identifies the nominal
+run_real (--plant putnam-log): the Putnam log of the AV-21, split by time: the first part identifies the nominal
 coefficients (or a given checkpoint is the nominal), the rest is diagnosed (itself split by
 time into fit and held-out parts); the vehicle file's coefficients are diagnosed beside it.
 """
@@ -44,16 +43,20 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ddyn.analysis import diagnose as D
-from ddyn.analysis import gap_independent
-from ddyn.analysis.parallel import run_cases
 from ddyn.errors import DdynError
+from ddyn.gap.benchmark.parallel import run_cases
+from ddyn.gap.calibration import RELIABLE_RATE, reliable_threshold
+from ddyn.gap.config import DiagnosisConfig
+from ddyn.gap.fit import fit as fit_problem
+from ddyn.gap.heldout import _chan, heldout_summary, normalised_mse
+from ddyn.gap.problem import Problem, _starts, nominal_from_checkpoint, nominal_from_vehicle, track_for
+from ddyn.gap.report import write_report
+from ddyn.gap.selection import diagnose
 from ddyn.model import effects as E
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
@@ -85,7 +88,6 @@ IDENT_SEED = 9000
 DEFAULT_SEED = 2026
 DEVELOPMENT_SEEDS = (0, 7)
 FOLD_BLOCK = 39          # cases per fold block: a multiple of the 13 effect slots and of the 3-case vehicle cycle
-RELIABLE_RATE = 0.95
 
 
 # ----------------------------------------------------------------------------------------------- nominal
@@ -95,8 +97,8 @@ def identify(vehicle: Vehicle, ds, start: np.ndarray, fit_fraction: float = 0.95
     """The 17 coefficients fitted to one-step predictions of ds, as factors of `start`: within +-50 % of it
     (simulated logs, where start is near the truth) or, within_ranges, anywhere inside the vehicle file's
     coefficient ranges (the real log, where the file's values are a guess)."""
-    nominal = D.nominal_from_vehicle(vehicle, ds, start)
-    prob = D.Problem(ds, nominal, fit_fraction, refit=COEFF_NAMES)
+    nominal = nominal_from_vehicle(vehicle, ds, start)
+    prob = Problem(ds, nominal, fit_fraction, refit=COEFF_NAMES)
     bounds = None
     if within_ranges:
         lo, hi = vehicle.range_arrays()
@@ -105,7 +107,7 @@ def identify(vehicle: Vehicle, ds, start: np.ndarray, fit_fraction: float = 0.95
         f_lo = np.where(start != 0, np.minimum(a, b), 0.5)
         f_hi = np.where(start != 0, np.maximum(a, b), 1.5)
         bounds = (f_lo - 1.0, f_hi - 1.0)
-    f = D.fit(prob, (), rho_bounds=bounds)
+    f = fit_problem(prob, (), rho_bounds=bounds)
     return start * (1.0 + f.rho)
 
 
@@ -150,13 +152,13 @@ def plan(n: int, seed: int = DEFAULT_SEED, vehicles=VEHICLES) -> list[dict]:
 
 def oracle_error(ds, vehicle: Vehicle, case: dict, diag: dict) -> dict:
     """Held-out one-step RMSE and ADE of the true plant (true coefficients and the true effect)."""
-    nominal = D.nominal_from_vehicle(vehicle, ds)
-    prob = D.Problem(ds, nominal, diag["split"]["fit_fraction"], refit=())
+    nominal = nominal_from_vehicle(vehicle, ds)
+    prob = Problem(ds, nominal, diag["split"]["fit_fraction"], refit=())
     values = {} if case["effect"] == NONE else {case["effect"]: case["magnitude"]}
     steps = max(1, int(round(vehicle.evaluation_horizon / ds.sample_time)))
-    starts = D._starts(prob, prob.rows_held, steps, 400)
-    h = D.heldout_summary(prob, values, np.zeros(0), starts, steps)
-    return {"rmse": D._chan(h["rmse"]), "ade": h["ade"]}
+    starts = _starts(prob, prob.rows_held, steps, 400)
+    h = heldout_summary(prob, values, np.zeros(0), starts, steps)
+    return {"rmse": _chan(h["rmse"]), "ade": h["ade"]}
 
 
 def run_case(case: dict, vehicle: Vehicle, nominal_coeffs: np.ndarray, tries: int = 3) -> dict:
@@ -176,9 +178,9 @@ def run_case(case: dict, vehicle: Vehicle, nominal_coeffs: np.ndarray, tries: in
     if ds is None:
         return out | {"status": "simulation failed", "error": err}
     t0 = time.perf_counter()
-    # the eleven candidates its figures (docs/diagnosis.md) were measured with: the drivetrain and profile
-    # candidates added for the independent plant (ddyn.analysis.candidates) are scored there (gap_sets.py)
-    diag = D.diagnose(ds, D.nominal_from_vehicle(vehicle, ds, nominal_coeffs), candidates=E.EFFECT_NAMES)
+    # the eleven candidates its figures (docs/gap.md) were measured with: the drivetrain and profile
+    # candidates added for the independent plant (ddyn.gap.candidates) are scored there (case_sets.py)
+    diag = diagnose(ds, nominal_from_vehicle(vehicle, ds, nominal_coeffs), DiagnosisConfig())
     seconds = time.perf_counter() - t0
     top1 = diag["selected"][0] if diag["selected"] else NONE
     est = None
@@ -189,8 +191,8 @@ def run_case(case: dict, vehicle: Vehicle, nominal_coeffs: np.ndarray, tries: in
     orc = oracle_error(ds, vehicle, case, diag)
     scale = diag["method"]["channel_scale"]
     h = diag["model"]["heldout"]
-    e_nom, e_diag, e_orc = (D.normalised_mse(h["rmse_before"], scale), D.normalised_mse(h["rmse_after"], scale),
-                            D.normalised_mse(orc["rmse"], scale))
+    e_nom, e_diag, e_orc = (normalised_mse(h["rmse_before"], scale), normalised_mse(h["rmse_after"], scale),
+                            normalised_mse(orc["rmse"], scale))
     gap = (e_nom - e_diag) / (e_nom - e_orc) if e_nom - e_orc > 1e-12 * e_nom else None
     return out | {
         "status": "ok", "seed_used": seed, "rows": len(ds), "selected": diag["selected"], "top1": top1,
@@ -212,21 +214,6 @@ def _median(xs):
 
 def _rate(rows, key="correct"):
     return float(np.mean([bool(r[key]) for r in rows])) if rows else None
-
-
-def reliable_threshold(rows: list[dict], rate: float = RELIABLE_RATE, min_cases: int = 3) -> float | None:
-    """Smallest drawn |magnitude| m such that the cases with |magnitude| >= m are identified at >= rate, taking
-    the cases from the largest magnitude down and stopping at the first tail that falls below the rate; None
-    when fewer than min_cases cases or when the largest ones are already missed."""
-    rows = sorted(rows, key=lambda r: abs(r["magnitude"]))
-    best = None
-    for i in range(len(rows) - min_cases, -1, -1):
-        tail = rows[i:]
-        if np.mean([r["correct"] for r in tail]) >= rate:
-            best = abs(rows[i]["magnitude"])
-        else:
-            break
-    return best
 
 
 def measured_thresholds(effect_rows: list[dict]) -> dict:
@@ -498,7 +485,7 @@ def run_real(out: Path, model: str | None = None, ident_fraction: float = 0.5) -
     cut = int(len(ds) * ident_fraction)
     first, rest = ds.subset(slice(0, cut)), ds.subset(slice(cut, None))
     v = load_vehicle("av21")
-    track = D._track("putnam", rest)
+    track = track_for("putnam", rest)
     reports, notes = {}, {}
     if model:
         from ddyn.learn import checkpoint
@@ -506,14 +493,14 @@ def run_real(out: Path, model: str | None = None, ident_fraction: float = 0.5) -
         vname = checkpoint.vehicle_of(checkpoint.read(model)).name
         if vname != "av21":
             raise DdynError(f"--model: the checkpoint is for {vname}; the Putnam log needs an av21 model")
-        nominal = D.nominal_from_checkpoint(model, rest)
+        nominal = nominal_from_checkpoint(model, rest)
         label = "checkpoint"
         notes[label] = {"source": str(model)}
     else:
         t0 = time.perf_counter()
         c = identify(v, first, v.true_vector(), within_ranges=True)
         lo, hi = v.range_arrays()
-        nominal = D.nominal_from_vehicle(v, rest, c)
+        nominal = nominal_from_vehicle(v, rest, c)
         nominal.label = f"av21 coefficients identified on the first {100 * ident_fraction:.0f} % of the log " \
                         f"({time.perf_counter() - t0:.1f} s)"
         label = "identified"
@@ -522,11 +509,11 @@ def run_real(out: Path, model: str | None = None, ident_fraction: float = 0.5) -
                         # identified within the vehicle's ranges: those at a range edge are not identified values
                         "at_search_edge": [n for n, x, a, b in zip(COEFF_NAMES, c, lo, hi)
                                            if min(abs(x - a), abs(x - b)) <= 1e-3 * (b - a)]}
-        reports["vehicle_file"] = D.diagnose(rest, D.nominal_from_vehicle(v, rest), track=track)
+        reports["vehicle_file"] = diagnose(rest, nominal_from_vehicle(v, rest), track=track)
         notes["vehicle_file"] = {}
-        D.write_report(reports["vehicle_file"], out / "vehicle_file")
-    d = D.diagnose(rest, nominal, track=track)
-    D.write_report(d, out / label)
+        write_report(reports["vehicle_file"], out / "vehicle_file")
+    d = diagnose(rest, nominal, track=track)
+    write_report(d, out / label)
     reports[label] = d
     summary = {}
     for k, r in reports.items():
@@ -566,306 +553,3 @@ def real_markdown(summary: dict) -> str:
                          f"{c['uncertainty'][pn]:.2g} | {c['delta_bic']:.1f} | {_f(c['gap_closed_pct'])} |")
         lines.append("")
     return "\n".join(lines)
-
-
-def _write_check(path: Path, doc: dict) -> int:
-    """A side check's result (--eiv-check, --mass-check): its JSON at path, its table on stdout."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=2, default=float))
-    print(doc["markdown"])
-    print(f"wrote {path}")
-    return 0
-
-
-def _run_commonroad(args, out: Path) -> int:
-    """--plant commonroad: the independent plant (gap_independent.py)."""
-    G = gap_independent
-    if args.plant == "commonroad-mb" and (getattr(args, "case_set", "putnam") != "putnam" or args.eiv_check
-                                          or args.mass_check or args.mass_inertia
-                                          or args.steer_servo or args.nominal_effects):
-        raise DdynError("--plant commonroad-mb: the Putnam cases only (--case-set, --eiv-check, --mass-check, "
-                        "--mass-inertia, --steer-servo and --nominal-effects are the single-track plant's)")
-    if (getattr(args, "pitch_channel", False) or getattr(args, "roll_channel", False)) and (
-            args.plant != "commonroad" or getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above")):
-        raise DdynError("--pitch-channel, --roll-channel: the single-track plant's putnam, sweep and above case sets "
-                        "only (the oval set has its own roll-channel slots)")
-    duration = getattr(args, "duration", None)
-    if duration is not None and (args.plant != "commonroad" or args.eiv_check or args.mass_check or args.rescore
-                                 or getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above")):
-        raise DdynError("--duration: a run of the single-track plant's putnam, sweep and above case sets only")
-    if args.rescore and (out / "results.json").is_file():    # the recorded run's log length
-        duration = json.loads((out / "results.json").read_text())["settings"].get("duration")
-    for what in ("min_evidence_from", "thresholds_from", "detection_limits_from"):
-        if getattr(args, what, None):   # a margin, threshold or limit holds for the log length it was measured on
-            G.require_duration(getattr(args, what), G.DURATION if duration is None else duration,
-                               "--" + what.replace("_", "-"))
-    if getattr(args, "case_set", "putnam") not in ("putnam", "sweep", "above"):
-        if args.min_evidence_from or args.detection_limits_from:
-            raise DdynError("--min-evidence-from, --detection-limits-from: the putnam, sweep and above case sets only")
-        return _run_case_set(args, out)
-    if args.eiv_check:
-        return _write_check(out / "eiv.json", G.eiv_check(args.cases or 10, G.EIV_SEED if args.seed is None
-                                                           else args.seed, args.jobs, hold=args.hold,
-                                                           progress=not args.no_progress))
-    if args.mass_check:
-        return _write_check(out / "mass.json", G.mass_check(args.cases or 7, G.EIV_SEED if args.seed is None
-                                                             else args.seed, args.jobs,
-                                                             progress=not args.no_progress))
-    if args.min_evidence_from:
-        if args.min_evidence is not None:
-            raise DdynError("give --min-evidence or --min-evidence-from, not both")
-        args.min_evidence = G.margin_of(args.min_evidence_from)
-        print(f"evidence margin {args.min_evidence:.6g} from {args.min_evidence_from}")
-    if args.rescore:
-        if args.detection_limits_from:
-            raise DdynError("--detection-limits-from needs a run, not --rescore: a limit vetoes by each selection's "
-                            "estimate, which the recorded cases do not hold")
-        path = out / "results.json"
-        if not path.is_file():
-            raise DdynError(f"--rescore: {path} not found")
-        doc = json.loads(path.read_text())
-        if args.cases:      # the first N cases: the same cases a run with --cases N makes (plan() draws in order)
-            doc["results"] = doc["results"][:args.cases]
-            doc["settings"]["cases"] = len(doc["results"])
-        gate = doc["settings"].get("gate") if args.gate is None else (None if args.gate <= 0 else args.gate)
-        margin = doc["settings"].get("min_evidence", 0.0) if args.min_evidence is None else args.min_evidence
-        doc["results"] = G.with_gate(doc["results"], gate, margin)
-        doc["settings"]["gate"], doc["settings"]["min_evidence"] = gate, margin
-        doc["settings"]["calibration_seed"] = doc["settings"]["seed"] in G.CALIBRATION_SEEDS   # the list may grow
-        if args.thresholds_from:
-            doc["settings"]["thresholds"] = G.thresholds_of(args.thresholds_from, margin, args.claim_precision)
-            doc["settings"]["claim_precision"] = (G.precision_record(args.thresholds_from, margin)
-                                                  if args.claim_precision else None)
-            doc["settings"]["thresholds_from"] = args.thresholds_from
-        if args.min_evidence_from:
-            doc["settings"]["min_evidence_from"] = args.min_evidence_from
-        doc.update(G.score(doc["results"], doc["settings"].get("thresholds")))
-        doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"], doc["seconds"])
-    else:
-        if args.gate is not None:
-            D.NO_GAP_GATE = None if args.gate <= 0 else args.gate   # each case carries it (diagnosis_vetoes)
-        if args.min_evidence is not None:
-            D.MIN_EVIDENCE = args.min_evidence
-        seed = G.DEFAULT_SEED if args.seed is None else args.seed
-        # the thresholds measured at this run's margin (the calibration runs rescored with it)
-        # with --claim-precision, checked under the limits in force (the decision levels with --decision-limits)
-        thresholds = (G.thresholds_of(args.thresholds_from, D.MIN_EVIDENCE, args.claim_precision,
-                                      decision=args.decision_limits) if args.thresholds_from else None)
-        if (args.calibrated_only or args.decision_limits) and not args.detection_limits_from:
-            raise DdynError("--calibrated-only and --decision-limits go with --detection-limits-from")
-        if args.detection_limits_from:      # each case carries them (diagnosis_vetoes)
-            D.DETECTION_LIMITS = (G.decision_limits_of(args.detection_limits_from, D.MIN_EVIDENCE,
-                                                       precision=args.claim_precision) if args.decision_limits else
-                                  G.thresholds_of(args.detection_limits_from, D.MIN_EVIDENCE, args.claim_precision))
-            if args.calibrated_only:
-                D.DETECTION_LIMITS[D.ANY_OTHER] = None
-            print(f"detection limits {D.DETECTION_LIMITS} from {args.detection_limits_from}")
-        if args.plant == "commonroad-mb":     # the multi-body plant (gap_mb.py)
-            from ddyn.analysis import gap_mb
-
-            doc = gap_mb.run(args.cases or 20, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
-                             fit=args.fit, thresholds=thresholds, nominal=args.nominal)
-        else:
-            doc = G.run(args.cases or 40, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
-                        nominal=args.nominal, fit=args.fit, mass_inertia=args.mass_inertia,
-                        steer_servo=args.steer_servo, nominal_effects=D.nominal_effects_arg(args.nominal_effects),
-                        thresholds=thresholds, case_set=args.case_set, evidence=args.evidence,
-                        effects=tuple(e.strip() for e in args.effects.split(",")) if args.effects else None,
-                        pitch_channel=getattr(args, "pitch_channel", False),
-                        roll_channel=getattr(args, "roll_channel", False), duration=duration)
-        # where the scoring thresholds and the margin came from (calibration runs), beside their values
-        doc["settings"] |= {"thresholds_from": args.thresholds_from, "min_evidence_from": args.min_evidence_from,
-                            "detection_limits_from": args.detection_limits_from,
-                            "decision_limits": bool(args.decision_limits),
-                            # --claim-precision: each effect's claims on the calibration (how many right, how many on
-                            # logs where nothing should be claimed) and the effects withdrawn
-                            "claim_precision": (G.precision_record(args.thresholds_from or args.detection_limits_from,
-                                                                   D.MIN_EVIDENCE, decision=args.decision_limits)
-                                                if args.claim_precision and (args.thresholds_from
-                                                                             or args.detection_limits_from) else None)}
-        if args.decision_limits or args.claim_precision:    # the table names the limits' kind, the precisions
-            doc["markdown"] = G.markdown({k: doc[k] for k in ("summary", "per_effect")}, doc["settings"],
-                                         doc["seconds"])
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
-    (out / "results.md").write_text(doc["markdown"])
-    print(doc["markdown"])
-    if doc["settings"]["calibration_seed"]:
-        print(f"leaving <= {100 * G.TARGET_FALSE_ALARMS:.0f} % false alarms on these effect-free logs: gate ratio "
-              f"{G.calibrate(doc['results'])}, or evidence margin {G.calibrate_margin(doc['results'])}")
-    print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
-    return 0
-
-
-def _run_case_set(args, out: Path) -> int:
-    """--case-set oval|drivetrain: the bank profile and the drivetrain candidates (gap_sets.py)."""
-    from ddyn.analysis import gap_sets
-
-    if args.rescore:   # score and tabulate the recorded cases again
-        path = out / "results.json"
-        if not path.is_file():
-            raise DdynError(f"--rescore: {path} not found")
-        doc = json.loads(path.read_text())
-        doc.update(gap_sets.score(doc["results"]))
-        doc["markdown"] = gap_sets.markdown({k: doc[k] for k in ("summary", "per_group")}, doc["settings"], doc["seconds"])
-        (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
-        (out / "results.md").write_text(doc["markdown"])
-        print(doc["markdown"])
-        return 0
-    if args.gate is not None:
-        D.NO_GAP_GATE = None if args.gate <= 0 else args.gate
-    if args.min_evidence is not None:
-        D.MIN_EVIDENCE = args.min_evidence
-    seed = gap_independent.DEFAULT_SEED if args.seed is None else args.seed
-    doc = gap_sets.run(args.case_set, args.cases or 8, seed, args.jobs, progress=not args.no_progress, hold=args.hold,
-                       nominal=args.nominal, fit=args.fit)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(doc, indent=2, default=float))
-    (out / "results.md").write_text(doc["markdown"])
-    print(doc["markdown"])
-    print(f"evidence margin leaving <= 5 % of these effect-free logs with a selection: {doc['calibrated_margin']:.4g}")
-    print(f"wrote {out / 'results.json'} and {out / 'results.md'}")
-    return 0
-
-
-def _run(args) -> int:
-    if not getattr(args, "scheduler", None):
-        return _run_here(args)
-    from ddyn.analysis.parallel import use_scheduler
-
-    use_scheduler(args.scheduler)
-    try:
-        return _run_here(args)
-    finally:
-        use_scheduler(None)
-
-
-def _run_here(args) -> int:
-    out = Path(args.out)
-    if args.plant in ("commonroad", "commonroad-mb"):
-        return _run_commonroad(args, out)
-    if args.seed is None:
-        args.seed = DEFAULT_SEED
-    if args.real:
-        summary = run_real(out, args.model)
-        md = real_markdown(summary)
-        (out / "real.md").write_text(md)
-        print(md)
-        print(f"wrote {out / 'real.json'} and {out / 'real.md'}")
-        return 0
-    if args.rescore:
-        doc = rescore(out)
-        print(doc["markdown"])
-        print(f"rescored {out / 'results.json'}; wrote {out / 'results.md'} and {out / 'detection.png'}")
-        return 0
-    n = args.cases or (2 * FOLD_BLOCK if args.quick else 30 * FOLD_BLOCK)
-    vehicles = tuple(v.strip() for v in args.vehicles.split(","))
-    bad = [v for v in vehicles if v not in VEHICLES]
-    if bad or n < 1:
-        raise DdynError(f"--vehicles: expected some of {', '.join(VEHICLES)}" if bad else "--cases must be >= 1")
-    if args.seed in DEVELOPMENT_SEEDS:
-        print(f"note: seed {args.seed} was used to choose the benchmark's settings: not a blind test",
-              file=sys.stderr)
-    doc = run(n, out, args.seed, progress=not args.no_progress, vehicles=vehicles, jobs=args.jobs)
-    print(doc["markdown"])
-    print(f"wrote {out / 'results.json'}, {out / 'results.md'} and {out / 'detection.png'}")
-    return 0
-
-
-def register(subparsers) -> None:
-    p = subparsers.add_parser("gap", help="hidden-effect benchmark of ddyn diagnose (and --real: the "
-                                                    "Putnam log)", description=__doc__.splitlines()[0])
-    p.add_argument("--cases", type=int, default=None,
-                   help=f"number of cases (default {30 * FOLD_BLOCK}; --quick {2 * FOLD_BLOCK})")
-    p.add_argument("--out", default="runs/gap_benchmark", help="output directory")
-    p.add_argument("--quick", action="store_true", help=f"a small run ({2 * FOLD_BLOCK} cases)")
-    p.add_argument("--seed", type=int, default=None,
-                   help=f"benchmark seed (default {DEFAULT_SEED}, commonroad {gap_independent.DEFAULT_SEED}; "
-                        f"{', '.join(map(str, DEVELOPMENT_SEEDS))} were used to choose the own plant's settings, "
-                        f"{', '.join(map(str, gap_independent.CALIBRATION_SEEDS))} the no-gap gate)")
-    p.add_argument("--plant", choices=("own", "commonroad", "commonroad-mb"), default="own",
-                   help="own: logs of the project's model (the easy case, default); commonroad: logs of CommonRoad's "
-                        "single-track drift model (an independent plant, docs/gap_independent.md); commonroad-mb: "
-                        "its multi-body model (Putnam cases with tyre relaxation and gear steps; --case-set "
-                        "and --eiv-check are the single-track plant's)")
-    p.add_argument("--jobs", type=int, default=1, help="cases run in this many processes (default 1)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="run the cases on this Dask distributed scheduler (e.g. tcp://HOST:8786; its workers need "
-                        "this package installed) instead of local processes; --jobs is then ignored")
-    p.add_argument("--case-set", choices=("putnam", "sweep", "above", "oval", "drivetrain"), default="putnam",
-                   help="commonroad: putnam (default: every effect on the road course), sweep (Putnam, one effect "
-                        "per log at SWEEP_LEVELS magnitudes over its range: measures the detection thresholds), above "
-                        "(Putnam, only effects with a threshold, drawn between it and the top of the range; needs "
-                        "--thresholds-from), oval (the banked oval: bank "
-                        "profile from a flat-road nominal) or drivetrain (throttle map, brake gain, power limit); "
-                        "docs/gap_independent.md")
-    p.add_argument("--nominal", choices=("mapped", "identified"), default="mapped",
-                   help="commonroad, commonroad-mb: the nominal model: the plant's parameters mapped onto the model "
-                        "(commonroad_vehicle2.json / commonroad_vehicle2_mb.json, default) or identified on an "
-                        "effect-free log of the plant")
-    p.add_argument("--hold", action="store_true", help="commonroad: diagnose with the DBW command hold modelled "
-                                                       "(diagnose --hold)")
-    p.add_argument("--min-evidence", type=float, default=None, metavar="DBIC",
-                   help="commonroad: the evidence margin for this run or --rescore (default diagnose's)")
-    p.add_argument("--min-evidence-from", default=None, metavar="RESULTS_JSON",
-                   help="commonroad: the evidence margin calibrated on these runs pooled (comma-separated calibration "
-                        "runs recorded with --min-evidence 0): at most 5 %% of all their effect-free logs selected")
-    p.add_argument("--detection-limits-from", default=None, metavar="RESULTS_JSON",
-                   help="commonroad: diagnose with detection limits (diagnose --detection-limits): the thresholds "
-                        "measured on these calibration runs (comma-separated) at this run's margin; not with "
-                        "--rescore (a limit needs each selection's estimate)")
-    p.add_argument("--calibrated-only", action="store_true",
-                   help="commonroad, with --detection-limits-from: effects the calibration runs did not sweep are "
-                        "never claimed either (limit \"*\": null)")
-    p.add_argument("--decision-limits", action="store_true",
-                   help="commonroad, with --detection-limits-from: the limit on each estimate is the decision level "
-                        "below its threshold (a case at the threshold is estimated above it 95 %% of the time, from "
-                        "the calibration cases' estimate spread near the threshold), not the threshold itself")
-    p.add_argument("--gate", type=float, default=None, metavar="RATIO",
-                   help="commonroad: the no-gap gate's ratio for this run or --rescore (default diagnose's; 0: off)")
-    p.add_argument("--fit", type=D.fit_spec_arg, default=None,
-                   help=f"commonroad: the diagnosis's fit (diagnose --fit, e.g. mixed:downforce; default {D.DEFAULT_FIT})")
-    p.add_argument("--evidence", default=None, metavar="one-step|multistep[:N]|endpoint[:N]",
-                   help="commonroad: the diagnosis's held-out evidence (diagnose --evidence; default one-step)")
-    p.add_argument("--effects", default=None, metavar="LIST",
-                   help="commonroad (putnam, sweep): only the cases of these hidden effects, e.g. "
-                        "'mass_offset,downforce,none' (same case numbers and seeds as the whole plan)")
-    p.add_argument("--pitch-channel", action="store_true",
-                   help="commonroad (putnam, sweep, above): every log carries the plant's pitch channel (grade plus "
-                        "body squat plus noise) and the diagnosis may read the grade from it (grade_from_pitch)")
-    p.add_argument("--roll-channel", action="store_true",
-                   help="commonroad (putnam, sweep, above): every log carries the plant's roll channel (bank minus "
-                        "body roll plus noise) and the diagnosis may read the bank from it (bank_from_roll)")
-    p.add_argument("--claim-precision", action="store_true",
-                   help="commonroad: with --thresholds-from / --detection-limits-from, an effect has a threshold (and "
-                        "is claimed) only if at most 5 %% of the claims the diagnosis would make of it on the "
-                        "calibration runs (under the limits in force) land on logs where nothing should be claimed: "
-                        "effect-free, or the hidden effect without a threshold or below it (found reliably where it "
-                        "is and seldom claimed where nothing should be)")
-    p.add_argument("--duration", type=float, default=None, metavar="SECONDS",
-                   help=f"commonroad (putnam, sweep, above): seconds of log per case (default {gap_independent.DURATION:g}); "
-                        "the runs given to --min-evidence-from, --thresholds-from and --detection-limits-from must "
-                        "have logs of the same length (a margin or threshold holds for the length it was measured on)")
-    p.add_argument("--mass-inertia", action="store_true",
-                   help="commonroad: diagnose --mass-inertia (the mass_offset candidate scales Iz with the mass)")
-    p.add_argument("--steer-servo", type=float, default=0.0, metavar="TAU",
-                   help="commonroad: diagnose --steer-servo TAU (the plant's servo: 0.01 s, its data sheet)")
-    p.add_argument("--nominal-effects", default=None, metavar="SPEC",
-                   help="commonroad: diagnose --nominal-effects SPEC (e.g. the plant's power limit, power_limit=92021)")
-    p.add_argument("--thresholds-from", default=None, metavar="RESULTS_JSON",
-                   help="commonroad: score top-1 above the detection thresholds measured in this (calibration) run; "
-                        "several runs separated by commas: their cases pooled per effect")
-    p.add_argument("--eiv-check", action="store_true",
-                   help="commonroad: the errors-in-variables check instead of the benchmark: the mass offset fitted "
-                        "on --cases effect-free logs from logged, noise-free and smoothed states and by output error")
-    p.add_argument("--mass-check", action="store_true",
-                   help="commonroad: the mass offset fitted alone on --cases logs with offsets of both signs hidden, "
-                        "with the candidate's Iz fixed or scaled with the mass (--mass-inertia)")
-    p.add_argument("--vehicles", default=",".join(VEHICLES), help="comma-separated vehicles (default both)")
-    p.add_argument("--real", action="store_true", help="diagnose the Putnam log: nominal from its first half "
-                                                       "(or --model), diagnosis on the rest")
-    p.add_argument("--model", default=None, help="with --real: a DDM checkpoint as the nominal model")
-    p.add_argument("--rescore", action="store_true", help="score, tabulate and plot again the cases in "
-                                                         "OUT/results.json without rerunning them")
-    p.add_argument("--no-progress", action="store_true")
-    p.set_defaults(func=_run)

@@ -1,16 +1,16 @@
 """`ddyn study gap --plant commonroad-mb`: the diagnosis scored on CommonRoad's multi-body plant.
 
-Why: the single-track drift plant (gap_independent.py) is independent code but shares the project model's
-structure; the multi-body model (ddyn.data.commonroad_mb_plant: roll, lateral load transfer over four wheels,
+Why: the single-track drift plant (commonroad.py) is independent code but shares the project model's
+structure; the multi-body model (ddyn.plants.commonroad_mb: roll, lateral load transfer over four wheels,
 combined slip) does not, and it carries the two effects the single-track plant lacked: tyre relaxation (the
 tyres' slip angles built up over a relaxation length) and a stepped gearbox (gear_step: the drive force steps
-at each shift, with a torque interruption). The cases, scores and report are gap_independent's (run_case,
+at each shift, with a torque interruption). The cases, scores and report are commonroad.py's (run_case,
 score, markdown); this module only plans the cases and names the plant.
 
 Cases: SLOTS cycle (driven at DRIVER_GRIP) (the new effects first, so a short run holds them; a quarter of the slots effect-free), on
-Putnam, 60 s logs, magnitudes log-uniform over EFFECT_RANGES (random sign where gap_independent.SIGNED). The
+Putnam, 60 s logs, magnitudes log-uniform over EFFECT_RANGES (random sign where commonroad.SIGNED). The
 nominal is the mapped vehicle file commonroad_vehicle2_mb.json or, nominal="identified", its 17 coefficients
-fitted on an effect-free multi-body log (identified_coefficients: gap_independent's fit, IDENT_SEED); the
+fitted on an effect-free multi-body log (identified_coefficients: commonroad.py's fit, IDENT_SEED); the
 candidates are the eleven default effects plus gear_step (CANDIDATES; gear_step is otherwise opt-in,
 `diagnose --candidates extended`). Case seeds are 7000 + 100000 seed + case.
 """
@@ -21,12 +21,16 @@ import time
 
 import numpy as np
 
-from ddyn.analysis import diagnose as D
-from ddyn.analysis import gap_independent as G
-from ddyn.analysis.parallel import run_cases
-from ddyn.data import commonroad_mb_plant as MB
-from ddyn.data import commonroad_plant as CP
-from ddyn.errors import DdynError
+from ddyn.gap import hold_estimate as HE
+from ddyn.gap.benchmark import commonroad as G
+from ddyn.gap.benchmark.parallel import run_cases
+from ddyn.gap.calibration import calibrate, calibrate_margin
+from ddyn.gap.config import BenchmarkConfig, DiagnosisConfig
+from ddyn.gap.fit import fit as fit_problem
+from ddyn.gap.problem import DEFAULT_REFIT, Problem, nominal_from_vehicle
+from ddyn.gap.selection import diagnose
+from ddyn.plants import commonroad_mb as MB
+from ddyn.plants import commonroad_st as CP
 from ddyn.model import effects as E
 
 NONE = G.NONE
@@ -51,7 +55,7 @@ def identification_log(seed: int, duration: float):
 
 
 def identified_coefficients(hold: bool = False) -> tuple[np.ndarray, dict]:
-    """Option (b) for the multi-body plant: the single-track plant's identification (gap_independent's fit,
+    """Option (b) for the multi-body plant: the single-track plant's identification (commonroad.py's fit,
     within the mapped file's ranges) on an effect-free multi-body log, starting from commonroad_vehicle2_mb.json."""
     return G.identified_coefficients(hold, MB.NOMINAL_VEHICLE, identification_log, IDENT_SEED)
 
@@ -69,34 +73,36 @@ def plan(n: int, seed: int) -> list[dict]:
     return cases
 
 
-def run(n_cases: int, seed: int, jobs: int = 1, progress: bool = True, hold: bool = False,
-        fit: str | None = None, thresholds: dict | None = None, nominal: str = "mapped") -> dict:
-    """nominal: "mapped" (commonroad_vehicle2_mb.json) or "identified" (identified_coefficients, fitted once per
-    run with the run's hold and carried by every case)."""
+def run(n_cases: int, seed: int, config: DiagnosisConfig | None = None, bench: BenchmarkConfig | None = None,
+        jobs: int = 1, progress: bool = True, thresholds: dict | None = None) -> dict:
+    """bench.nominal: "mapped" (commonroad_vehicle2_mb.json) or "identified" (identified_coefficients, fitted once
+    per run with the run's hold and carried by every case). config: the diagnosis's settings; its candidates are
+    CANDIDATES (the eleven effects and the gear step)."""
     CP.require_commonroad()
+    config = (config or DiagnosisConfig()).with_(candidates=CANDIDATES)
+    bench = bench or BenchmarkConfig()
     t0 = time.perf_counter()
     coeffs, ident = None, None
-    if nominal == "identified":
-        coeffs, ident = identified_coefficients(hold)
-    elif nominal != "mapped":
-        raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
-    cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist()}
-             | G.diagnosis_vetoes() for c in plan(n_cases, seed)]
+    if bench.nominal == "identified":
+        coeffs, ident = identified_coefficients(config.hold is True)
+    cases = [c | {"config": config.to_dict(), "coefficients": None if coeffs is None else coeffs.tolist()}
+             for c in plan(n_cases, seed)]
     results = run_cases(G.run_case, cases, jobs, desc="gap-benchmark (commonroad-mb)", progress=progress)
     seconds = time.perf_counter() - t0
-    settings = {"plant": "commonroad-mb", "plant_model": PLANT_MODEL, "cases": n_cases, "seed": seed, "jobs": jobs,
-                "min_evidence": D.MIN_EVIDENCE, "detection_limits": D.DETECTION_LIMITS,
-                "calibration_seed": seed in G.CALIBRATION_SEEDS,
+    settings = {"plant": "commonroad-mb", "plant_model": PLANT_MODEL, "car": MB.NOMINAL_VEHICLE.stem,
+                "cases": n_cases, "seed": seed, "jobs": jobs, "diagnosis": config.to_dict(),
+                "benchmark": bench.to_dict(), "calibration_seed": seed in G.CALIBRATION_SEEDS,
                 "calibration_seeds": list(G.CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}" if cases else "", "duration": G.DURATION,
-                "track": G.TRACK, "effect_ranges": EFFECT_RANGES, "speeds": G.SPEEDS, "gate": D.NO_GAP_GATE,
-                "hold": hold, "identification": ident,
-                "nominal": ("mapped (commonroad_vehicle2_mb.json)" if nominal == "mapped" else
+                "track": G.TRACK, "effect_ranges": EFFECT_RANGES, "speeds": G.SPEEDS, "identification": ident,
+                "nominal": ("mapped (commonroad_vehicle2_mb.json)" if bench.nominal == "mapped" else
                             f"identified (on an effect-free multi-body log, seed {IDENT_SEED})"),
-                "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds, "candidates": list(CANDIDATES)}
+                "thresholds": thresholds, "candidates": list(CANDIDATES),
+                "hold": config.hold, "fit": config.fit, "gate": config.gate, "min_evidence": config.min_evidence,
+                "detection_limits": config.detection_limits}
     sc = G.score(results, thresholds)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
-           "calibrated_gate": G.calibrate(results), "calibrated_margin": G.calibrate_margin(results)}
+           "calibrated_gate": calibrate(results), "calibrated_margin": calibrate_margin(results)}
     return doc | {"markdown": G.markdown(sc, settings, seconds)}
 
 
@@ -110,7 +116,6 @@ def hold_check(periods=HOLD_PERIODS, seeds=HOLD_SEEDS, duration: float = 60.0) -
     """`diagnose --hold estimate` on effect-free logs of the single-track plant whose DBW unit runs at another
     rate than the log: the fitted hold delay (the effective delay of a zero-order hold of period P is P / 2; the
     steering servo adds about SERVO_TAU) and the period read from the commands' step structure."""
-    from ddyn.analysis import hold_estimate as HE
     from ddyn.model.vehicle import load as load_vehicle
 
     veh = load_vehicle(CP.NOMINAL_VEHICLE)
@@ -118,9 +123,9 @@ def hold_check(periods=HOLD_PERIODS, seeds=HOLD_SEEDS, duration: float = 60.0) -
     for period in periods:
         for seed in seeds:
             ds = CP.make_log(G.TRACK, CP.PlantEffects(), seed, CP.LogSettings(duration=duration, dbw_period=period))
-            nom = D.nominal_from_vehicle(veh, ds)
-            est = HE.estimate(lambda h: D.Problem(ds, nom, D.DEFAULT_FIT_FRACTION, D.DEFAULT_REFIT, hold=h),
-                              lambda pr: D.fit(pr, ()), ds.sample_time)
+            nom = nominal_from_vehicle(veh, ds)
+            est = HE.estimate(lambda h: Problem(ds, nom, DiagnosisConfig().fit_fraction, DEFAULT_REFIT, hold=h),
+                              lambda pr: fit_problem(pr, ()), ds.sample_time)
             steps = HE.detect_period(ds)
             rows.append({"dbw_period": period, "seed": seed, "hold": est["hold"], "at_bound": est["at_bound"],
                          "zoh_delay": period / 2, "detected_period": steps["period_s"],
@@ -146,14 +151,14 @@ GEAR_CANDIDATES = ("gear_step", "throttle_map", "brake_gain", "mass_offset", "th
 def gear_check(cases=GEAR_CHECK, duration: float = 60.0) -> dict:
     """The gear_step candidate on single-track plant logs with a stepped gearbox (and one without): the
     one-step diagnosis with the hold, the vx-related candidates only (the power limit left out: CommonRoad's own
-    92 kW limit is in every log, docs/gap_independent.md)."""
+    92 kW limit is in every log, docs/gap.md)."""
     from ddyn.model.vehicle import load as load_vehicle
 
     veh = load_vehicle(CP.NOMINAL_VEHICLE)
     rows = []
     for step, seed in cases:
         ds = CP.make_log(G.TRACK, CP.PlantEffects(gear_step=step), seed, CP.LogSettings(duration=duration))
-        d = D.diagnose(ds, D.nominal_from_vehicle(veh, ds), candidates=GEAR_CANDIDATES, gate=None, hold=True)
+        d = diagnose(ds, nominal_from_vehicle(veh, ds), DiagnosisConfig(candidates=GEAR_CANDIDATES, hold=True))
         g = next(c for c in d["candidates"] if c["effect"] == "gear_step")
         shifts = int(np.sum(np.diff(ds.extras["true_gear"]) != 0)) if step else None
         rows.append({"step": step, "seed": seed, "selected": d["selected"], "estimate": g["params"]["step"],

@@ -18,7 +18,7 @@ has both signs. So:
 A hypothesis with bank_profile or bank_from_roll keeps the nominal's tyre refit factors (HOLDS_REFIT); when either is
 among the candidates, so does the constant bank_angle (holds_refit).
 
-Their parameters enter ddyn.analysis.diagnose.fit as scalar keys "NAME@i" (knot i), so the fit, the
+Their parameters enter ddyn.gap.fit.fit as scalar keys "NAME@i" (knot i), so the fit, the
 held-out score (dk = the number of keys) and the greedy step treat them like any effect's. The profile
 is reported by its peak (the signed knot of largest magnitude) and, in full, as `profile`.
 """
@@ -56,7 +56,7 @@ MIN_KNOTS, MAX_KNOTS = 4, 40
 # spirals of a turn entry or exit), so a knot sits on every such change and one KNOT_SPACING/2 either side of it;
 # the rest of the lap gets knots at most KNOT_SPACING apart. Uniform knots every ~50 m cut a 60 m bank ramp
 # anywhere, and the interpolation alone then misses the turn's bank by up to 2 degrees next to the ramp
-# (docs/gap_independent.md). A change counts when the smoothed curvature differs by BREAK_CURVATURE (1/m) across
+# (docs/gap.md). A change counts when the smoothed curvature differs by BREAK_CURVATURE (1/m) across
 # KNOT_SPACING (a straight into a 500 m radius); more knots than MAX_KNOTS: the uniform layout.
 BREAK_CURVATURE = 2e-3
 
@@ -65,7 +65,7 @@ BREAK_CURVATURE = 2e-3
 # in steady cornering a friction scale rho changes the lateral force by about rho m a_y, and a_y is nearly
 # constant in a turn, so rho reads as a bank of about rho a_y / g rad there and the two cannot be told apart from
 # the log (refitted, the oval's turn bank came out up to 11 degrees off with Df, Dr -27 %; held, within 2.6
-# degrees: docs/gap_independent.md). The nominal's tyre, identified where the road is flat, is the prior that
+# degrees: docs/gap.md). The nominal's tyre, identified where the road is flat, is the prior that
 # separates them.
 HOLDS_REFIT = ("bank_profile", "bank_from_roll")
 
@@ -75,7 +75,7 @@ def holds_refit(names, bank_family: bool = False) -> bool:
     bank_angle holds them too. diagnose sets it when a bank profile or the roll channel is among the candidates,
     so that the bank family is compared on one footing: a constant bank that may move the tyre while the profile
     may not can win by the tyre, not by being the better bank (on the banked oval with an identified nominal it
-    beat the profile on 2 of 6 logs, 6 and 8 degrees off in the turns: docs/gap_independent.md)."""
+    beat the profile on 2 of 6 logs, 6 and 8 degrees off in the turns: docs/gap.md)."""
     held = HOLDS_REFIT + (("bank_angle",) if bank_family else ())
     return any(base(n) in held for n in names)
 

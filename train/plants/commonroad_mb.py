@@ -1,12 +1,12 @@
 """The second independent plant: CommonRoad's multi-body model (PyPI commonroad-vehicle-models).
 
-Why: the single-track drift model of ddyn.data.commonroad_plant shares the project model's structure (one
+Why: the single-track drift model of ddyn.plants.commonroad_st shares the project model's structure (one
 tyre per axle, a rigid body in the plane). `vehiclemodels.vehicle_dynamics_mb` does not: 29 states, a sprung
 mass that rolls and pitches on springs and dampers over two unsprung axles, four wheels each with its own spin,
 load and combined-slip Pacejka tyre, so lateral load transfer and roll steer act as on a real car. A diagnosis
 that holds on it holds on more than one other author's simplification.
 
-Everything around the right-hand side is commonroad_plant's make_log (the driver, the DBW hold at its rate,
+Everything around the right-hand side is commonroad_st.make_log (the driver, the DBW hold at its rate,
 the effects, the noise, the log format); this module supplies the model (MbModel) and the additions the
 multi-body model needs in its own coordinates:
   - mass_offset scales every mass and inertia of parameters_vehicle2 (sprung, unsprung, roll, pitch, yaw);
@@ -20,15 +20,15 @@ multi-body model needs in its own coordinates:
 State mapping (CommonRoad mb -> canonical): x, y = x[0], x[1]; yaw = x[4]; vx = x[3] and vy = x[10] (the
 sprung mass's body-frame velocities); omega = x[5]. Wheel angle x[2]; body roll x[6] (extras true_body_roll).
 
-Integration: RK4 at commonroad_plant.PLANT_RATE (1 kHz), as the single-track plant; about 27 us per
-right-hand side in pure Python, so a 60 s log costs about 7-10 s (docs/gap_independent.md, the convergence
+Integration: RK4 at commonroad_st.PLANT_RATE (1 kHz), as the single-track plant; about 27 us per
+right-hand side in pure Python, so a 60 s log costs about 7-10 s (docs/gap.md, the convergence
 check in convergence()).
 """
 from __future__ import annotations
 
 import math
 
-from ddyn.data import commonroad_plant as CP
+from ddyn.plants import commonroad_st as CP
 from ddyn.errors import DdynError
 
 try:
@@ -43,7 +43,7 @@ MASSES = ("m", "m_s", "m_uf", "m_ur", "I_z", "I_Phi_s", "I_y_s", "I_xz_s", "I_uf
 
 
 class MbModel:
-    """CommonRoad's multi-body model for commonroad_plant.make_log(model=MbModel())."""
+    """CommonRoad's multi-body model for commonroad_st.make_log(model=MbModel())."""
 
     name = "mb"
     label = "commonroad vehicle_dynamics_mb"
@@ -92,7 +92,7 @@ class MbModel:
 
 def make_log(track="putnam", effects: CP.PlantEffects = CP.PlantEffects(), seed: int = 0,
              settings: CP.LogSettings = CP.LogSettings(), nominal=NOMINAL_VEHICLE):
-    """One log of the multi-body plant (commonroad_plant.make_log with MbModel)."""
+    """One log of the multi-body plant (commonroad_st.make_log with MbModel)."""
     CP.require_commonroad()
     return CP.make_log(track, effects, seed, settings, nominal, model=MbModel())
 

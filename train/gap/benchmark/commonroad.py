@@ -1,12 +1,12 @@
-"""`ddyn study gap --plant commonroad`: the diagnosis scored on logs of an independent plant.
+"""`ddyn gap benchmark --plant commonroad`: the diagnosis scored on logs of an independent plant.
 
-The own-model benchmark (gap_benchmark.py) makes its logs with the model code the diagnosis
+The own-model benchmark (own.py) makes its logs with the model code the diagnosis
 fits: an inverse crime, the easy case. Here each case is a log of CommonRoad's single-track
-drift model (ddyn.data.commonroad_plant: 1 kHz RK4, DBW-held commands, noise on every logged
+drift model (ddyn.plants.commonroad_st: 1 kHz RK4, DBW-held commands, noise on every logged
 state) on Putnam, with one hidden effect in physical form or none, and the nominal model is
 the plant's parameters mapped onto the project's model (train/vehicles/plants/commonroad_vehicle2.json)
 or, --nominal identified, coefficients fitted on an effect-free plant log (identified_coefficients).
-Results and how to reproduce them: docs/gap_independent.md.
+Results and how to reproduce them: docs/gap.md.
 
 Cases: effects cycled with three effect-free slots in ten; |magnitude| log-uniform over
 EFFECT_RANGES (random sign where SIGNED; bank and grade are peaks of profiles along the track),
@@ -29,20 +29,20 @@ from pathlib import Path
 
 import numpy as np
 
-from ddyn.analysis import candidates as C
-from ddyn.analysis import diagnose as D
-# the calibration's read-back lives in its own module (diagnose --calibration uses it); the names stay here too
-from ddyn.analysis.calibration import (CALIBRATED_SETTINGS, DECISION_BAND, DECISION_Z, NONE, RELIABLE_RATE,  # noqa: F401
-                                       TARGET_FALSE_ALARMS, calibrate, calibrate_margin, calibrated_diagnosis,
-                                       claim_precisions, decision_limits_of, margin_of, reliable_threshold,
-                                       precision_record, require_duration, runs, thresholds_of, with_gate)
-from ddyn.analysis.calibration import DURATION as RECORDED_DURATION
-from ddyn.analysis.parallel import run_cases
-from ddyn.data import commonroad_mb_plant as MB
-from ddyn.data import commonroad_plant as CP
 from ddyn.errors import DdynError
-from ddyn.model import effects as E
+from ddyn.gap import candidates as C
+from ddyn.gap.benchmark.parallel import run_cases
+from ddyn.gap.benchmark.seeds import CALIBRATION_SEEDS, seen_seeds
+from ddyn.gap.calibration import DURATION as RECORDED_DURATION
+from ddyn.gap.calibration import NONE, RELIABLE_RATE, calibrate, calibrate_margin, reliable_threshold
+from ddyn.gap.config import AMBIGUITY_DBIC, ANY_OTHER, BenchmarkConfig, DiagnosisConfig
+from ddyn.gap.fit import fit as fit_problem
+from ddyn.gap.heldout import normalised_mse
+from ddyn.gap.problem import OE_STEPS, Problem, nominal_from_vehicle
+from ddyn.gap.selection import diagnose
 from ddyn.model.vehicle import load as load_vehicle
+from ddyn.plants import commonroad_mb as MB
+from ddyn.plants import commonroad_st as CP
 
 TRACK = "putnam"
 EFFECT_RANGES = {"steer_delay": (0.02, 0.12), "throttle_delay": (0.05, 0.3), "steer_lag": (0.03, 0.2),
@@ -53,18 +53,13 @@ PROFILED = ("bank_angle", "grade")
 SLOTS = tuple(EFFECT_RANGES) + (NONE, NONE, NONE)
 DURATION = RECORDED_DURATION   # s of log per case (1500 rows at 25 Hz); `study gap --duration` sets another
 SPEEDS = (20.0, 26.0)          # m/s: range of the driver's target speed
-CALIBRATION_SEEDS = (11, 13, 15, 17)   # the gate, margins and thresholds are chosen on these (sweeps of each)
 IDENT_SEED = 9000              # the effect-free log the identified nominal is fitted on (neither set)
 IDENT_DURATION = 120.0
-DEFAULT_SEED = 4242            # the default run's seed; scored since (in SEEN_SEEDS): no longer blind
-# scored before and looked at since: reported as seen, not blind (4242, 6101, 6102, 7301-7329: the single-track
-# plant; 8802, 8803: the multi-body plant; see docs/gap_independent.md; 7330-7332: named for blind runs by a session
-# whose work did not land, so possibly looked at; 7333-7336: the 300 s logs). The next blind run needs a new seed.
-SEEN_SEEDS = (2027, 4242, 6101, 6102, *range(7301, 7337), 8802, 8803)
+DEFAULT_SEED = 4242            # the default run's seed; scored since (seen_seeds.json): no longer blind
 # the oracle: the project's model given the hidden effect at its true value. Only where the plant's effect and
 # the model's candidate share one parameter with the same meaning: every effect of this set but the profiles
 # (a profile along the track has no single value; the multi-body plant's gear steps and tyre relaxation,
-# gap_mb.py, are not the candidates' forms)
+# multibody.py, are not the candidates' forms)
 ORACLE_EFFECTS = tuple(e for e in EFFECT_RANGES if e not in PROFILED)
 
 
@@ -154,9 +149,9 @@ def identified_coefficients(hold: bool = False, vehicle_file=None, make_ident_lo
     """The nominal the issue's option (b) asks for: the 17 coefficients least-squares fitted to one-step
     predictions of an effect-free plant log (seed), starting from the mapped vehicle file, each within the
     file's range (coefficients that are zero there, the shifts G, K and Cm2, stay zero: they are fitted as
-    factors). The same fit as gap_benchmark.identify(within_ranges=True), written out here because
-    gap_benchmark imports this module. vehicle_file, make_ident_log(seed, duration): another plant's mapped file
-    and its effect-free log (the multi-body plant: gap_mb.identified_coefficients); default the single-track
+    factors). The same fit as own.identify(within_ranges=True), written out here because
+    own.py imports this module. vehicle_file, make_ident_log(seed, duration): another plant's mapped file
+    and its effect-free log (the multi-body plant: multibody.identified_coefficients); default the single-track
     plant's."""
     from ddyn.model.single_track import COEFF_NAMES
 
@@ -167,12 +162,12 @@ def identified_coefficients(hold: bool = False, vehicle_file=None, make_ident_lo
     else:
         log = make_ident_log(seed, IDENT_DURATION)
     start = veh.true_vector()
-    prob = D.Problem(log, D.nominal_from_vehicle(veh, log, start), 0.95, refit=COEFF_NAMES, hold=hold)
+    prob = Problem(log, nominal_from_vehicle(veh, log, start), 0.95, refit=COEFF_NAMES, hold=hold)
     lo, hi = veh.range_arrays()
     safe = np.where(start != 0, start, 1.0)
     f_lo = np.where(start != 0, np.minimum(lo / safe, hi / safe), 0.5)
     f_hi = np.where(start != 0, np.maximum(lo / safe, hi / safe), 1.5)
-    f = D.fit(prob, (), rho_bounds=(f_lo - 1.0, f_hi - 1.0))
+    f = fit_problem(prob, (), rho_bounds=(f_lo - 1.0, f_hi - 1.0))
     c = start * (1.0 + f.rho)
     # a coefficient the fit pushed to its range's edge is not identified, only bounded
     at_edge = [n for i, n in enumerate(COEFF_NAMES)
@@ -209,26 +204,12 @@ def make_case_log(case: dict, tries: int = 3):
                                       driver_grip=case.get("driver_grip"),
                                       roll_channel=bool(case.get("roll_channel", False)),
                                       pitch_channel=bool(case.get("pitch_channel", False)))
-            if case.get("plant") == "mb":   # the multi-body plant (gap_mb.py)
+            if case.get("plant") == "mb":   # the multi-body plant (multibody.py)
                 return MB.make_log(track, effects, seed, settings), seed, None
             return CP.make_log(track, effects, seed, settings), seed, None
         except DdynError as e:
             err, seed = str(e), seed + 7919
     return None, seed, err
-
-
-def diagnosis_vetoes() -> dict:
-    """The no-gap gate and the evidence margin in force here (diagnose's NO_GAP_GATE, MIN_EVIDENCE, which
-    `ddyn study gap --gate/--min-evidence` set), for each case to carry: a worker of a Dask cluster is
-    not a fork of this process and would otherwise diagnose with its own module defaults."""
-    return {"gate": D.NO_GAP_GATE, "min_evidence": D.MIN_EVIDENCE, "detection_limits": D.DETECTION_LIMITS}
-
-
-def vetoes_of(case: dict) -> dict:
-    """diagnose()'s gate, min_evidence and detection_limits arguments from a case (the module defaults if it
-    carries none)."""
-    return {"gate": case.get("gate", "default"), "min_evidence": case.get("min_evidence"),
-            "detection_limits": case.get("detection_limits", "default")}
 
 
 def run_case(case: dict) -> dict:
@@ -239,12 +220,9 @@ def run_case(case: dict) -> dict:
     veh = load_vehicle(MB.NOMINAL_VEHICLE if case.get("plant") == "mb" else CP.NOMINAL_VEHICLE)
     t0 = time.perf_counter()
     coeffs = np.asarray(case["coefficients"]) if case.get("coefficients") is not None else None
-    diag = D.diagnose(ds, D.nominal_from_vehicle(veh, ds, coeffs), hold=bool(case.get("hold", False)),
-                      fit_mode=case.get("fit"), candidates=tuple(case.get("candidates") or E.EFFECT_NAMES),
-                      mass_inertia=bool(case.get("mass_inertia", False)),
-                      steer_servo=float(case.get("steer_servo", 0.0)), nominal_effects=case.get("nominal_effects"),
-                      evidence=case.get("evidence"), **vetoes_of(case),
-                      truth={case["effect"]: case["magnitude"]} if case["effect"] in ORACLE_EFFECTS else None)
+    # the run's settings travel with the case: a worker (another process, a Dask node) diagnoses with exactly them
+    diag = diagnose(ds, nominal_from_vehicle(veh, ds, coeffs), DiagnosisConfig.from_dict(case["config"]),
+                    truth={case["effect"]: case["magnitude"]} if case["effect"] in ORACLE_EFFECTS else None)
     seconds = time.perf_counter() - t0
     g = diag["gate"]
     # a bank or grade found as a profile along the track (or from the roll channel) is that effect found
@@ -312,7 +290,7 @@ def oracle_figures(diag: dict, case: dict) -> dict:
     scale = diag["method"]["channel_scale"]
 
     def e(rmse: dict) -> float:
-        return D.normalised_mse(rmse, scale)
+        return normalised_mse(rmse, scale)
 
     e_refit = e(diag["nominal"]["refit_only"]["rmse"])
     e_diag = e(diag["model"]["heldout"]["rmse_after"])
@@ -339,12 +317,12 @@ def _fit_mass(ds, veh, mode: str, hold: bool, states=None, mass_inertia: bool = 
     mass_inertia: the candidate scales Iz with the mass (diagnose --mass-inertia)."""
     from ddyn.model import effects as E
 
-    prob = D.Problem(ds, D.nominal_from_vehicle(veh, ds), D.DEFAULT_FIT_FRACTION, hold=hold, fit_mode=mode,
+    prob = Problem(ds, nominal_from_vehicle(veh, ds), DiagnosisConfig().fit_fraction, hold=hold, fit_mode=mode,
                      mass_inertia=mass_inertia, nominal_effects=nominal_effects)
     if states is not None:
         prob.lm_fit = E.LogModel(ds.time, ds.segment, states, ds.inputs, veh.known, ds.sample_time,
                                  prob.nominal.method, prob.nominal.substeps)
-    f = D.fit(prob, ("mass_offset",))
+    f = fit_problem(prob, ("mass_offset",))
     return {"mass_offset": f.values["mass_offset"], "std": f.std["mass_offset"],
             "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, f.rho)}}
 
@@ -385,7 +363,7 @@ def eiv_check(n_logs: int = 10, seed: int = EIV_SEED, jobs: int = 1, hold: bool 
     lines += [f"| {m} | {v['median']:+.3f} | {v['median_abs']:.3f} | {v['min']:+.3f} | {v['max']:+.3f} |"
               for m, v in summary.items()]
     return {"settings": {"logs": n_logs, "seed": seed, "hold": hold, "duration": DURATION,
-                         "oe_steps": D.OE_STEPS}, "summary": summary, "results": res,
+                         "oe_steps": OE_STEPS}, "summary": summary, "results": res,
             "markdown": "\n".join(lines) + "\n"}
 
 
@@ -443,9 +421,9 @@ def cost_profile(case: dict, effect: str, values, hold: bool = True, fit: str = 
     if nominal_effects is None:
         p = CP.commonroad_parameters()
         nominal_effects = {"power_limit": p.longitudinal.a_max * p.longitudinal.v_switch * veh.known.mass}
-    prob = D.Problem(ds, D.nominal_from_vehicle(veh, ds), D.DEFAULT_FIT_FRACTION, hold=hold, fit_mode=fit,
+    prob = Problem(ds, nominal_from_vehicle(veh, ds), DiagnosisConfig().fit_fraction, hold=hold, fit_mode=fit,
                      mass_inertia=mass_inertia, steer_servo=steer_servo, nominal_effects=nominal_effects)
-    rho = D.fit(prob, ()).rho
+    rho = fit_problem(prob, ()).rho
     return [{"value": float(v),
              "fit_cost": float(np.sum(prob.fit_residuals({effect: float(v)}, rho, prob.rows_fit) ** 2)),
              "heldout_rss": float(np.sum(prob.residuals({effect: float(v)}, rho, prob.rows_held) ** 2))}
@@ -520,7 +498,7 @@ def score(results: list[dict], thresholds: dict | None = None) -> dict:
     none = [r for r in ok if r["effect"] == NONE]
     eff = [r for r in ok if r["effect"] != NONE]
     per = {}
-    for e in dict.fromkeys([*EFFECT_RANGES, *(r["effect"] for r in eff)]):   # and the MB set's (gap_mb.py)
+    for e in dict.fromkeys([*EFFECT_RANGES, *(r["effect"] for r in eff)]):   # and the MB set's (multibody.py)
         rows = [r for r in eff if r["effect"] == e]
         if not rows:
             continue
@@ -601,7 +579,7 @@ def _delay_lag_line(d: dict) -> str:
             f"the two, the right one in {_f(d['told_apart'], True)}; delay named lag {d['delay_named_lag']}, lag "
             f"named delay {d['lag_named_delay']}."
             + (f" The diagnosis flagged {d['flagged_not_told_apart']} of them as not told apart (the other within "
-               f"{D.AMBIGUITY_DBIC:g} dBIC); where it did not, the right one in "
+               f"{AMBIGUITY_DBIC:g} dBIC); where it did not, the right one in "
                f"{_f(d['told_apart_where_claimed'], True)}." if d.get("flagged_not_told_apart") is not None else ""))
 
 
@@ -642,14 +620,14 @@ def _precision_text(record: dict) -> str:
 
 
 def _limits_text(limits: dict) -> str:
-    return ", ".join(f"{'every other effect' if e == D.ANY_OTHER else e} "
+    return ", ".join(f"{'every other effect' if e == ANY_OTHER else e} "
                      f"{'none (never claimed)' if v is None else f'{v:.3g}'}" for e, v in limits.items())
 
 
 def markdown(sc: dict, settings: dict, seconds: float) -> str:
     s = sc["summary"]
     gate = s["gate_threshold"]
-    seen = settings["seed"] in SEEN_SEEDS
+    seen = settings["seed"] in seen_seeds()
     lines = [f"Independent plant (CommonRoad {settings.get('plant_model', 'vehicle_dynamics_std')}, parameters_vehicle2) on {TRACK}, "
              f"{settings.get('duration', DURATION):.0f} s logs; seed {settings['seed']} "
              + ("(a calibration seed: chooses the gate, not a blind test)" if settings["calibration_seed"]
@@ -659,7 +637,7 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
              f"No-gap gate: {'off' if gate is None else f'{gate:.4g}x the noise floor'}; evidence margin "
              f"dBIC < -{s['min_evidence']:g}; command hold "
              f"{'modelled (diagnose --hold)' if settings.get('hold') else 'not modelled'}; nominal "
-             f"{settings.get('nominal', 'mapped')}; fit {settings.get('fit') or D.DEFAULT_FIT}"
+             f"{settings.get('nominal', 'mapped')}; fit {settings.get('fit') or 'one-step'}"
              + ("; mass offset scales Iz (--mass-inertia)" if settings.get("mass_inertia") else "")
              + (f"; held-out evidence {settings['evidence']} (--evidence)"
                 if settings.get("evidence", "one-step") != "one-step" else "")
@@ -725,61 +703,64 @@ def ladder_markdown(per: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(n_cases: int, seed: int = DEFAULT_SEED, jobs: int = 1, progress: bool = True, hold: bool = False,
-        nominal: str = "mapped", fit: str | None = None, thresholds: dict | None = None, mass_inertia: bool = False,
-        steer_servo: float = 0.0, nominal_effects: dict | None = None, case_set: str = "putnam",
-        evidence: str | None = None, effects: tuple | None = None, pitch_channel: bool = False,
-        roll_channel: bool = False, duration: float | None = None) -> dict:
-    """case_set: "putnam" (plan(): effects cycled, magnitudes drawn) or "sweep" (plan_sweep(): the threshold
-    sweep). hold: diagnose with the command hold modelled (diagnose --hold). nominal: "mapped" (the vehicle file)
-    or "identified" (identified_coefficients). mass_inertia, steer_servo: diagnose's (--mass-inertia,
-    --steer-servo; the plant's servo is CP.SERVO_TAU). evidence: diagnose's (--evidence). effects: only the cases
-    of these hidden effects ("none": the effect-free ones), drawn as in the whole plan (same case numbers and seeds,
-    the others skipped). duration: seconds of log per case (a margin, threshold or limit holds for the log length
-    it was calibrated on: require_duration); None: DURATION."""
+def run(n_cases: int, seed: int = DEFAULT_SEED, config: DiagnosisConfig | None = None,
+        bench: BenchmarkConfig | None = None, jobs: int = 1, progress: bool = True, case_set: str = "putnam",
+        thresholds: dict | None = None, duration: float | None = None, calibration: dict | None = None) -> dict:
+    """case_set: "putnam" (plan(): effects cycled, magnitudes drawn), "sweep" (plan_sweep(): the threshold
+    sweep) or "above" (plan_above(): only effects with a threshold, drawn above it). config: the diagnosis's
+    settings (every case carries them). bench: the nominal ("mapped": the vehicle file, "identified":
+    identified_coefficients), the channels the logs carry, the effects whose cases are run (drawn as in the whole
+    plan: same case numbers and seeds, the others skipped). thresholds: the detection thresholds scored against
+    (a calibration's). duration: seconds of log per case (None: DURATION). calibration: what the run records of
+    the calibration it applied."""
     CP.require_commonroad()
+    config = config or DiagnosisConfig()
+    bench = bench or BenchmarkConfig()
     duration = DURATION if duration is None else float(duration)
     if not 0 < duration <= MAX_DURATION:
         raise DdynError(f"--duration {duration:g}: expected 0 < seconds <= {MAX_DURATION:g}")
+    if case_set not in ("putnam", "sweep", "above"):
+        raise DdynError(f"case set {case_set!r}: expected putnam, sweep or above")
+    if case_set == "above" and not thresholds:
+        raise DdynError("case set above: needs thresholds (--calibration)")
     t0 = time.perf_counter()
     coeffs, ident = None, None
-    if nominal == "identified":
-        coeffs, ident = identified_coefficients(hold)
-    elif nominal != "mapped":
-        raise DdynError(f"unknown nominal {nominal!r}; expected mapped or identified")
-    if evidence is not None:
-        D.parse_evidence_spec(evidence)  # a bad spec fails here, not in every worker
-    D.parse_fit_spec(fit)
+    if bench.nominal == "identified":
+        coeffs, ident = identified_coefficients(config.hold is True)
+    effects = bench.effects or None
     if effects is not None:
         bad = [e for e in effects if e not in EFFECT_RANGES and e != NONE]
         if bad:
-            raise DdynError(f"--effects: unknown {', '.join(bad)}; expected some of {', '.join(EFFECT_RANGES)}, none")
+            raise DdynError(f"effects: unknown {', '.join(bad)}; expected some of {', '.join(EFFECT_RANGES)}, none")
     # pitch_channel (roll_channel): every log carries the plant's pitch (roll) channel and the diagnosis may read
     # the grade (bank) from it
-    from_channels = [c for c, on in (("grade_from_pitch", pitch_channel), ("bank_from_roll", roll_channel)) if on]
-    extra = ({"pitch_channel": pitch_channel, "roll_channel": roll_channel,
-              "candidates": list(E.EFFECT_NAMES) + from_channels} if from_channels else {})
-    cases = [c | {"hold": hold, "fit": fit, "coefficients": None if coeffs is None else coeffs.tolist(),
-                  "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
-                  "evidence": evidence, "duration": duration} | extra
-             | diagnosis_vetoes() for c in (plan_sweep(n_cases, seed) if case_set == "sweep" else
-                                            plan_above(n_cases, seed, thresholds or {}) if case_set == "above" else
-                                            plan(n_cases, seed))
+    from_channels = tuple(c for c, on in (("grade_from_pitch", bench.pitch_channel),
+                                          ("bank_from_roll", bench.roll_channel)) if on and c not in config.candidates)
+    config = config.with_(candidates=config.candidates + from_channels)
+    extra = {"pitch_channel": bench.pitch_channel, "roll_channel": bench.roll_channel}
+    cases = [c | {"config": config.to_dict(), "coefficients": None if coeffs is None else coeffs.tolist(),
+                  "duration": duration} | extra
+             for c in (plan_sweep(n_cases, seed) if case_set == "sweep" else
+                       plan_above(n_cases, seed, thresholds or {}) if case_set == "above" else
+                       plan(n_cases, seed))
              if effects is None or c["effect"] in effects]
     if not cases:
-        raise DdynError("--effects: no case of the plan has these effects")
+        raise DdynError("effects: no case of the plan has these effects")
     results = run_cases(run_case, cases, jobs, desc=f"gap-benchmark (commonroad, {case_set})", progress=progress)
     seconds = time.perf_counter() - t0
-    settings = {"plant": "commonroad", "case_set": case_set, "cases": n_cases, "seed": seed, "jobs": jobs,
-                "min_evidence": D.MIN_EVIDENCE, "detection_limits": D.DETECTION_LIMITS,
+    settings = {"plant": "commonroad", "car": CP.NOMINAL_VEHICLE.stem, "case_set": case_set, "cases": n_cases,
+                "seed": seed, "jobs": jobs, "diagnosis": config.to_dict(), "benchmark": bench.to_dict(),
                 "sweep_levels": SWEEP_LEVELS if case_set == "sweep" else None,
                 "calibration_seed": seed in CALIBRATION_SEEDS, "calibration_seeds": list(CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}", "duration": duration, "track": TRACK,
-                "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS, "gate": D.NO_GAP_GATE, "hold": hold,
-                "nominal": nominal, "identification": ident, "fit": fit or D.DEFAULT_FIT, "thresholds": thresholds,
-                "mass_inertia": mass_inertia, "steer_servo": steer_servo, "nominal_effects": nominal_effects,
-                "evidence": evidence or D.DEFAULT_EVIDENCE, "effects": None if effects is None else list(effects),
-                "pitch_channel": pitch_channel, "roll_channel": roll_channel}
+                "sample_time": load_vehicle(CP.NOMINAL_VEHICLE).sample_time, "effect_ranges": EFFECT_RANGES, "speeds": SPEEDS,
+                "nominal": bench.nominal, "identification": ident, "thresholds": thresholds,
+                "pitch_channel": bench.pitch_channel, "roll_channel": bench.roll_channel, "calibration": calibration,
+                # the flat names the markdown and older readers use
+                "hold": config.hold, "fit": config.fit, "gate": config.gate, "min_evidence": config.min_evidence,
+                "detection_limits": config.detection_limits, "mass_inertia": config.mass_inertia,
+                "steer_servo": config.steer_servo, "nominal_effects": config.nominal_effects,
+                "evidence": config.evidence, "effects": None if effects is None else list(effects)}
     sc = score(results, thresholds)
     doc = {"settings": settings, **sc, "results": results, "seconds": seconds,
            "calibrated_gate": calibrate(results), "calibrated_margin": calibrate_margin(results)}
