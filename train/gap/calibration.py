@@ -302,9 +302,8 @@ LENGTH_TOLERANCE = 0.1
 FITTING_MODULES = ("ddyn.gap.config", "ddyn.gap.candidates", "ddyn.gap.problem", "ddyn.gap.fit", "ddyn.gap.heldout",
                    "ddyn.gap.selection", "ddyn.gap.eiv", "ddyn.gap.hold_estimate", "ddyn.model.effects",
                    "ddyn.model.single_track", "ddyn.model.integrators")
-PLANT_MODULES = {"commonroad": ("ddyn.plants.commonroad_st", "ddyn.gap.benchmark.commonroad"),
-                 "commonroad-mb": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb",
-                                   "ddyn.gap.benchmark.commonroad", "ddyn.gap.benchmark.multibody")}
+PLANT_MODULES = {"commonroad": ("ddyn.plants.commonroad_st",),
+                 "commonroad-mb": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb")}
 
 
 def _stripped(source: str) -> str:
