@@ -55,7 +55,7 @@ step "diagnose: a noisy log with one unmodelled effect, diagnosed blind (where, 
 # them under data.effects_in_metadata), so the verdict below is found, not told
 ddyn simulate --vehicle orca_1_43 --track ethzMobil --laps 3 --noise 1 --seed 31 --quiet \
   --effects "throttle_delay=0.04" -o "$OUT/orca_hidden_effect.csv"
-OMP_NUM_THREADS=1 ddyn diagnose --vehicle orca_1_43 --data "$OUT/orca_hidden_effect.csv" --out "$OUT/diagnosis"
+OMP_NUM_THREADS=1 ddyn gap diagnose --vehicle orca_1_43 --data "$OUT/orca_hidden_effect.csv" --out "$OUT/diagnosis"
 echo "the log's hidden effect was: throttle_delay = 0.04 s; report: $OUT/diagnosis/diagnosis.md"
 
 printf '\nmain job done; outputs in %s\n' "$OUT"

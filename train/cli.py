@@ -45,6 +45,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("study", ("ddyn.studies.ddm", "ddyn.studies.fthd", "ddyn.studies.denoise", "ddyn.studies.drivetrain",
                       "ddyn.analysis.fidelity"),
             "the papers' tables and the project's studies (DDM/DPM, FTHD, denoising, fidelity)"),
+    Command("results", ("ddyn.results.cli",),
+            "the headline figures as data: re-run them and compare with their committed files, the README table"),
     Command("bench", ("ddyn.bench.runtime", "ddyn.bench.controller", "ddyn.bench.large_net", "ddyn.bench.qp"),
             "timing of the C runtime against Python (median, p99, max)"),
     Command("can", ("ddyn.codegen.can", "ddyn.data.can_log", "ddyn.bench.can"),

@@ -679,6 +679,21 @@ def test_diagnose_under_a_calibration_takes_its_settings_margin_and_decision_lev
     assert main(base + ["--config", str(cfg), "--out", str(tmp_path / "o")]) == 0
     why = json.loads((tmp_path / "o" / "diagnosis.json").read_text())["calibration"]["why"]
     assert why.startswith("uncalibrated: cr24 would cover this log, but the config's hold, fit, mass_inertia differ")
+    # a calibration made with a servo or effects in the nominal never puts them into a nominal on its own: only
+    # a config that states them (the same car) takes it
+    servo = CAL.write(CAL.from_runs("servo24", [_sweep_doc(rs, steer_servo=0.01, **diag)]), tmp_path / "servo24.json")
+    assert main(base + ["--calibration", str(servo), "--out", str(tmp_path / "x")]) == 2
+    assert "servo24 was made with steer_servo in the nominal" in capsys.readouterr().err
+    cfg.write_text('hold = true\nfit = "mixed:steer_delay,steer_lag"\nmass_inertia = true\nsteer_servo = 0.01\n')
+    assert main(base + ["--calibration", str(servo), "--config", str(cfg), "--out", str(tmp_path / "v")]) == 0
+    assert json.loads((tmp_path / "v" / "diagnosis.json").read_text())["nominal"]["steer_servo_tau"] == 0.01
+    (shipped / "cr24.json").unlink()
+    CAL.write(CAL.load(servo), shipped / "servo24.json")
+    assert main(base + ["--out", str(tmp_path / "w")]) == 0
+    d = json.loads((tmp_path / "w" / "diagnosis.json").read_text())
+    assert d["calibration"]["name"] is None and "which only a config describing this car can give" in \
+        d["calibration"]["why"] and d["nominal"]["steer_servo_tau"] == 0.0
+    (shipped / "servo24.json").unlink()
     # made by other fitting code: refused when asked for, and not taken by default
     stale = json.loads(path.read_text()) | {"code_version": {"fitting": "0" * 16, "plant": cal.code_version["plant"]}}
     (shipped / "cr24.json").write_text(json.dumps(stale))

@@ -37,23 +37,26 @@ def test_cases_run_on_a_dask_cluster_in_input_order():
     assert 1 <= len(worker_pids) <= 2
 
 
-def test_the_gap_command_hands_its_cases_to_the_scheduler(monkeypatch):
-    from ddyn.gap.benchmark import own as gap_benchmark
+def test_the_gap_commands_hand_their_cases_to_the_scheduler():
+    """--scheduler: the run inside sees the scheduler in force; afterwards (also after a failure) runs are local."""
+    import pytest
+
+    from ddyn.gap import cli
 
     seen = []
-
-    def fake_run_here(args):
-        seen.append(parallel._scheduler)
-        return 0
-
-    monkeypatch.setattr(gap_benchmark, "_run_here", fake_run_here)
 
     class Args:
         scheduler = "tcp://127.0.0.1:8786"
 
-    assert gap_benchmark._run(Args()) == 0
+    assert cli._with_scheduler(Args(), lambda: seen.append(parallel._scheduler) or 0) == 0
     assert seen == ["tcp://127.0.0.1:8786"]
     assert parallel._scheduler is None  # reset afterwards, so later runs in this process are local
+
+    def fail():
+        raise RuntimeError("a case failed")
+    with pytest.raises(RuntimeError):
+        cli._with_scheduler(Args(), fail)
+    assert parallel._scheduler is None
 
 
 def test_each_case_carries_the_runs_config(monkeypatch):

@@ -513,6 +513,12 @@ def _differs(cal: Calibration, config) -> list[str]:
     return [k for k in CALIBRATED_KEYS if mine[k] != cal.diagnosis.get(k)]
 
 
+def _adds_to_the_nominal(cal: Calibration) -> list[str]:
+    """The calibration's settings that describe a car (a servo, effects in the nominal): they come from the user's
+    config, never from a calibration on its own."""
+    return [k for k in ("steer_servo", "nominal_effects") if cal.diagnosis.get(k)]
+
+
 def choose(length: float, sample_time: float, config=None, requested: str | None = None):
     """(calibration or None, the DiagnosisConfig to diagnose with, why) for a log of `length` s sampled every
     `sample_time` s. requested: a calibration's name or file (used; refused when it does not cover the log or its
@@ -531,6 +537,10 @@ def choose(length: float, sample_time: float, config=None, requested: str | None
         if not ok:
             raise DdynError(f"calibration {requested}: {why}; calibrate on logs like this one (`ddyn gap calibrate "
                             f"--duration {length:.0f}`) or diagnose uncalibrated (--calibration none)")
+        if config is None and _adds_to_the_nominal(cal):
+            raise DdynError(f"calibration {cal.name} was made with {' and '.join(_adds_to_the_nominal(cal))} in the "
+                            "nominal: they describe a car, so they come from your config (--config with the same "
+                            "settings), never from a calibration")
         if config is not None and _differs(cal, config):
             raise DdynError(f"calibration {cal.name}: the config's {', '.join(_differs(cal, config))} differ from the "
                             "calibration's settings (leave them out: the calibration sets them)")
@@ -540,6 +550,10 @@ def choose(length: float, sample_time: float, config=None, requested: str | None
         return None, config or DiagnosisConfig(), "uncalibrated: " + why
     if cal.stale():
         return None, config or DiagnosisConfig(), f"uncalibrated: {cal.stale()}"
+    if config is None and _adds_to_the_nominal(cal):
+        return None, DiagnosisConfig(), (f"uncalibrated: {cal.name} would cover this log, but it was made with "
+                                         f"{' and '.join(_adds_to_the_nominal(cal))} in the nominal, which only a "
+                                         "config describing this car can give")
     if config is not None and _differs(cal, config):
         return None, config, (f"uncalibrated: {cal.name} would cover this log, but the config's "
                               f"{', '.join(_differs(cal, config))} differ from its settings")

@@ -11,6 +11,13 @@ The format is described in results/README.md.
 """
 from __future__ import annotations
 
-from ddyn.results.files import RESULTS_DIR, Figure, ResultFile, load, load_all
+import importlib
 
 __all__ = ["RESULTS_DIR", "Figure", "ResultFile", "load", "load_all"]
+
+
+def __getattr__(name: str):
+    """The names above load ddyn.results.files on first use (package inits import nothing: test_package_layout)."""
+    if name not in __all__:
+        raise AttributeError(f"module 'ddyn.results' has no attribute {name!r}")
+    return getattr(importlib.import_module("ddyn.results.files"), name)
