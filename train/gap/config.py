@@ -171,8 +171,8 @@ def _coerce(key: str, value):
     if key in ("candidates", "refit") and isinstance(value, list):
         return tuple(value)
     if key == "gate" and (value in ("off", None) or (isinstance(value, (int, float)) and not isinstance(value, bool)
-                                                      and value <= 0)):
-        return None
+                                                      and value == 0)):
+        return None     # 0 or "off": no gate (a negative ratio is refused by the validation)
     if key == "nominal_effects" and isinstance(value, str):
         return {e.effect: float(e.value) for e in E.parse_effects(value)}
     return value

@@ -347,6 +347,7 @@ class LogSettings:
     pitch_channel: bool = False  # log extras "pitch" (grade plus body pitch, plus noise)
     dbw_period: float | None = None   # s between the DBW unit's commands (None: the log's sample time)
     driver_grip: float | None = None  # share of the nominal's grip the driver's speed profile uses (None: simulate's)
+    plant_rate: float = PLANT_RATE    # Hz: the RK4 step (the convergence check runs others)
 
 
 def _command_at(history: list, t: float, delay: float, period: float) -> float:
@@ -365,14 +366,15 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     track = load_track(track) if isinstance(track, str) else track
     veh = vehicle_ref.as_vehicle(nominal) if not isinstance(nominal, Vehicle) else nominal
     Ts = veh.sample_time
-    n_sub = int(round(Ts * PLANT_RATE))
-    if abs(n_sub / PLANT_RATE - Ts) > 1e-9:
-        raise DdynError(f"the log's sample time {Ts} s is not a multiple of the plant's {1 / PLANT_RATE} s")
+    rate = float(settings.plant_rate)
+    n_sub = int(round(Ts * rate))
+    if abs(n_sub / rate - Ts) > 1e-9:
+        raise DdynError(f"the log's sample time {Ts} s is not a multiple of the plant's {1 / rate} s")
     dbw = float(settings.dbw_period or Ts)
-    n_dbw = int(round(dbw * PLANT_RATE))
-    if n_dbw < 1 or abs(n_dbw / PLANT_RATE - dbw) > 1e-9:
-        raise DdynError(f"the DBW period {dbw} s is not a multiple of the plant's {1 / PLANT_RATE} s")
-    h = 1.0 / PLANT_RATE
+    n_dbw = int(round(dbw * rate))
+    if n_dbw < 1 or abs(n_dbw / rate - dbw) > 1e-9:
+        raise DdynError(f"the DBW period {dbw} s is not a multiple of the plant's {1 / rate} s")
+    h = 1.0 / rate
     p = commonroad_parameters()
     m_nom = veh.known.mass
     model.scale_mass(p, 1.0 + effects.mass_offset)
@@ -383,7 +385,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     if effects.tire_relaxation:
         if effects.tire_relaxation < MIN_RELAXATION:
             raise DdynError(f"tyre relaxation length {effects.tire_relaxation} m: below {MIN_RELAXATION} m the "
-                            f"relaxed slip angles are too fast for the {PLANT_RATE:g} Hz RK4 step (and for any tyre)")
+                            f"relaxed slip angles are too fast for the {rate:g} Hz RK4 step (and for any tyre)")
         env.hook, env.relaxation = _TyreHook(), effects.tire_relaxation
     if effects.power_limit:
         # CommonRoad caps the acceleration at a_max v_switch / v above v_switch: the power a_max v_switch m

@@ -32,8 +32,13 @@ PLANTS = {p.name: p for p in (
     Plant("commonroad-mb", ("putnam",), "CommonRoad's multi-body model (29 states, tyre relaxation, gear steps)"),
     Plant("putnam-log", ("putnam",), "the real AV-21 Putnam log: nominal identified on its first half"),
 )}
-DEFAULT_CASES = {"own": 1170, "commonroad": 40, "commonroad-mb": 20, "oval": 8, "drivetrain": 8, "eiv-check": 10,
-                 "mass-check": 7}
+DEFAULT_CASES = {"own": 1170, "commonroad": 40, "commonroad-mb": 20, "sweep": 64, "oval": 8, "drivetrain": 8,
+                 "eiv-check": 10, "mass-check": 7}
+# what every plant module implements (test_gap_benchmarks checks it): plan the cases, run one, score the recorded
+# cases, render the score; `run` ties them together into a results.json document
+INTERFACE = ("plan", "run_case", "score", "markdown", "run")
+MODULES = {"own": "ddyn.gap.benchmark.own", "commonroad": "ddyn.gap.benchmark.commonroad",
+           "commonroad-mb": "ddyn.gap.benchmark.multibody", "case_sets": "ddyn.gap.benchmark.case_sets"}
 
 
 def run(plant: str, case_set: str, out: Path, seed: int | None, cases: int | None, config: DiagnosisConfig | None,
@@ -68,7 +73,7 @@ def run(plant: str, case_set: str, out: Path, seed: int | None, cases: int | Non
             raise DdynError(stale)
         config, thresholds, duration = calibration.applied(), calibration.thresholds, calibration.duration
         cal_record = calibration.summary() | {"claim_record": calibration.claim_record}
-    n = cases or DEFAULT_CASES.get(case_set, DEFAULT_CASES.get(plant, 40))
+    n = cases or (DEFAULT_CASES.get(case_set) if case_set != "putnam" else None) or DEFAULT_CASES.get(plant, 40)
     if plant == "own":
         from ddyn.gap.benchmark import own
 
@@ -77,7 +82,8 @@ def run(plant: str, case_set: str, out: Path, seed: int | None, cases: int | Non
     if plant == "putnam-log":
         from ddyn.gap.benchmark import own
 
-        return {"settings": {"plant": plant}, "real": own.run_real(out), "markdown": ""}
+        summary = own.run_real(out)
+        return {"settings": {"plant": plant}, "real": summary, "markdown": own.real_markdown(summary)}
     from ddyn.gap.benchmark import commonroad as G
 
     seed = G.DEFAULT_SEED if seed is None else seed

@@ -60,6 +60,10 @@ def identified_coefficients(hold: bool = False) -> tuple[np.ndarray, dict]:
     return G.identified_coefficients(hold, MB.NOMINAL_VEHICLE, identification_log, IDENT_SEED)
 
 
+# a multi-body case is run, scored and rendered as a single-track one (the case carries plant "mb")
+run_case, score, markdown = G.run_case, G.score, G.markdown
+
+
 def plan(n: int, seed: int) -> list[dict]:
     rng = np.random.default_rng([seed, 29])
     cases = []
