@@ -187,6 +187,8 @@ def score(results: list[dict]) -> dict:
                                       if any(r.get("turn_error_deg_max") is not None for r in rows) else None)}
     return {"summary": {"cases": len(results), "simulated": len(ok), "effect_cases": len(eff), "none_cases": len(none),
                         "top1": float(np.mean([r["correct"] for r in eff])) if eff else None,
+                        "top1_count": sum(bool(r["correct"]) for r in eff),
+                        "false_alarms": sum(bool(r["selected"]) for r in none),
                         "false_alarm_rate": float(np.mean([bool(r["selected"]) for r in none])) if none else None,
                         "false_alarm_effects": sorted({e for r in none for e in r["selected"]}),
                         # effect-free logs whose only selection is CommonRoad's own power limit (drivetrain set)

@@ -522,6 +522,7 @@ def score(results: list[dict], thresholds: dict | None = None) -> dict:
         if thresholds is not None:
             above = [r for r in rows if thresholds.get(e) is not None and abs(r["magnitude"]) >= thresholds[e]]
             per[e] |= {"above_threshold": len(above), "top1_above_threshold": _rate(above, "correct"),
+                       "top1_above_threshold_count": sum(bool(r["correct"]) for r in above),
                        "median_param_error_above": _median([r["param_error"] for r in above if r["correct"]])}
     above_all = [r for r in eff if thresholds is not None and thresholds.get(r["effect"]) is not None
                  and abs(r["magnitude"]) >= thresholds[r["effect"]]]
