@@ -277,10 +277,11 @@ def test_case_sets_plan_and_score():
     assert sc["summary"]["top1"] == 1.0 and sc["summary"]["false_alarm_rate"] == 1.0
     assert sc["per_group"]["bank_angle"]["within_target"] == 0.5
     assert sc["per_group"]["bank_angle"]["turn_error_deg_max"] == 4.0
-    # the margin that silences the effect-free logs is read off their first greedy step
-    none = [{"status": "ok", "effect": "none", "selected": sel, "greedy": [[e, d, False]]}
-            for sel, e, d in ((["mass_offset"], "mass_offset", -68.3), ([], "steer_delay", 4.0),
-                              (["mass_offset"], "mass_offset", -115.9))]
+    assert sc["summary"]["top1_count"] == 2 and sc["summary"]["false_alarms"] == 1
+    # the margin that silences the effect-free logs: the one margin rule (ddyn.gap.calibration), read off the top
+    # candidate's dBIC of the logs that selected something
+    none = [{"status": "ok", "effect": "none", "selected_without_gate": sel, "delta_bic_top": d}
+            for sel, d in ((["mass_offset"], -68.3), ([], 4.0), (["mass_offset"], -115.9))]
     assert CAL.calibrate_margin(none) == pytest.approx(115.9)
     assert CAL.calibrate_margin(none[1:2]) == 0.0
 

@@ -217,7 +217,7 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     # the runner-up is far behind: no rival; with an ambiguity band wider than their gap it is named in the verdict
     assert d["rival"] is None and "not told apart" not in d["verdict"]
     gap = d["candidates"][1]["delta_bic"] - d["candidates"][0]["delta_bic"]
-    monkeypatch.setattr(D, "AMBIGUITY_DBIC", gap + 1.0)
+    monkeypatch.setattr(SEL, "AMBIGUITY_DBIC", gap + 1.0)
     tie = SEL.diagnose(ds, nominal, **kw)
     assert tie["selected"] == ["steer_delay"] and tie["rival"]["effect"] == "mass_offset"
     assert tie["rival"]["evidence_difference"] == pytest.approx(gap) and "or mass_offset" in tie["verdict"]
@@ -230,7 +230,7 @@ def test_the_oracle_gap_compares_the_diagnosis_with_the_true_effect_at_its_true_
     assert t["evidence_difference"] == pytest.approx(gap) and t["params"]["delay"] == pytest.approx(0.08, rel=0.2)
     assert strict["verdict"].startswith("none: steer_delay") and "not told apart, not claimed" in strict["verdict"]
     assert strict["greedy"][0]["not_told_apart"] and strict["greedy"][0]["added"] is None
-    monkeypatch.setattr(D, "AMBIGUITY_DBIC", 2.0)     # far apart again: the delay is claimed under the same limits
+    monkeypatch.setattr(SEL, "AMBIGUITY_DBIC", 2.0)     # far apart again: the delay is claimed under the same limits
     assert SEL.diagnose(ds, nominal, detection_limits={"steer_delay": 0.01, "*": None}, **kw)["selected"] == ["steer_delay"]
     assert d["runner_up"]["effect"] == "mass_offset" and d["runner_up"]["evidence_difference"] == pytest.approx(gap)
     far = G.oracle_figures(SEL.diagnose(ds, nominal, truth={"steer_delay": 0.3}, **kw), case)
@@ -750,7 +750,7 @@ def test_the_mixed_fit_takes_the_steering_delay_one_step_and_refits_the_rest_by_
     log = _log(CP.PlantEffects(steer_delay=0.06), seed=5, duration=12.0)
 
     def prob(mode):
-        return P.Problem(log, P.nominal_from_vehicle(NOMINAL, log), 0.7, hold=True, fit=mode)
+        return P.Problem(log, P.nominal_from_vehicle(NOMINAL, log), 0.7, hold=True, fit_mode=mode)
 
     one, mixed, oe = prob("one-step"), prob("mixed"), prob("output-error")
     f1 = F.fit(one, ("steer_delay",), scan="steer_delay")
@@ -782,8 +782,8 @@ def test_both_steering_effects_fitted_one_step_tell_a_delay_from_a_lag():
     for effect, value in (("steer_delay", 0.08), ("steer_lag", 0.12)):
         log = _log(CP.PlantEffects(**{effect: value}), seed=5, duration=20.0)
         nominal = P.nominal_from_vehicle(NOMINAL, log)
-        both = P.Problem(log, nominal, 0.7, hold=True, fit="mixed:steer_delay,steer_lag")
-        one = P.Problem(log, nominal, 0.7, hold=True, fit="one-step")
+        both = P.Problem(log, nominal, 0.7, hold=True, fit_mode="mixed:steer_delay,steer_lag")
+        one = P.Problem(log, nominal, 0.7, hold=True, fit_mode="one-step")
         assert both.one_step_in_mixed == ("steer_delay", "steer_lag")
         assert F.fit(both, (effect,), scan=effect).values[effect] == pytest.approx(
             F.fit(one, (effect,), scan=effect).values[effect])
