@@ -37,7 +37,8 @@ def test_every_command_and_option_is_in_the_doc():
         for action in parser._actions:
             if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
                 continue
-            for flag in action.option_strings or [action.dest]:
+            # a positional appears under its metavar where it has one (`[NAME ...]`), else under its name
+            for flag in action.option_strings or [action.metavar if isinstance(action.metavar, str) else action.dest]:
                 assert flag in sections[prog], f"{prog}: {flag} missing"
                 n += 1
     assert n > 300
