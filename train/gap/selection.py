@@ -28,6 +28,8 @@ How far  held-out one-step RMSE per channel and ADE/FDE before (nominal as given
 
 Output (ddyn.gap.report): DIR/diagnosis.json, DIR/diagnosis.md and PNG plots (where.png, residuals.png, which.png).
 diagnosis.json ("schema": "ddyn-diagnosis 1"):
+  config          the DiagnosisConfig the diagnosis ran under (every setting; `ddyn gap diagnose` adds
+                  "calibration": the calibration applied, or none, and why)
   selected        [effect names], in the order added; [] means none is significant
   verdict         one line: the selected effects with estimate +- uncertainty, or "none: ..."; "none: not
                   explained by the effect library" when the best candidate pays for itself only from an edge
