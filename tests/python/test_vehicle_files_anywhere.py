@@ -58,8 +58,10 @@ def test_the_log_finds_its_vehicle_after_the_file_moved(car, tmp_path):
 def test_diagnose_with_a_vehicle_file(car, tmp_path):
     path, log = car
     out = tmp_path / "diag"
-    assert main(["diagnose", "--vehicle", str(path), "--data", str(log), "--out", str(out), "--no-plots",
-                 "--candidates", "steer_delay,mass_offset"]) == 0
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('candidates = ["steer_delay", "mass_offset"]\n')
+    assert main(["gap", "diagnose", "--vehicle", str(path), "--data", str(log), "--out", str(out), "--no-plots",
+                 "--config", str(cfg)]) == 0
     d = json.loads((out / "diagnosis.json").read_text())
     assert d["nominal"]["vehicle"] == "outside_car"
 
@@ -74,8 +76,10 @@ def test_train_evaluate_and_diagnose_a_checkpoint_with_a_vehicle_file(car, tmp_p
     assert main(["train", "--data", str(log), "-o", str(ck2), "--quiet", "--epochs", "1",
                  "--lbfgs-iterations", "0", "--hidden", "8"]) == 0
     assert main(["evaluate", "--model", str(ck), "--data", str(log)]) == 0
-    assert main(["diagnose", "--model", str(ck), "--data", str(log), "--out", str(tmp_path / "d"), "--no-plots",
-                 "--candidates", "steer_delay", "--max-effects", "1"]) == 0
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('candidates = ["steer_delay"]\nmax_effects = 1\n')
+    assert main(["gap", "diagnose", "--model", str(ck), "--data", str(log), "--out", str(tmp_path / "d"), "--no-plots",
+                 "--config", str(cfg)]) == 0
 
 
 def test_a_wrong_vehicle_file_is_refused(car, tmp_path):
