@@ -1,4 +1,4 @@
-"""Errors in variables for `ddyn diagnose --fit smoothed`: regressors the next sample's noise cannot reach.
+"""Errors in variables for the `smoothed` fit (`fit = "smoothed"`): regressors the next sample's noise cannot reach.
 
 A one-step fit predicts the measured state at k+1 from the measured state at k. When the state at k is
 noisy, the least-squares estimate is biased (the classic errors-in-variables attenuation: the model's

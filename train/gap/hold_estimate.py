@@ -1,4 +1,4 @@
-"""`diagnose --hold estimate`: the drive-by-wire command hold estimated from the log, not assumed.
+"""`hold = "estimate"`: the drive-by-wire command hold estimated from the log, not assumed.
 
 Why: `--hold` gives every hypothesis half a log sample of delay on throttle and steering, the average lag of
 commands held for one log sample behind the ramp the model integrates between samples. A DBW unit that runs

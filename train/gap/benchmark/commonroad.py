@@ -105,7 +105,7 @@ def plan_sweep(n: int, seed: int, levels: int = SWEEP_LEVELS) -> list[dict]:
     sign where SIGNED), so a run cut short has measured the thresholds from the top down, the way
     reliable_threshold reads them. Start, speed and grade phase drawn as in plan(). Case seeds are
     3000 + 100000 seed + case (plan() uses 1000 + ...). For calibration seeds only: the thresholds it measures
-    score other (blind) runs through --thresholds-from."""
+    score other (blind) runs through a calibration (ddyn gap calibrate)."""
     rng = np.random.default_rng([seed, 3])
     effects = tuple(EFFECT_RANGES)
     slots = effects + (NONE,)
@@ -129,7 +129,7 @@ def plan_above(n: int, seed: int, thresholds: dict) -> list[dict]:
     speed and grade phase drawn as in plan(). Case seeds 2000 + 100000 seed + case (plan() uses 1000 + ...)."""
     effects = tuple(e for e in EFFECT_RANGES if thresholds.get(e) is not None)
     if not effects:
-        raise DdynError("--case-set above needs measured thresholds (--thresholds-from a calibration sweep)")
+        raise DdynError("--case-set above needs measured thresholds (a calibration's, --calibration)")
     rng = np.random.default_rng([seed, 4])
     cases = []
     for i in range(n):
@@ -256,7 +256,7 @@ def run_case(case: dict) -> dict:
         "correct_without_gate": top1_ungated == case["effect"],
         "selected_without_gate": g["selected_without_gate"], "gate_ratio": g["ratio"], "gate_threshold": g["threshold"],
         "min_evidence": g["min_evidence"],
-        # the best candidate that paid but fell below its detection limit (diagnose --detection-limits)
+        # the best candidate that paid but fell below its detection limit (DiagnosisConfig.detection_limits)
         "below_limit": (diag.get("below_limit") or {}).get("effect"),
         # with limits: the first effect withheld because a rival's evidence was as good (diagnose.AMBIGUITY_DBIC)
         "not_told_apart": ([t["effect"], t["rival"]] if (t := diag.get("not_told_apart")) else None),
@@ -314,7 +314,7 @@ def _fit_mass(ds, veh, mode: str, hold: bool, states=None, mass_inertia: bool = 
               nominal_effects: dict | None = None) -> dict:
     """The mass offset (Df, Dr refitted) that a fit of `mode` gives on ds; states: the rows the steps start
     from instead of the logged ones (the noise-free truth: what the fit would give without errors in variables);
-    mass_inertia: the candidate scales Iz with the mass (diagnose --mass-inertia)."""
+    mass_inertia: the candidate scales Iz with the mass (DiagnosisConfig.mass_inertia)."""
     from ddyn.model import effects as E
 
     prob = Problem(ds, nominal_from_vehicle(veh, ds), DiagnosisConfig().fit_fraction, hold=hold, fit_mode=mode,
@@ -390,7 +390,7 @@ def mass_case(case: dict) -> dict:
 def mass_check(n_logs: int = 7, seed: int = EIV_SEED, jobs: int = 1, progress: bool = True) -> dict:
     """Is the plant's mass offset found with the right sign? The mass offset fitted alone (Df, Dr refitted, the
     hold modelled) on logs with MASS_CHECK_OFFSETS hidden, by one-step and output-error fits, with the
-    candidate's Iz fixed (diagnose's default) or scaled with the mass (--mass-inertia)."""
+    candidate's Iz fixed (diagnose's default) or scaled with the mass (mass_inertia)."""
     cases = [c | {"effect": "mass_offset" if MASS_CHECK_OFFSETS[i % len(MASS_CHECK_OFFSETS)] else NONE,
                   "magnitude": MASS_CHECK_OFFSETS[i % len(MASS_CHECK_OFFSETS)]}
              for i, c in enumerate(plan(n_logs, seed))]
@@ -586,7 +586,7 @@ def _delay_lag_line(d: dict) -> str:
 
 def _threshold_line(s: dict, per: dict) -> str:
     if s.get("top1_above_thresholds") is None and s.get("above_threshold_cases") is None:
-        return "Top-1 above measured thresholds: no thresholds given (--thresholds-from a calibration run)."
+        return "Top-1 above measured thresholds: no thresholds given (--calibration)."
     return (f"Above the thresholds measured on the calibration run ({s['above_threshold_cases']} cases): top-1 "
             f"{_f(s['top1_above_thresholds'], True)}, median parameter error "
             f"{_f(s['median_param_error_above_thresholds'], True)}; below them ({s['below_threshold_cases']} "
@@ -637,23 +637,23 @@ def markdown(sc: dict, settings: dict, seconds: float) -> str:
              f"effect, {s['none_cases']} effect-free; {seconds / 60:.1f} min with {settings['jobs']} job(s).", "",
              f"No-gap gate: {'off' if gate is None else f'{gate:.4g}x the noise floor'}; evidence margin "
              f"dBIC < -{s['min_evidence']:g}; command hold "
-             f"{'modelled (diagnose --hold)' if settings.get('hold') else 'not modelled'}; nominal "
+             f"{'modelled (hold)' if settings.get('hold') else 'not modelled'}; nominal "
              f"{settings.get('nominal', 'mapped')}; fit {settings.get('fit') or 'one-step'}"
-             + ("; mass offset scales Iz (--mass-inertia)" if settings.get("mass_inertia") else "")
-             + (f"; held-out evidence {settings['evidence']} (--evidence)"
+             + ("; mass offset scales Iz (mass_inertia)" if settings.get("mass_inertia") else "")
+             + (f"; held-out evidence {settings['evidence']} (evidence)"
                 if settings.get("evidence", "one-step") != "one-step" else "")
              + (f"; steering servo {settings['steer_servo']:g} s in the nominal" if settings.get("steer_servo") else "")
              + (f"; nominal effects {settings['nominal_effects']}" if settings.get("nominal_effects") else "")
-             + ("; every log carries a pitch channel, grade_from_pitch among the candidates (--pitch-channel)"
+             + ("; every log carries a pitch channel, grade_from_pitch among the candidates (pitch_channel)"
                 if settings.get("pitch_channel") else "")
-             + ("; every log carries a roll channel, bank_from_roll among the candidates (--roll-channel)"
+             + ("; every log carries a roll channel, bank_from_roll among the candidates (roll_channel)"
                 if settings.get("roll_channel") else "")
              + (f"; {'decision' if settings.get('decision_limits') else 'detection'} limits "
                 f"{_limits_text(settings['detection_limits'])} (an effect found below its limit is not claimed"
-                f"{'; the limits are the decision levels below the thresholds, --decision-limits' if settings.get('decision_limits') else ''})"
+                f"{'; the limits are the decision levels below the thresholds' if settings.get('decision_limits') else ''})"
                 if settings.get("detection_limits") else "")
              + (f"; thresholds only for effects whose calibration claims landed on logs where nothing should be "
-                f"claimed in <= {1 - RELIABLE_RATE:.0%} (--claim-precision; such claims/claims: "
+                f"claimed in <= {1 - RELIABLE_RATE:.0%} (claim precision; such claims/claims: "
                 f"{_precision_text(settings['claim_precision'])})"
                 if settings.get("claim_precision") else "")
              + ".", "",

@@ -12,7 +12,7 @@ Putnam, 60 s logs, magnitudes log-uniform over EFFECT_RANGES (random sign where 
 nominal is the mapped vehicle file commonroad_vehicle2_mb.json or, nominal="identified", its 17 coefficients
 fitted on an effect-free multi-body log (identified_coefficients: commonroad.py's fit, IDENT_SEED); the
 candidates are the eleven default effects plus gear_step (CANDIDATES; gear_step is otherwise opt-in,
-`diagnose --candidates extended`). Case seeds are 7000 + 100000 seed + case.
+`candidates = "extended"`). Case seeds are 7000 + 100000 seed + case.
 """
 from __future__ import annotations
 
@@ -117,7 +117,7 @@ HOLD_SEEDS = (31, 32, 33)                 # effect-free single-track plant logs 
 
 
 def hold_check(periods=HOLD_PERIODS, seeds=HOLD_SEEDS, duration: float = 60.0) -> dict:
-    """`diagnose --hold estimate` on effect-free logs of the single-track plant whose DBW unit runs at another
+    """`hold = "estimate"` on effect-free logs of the single-track plant whose DBW unit runs at another
     rate than the log: the fitted hold delay (the effective delay of a zero-order hold of period P is P / 2; the
     steering servo adds about SERVO_TAU) and the period read from the commands' step structure."""
     from ddyn.model.vehicle import load as load_vehicle
