@@ -14,8 +14,10 @@ stands behind ship in `ddyn/gap/calibrations/` and load by name; `ddyn gap diagn
 """
 from __future__ import annotations
 
+import datetime
 import json
 import math
+import subprocess
 from dataclasses import dataclass, fields
 from pathlib import Path
 from statistics import NormalDist
@@ -426,16 +428,14 @@ def from_runs(name: str, docs: list[dict], command: str = "") -> Calibration:
         if s.get("case_set") != "sweep" or (s.get("diagnosis") or {}).get("min_evidence") or \
                 (s.get("diagnosis") or {}).get("detection_limits"):
             raise DdynError(f"calibration: run {i} is not a sweep recorded with margin 0 and no limits")
+    if not first.get("sample_time"):
+        raise DdynError("calibration: the sweep runs record no sample_time (runs of an older version: run them again)")
     margin = margin_of(docs)
-    import datetime
-    import subprocess
-
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 cwd=Path(__file__).parent, check=False).stdout.strip() or None
     except OSError:
         commit = None
-    rows = [r for d in docs for r in d["results"] if r.get("status") == "ok"]
     return Calibration(
         name=name, diagnosis=dict(first["diagnosis"]), margin=float(margin),
         thresholds=thresholds_of(docs, margin, precision=True, decision=True),
@@ -443,7 +443,7 @@ def from_runs(name: str, docs: list[dict], command: str = "") -> Calibration:
         decision_levels=decision_limits_of(docs, margin, precision=True),
         claim_record=precision_record(docs, margin, decision=True),
         plant=first["plant"], car=first.get("car", "?"), track=first.get("track", "?"),
-        duration=float(first.get("duration") or DURATION), sample_time=float(rows[0].get("sample_time", 0.04)) if rows else 0.04,
+        duration=float(first.get("duration") or DURATION), sample_time=float(first["sample_time"]),
         seeds=tuple(int(d["settings"]["seed"]) for d in docs), cases=sum(len(d["results"]) for d in docs),
         channels=tuple(ch for ch in ("pitch", "roll") if first.get(f"{ch}_channel")),
         code_version=current_code_version(first["plant"]),

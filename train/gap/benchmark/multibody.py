@@ -99,6 +99,7 @@ def run(n_cases: int, seed: int, config: DiagnosisConfig | None = None, bench: B
                 "calibration_seeds": list(G.CALIBRATION_SEEDS),
                 "case_seeds": f"{cases[0]['seed']}-{cases[-1]['seed']}" if cases else "", "duration": G.DURATION,
                 "track": G.TRACK, "effect_ranges": EFFECT_RANGES, "speeds": G.SPEEDS, "identification": ident,
+                "sample_time": G.load_vehicle(MB.NOMINAL_VEHICLE).sample_time,
                 "nominal": ("mapped (commonroad_vehicle2_mb.json)" if bench.nominal == "mapped" else
                             f"identified (on an effect-free multi-body log, seed {IDENT_SEED})"),
                 "thresholds": thresholds, "candidates": list(CANDIDATES),
