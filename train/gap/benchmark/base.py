@@ -73,6 +73,9 @@ def run(plant: str, case_set: str, out: Path, seed: int | None, cases: int | Non
             raise DdynError(stale)
         config, thresholds, duration = calibration.applied(), calibration.thresholds, calibration.duration
         cal_record = calibration.summary() | {"claim_record": calibration.claim_record}
+    if plant in ("own", "putnam-log") and config is not None and config != DiagnosisConfig():
+        raise DdynError(f"--config: the {plant} benchmark scores the default diagnosis; its [diagnosis] settings "
+                        "are not taken (only [benchmark] vehicles for the own model)")
     n = cases or (DEFAULT_CASES.get(case_set) if case_set != "putnam" else None) or DEFAULT_CASES.get(plant, 40)
     if plant == "own":
         from ddyn.gap.benchmark import own
