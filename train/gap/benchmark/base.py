@@ -89,15 +89,15 @@ def run(plant: str, case_set: str, out: Path, seed: int | None, cases: int | Non
         return {"settings": {"plant": plant}, "real": summary, "markdown": own.real_markdown(summary)}
     from ddyn.gap.benchmark import commonroad as G
 
+    if case_set == "eiv-check":
+        return G.eiv_check(n, G.EIV_SEED if seed is None else seed, jobs, hold=(config or DiagnosisConfig()).hold is True)
+    if case_set == "mass-check":
+        return G.mass_check(n, G.EIV_SEED if seed is None else seed, jobs, progress=progress)
     seed = G.DEFAULT_SEED if seed is None else seed
     if case_set in ("oval", "drivetrain"):
         from ddyn.gap.benchmark import case_sets
 
         return case_sets.run(case_set, n, seed, config, bench.nominal, jobs, progress)
-    if case_set == "eiv-check":
-        return G.eiv_check(n, G.EIV_SEED if seed is None else seed, jobs, hold=(config or DiagnosisConfig()).hold is True)
-    if case_set == "mass-check":
-        return G.mass_check(n, G.EIV_SEED if seed is None else seed, jobs, progress=progress)
     if plant == "commonroad-mb":
         from ddyn.gap.benchmark import multibody
 
