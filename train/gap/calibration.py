@@ -76,19 +76,6 @@ def runs(paths) -> list[dict]:
     return [json.loads(Path(p).read_text()) for p in paths]
 
 
-def require_duration(paths, duration: float, what: str) -> None:
-    """Refuse calibration runs recorded on logs of another length than `duration`: a dBIC sums over the held-out
-    rows and a fit's spread shrinks with the rows, so a margin, threshold or decision level measured on 60 s logs
-    is not one for 180 s logs (a run without a recorded duration made DURATION logs)."""
-    docs = runs(paths)
-    names = [f"run {i}" for i in range(len(docs))] if isinstance(paths, list) else [q for q in str(paths).split(",") if q]
-    for p, doc in zip(names, docs):
-        got = float(doc["settings"].get("duration") or DURATION)
-        if abs(got - duration) > 1e-9:
-            raise DdynError(f"{what} {p}: its logs are {got:g} s, this run's {duration:g} s; calibrate on logs of "
-                            "the same length (--duration)")
-
-
 def margin_of(paths, target: float = TARGET_FALSE_ALARMS) -> float:
     """The evidence margin from several calibration runs pooled: the smallest margin leaving at most `target` of
     all their effect-free logs with a selection (calibrate_margin over the union). A run recorded with margin m

@@ -429,16 +429,6 @@ def _write(doc: dict, info: dict, out: Path) -> str:
     return md
 
 
-def rescore(out: Path) -> dict:
-    """Score, tabulate and plot again the cases of an earlier run (out/results.json) without rerunning them."""
-    path = out / "results.json"
-    if not path.is_file():
-        raise DdynError(f"--rescore: {path} not found")
-    doc = json.loads(path.read_text())
-    doc.update(score(doc["results"]))
-    return doc | {"markdown": _write(doc, doc["nominal"], out)}
-
-
 def _case_job(job: tuple) -> dict:
     """One case in a worker process: (case, vehicle, nominal coefficients)."""
     return run_case(*job)
