@@ -212,7 +212,7 @@ def _run_calibrate(args) -> int:
             except (OSError, json.JSONDecodeError) as e:
                 raise DdynError(f"--from-runs {p}: {e}") from None
     else:
-        config, bench = load_config(args.config) if args.config else (DiagnosisConfig(), load_config(None)[1])
+        config, bench = load_config(args.config)
         if config.min_evidence or config.detection_limits:
             raise DdynError("calibrate: the sweeps are diagnosed with margin 0 and no limits (the calibration "
                             "measures them): leave min_evidence and detection_limits out of the config")
@@ -225,7 +225,9 @@ def _run_calibrate(args) -> int:
             _write_run(doc, out)
             docs.append(doc)
     name = args.name or Path(args.out).stem
-    cal = CAL.from_runs(name, docs, "ddyn gap calibrate " + shlex.join(sys.argv[3:] if len(sys.argv) > 3 else []))
+    # the command that made it, as typed (not when called through ddyn.cli.main from Python, e.g. a test)
+    typed = sys.argv[1:3] == ["gap", "calibrate"]
+    cal = CAL.from_runs(name, docs, "ddyn gap calibrate " + shlex.join(sys.argv[3:]) if typed else "")
     path = CAL.write(cal, args.out)
     lim = ", ".join(f"{e} {v:.4g}" for e, v in cal.decision_levels.items() if v is not None) or "none"
     print(f"calibration {name}: {cal.cases} cases of {cal.duration:g} s logs, seeds {list(cal.seeds)}; margin "
