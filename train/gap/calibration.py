@@ -289,10 +289,13 @@ LENGTH_TOLERANCE = 0.1
 # effects on, and the plant that made the sweeps' logs. Hashed without comments and docstrings (ast), so a
 # calibration goes stale when what the code does changes, not when its words do.
 FITTING_MODULES = ("ddyn.gap.config", "ddyn.gap.candidates", "ddyn.gap.problem", "ddyn.gap.fit", "ddyn.gap.heldout",
-                   "ddyn.gap.selection", "ddyn.gap.eiv", "ddyn.gap.hold_estimate", "ddyn.model.effects",
+                   "ddyn.gap.selection", "ddyn.gap.limits", "ddyn.gap.eiv", "ddyn.gap.hold_estimate", "ddyn.model.effects",
                    "ddyn.model.single_track", "ddyn.model.integrators")
 PLANT_MODULES = {"commonroad": ("ddyn.plants.commonroad_st",),
-                 "commonroad-mb": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb")}
+                 "commonroad-mb": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb"),
+                 # a travelling calibration: every plant family's code and the study that drew their logs
+                 "families": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb", "ddyn.plants.mujoco_car",
+                              "ddyn.gap.benchmark.families", "ddyn.gap.benchmark.lofo")}
 
 
 def _stripped(source: str) -> str:
@@ -457,6 +460,8 @@ def load(name_or_path: str | Path) -> Calibration:
         raw = json.loads(p.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise DdynError(f"{p}: not a calibration file: {e}") from None
+    if isinstance(raw, dict) and raw.get("schema") == SCHEMA_TRAVELLING:
+        return _load_travelling(raw, p)
     if not isinstance(raw, dict) or raw.get("schema") != SCHEMA:
         raise DdynError(f"{p}: not a calibration file (schema {raw.get('schema') if isinstance(raw, dict) else None!r}, "
                         f"expected {SCHEMA!r}; `ddyn gap calibrate` writes one)")
@@ -468,6 +473,108 @@ def load(name_or_path: str | Path) -> Calibration:
         cal = Calibration(**{k: tuple(v) if k in ("seeds", "channels") else v for k, v in raw.items() if k in want},
                           source=str(p))
         cal.applied()   # its settings validate
+    except (TypeError, ValueError) as e:
+        raise DdynError(f"{p}: {e}") from None
+    return cal
+
+
+SCHEMA_TRAVELLING = "ddyn-gap-calibration 2"
+
+
+@dataclass(frozen=True)
+class TravellingCalibration:
+    """A calibration that applies to any log length (`ddyn gap lofo --calibration-out`): made on every plant
+    family's logs of several lengths, rates and cars, it holds an evidence margin per held-out row and decision
+    levels as shares of each effect family's size that matters, so both scale with the log (ddyn.gap.limits);
+    what it is worth on a plant it never saw is its leave-one-family-out score (`lofo`)."""
+
+    name: str
+    diagnosis: dict            # the applied DiagnosisConfig (min_evidence_per_row, decision_levels)
+    families: tuple
+    logs: int
+    durations: tuple           # (shortest, longest) s of the logs it was made on
+    sample_time: float
+    lofo: dict                 # the worst left-out family's score under the same rules
+    code_version: dict
+    made: dict
+    source: str = ""
+
+    plant = "families"
+
+    @property
+    def duration(self) -> float:       # covering() prefers the calibration nearest a log's length
+        return math.sqrt(self.durations[0] * self.durations[1])
+
+    def covers(self, length: float, sample_time: float) -> tuple[bool, str]:
+        if abs(sample_time - self.sample_time) > 0.01 * self.sample_time:
+            return False, (f"{self.name} was made on logs sampled every {self.sample_time:g} s, this log "
+                           f"{sample_time:g} s (its margin is per held-out row)")
+        lo, hi = self.durations
+        where = (f"inside the {lo:.0f}-{hi:.0f} s it was made on" if lo <= length <= hi else
+                 f"outside the {lo:.0f}-{hi:.0f} s it was made on: its margin and levels scale with the log, "
+                 "extrapolated")
+        return True, (f"{self.name} travels: made on {', '.join(self.families)} ({self.logs} logs), this "
+                      f"{length:.0f} s log is {where}")
+
+    def applied(self):
+        from ddyn.gap.config import DiagnosisConfig
+
+        return DiagnosisConfig.from_dict(self.diagnosis, f"calibration {self.name}")
+
+    def stale(self) -> str | None:
+        now = current_code_version(self.plant)
+        changed = [k for k in ("fitting", "plant") if self.code_version.get(k) != now[k]]
+        return (f"calibration {self.name} was made by other {' and '.join(changed)} code ({self.code_version}) than "
+                f"the current ({now}): make it again with its command ({self.made.get('command', '?')})"
+                if changed else None)
+
+    def summary(self) -> dict:
+        d = self.diagnosis
+        return {"name": self.name, "source": self.source, "kind": "travelling",
+                "margin": float(d.get("min_evidence") or 0.0), "margin_per_row": d.get("min_evidence_per_row"),
+                "decision_levels": {}, "decision_shares": d.get("decision_levels"),
+                "families": list(self.families), "log_lengths_s": list(self.durations),
+                "sample_time": self.sample_time, "code_version": self.code_version, "lofo": self.lofo}
+
+    def to_dict(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "source"}
+        return {"schema": SCHEMA_TRAVELLING, **{k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}}
+
+
+def travelling_from_study(name: str, doc: dict, command: str = "") -> TravellingCalibration:
+    """The calibration of a leave-one-family-out study's pass 1 over every family (ddyn.gap.benchmark.lofo)."""
+    from ddyn.gap.benchmark import lofo
+
+    cal = doc["all_families_calibration"]
+    ok = [r for r in doc["pass1"] if r["status"] == "ok"]
+    if not ok:
+        raise DdynError("calibration: the study has no diagnosed logs")
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent, check=False).stdout.strip() or None
+    except OSError:
+        commit = None
+    w = doc.get("worst") or {}
+    worst = {"family": w.get("family"), **(doc["folds"][w["family"]]["score"] if w.get("family") else {})}
+    worst.pop("per_effect", None)
+    return TravellingCalibration(
+        name=name, diagnosis=lofo.applied_config(cal).to_dict(), families=tuple(cal["families"]), logs=len(ok),
+        durations=(min(r["duration"] for r in ok), max(r["duration"] for r in ok)),
+        sample_time=float(ok[0].get("sample_time") or 0.04), lofo=worst,
+        code_version=current_code_version("families"),
+        made={"commit": commit, "date": datetime.date.today().isoformat(), "command": command,
+              "seed": doc["settings"]["seed"], "logs_per_family": doc["settings"]["logs_per_family"]})
+
+
+def _load_travelling(raw: dict, p: Path) -> TravellingCalibration:
+    want = {f.name for f in fields(TravellingCalibration)} - {"source"}
+    missing = sorted(want - set(raw))
+    if missing:
+        raise DdynError(f"{p}: key(s) {', '.join(missing)} missing")
+    try:
+        cal = TravellingCalibration(**{k: tuple(v) if k in ("families", "durations") else v
+                                       for k, v in raw.items() if k in want}, source=str(p))
+        cal.applied()
     except (TypeError, ValueError) as e:
         raise DdynError(f"{p}: {e}") from None
     return cal

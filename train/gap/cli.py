@@ -76,6 +76,8 @@ def _run_diagnose(args) -> int:
           f"(nominal {d['gate']['ratio']:.3g}x the noise floor)")
     for s in d["where"]["summary"]:
         print(f"  where: {s}")
+    for v in (d.get("limits") or {}).values():
+        print(f"  limit: {v['sentence']}")
     print(f"wrote {paths['json']}, {paths['markdown']} and {len(paths['figures'])} figures in {d['seconds']:.1f} s")
     return 0
 
@@ -288,10 +290,82 @@ def _add_rescore(sub) -> None:
     p.set_defaults(func=_run_rescore)
 
 
+# ----------------------------------------------------------------------------------------------- lofo
+
+def _run_lofo(args) -> int:
+    import shlex
+    import sys
+
+    from ddyn.gap.benchmark import families as F
+    from ddyn.gap.benchmark import lofo
+
+    fams = [f.strip() for f in args.families.split(",") if f.strip()]
+    bad = [f for f in fams if f not in F.FAMILIES]
+    if bad:
+        raise DdynError(f"--families: unknown {', '.join(bad)}; expected some of {', '.join(F.FAMILIES)}")
+    if args.logs < 4:
+        raise DdynError(f"--logs {args.logs}: at least 4 logs per family")
+    if args.calibration_out:     # checked before the hours of work, not after
+        _writable(Path(args.calibration_out))
+    out = Path(args.out)
+    durations = lofo.DURATIONS
+    if args.durations:
+        try:
+            durations = tuple((float(d), 1.0) for d in args.durations.split(",") if d.strip())
+        except ValueError:
+            raise DdynError(f"--durations {args.durations!r}: expected seconds, comma-separated") from None
+        if not durations or any(not 10.0 <= d <= 900.0 for d, _ in durations):
+            raise DdynError(f"--durations {args.durations!r}: each between 10 and 900 s")
+    doc = _with_scheduler(args, lambda: lofo.run(fams, args.logs, args.seed, out, args.jobs, not args.no_progress,
+                                                 durations))
+    _write_run(doc, out)
+    if args.calibration_out:
+        path = Path(args.calibration_out)
+        typed = sys.argv[1:3] == ["gap", "lofo"]
+        cal = CAL.travelling_from_study(args.name or path.stem, doc,
+                                        "ddyn gap lofo " + shlex.join(sys.argv[3:]) if typed else "")
+        CAL.write(cal, path)
+        print(f"wrote the calibration of all {len(cal.families)} families: {path}")
+    return 0
+
+
+def _writable(path: Path) -> None:
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir() or (parent.exists() and not parent.is_dir()):
+        raise DdynError(f"{path}: cannot write a file there")
+
+
+def _add_lofo(sub) -> None:
+    from ddyn.gap.benchmark import families as F
+    from ddyn.gap.benchmark import lofo
+
+    p = sub.add_parser("lofo", help="leave one plant family out: calibrate on the others, score blind on it, every "
+                                    "family in turn; optionally write the calibration of all families",
+                       description="The diagnosis's generalisation study (docs/gap.md): logs of every plant family "
+                                   "(cars, lengths, DBW rates, noise, tracks, channels varied), each family scored "
+                                   "under the calibration of the others. Offline: hours on 2 cores at the default "
+                                   "size; a Dask cluster (--scheduler) shares the work.")
+    p.add_argument("--families", default=",".join(F.FAMILIES), help=f"comma-separated (default all: "
+                                                                      f"{', '.join(F.FAMILIES)})")
+    p.add_argument("--logs", type=int, default=lofo.DEFAULT_LOGS, help="logs per family (default %(default)s)")
+    p.add_argument("--seed", type=int, default=lofo.DEFAULT_SEED, help="the campaign's seed (default %(default)s)")
+    p.add_argument("--durations", default=None, help="log lengths in s, comma-separated, drawn equally often "
+                                                     "(default 60, 120, 300 s in shares 45, 35, 20 %%)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes")
+    p.add_argument("--scheduler", default=None, help="a Dask scheduler address (tcp://HOST:8786) instead of --jobs")
+    p.add_argument("--out", required=True, help="the study's folder (results.json, results.md, the logs' cache)")
+    p.add_argument("--calibration-out", default=None, metavar="FILE",
+                   help="also write the calibration of all families (a travelling calibration) to FILE")
+    p.add_argument("--name", default=None, help="that calibration's name (default the file's stem)")
+    p.add_argument("--no-progress", action="store_true")
+    p.set_defaults(func=_run_lofo)
+
+
 def register(subparsers) -> None:
     """`ddyn gap` subcommands (the group's parser)."""
     _add_diagnose(subparsers)
     _add_calibrate(subparsers)
+    _add_lofo(subparsers)
     _add_benchmark(subparsers)
     _add_rescore(subparsers)
 

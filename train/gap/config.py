@@ -88,6 +88,9 @@ class DiagnosisConfig:
     refit: tuple[str, ...] = ("Df", "Dr")
     # At most this many effects are added by the greedy selection.
     max_effects: int = 3
+    # Rounds of the greedy search beyond max_effects that may add an effect which pays but is not claimed (kept as
+    # a nuisance so the search goes on past it). 0 with max_effects 1: round one only (what a calibration reads).
+    max_unclaimed: int = 2
     # Rollout start points for the multi-step (ADE/FDE) figures; a cap on the cost, not a statistic.
     max_starts: int = 400
     # The log's commands were held between samples (a drive-by-wire unit) while the model ramps them: every
@@ -114,10 +117,18 @@ class DiagnosisConfig:
     # Evidence margin: an effect is added only when dBIC < -min_evidence. 0: the plain extended-BIC rule; a
     # calibration sets the margin that leaves <= 5 % of its effect-free logs with a selection.
     min_evidence: float = 0.0
+    # The part of the margin that grows with the log: the margin is min_evidence + min_evidence_per_row x the
+    # held-out rows. A plant mismatch's spurious gain grows with the rows, so a margin calibrated on short logs
+    # and held constant lets it through on long ones (ddyn.gap.limits). 0: a constant margin.
+    min_evidence_per_row: float = 0.0
     # Limits of detection {effect family: smallest |estimate| claimed, or None: never claimed; "*": every other}.
     # An effect that pays with a size below its limit, or whose runner-up is within 2 dBIC, is reported, not
     # claimed. None: no limits (a calibration sets its decision levels).
     detection_limits: dict | None = None
+    # Decision levels that travel: {effect family: share of the family's size that matters (ddyn.gap.limits.SIZES)
+    # a claimed estimate must reach, or None: never claimed; "*": every other}. Used for families without an
+    # absolute detection_limits entry. None: off.
+    decision_levels: dict | None = None
 
     def __post_init__(self):
         _validate(self)
@@ -198,6 +209,7 @@ def _validate(c: DiagnosisConfig) -> None:
         raise DdynError("candidates: at least one effect to try")
     _number("max_effects", c.max_effects, 1, 10, integer=True)
     _number("max_starts", c.max_starts, 1, 10 ** 6, integer=True)
+    _number("max_unclaimed", c.max_unclaimed, 0, 10, integer=True)
     if c.hold not in (True, False, "estimate"):
         raise DdynError(f"hold: expected true, false or \"estimate\", got {c.hold!r}")
     parse_fit_spec(c.fit) if isinstance(c.fit, str) else _bad("fit", c.fit, "a string")
@@ -214,14 +226,18 @@ def _validate(c: DiagnosisConfig) -> None:
     if c.gate is not None:
         _number("gate", c.gate, 0.0)
     _number("min_evidence", c.min_evidence, 0.0)
-    if c.detection_limits is not None:
-        if not isinstance(c.detection_limits, dict):
-            _bad("detection_limits", c.detection_limits, "a table {effect: limit or null}")
-        for eff, v in c.detection_limits.items():
+    _number("min_evidence_per_row", c.min_evidence_per_row, 0.0)
+    for key in ("detection_limits", "decision_levels"):
+        table = getattr(c, key)
+        if table is None:
+            continue
+        if not isinstance(table, dict):
+            _bad(key, table, "a table {effect: value or null}")
+        for eff, v in table.items():
             if eff not in C.ALL and eff not in C.FAMILY.values() and eff != ANY_OTHER:
-                raise DdynError(f"detection_limits: unknown effect {eff!r}")
+                raise DdynError(f"{key}: unknown effect {eff!r}")
             if v is not None:
-                _number(f"detection_limits.{eff}", v, 0.0)
+                _number(f"{key}.{eff}", v, 0.0)
 
 
 def _bad(name: str, value, expected: str):

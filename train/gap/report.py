@@ -48,9 +48,31 @@ def _calibration_lines(d: dict) -> list[str]:
     if not c.get("name"):
         return [f"**Uncalibrated**: {c['why']}. Without a calibration the plain evidence rule decides: a named effect "
                 "is one that pays for itself on the held-out data, not one whose false-alarm rate was measured.", ""]
+    if c.get("kind") == "travelling":
+        shares = ", ".join(f"{e} {_fmt(v)}" for e, v in (c.get("decision_shares") or {}).items()
+                           if v is not None and e != ANY_OTHER)
+        return [f"Calibrated by {c['name']} ({c['why']}): evidence margin dBIC < -{d['gate']['min_evidence']:.4g} "
+                f"({_fmt(c['margin_per_row'])} per held-out row); decision levels as shares of each effect's size "
+                f"that matters: {shares or 'none'}; every other effect reported, never claimed.", ""]
     limits = ", ".join(f"{e} {_fmt(v)}" for e, v in c["decision_levels"].items() if v is not None and e != ANY_OTHER)
     return [f"Calibrated by {c['name']} ({c['why']}): evidence margin dBIC < -{c['margin']:.3g}; decision levels "
             f"{limits or 'none'}; every other effect reported, never claimed.", ""]
+
+
+def limits_lines(d: dict) -> list[str]:
+    """This log's own detection limits (ddyn.gap.limits), one sentence per effect family, and the effects that
+    paid but were not claimed."""
+    lim = d.get("limits") or {}
+    out = []
+    if lim:
+        out += [f"## What this log can show (evidence margin {d['gate']['min_evidence']:.4g})", ""]
+        out += [f"- {v['sentence']}" for v in lim.values()] + [""]
+    un = d["model"].get("unclaimed") or []
+    if un:
+        out += ["Paid on the held-out data but not claimed (kept in the model while the search went on): "
+                + ", ".join(f"{e['effect']} {next(iter(e['params']))} = {_fmt(next(iter(e['params'].values())))}"
+                            for e in un) + ".", ""]
+    return out
 
 
 def markdown(d: dict, figures: list[str]) -> str:
@@ -62,6 +84,7 @@ def markdown(d: dict, figures: list[str]) -> str:
              f"{d['split']['heldout_from_time']:.1f} s).", "",
              f"**Selected: {', '.join(d['selected']) if d['selected'] else 'none'}** — {d['verdict']}", "",
              *_calibration_lines(d), _roll_line(d), "",
+             *limits_lines(d),
              "## How far (held-out)", "",
              "| | vx (m/s) | vy (m/s) | omega (rad/s) | ADE (m) | FDE (m) |", "|---|---|---|---|---|---|",
              "| nominal | " + " | ".join(_fmt(h["rmse_before"][c]) for c in CHANNELS)

@@ -76,6 +76,7 @@ from scipy import stats
 from ddyn.data.dataset import Dataset
 from ddyn.gap import candidates as C
 from ddyn.gap import eiv, hold_estimate
+from ddyn.gap import limits as L
 from ddyn.gap.config import AMBIGUITY_DBIC, ANY_OTHER, DiagnosisConfig, parse_evidence_spec
 from ddyn.gap.fit import Fit, fit
 from ddyn.gap.heldout import _chan, _gap, _noise_floor, _norm_mse, _rms, heldout_summary
@@ -181,20 +182,45 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
     runner_up = (None if r is None else {"effect": r["effect"], "params": r["params"], "delta_bic": r["delta_bic"],
                                          "evidence_difference": r["delta_bic"] - first[0]["delta_bic"]})
 
-    # greedy: add the best while it pays for itself
+    # this log's own detection limits at its margin (ddyn.gap.limits): what the report states, and with decision
+    # levels relative to the size that matters, what a claim's estimate must clear
+    margin = L.margin_of(cfg, len(prob.rows_held))
+    families = list(dict.fromkeys(C.FAMILY[c] for c in candidates))
+    log_limits = L.log_limits(prob, base_fit.rho, families, margin, len(candidates))
+
+    def level_of(name: str) -> tuple[bool, float | None]:
+        """(has a decision level, the level or None: never claimed) of a candidate on this log: the config's
+        absolute detection_limits, else its decision_levels as a share of the family's size that matters."""
+        has, lim = _limit_of(name, limits)
+        if has:
+            return has, lim
+        has, share = _limit_of(name, cfg.decision_levels)
+        if not has:
+            return False, None
+        size = L.size_that_matters(C.FAMILY[name], prob.ctx)
+        return True, None if share is None or size is None else share * size
+
+    # greedy: add the best while it pays for itself. An effect that pays but is not claimed (an estimate on an
+    # edge of its range, below its decision level, or not told apart from a rival) is kept in the model as a
+    # nuisance, reported, and the search goes on for the others: a mismatch the library only approximates must
+    # not hide a real effect behind it.
     selected: list[str] = []
+    nuisance: list[str] = []
     current, current_h = base_fit, base
     steps_log = []
-    unexplained = None      # the best candidate when it paid for itself only from an edge of its range
-    below_limit = None      # the best candidate when it paid for itself with a value below its detection limit
+    unexplained = None      # the first candidate that paid for itself only from an edge of its range
+    below_limit = None      # the first that paid for itself with a value below its detection limit
     not_told_apart = None   # under detection limits: the first effect when a rival's evidence is as good
-    while len(selected) < max_effects:
-        pool = [c for c in candidates if C.FAMILY[c] not in {C.FAMILY[n] for n in selected}]
+    rounds = 0
+    while len(selected) < max_effects and rounds < max_effects + cfg.max_unclaimed:
+        rounds += 1
+        taken = {C.FAMILY[n] for n in selected + nuisance}
+        pool = [c for c in candidates if C.FAMILY[c] not in taken]
         if not pool:
             break
         trials = []
         for name in pool:
-            if not selected:
+            if not selected and not nuisance:
                 f = fits[name]
             else:
                 f = fit(prob, current.names + C.keys(name, prob.layout), start={**current.values, **fits[name].values},
@@ -203,37 +229,37 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
             trials.append((ev["delta_bic"], name, f, ev))
         trials.sort(key=lambda t: t[0])
         dbic, name, f, ev = trials[0]
+        pays = bool(dbic < -margin)
         # an estimate on an edge of its range is a bound, not an estimate: the effect stands in for a mismatch
-        # the library does not hold, so it is never the verdict (and the greedy step stops there)
+        # the library does not hold, so it is never the verdict
         main_value = C.summary(name, f.values, f.std, prob.layout)[0]   # a profile: its peak
-        edge = bool(dbic < -margin) and at_bound(name, main_value, prob.ctx)
+        edge = pays and at_bound(name, main_value, prob.ctx)
         size = C.magnitude(name, main_value, prob.layout)      # a channel candidate: the angle it reads
-        weak = bool(dbic < -margin) and not edge and _below_limit(name, size, limits)
+        has_level, level = level_of(name)
+        weak = pays and not edge and has_level and (level is None or abs(size) < level)
         # under detection limits a claim must also be a choice the data make: a first effect whose runner-up of
         # another family is within AMBIGUITY_DBIC of it is reported, not claimed (on the four calibration sweeps at
         # their margin every such first effect lay below its threshold, and 4 of the 7 were the wrong one)
-        tie = bool(limits and not selected and dbic < -margin and not edge and not weak and runner_up
-                   and first[0]["effect"] == name and runner_up["evidence_difference"] < AMBIGUITY_DBIC)
-        steps_log.append({"added": name if dbic < -margin and not edge and not weak and not tie else None,
-                          "best_candidate": name, "delta_bic": dbic, "at_bound": edge, "below_limit": weak,
-                          "not_told_apart": tie, "after": selected + [name]})
-        if edge:
+        tie = bool((limits or cfg.decision_levels) and not selected and not nuisance and pays and not edge
+                   and not weak and runner_up and first[0]["effect"] == name
+                   and runner_up["evidence_difference"] < AMBIGUITY_DBIC)
+        claimed = pays and not edge and not weak and not tie
+        steps_log.append({"added": name if claimed else None, "nuisance": name if pays and not claimed else None,
+                          "best_candidate": name, "delta_bic": dbic, "margin": margin, "at_bound": edge,
+                          "below_limit": weak, "not_told_apart": tie, "after": selected + nuisance + [name]})
+        if not pays:
+            break
+        if edge and unexplained is None:
             unexplained = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic}
-            break
-        if weak:
+        if weak and below_limit is None:
             below_limit = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
-                           "limit": _limit_of(name, limits)[1],
-                           **({"magnitude": size} if name in C.ROLL_OF else {})}
-            break
-        if tie:
+                           "limit": level, **({"magnitude": size} if name in C.ROLL_OF else {})}
+        if tie and not_told_apart is None:
             not_told_apart = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
                               "rival": runner_up["effect"], "rival_params": runner_up["params"],
                               "rival_delta_bic": runner_up["delta_bic"],
                               "evidence_difference": runner_up["evidence_difference"]}
-            break
-        if not dbic < -margin:
-            break
-        selected.append(name)
+        (selected if claimed else nuisance).append(name)
         current, current_h = f, ev["heldout"]
 
     # the noise floor: from the residuals of the best model evaluated (closest to pure sensor noise)
@@ -244,7 +270,10 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
     ratio = _norm_mse(prob, base["rmse"]) / e_floor if e_floor > 0 else math.inf
     gated = gate is not None and bool(selected) and ratio <= gate
     gate_info = {"ratio": ratio, "threshold": gate, "gated": gated, "selected_without_gate": list(selected),
-                 "min_evidence": margin, "detection_limits": limits,
+                 "min_evidence": margin, "margin_rule": {"min_evidence": cfg.min_evidence,
+                                                         "min_evidence_per_row": cfg.min_evidence_per_row,
+                                                         "heldout_rows": int(len(prob.rows_held))},
+                 "detection_limits": limits, "decision_levels": cfg.decision_levels,
                  "rule": "select nothing when the refitted nominal's held-out normalised one-step MSE is at most "
                          "`threshold` times the estimated noise floor's"}
     if gated:
@@ -265,6 +294,8 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
                       "rmse_after": _chan(th["rmse"]), "gap_closed_pct": t_gap, "error_reduction_pct": t_red,
                       **_score(prob, base, th, len(truth), 1)}
     final = {"effects": [described(n, current) for n in selected],
+             # effects that paid but are not claimed, kept in the model so the search could go on past them
+             "unclaimed": [] if gated else [described(n, current) for n in nuisance],
              "refit": {n: 1.0 + float(r) for n, r in zip(prob.refit, current.rho)},
              "heldout": {"rmse_before": _chan(before["rmse"]), "rmse_after": _chan(current_h["rmse"]),
                          "ade_before": before["ade"], "ade_after": current_h["ade"],
@@ -295,6 +326,8 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
                     + (f"; then {_below_limit_verdict(below_limit)}" if selected and below_limit else "")),
         "unexplained": unexplained,
         "below_limit": below_limit,
+        # this log's detection limits per family at its margin (ddyn.gap.limits), and the sentences a report prints
+        "limits": log_limits,
         "not_told_apart": not_told_apart,
         "rival": rival,
         "runner_up": runner_up,
@@ -352,13 +385,6 @@ def _limit_of(name: str, limits: dict | None):
     if not limits or (family not in limits and ANY_OTHER not in limits):
         return False, None
     return True, limits[family] if family in limits else limits[ANY_OTHER]
-
-
-def _below_limit(name: str, value: float, limits: dict | None) -> bool:
-    """An effect's size (a profile's peak, a channel's angle: candidates.magnitude) under its detection limit;
-    never for an effect without one."""
-    has, limit = _limit_of(name, limits)
-    return has and (limit is None or abs(value) < limit)
 
 
 def _below_limit_verdict(b: dict) -> str:

@@ -1,0 +1,380 @@
+"""Leave one plant family out: calibrate the diagnosis on the other families, score it blind on the one left out.
+
+Why: a threshold or margin chosen on one plant and scored on new seeds of it says nothing about a user's car. Here
+every family (ddyn.gap.benchmark.families) is in turn the new plant: its logs choose nothing.
+
+The campaign (plan): per family, logs that vary what a real one varies: the car (the family's parameter sets),
+log length (DURATIONS), drive-by-wire rate (DBW_PERIODS), sensor noise level and colour, target speed, track
+(Putnam; the banked oval for half the bank logs) and the roll channel (CHANNEL_KINDS, where the plant has them).
+Each log holds one effect (EFFECTS, drawn between MAGNITUDES times its size that matters, ddyn.gap.limits.SIZES)
+or none (NONE_SHARE of the logs). The nominal is the user's: the family's vehicle file for that car.
+
+Two passes, both on the same cached logs:
+  pass 1   every log diagnosed uncalibrated (margin 0, no decision levels): what each family's candidates
+           estimate and what their evidence is;
+  fold     for each family, the calibration of the OTHER families' pass-1 records (calibrate): a decision level
+           per effect family (a share of its size that matters: the 5th percentile of |estimate| / truth over
+           their logs holding it at or above that size, so a true effect at the size is estimated above it 95 %
+           of the time; fewer than MIN_LEVEL_LOGS such logs: never claimed), then the margin per held-out row:
+           the smallest leaving at most 5 % of their no-claim logs (effect-free, or an effect below its size)
+           with a first claim;
+  pass 2   the left-out family's logs diagnosed under its fold's calibration: what is scored (score).
+
+The scores follow the issue's reading: on logs of SCORED_FROM_DURATION s or more every log holding an effect at
+or above its size counts; shorter ones count when the effect is also above the log's own stated limit. The
+worst family is the headline, not the mean.
+"""
+from __future__ import annotations
+
+import math
+import pickle
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ddyn.errors import DdynError
+from ddyn.gap import candidates as C
+from ddyn.gap import limits as L
+from ddyn.gap.benchmark import families as F
+from ddyn.gap.config import AMBIGUITY_DBIC, ANY_OTHER, DiagnosisConfig
+from ddyn.model import effects as E
+
+NONE = "none"
+# the effect families scored (the issue's ten minus none): each has a size that matters in ddyn.gap.limits
+EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce", "tire_wear", "bank_angle",
+           "grade", "yaw_rate_bias", "tire_relaxation")
+SIGNED = ("mass_offset", "bank_angle", "grade", "yaw_rate_bias")
+PROFILED = ("bank_angle", "grade")      # estimated as profiles: a parameter error is not defined
+NONE_SHARE = 0.25
+MAGNITUDES = (0.6, 3.0)                 # times the size that matters, log-uniform: about a third below it
+DURATIONS = ((60.0, 0.45), (120.0, 0.35), (300.0, 0.20))     # s, share of the logs
+DBW_PERIODS = (0.01, 0.02, 0.04, 0.05)  # s: 100, 50, 25 (the log's rate) and 20 Hz drive-by-wire units
+NOISE_SCALES = (0.5, 2.0)
+NOISE_COLOURS = (0.0, 0.6)
+SPEEDS = (18.0, 27.0)
+CHANNEL_KINDS = ("none", "imu", "map", "broken")
+OVAL_SHARE = 0.5                        # bank logs on the banked oval (its own bank), the rest on Putnam
+SCORED_FROM_DURATION = 300.0
+MIN_LEVEL_LOGS = 3
+TARGET_FALSE_ALARMS = 0.05
+DEFAULT_LOGS = 60
+DEFAULT_SEED = 8101
+
+
+def base_config() -> DiagnosisConfig:
+    """The diagnosis the study calibrates: the hold estimated from the log, every one-parameter effect and the
+    bank and grade profiles and channels (drivetrain shapes are not scored: no size that matters)."""
+    return DiagnosisConfig(hold="estimate", candidates=E.EFFECT_NAMES + C.EXTRA)
+
+
+def _channel_kinds() -> tuple:
+    from ddyn.plants import commonroad_st as CP
+
+    return CHANNEL_KINDS if getattr(CP, "CHANNEL_KINDS", None) else (False, True)
+
+
+def plan(family: str, n: int, seed: int, durations=DURATIONS) -> list[dict]:
+    """n cases of one family: the effect, its magnitude and the campaign settings, all drawn from `seed`
+    (durations: ((seconds, share), ...) of the log lengths)."""
+    rng = np.random.default_rng([seed, sum(map(ord, family))])
+    effects = [e for e in EFFECTS if e in F.supported_effects(family)]
+    sets = F.params_sets(family)
+    kinds = _channel_kinds()
+    n_none = int(round(NONE_SHARE * n))
+    slots = [NONE] * n_none + [effects[i % len(effects)] for i in range(n - n_none)]
+    rng.shuffle(slots)
+    lengths, weights = zip(*durations)
+    out = []
+    for i, eff in enumerate(slots):
+        duration = float(rng.choice(lengths, p=np.array(weights) / sum(weights)))
+        speed = float(rng.uniform(*SPEEDS))
+        track = "oval" if eff == "bank_angle" and rng.random() < OVAL_SHARE else "putnam"
+        u = float(math.exp(rng.uniform(math.log(MAGNITUDES[0]), math.log(MAGNITUDES[1]))))
+        sign = -1.0 if eff in SIGNED and rng.random() < 0.5 else 1.0
+        size = _planned_size(eff, duration, speed)
+        out.append({"family": family, "case": i, "effect": eff, "track": track,
+                    "magnitude": (0.0 if eff == NONE or track == "oval" else sign * u * size),
+                    "params": str(rng.choice(sets)), "seed": int(seed * 1000 + i), "duration": duration,
+                    "dbw_period": float(rng.choice(DBW_PERIODS)), "noise_scale": float(rng.uniform(*NOISE_SCALES)),
+                    "noise_color": float(rng.choice(NOISE_COLOURS)), "target_speed": speed,
+                    "roll_channel": kinds[int(rng.integers(len(kinds)))]})
+    return out
+
+
+def _planned_size(eff: str, duration: float, speed: float) -> float:
+    if eff == NONE:
+        return 0.0
+    return L.size_that_matters(eff, {"duration": duration, "v_max": speed})
+
+
+def make_case_log(case: dict):
+    from ddyn.plants import commonroad_st as CP
+
+    effects = {} if case["effect"] == NONE or case["track"] == "oval" else {case["effect"]: case["magnitude"]}
+    settings = CP.LogSettings(duration=case["duration"], noise_scale=case["noise_scale"],
+                              noise_color=case["noise_color"], target_speed=case["target_speed"],
+                              dbw_period=case["dbw_period"], roll_channel=case["roll_channel"])
+    track = case["track"]
+    if track == "oval":
+        from ddyn.model.track_oval import oval_track
+
+        track = oval_track()
+    return F.make_log(case["family"], track, CP.PlantEffects(**effects), case["seed"], settings, case["params"])
+
+
+def _cached_log(case: dict, cache: Path | None):
+    path = None if cache is None else cache / f"{case['family']}-{case['seed']}.pkl"
+    if path is not None and path.is_file():
+        return pickle.loads(path.read_bytes()), 0.0
+    t0 = time.perf_counter()
+    ds = make_case_log(case)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(pickle.dumps(ds))
+    return ds, time.perf_counter() - t0
+
+
+def _oval_bank_peak() -> float:
+    from ddyn.model.track_oval import oval_track
+
+    return float(np.max(np.abs(oval_track().bank)))
+
+
+def run_case(case: dict) -> dict:
+    """Make (or read the cached) log of a case and diagnose it under case["config"]; what a score needs."""
+    from ddyn.gap.problem import nominal_from_vehicle
+    from ddyn.gap.selection import diagnose
+    from ddyn.model.vehicle import load as load_vehicle
+
+    cache = Path(case["cache"]) if case.get("cache") else None
+    try:
+        ds, sim_s = _cached_log(case, cache)
+    except (DdynError, FloatingPointError, ValueError, RuntimeError) as e:
+        return case | {"status": "simulation failed", "error": str(e).splitlines()[0] if str(e) else repr(e)}
+    veh = load_vehicle(F.nominal_vehicle(case["family"], case["params"]))
+    t0 = time.perf_counter()
+    track = None
+    if case["track"] == "oval" and case.get("track_known"):
+        from ddyn.model.track_oval import oval_track
+
+        track = oval_track()
+    try:
+        d = diagnose(ds, nominal_from_vehicle(veh, ds), DiagnosisConfig.from_dict(case["config"]), track=track)
+    except DdynError as e:
+        return case | {"status": "diagnosis failed", "error": str(e)}
+    fams: dict = {}
+    for c in d["candidates"]:      # best first: the first of each family is its best
+        fam = C.FAMILY.get(c["effect"], c["effect"])
+        if fam not in fams:
+            fams[fam] = {"candidate": c["effect"], "delta_bic": c["delta_bic"], "at_bound": c["at_bound"],
+                         "size": float(c.get("magnitude", next(iter(c["params"].values()))))}
+    top = d["candidates"][0]
+    truth = case["magnitude"] if case["track"] != "oval" else _oval_bank_peak()
+    return {k: v for k, v in case.items() if k not in ("config", "cache")} | {
+        "status": "ok", "true_magnitude": truth, "rows": len(ds), "sample_time": float(ds.sample_time), "heldout_rows": d["split"]["heldout_rows"],
+        "candidates_tried": len(d["candidates"]), "families": fams,
+        "top": C.FAMILY.get(top["effect"], top["effect"]), "delta_bic_top": top["delta_bic"],
+        "runner_up_gap": (d.get("runner_up") or {}).get("evidence_difference"),
+        "claimed": [C.FAMILY.get(s, s) for s in d["selected"]],
+        "unclaimed": [e["effect"] for e in d["model"].get("unclaimed", [])],
+        "limits": {f: {"size": v["size_that_matters"], "limit": v["limit"], "gain": v["gain_at_size"]}
+                   for f, v in d["limits"].items()},
+        "margin": d["gate"]["min_evidence"], "verdict": d["verdict"],
+        "seconds_simulation": sim_s, "seconds_diagnosis": time.perf_counter() - t0,
+    }
+
+
+# ----------------------------------------------------------------------------------------------- calibration
+
+def _size(r: dict, fam: str) -> float | None:
+    lim = r["limits"].get(fam)
+    return None if lim is None else lim["size"]
+
+
+def _matters(r: dict) -> bool:
+    s = _size(r, r["effect"])
+    return s is not None and abs(r["true_magnitude"]) >= s * (1 - 1e-9)
+
+
+def _no_claim_log(r: dict) -> bool:
+    return r["effect"] == NONE or not _matters(r)
+
+
+def decision_levels(records: list[dict]) -> dict:
+    """{family: share of its size that matters, or None} from pass-1 records (module docstring)."""
+    out = {}
+    for fam in EFFECTS:
+        ratios = [abs(r["families"][fam]["size"]) / abs(r["true_magnitude"]) for r in records
+                  if r["status"] == "ok" and r["effect"] == fam and _matters(r) and fam in r["families"]]
+        out[fam] = (min(1.0, float(np.quantile(ratios, TARGET_FALSE_ALARMS))) if len(ratios) >= MIN_LEVEL_LOGS
+                    else None)
+    return out
+
+
+def _would_claim_first(r: dict, levels: dict) -> float | None:
+    """The margin per held-out row below which the log's first candidate would be claimed (None: never, by its
+    size, its range edge or a tie)."""
+    fam = r["top"]
+    share = levels.get(fam)
+    size = _size(r, fam)
+    f = r["families"].get(fam)
+    if share is None or size is None or f is None or f["at_bound"]:
+        return None
+    if abs(f["size"]) < share * size:
+        return None
+    if r["runner_up_gap"] is not None and r["runner_up_gap"] < AMBIGUITY_DBIC:
+        return None
+    return max(0.0, -r["delta_bic_top"] / r["heldout_rows"])
+
+
+def margin_per_row(records: list[dict], levels: dict, target: float = TARGET_FALSE_ALARMS) -> float:
+    """The smallest margin per held-out row leaving at most `target` of the no-claim logs with a first claim."""
+    logs = [r for r in records if r["status"] == "ok" and _no_claim_log(r)]
+    alarms = sorted(m for m in (_would_claim_first(r, levels) for r in logs) if m is not None)
+    allowed = int(math.floor(target * len(logs)))
+    return 0.0 if len(alarms) <= allowed else float(alarms[len(alarms) - allowed - 1]) * (1 + 1e-9)
+
+
+def calibrate(records: list[dict]) -> dict:
+    levels = decision_levels(records)
+    return {"decision_levels": levels, "min_evidence_per_row": margin_per_row(records, levels),
+            "families": sorted({r["family"] for r in records}), "logs": len(records)}
+
+
+def applied_config(cal: dict) -> DiagnosisConfig:
+    return base_config().with_(min_evidence_per_row=cal["min_evidence_per_row"],
+                               decision_levels={**cal["decision_levels"], ANY_OTHER: None})
+
+
+# ----------------------------------------------------------------------------------------------- score
+
+def score(rows: list[dict]) -> dict:
+    ok = [r for r in rows if r["status"] == "ok"]
+    eff = [r for r in ok if r["effect"] != NONE]
+
+    def scored(r):
+        if not _matters(r):
+            return False
+        if r["duration"] >= SCORED_FROM_DURATION:
+            return True
+        lim = r["limits"].get(r["effect"], {}).get("limit")
+        return lim is not None and abs(r["true_magnitude"]) >= lim
+
+    sc = [r for r in eff if scored(r)]
+    right = [r for r in sc if r["claimed"][:1] == [r["effect"]]]
+    none = [r for r in ok if r["effect"] == NONE]
+    below = [r for r in eff if not _matters(r)]
+    dl = [r for r in sc if r["effect"] in ("steer_delay", "steer_lag")
+          and r["claimed"][:1] and r["claimed"][0] in ("steer_delay", "steer_lag")]
+    perr = {}
+    for r in sc:
+        if r["effect"] in PROFILED or r["effect"] not in r["families"]:
+            continue
+        perr.setdefault(r["effect"], []).append(abs(r["families"][r["effect"]]["size"] - r["true_magnitude"])
+                                                / abs(r["true_magnitude"]))
+    above_limit = [r for r in eff if (lim := r["limits"].get(r["effect"], {}).get("limit")) is not None
+                   and abs(r["true_magnitude"]) >= lim]
+    stated = [(v["limit"] is not None and v["limit"] <= v["size"]) for r in ok for f, v in r["limits"].items()
+              if f in EFFECTS]
+    per_effect = {}
+    for e in EFFECTS:
+        es = [r for r in sc if r["effect"] == e]
+        if es:
+            per_effect[e] = {"scored": len(es), "right": sum(r["claimed"][:1] == [e] for r in es),
+                             "wrong": sum(bool(r["claimed"]) and r["claimed"][0] != e for r in es),
+                             "missed": sum(not r["claimed"] for r in es)}
+    all_err = [x for v in perr.values() for x in v]
+    return {
+        "logs": len(rows), "ok": len(ok), "failed": len(rows) - len(ok),
+        "scored": len(sc), "first_right": len(right), "first_right_rate": len(right) / len(sc) if sc else None,
+        "effect_free": len(none), "effect_free_claimed": sum(bool(r["claimed"]) for r in none),
+        "below_size": len(below), "below_size_claimed": sum(bool(r["claimed"]) for r in below),
+        "delay_vs_lag": {"told": len(dl), "right": sum(r["claimed"][0] == r["effect"] for r in dl)},
+        "param_error_median": statistics.median(all_err) if all_err else None,
+        "param_error_median_per_effect": {e: statistics.median(v) for e, v in perr.items()},
+        "limits_hold": {"above_stated_limit": len(above_limit),
+                        "found": sum(r["claimed"][:1] == [r["effect"]] for r in above_limit),
+                        "limit_at_or_below_size": sum(stated), "limit_statements": len(stated)},
+        "per_effect": per_effect,
+    }
+
+
+def _rate(a, b):
+    return f"{a}/{b}" + (f" ({100 * a / b:.0f} %)" if b else "")
+
+
+def markdown(doc: dict) -> str:
+    lines = [f"# Leave one plant family out ({doc['settings']['logs_per_family']} logs per family, seed "
+             f"{doc['settings']['seed']})", "",
+             "Each family scored blind under the calibration of the others (ddyn.gap.benchmark.lofo).", "",
+             "| left out | margin/row | claimable | first effect right | effect-free claimed | below size claimed "
+             "| delay vs lag | median param error | found above stated limit | limit <= size |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for fam, f in doc["folds"].items():
+        s, cal = f["score"], f["calibration"]
+        claimable = sum(v is not None for v in cal["decision_levels"].values())
+        pe = s["param_error_median"]
+        lh = s["limits_hold"]
+        lines.append(f"| {fam} | {cal['min_evidence_per_row']:.3g} | {claimable}/{len(EFFECTS)} | "
+                     f"{_rate(s['first_right'], s['scored'])} | {_rate(s['effect_free_claimed'], s['effect_free'])} | "
+                     f"{_rate(s['below_size_claimed'], s['below_size'])} | "
+                     f"{_rate(s['delay_vs_lag']['right'], s['delay_vs_lag']['told'])} | "
+                     f"{'-' if pe is None else f'{100 * pe:.0f} %'} | {_rate(lh['found'], lh['above_stated_limit'])} | "
+                     f"{_rate(lh['limit_at_or_below_size'], lh['limit_statements'])} |")
+    w = doc.get("worst")
+    if w:
+        lines += ["", f"Worst family: {w['family']} ({w['why']})."]
+    if doc.get("skipped"):
+        lines += ["", "Not run: " + "; ".join(f"{k}: {v}" for k, v in doc["skipped"].items()) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def worst(folds: dict) -> dict | None:
+    rated = [(f["score"]["first_right_rate"], fam) for fam, f in folds.items()
+             if f["score"]["first_right_rate"] is not None]
+    if not rated:
+        return None
+    rate, fam = min(rated)
+    return {"family": fam, "first_right_rate": rate,
+            "why": f"first effect right on {100 * rate:.0f} % of its scored logs, the lowest"}
+
+
+def run(families: list[str], n: int, seed: int, out: Path, jobs: int = 1, progress: bool = True,
+        durations=DURATIONS) -> dict:
+    """The study: plan, pass 1, folds, pass 2; the results document (written by the caller)."""
+    from ddyn.gap.benchmark.parallel import run_cases
+
+    t0 = time.perf_counter()
+    skipped = {}
+    use = []
+    for fam in families:
+        ok, why = F.available(fam)
+        (use.append(fam) if ok else skipped.__setitem__(fam, why))
+    if len(use) < 2:
+        raise DdynError(f"leave-one-family-out needs at least two families that run here; have {use or 'none'} "
+                        f"({'; '.join(f'{k}: {v}' for k, v in skipped.items())})")
+    cache = out / "logs"
+    cfg = base_config().to_dict()
+    # pass 1 reads round one only (what the calibration reads): one effect, no nuisance rounds
+    first_round = base_config().with_(max_effects=1, max_unclaimed=0).to_dict()
+    cases = [c | {"config": first_round, "cache": str(cache)} for fam in use for c in plan(fam, n, seed, durations)]
+    pass1 = run_cases(run_case, cases, jobs, "pass 1 (uncalibrated)", progress)
+    folds, second = {}, []
+    for fam in use:
+        cal = calibrate([r for r in pass1 if r["family"] != fam])
+        folds[fam] = {"calibration": cal}
+        conf = applied_config(cal).to_dict()
+        second += [c | {"config": conf, "cache": str(cache)} for c in cases if c["family"] == fam]
+    pass2 = run_cases(run_case, second, jobs, "pass 2 (left-out family, its fold's calibration)", progress)
+    for fam in use:
+        folds[fam]["score"] = score([r for r in pass2 if r["family"] == fam])
+    doc = {"settings": {"families": use, "logs_per_family": n, "seed": seed, "base_config": cfg,
+                        "effects": list(EFFECTS), "durations": [list(d) for d in durations],
+                        "dbw_periods": list(DBW_PERIODS), "noise_scales": list(NOISE_SCALES)},
+           "skipped": skipped, "folds": folds, "worst": worst(folds),
+           "all_families_calibration": calibrate(pass1),
+           "pass1": pass1, "pass2": pass2, "seconds": time.perf_counter() - t0}
+    doc["markdown"] = markdown(doc)
+    return doc

@@ -1,0 +1,152 @@
+"""This log's own detection limits: the smallest effect of each family the diagnosis would find on it.
+
+Why: a threshold measured on one plant's 60 s logs says nothing about a user's 900 s log of another car, and a
+margin that is a fixed number of dBIC lets a systematic mismatch through on a long log (its spurious gain grows
+with the rows) while it is needlessly strict on a short one. Both are modelled here from the log itself, at no
+more cost than a few one-step evaluations:
+
+  size that matters   per family, fixed and not tuned (SIZES; the issue that asked for them): delays and lag
+                      40 ms, mass 10 %, bank and grade 3 degrees, yaw-rate bias 0.01 rad/s, tyre wear 10 % of
+                      the grip lost over the log, downforce 10 % more tyre load at the log's top speed, tyre
+                      relaxation 1 m, combined slip a coupling of 0.5.
+  evidence at a size  the held-out gain an effect of that size would give on THIS log: the change dr it makes
+                      to the refitted nominal's normalised one-step predictions on the held-out rows, with the
+                      part the tyre refit (Df, Dr) could take up projected out (least squares across the
+                      channels, each weighted by its residual variance), so gain per channel
+                      g = |dr_perp|^2 / (n s^2). An effect of size t * size, present in the log and found, raises
+                      the concentrated log-likelihood by n sum_c ln(1 + t^2 g_c).
+  margin              min_evidence + min_evidence_per_row * n_heldout: a constant (the extended BIC's own
+                      penalty is added by the criterion) and a part that grows with the rows, the form a
+                      systematic plant mismatch's spurious gain takes (a calibration sets both).
+  limit               the smallest t * size whose expected dBIC, -n sum ln(1 + t^2 g) + dk ln n + 2 ln m, clears
+                      -margin: "a steering delay below 31 ms would not be found on this log". Linear in the
+                      effect (t^2 g): exact for small effects, a bound's order of magnitude for large ones.
+
+The profile and channel candidates of a family take the family's limit (its constant form: a bank of one
+angle everywhere, a grade likewise).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ddyn.gap import candidates as C
+
+# the size that matters per family: (value, unit, how it is read); "per-log" sizes depend on the log (below)
+SIZES = {"steer_delay": 0.040, "throttle_delay": 0.040, "steer_lag": 0.040, "mass_offset": 0.10,
+         "bank_angle": math.radians(3.0), "grade": math.radians(3.0), "yaw_rate_bias": 0.01,
+         "tire_relaxation": 1.0, "combined_slip": 0.5}
+WEAR_LOST = 0.10            # tyre wear: this share of the grip lost over the log
+DOWNFORCE_LOAD = 0.10       # downforce: this much more tyre load at the log's top speed
+WORDS = {"steer_delay": "steering delay", "throttle_delay": "throttle delay", "steer_lag": "steering lag",
+         "mass_offset": "mass offset", "bank_angle": "bank", "grade": "grade", "yaw_rate_bias": "yaw-rate bias",
+         "tire_relaxation": "tyre relaxation length", "combined_slip": "combined-slip coupling",
+         "tire_wear": "tyre wear", "downforce": "downforce"}
+LIMIT_CAP = 1e3             # t above this: the log carries no information on the family (limit reported as None)
+
+
+def size_that_matters(family: str, ctx: dict) -> float | None:
+    """The family's size that matters in its main parameter's unit on a log (ctx: Problem.ctx); None: the
+    family has none fixed (drivetrain shapes)."""
+    if family in SIZES:
+        return SIZES[family]
+    if family == "tire_wear":       # exp(-rate T) = 1 - WEAR_LOST over the log
+        return -math.log(1.0 - WEAR_LOST) / ctx["duration"]
+    if family == "downforce":       # 1 + k v_max^2 = 1 + DOWNFORCE_LOAD
+        return DOWNFORCE_LOAD / ctx["v_max"] ** 2
+    return None
+
+
+def in_words(family: str, value: float) -> str:
+    """A size in the unit a user reads (ms, %, degrees, ...)."""
+    if family in ("steer_delay", "throttle_delay", "steer_lag"):
+        return f"{1e3 * value:.0f} ms"
+    if family in ("bank_angle", "grade"):
+        return f"{math.degrees(value):.1f} degrees"
+    if family == "mass_offset":
+        return f"{100 * value:.0f} %"
+    if family == "yaw_rate_bias":
+        return f"{value:.3g} rad/s"
+    if family == "tire_relaxation":
+        return f"{value:.2g} m"
+    return f"{value:.3g}"
+
+
+def margin_of(config, n_heldout: int) -> float:
+    """The evidence margin on a log with n_heldout held-out rows (DiagnosisConfig.min_evidence, min_evidence_per_row)."""
+    return float(config.min_evidence) + float(getattr(config, "min_evidence_per_row", 0.0)) * int(n_heldout)
+
+
+def _projected_gain(prob, base_rho, dr: np.ndarray, held: bool, var: np.ndarray) -> np.ndarray:
+    """g per channel: the squared held-out change dr (n, 3; normalised) left after the refit factors' own
+    changes are projected out (none when the hypothesis holds the refit), over n times the channel variance."""
+    n = dr.shape[0]
+    if not held and len(prob.refit):
+        rows, r0 = prob.rows_held, prob.residuals({}, base_rho, prob.rows_held)
+        cols = []
+        for j in range(len(prob.refit)):
+            rho = np.array(base_rho, float)
+            rho[j] += 0.01
+            cols.append((prob.residuals({}, rho, rows) - r0) / np.sqrt(var))
+        S = np.stack([c.ravel() for c in cols], axis=1)
+        y = (dr / np.sqrt(var)).ravel()
+        coef, *_ = np.linalg.lstsq(S, y, rcond=None)
+        dr = (y - S @ coef).reshape(n, 3) * np.sqrt(var)
+    return np.sum(dr ** 2, axis=0) / (n * var)
+
+
+def gains(prob, base_rho, families) -> dict:
+    """{family: (size that matters, g per channel (3,))} on the held-out rows of prob (refit factors base_rho).
+    g: the normalised gain an effect of the size that matters would give (module docstring)."""
+    rows = prob.rows_held
+    r0 = prob.residuals({}, base_rho, rows)
+    var = np.maximum(np.mean(r0 ** 2, axis=0), 1e-12)
+    out = {}
+    for fam in families:
+        size = size_that_matters(fam, prob.ctx)
+        if size is None:
+            continue
+        try:
+            r1 = prob.residuals({fam: size}, base_rho, rows)
+        except (ValueError, FloatingPointError):
+            continue
+        dr = r0 - r1     # what the effect, were it in the log, would add to the nominal's residual
+        if not np.all(np.isfinite(dr)):
+            continue
+        held = C.holds_refit((fam,), prob.bank_family_held)
+        out[fam] = (size, _projected_gain(prob, base_rho, dr, held, var))
+    return out
+
+
+def limit(size: float, g, n: int, margin: float, dk: int = 1, m: int = 1) -> float | None:
+    """The smallest t * size with -n sum ln(1 + t^2 g) + dk ln n + 2 ln m <= -margin; None: beyond LIMIT_CAP."""
+    g = np.maximum(np.asarray(g, float), 0.0)
+    need = margin + dk * math.log(max(n, 2)) + 2.0 * math.log(max(m, 1))
+
+    def gain(t):
+        return float(n * np.sum(np.log1p(t * t * g)))
+
+    if gain(LIMIT_CAP) < need:
+        return None
+    lo, hi = 0.0, LIMIT_CAP
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if gain(mid) < need else (lo, mid)
+    return hi * size
+
+
+def log_limits(prob, base_rho, families, margin: float, m: int) -> dict:
+    """{family: {size_that_matters, limit (None: not found at any size), gain (3,), unit, sentence}} for this log
+    at evidence margin `margin` with m candidates in the first round."""
+    n = len(prob.rows_held)
+    out = {}
+    for fam, (size, g) in gains(prob, base_rho, families).items():
+        lim = limit(size, g, n, margin, 1, m)
+        word = WORDS.get(fam, fam.replace("_", " "))
+        out[fam] = {"size_that_matters": size, "limit": lim, "gain_at_size": [float(x) for x in g],
+                    "unit": C.UNITS.get(fam, ""), "limit_over_size": None if lim is None else lim / size,
+                    "sentence": (f"no {word} of any size in range would be found on this log" if lim is None else
+                                 f"a {word} below {in_words(fam, lim)} would not be found on this log "
+                                 f"(size that matters: {in_words(fam, size)})")}
+    return out
