@@ -1,0 +1,176 @@
+"""This log's own detection limits, the margin that grows with the log, the search past unclaimed effects, the
+leave-one-family-out rules and the travelling calibration (ddyn.gap.limits, ddyn.gap.benchmark.lofo)."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from ddyn.errors import DdynError
+from ddyn.gap import calibration as CAL
+from ddyn.gap import limits as L
+from ddyn.gap.benchmark import lofo
+from ddyn.gap.config import DiagnosisConfig
+
+
+# ----------------------------------------------------------------------------------------------- limits
+
+def test_limit_solves_the_expected_evidence_and_grows_with_the_margin():
+    g = np.array([2e-4, 1e-4, 3e-4])
+    n = 1500
+    lo = L.limit(0.04, g, n, margin=10.0)
+    hi = L.limit(0.04, g, n, margin=60.0)
+    assert lo is not None and hi is not None and hi > lo
+    # at the limit the expected gain equals the margin plus the criterion's own penalty
+    t = lo / 0.04
+    gain = n * np.sum(np.log1p(t * t * g))
+    assert gain == pytest.approx(10.0 + math.log(n), rel=1e-6)
+
+
+def test_a_log_without_information_on_an_effect_has_no_limit():
+    assert L.limit(0.04, np.zeros(3), 1000, 5.0) is None
+
+
+def test_sizes_that_matter_follow_the_log():
+    ctx = {"duration": 300.0, "v_max": 30.0}
+    assert L.size_that_matters("steer_delay", ctx) == 0.04
+    assert math.exp(-L.size_that_matters("tire_wear", ctx) * 300.0) == pytest.approx(0.9)
+    assert L.size_that_matters("downforce", ctx) * 30.0 ** 2 == pytest.approx(0.1)
+    assert L.size_that_matters("bank_angle", ctx) == pytest.approx(math.radians(3.0))
+    assert L.size_that_matters("throttle_map", ctx) is None
+
+
+def test_margin_grows_with_the_heldout_rows():
+    cfg = DiagnosisConfig(min_evidence=5.0, min_evidence_per_row=0.02)
+    assert L.margin_of(cfg, 600) == pytest.approx(17.0)
+    assert L.margin_of(cfg, 3000) == pytest.approx(65.0)
+    with pytest.raises(DdynError, match="min_evidence_per_row"):
+        DiagnosisConfig(min_evidence_per_row=-1.0)
+    with pytest.raises(DdynError, match="decision_levels: unknown effect"):
+        DiagnosisConfig(decision_levels={"warp_drive": 1.0})
+
+
+@pytest.fixture(scope="module")
+def delay_log():
+    from ddyn.plants import commonroad_st as CP
+
+    return CP.make_log("putnam", CP.PlantEffects(steer_delay=0.08), seed=5, settings=CP.LogSettings(duration=40.0))
+
+
+def _nominal(ds):
+    from ddyn.gap.problem import nominal_from_vehicle
+    from ddyn.model.vehicle import load
+    from ddyn.plants import commonroad_st as CP
+
+    return nominal_from_vehicle(load(CP.NOMINAL_VEHICLE), ds)
+
+
+def test_every_report_states_its_limits_and_a_delay_above_its_limit_is_found(delay_log):
+    from ddyn.gap.selection import diagnose
+
+    d = diagnose(delay_log, _nominal(delay_log), DiagnosisConfig(hold=True, min_evidence_per_row=0.02))
+    lim = d["limits"]["steer_delay"]
+    assert lim["limit"] is not None and lim["limit"] < 0.08
+    assert "steering delay below" in lim["sentence"] and "would not be found on this log" in lim["sentence"]
+    assert d["selected"][:1] == ["steer_delay"]
+    assert set(d["limits"]) >= {"steer_delay", "throttle_delay", "steer_lag", "mass_offset", "yaw_rate_bias"}
+
+
+def test_an_effect_that_pays_but_is_not_claimed_does_not_stop_the_search(delay_log):
+    """steer_delay pays most but may never be claimed: it is kept as a nuisance and the search goes on."""
+    from ddyn.gap.selection import diagnose
+
+    cfg = DiagnosisConfig(hold=True, decision_levels={"steer_delay": None, "*": 0.0})
+    d = diagnose(delay_log, _nominal(delay_log), cfg)
+    assert d["greedy"][0]["best_candidate"] == "steer_delay"
+    assert d["greedy"][0]["nuisance"] == "steer_delay" and d["greedy"][0]["added"] is None
+    assert len(d["greedy"]) >= 2, "the search stopped at the unclaimed effect"
+    assert "steer_delay" not in d["selected"]
+    assert [e["effect"] for e in d["model"]["unclaimed"]][:1] == ["steer_delay"]
+    # the same with no more rounds allowed past it: the search stops there
+    d1 = diagnose(delay_log, _nominal(delay_log), cfg.with_(max_effects=1, max_unclaimed=0))
+    assert len(d1["greedy"]) == 1
+
+
+# ----------------------------------------------------------------------------------------------- lofo rules
+
+def _rec(family, effect, truth, est, dbic, rows=1000, size=0.04, duration=120.0, limit=0.02, top=None, gap=10.0):
+    top = top or (effect if effect != "none" else "steer_lag")
+    fams = {effect: {"size": est, "at_bound": False, "delta_bic": dbic}} if effect != "none" else {}
+    fams.setdefault(top, {"size": est, "at_bound": False, "delta_bic": dbic})
+    return {"status": "ok", "family": family, "effect": effect, "true_magnitude": truth, "families": fams,
+            "top": top, "delta_bic_top": dbic, "heldout_rows": rows, "runner_up_gap": gap, "duration": duration,
+            "limits": {f: {"size": size, "limit": limit, "gain": [0, 0, 0]} for f in lofo.EFFECTS}, "claimed": []}
+
+
+def test_decision_levels_need_enough_logs_and_take_the_low_tail():
+    recs = [_rec("a", "steer_delay", 0.05, 0.05 * r, -50) for r in np.linspace(0.7, 1.2, 20)]
+    levels = lofo.decision_levels(recs)
+    assert levels["steer_delay"] == pytest.approx(np.quantile(np.linspace(0.7, 1.2, 20), 0.05))
+    assert levels["steer_lag"] is None      # no logs of it: never claimed
+
+
+def test_margin_per_row_leaves_at_most_five_percent_of_no_claim_logs_claimed():
+    levels = {e: 0.5 for e in lofo.EFFECTS}
+    recs = [_rec("a", "none", 0.0, 0.05, -float(d), rows=1000) for d in range(1, 41)]
+    m = lofo.margin_per_row(recs, levels)
+    claimed = [r for r in recs if -r["delta_bic_top"] > m * r["heldout_rows"]]
+    assert len(claimed) <= 0.05 * len(recs)
+    assert m * 1000 > 35.0      # not looser than it needs to be... and not stricter than the worst log
+    assert m * 1000 <= 40.0 + 1e-6
+    # a first candidate below its decision level, at a range edge or tied would not be claimed at any margin
+    small = [_rec("a", "none", 0.0, 0.001, -500.0)]
+    assert lofo.margin_per_row(small, levels) == 0.0
+
+
+def test_score_reads_the_issue_rules():
+    rows = [_rec("x", "steer_delay", 0.05, 0.05, -90, duration=300.0) | {"claimed": ["steer_delay"]},
+            _rec("x", "steer_lag", 0.06, 0.06, -90, duration=300.0) | {"claimed": ["steer_delay"]},
+            _rec("x", "mass_offset", 0.03, 0.03, -5, size=0.1) | {"claimed": ["mass_offset"]},   # below its size
+            _rec("x", "none", 0.0, 0.0, -1) | {"claimed": []}]
+    s = lofo.score(rows)
+    assert (s["scored"], s["first_right"]) == (2, 1)
+    assert s["below_size"] == 1 and s["below_size_claimed"] == 1
+    assert s["effect_free"] == 1 and s["effect_free_claimed"] == 0
+    assert s["delay_vs_lag"] == {"told": 2, "right": 1}
+
+
+def test_plan_varies_the_campaign_and_is_reproducible():
+    a = lofo.plan("commonroad-std", 24, 3)
+    assert a == lofo.plan("commonroad-std", 24, 3)
+    assert sum(c["effect"] == "none" for c in a) == 6
+    assert len({c["duration"] for c in a}) > 1 and len({c["dbw_period"] for c in a}) > 1
+    assert all(c["magnitude"] != 0 for c in a if c["effect"] != "none" and c["track"] != "oval")
+
+
+# ----------------------------------------------------------------------------------------------- calibration
+
+def _study_doc():
+    recs = [_rec("a", "steer_delay", 0.05, 0.05, -80.0) | {"sample_time": 0.04} for _ in range(4)]
+    recs += [_rec("b", "none", 0.0, 0.0, -3.0) | {"sample_time": 0.04} for _ in range(4)]
+    cal = lofo.calibrate(recs)
+    return {"all_families_calibration": cal, "pass1": recs, "settings": {"seed": 1, "logs_per_family": 4},
+            "folds": {}, "worst": None}
+
+
+def test_a_travelling_calibration_covers_any_length_and_goes_stale_with_the_code(tmp_path):
+    cal = CAL.travelling_from_study("t", _study_doc(), "ddyn gap lofo --logs 4")
+    path = CAL.write(cal, tmp_path / "t.json")
+    back = CAL.load(path)
+    assert back.applied().min_evidence_per_row == cal.applied().min_evidence_per_row
+    assert back.applied().decision_levels["steer_delay"] == pytest.approx(1.0)
+    for length in (30.0, 120.0, 900.0):
+        assert back.covers(length, 0.04)[0]
+    assert "outside" in back.covers(900.0, 0.04)[1]
+    assert not back.covers(120.0, 0.01)[0]
+    assert back.stale() is None
+    raw = json.loads(path.read_text())
+    raw["code_version"]["fitting"] = "0" * 16
+    path.write_text(json.dumps(raw))
+    assert "other fitting code" in CAL.load(path).stale()
+    raw.pop("durations")
+    path.write_text(json.dumps(raw))
+    with pytest.raises(DdynError, match="durations"):
+        CAL.load(path)
