@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import maximum_filter1d
 
-from ddyn.data import roll_check
+from ddyn.data import laps, roll_check
 from ddyn.model import effects as E
 
 PROFILE_OF = {"bank_profile": "bank_angle", "grade_profile": "grade"}
@@ -93,7 +93,7 @@ class Layout:
     length: float | None            # lap length (periodic) or None
     knots: np.ndarray               # (K,) m
     free: list                      # knot indices the fit rows inform
-    source: str                     # "track NAME" or "distance travelled"
+    source: str                     # "track NAME", "laps from x, y (...)" or "distance travelled (why)"
     roll: dict | None               # roll_check verdict of the log's roll channel (None: none logged)
     pitch: dict | None = None       # the same for its pitch channel
 
@@ -103,20 +103,25 @@ class Layout:
 
 def _distance(ds) -> np.ndarray:
     """Distance travelled along the logged path, continuing across segments."""
-    xy = ds.states[:, :2]
-    step = np.r_[0.0, np.hypot(*np.diff(xy, axis=0).T)]
-    step[np.r_[False, ds.segment[1:] != ds.segment[:-1]]] = 0.0
-    return np.cumsum(step)
+    return laps.distance(ds.states[:, :2], ds.segment)
+
+
+def _positions(ds, track, lp: laps.Laps) -> tuple[np.ndarray, float | None, str]:
+    """(position of each row, lap length or None, where the positions come from): along the track when it is
+    known; else along the log's own lap (ddyn.data.laps: the same spot gets the same position on every lap,
+    whatever line was driven); else, on a log that drives no closed circuit, the distance travelled."""
+    if track is not None:
+        s, _ = track.project(ds.states[:, 0], ds.states[:, 1])
+        return s, float(track.length), f"track {track.name}"
+    if lp.circuit:
+        return lp.position, float(lp.length), lp.source
+    return _distance(ds), None, lp.source
 
 
 def layout(ds, track, rows_fit: np.ndarray) -> Layout:
-    if track is not None:
-        s, _ = track.project(ds.states[:, 0], ds.states[:, 1])
-        length, src = float(track.length), f"track {track.name}"
-        span = length
-    else:
-        s, length, src = _distance(ds), None, "distance travelled"
-        span = max(float(s[-1]), 1.0)
+    lp = laps.from_dataset(ds)
+    s, length, src = _positions(ds, track, lp)
+    span = length if length is not None else max(float(s[-1]), 1.0)
     k = int(min(MAX_KNOTS, max(MIN_KNOTS, math.ceil(span / KNOT_SPACING))))
     knots = np.linspace(0.0, span, k, endpoint=length is None)   # periodic: the last knot wraps to the first
     tied = curvature_knots(track) if track is not None else None
@@ -133,8 +138,8 @@ def layout(ds, track, rows_fit: np.ndarray) -> Layout:
     else:
         prev, nxt = np.r_[-np.inf, knots[:-1]], np.r_[knots[1:], np.inf]
         free = [i for i in range(k) if np.any((sf > prev[i]) & (sf < nxt[i]))]
-    roll = roll_check.check_dataset(ds, "roll")
-    pitch = roll_check.check_dataset(ds, "pitch")
+    roll = roll_check.check_dataset(ds, "roll", lp)
+    pitch = roll_check.check_dataset(ds, "pitch", lp)
     return Layout(np.asarray(s, float), length, knots, free, src, roll, pitch)
 
 
@@ -178,7 +183,8 @@ def available(name: str, lay: Layout | None) -> bool:
         return lay is not None and len(lay.free) > 0
     if name in ROLL_OF:
         verdict = _channel_verdict(name, lay)
-        return verdict is not None and bool(verdict["plausible"])
+        # a channel that says the road is flat adds no bank (grade): never read one from it
+        return verdict is not None and bool(verdict["plausible"]) and not verdict.get("flat", False)
     return True
 
 
