@@ -30,15 +30,20 @@ def _roll_line(d: dict) -> str:
         return ("Roll channel: none logged (bank only from the fitted profiles)."
                 + _pitch_line(d["data"].get("pitch_channel")))
     p = d["data"].get("pitch_channel")
-    return (f"Roll channel: {'plausible, bank_from_roll tried' if r['plausible'] else 'NOT plausible, not used'} "
-            f"({r['reason']})." + _pitch_line(p))
+    return f"Roll channel: {_channel_use(r, 'bank_from_roll')} ({r['reason']})." + _pitch_line(p)
+
+
+def _channel_use(c: dict, candidate: str) -> str:
+    """What the diagnosis did with a channel: a flat one is plausible but gives no bank (grade) to read."""
+    if c.get("flat"):
+        return f"plausible but flat, {candidate} not tried"
+    return f"plausible, {candidate} tried" if c["plausible"] else "NOT plausible, not used"
 
 
 def _pitch_line(p: dict | None) -> str:
     if p is None:
         return ""
-    return (f" Pitch channel: {'plausible, grade_from_pitch tried' if p['plausible'] else 'NOT plausible, not used'} "
-            f"({p['reason']}).")
+    return f" Pitch channel: {_channel_use(p, 'grade_from_pitch')} ({p['reason']})."
 
 
 def _calibration_lines(d: dict) -> list[str]:
