@@ -220,3 +220,27 @@ def test_identified_mb_nominal_is_fitted_on_an_effect_free_mb_log(monkeypatch):
         return float(np.sum(p.residuals({}, np.zeros(0), p.rows_all) ** 2))
 
     assert err(c) < err(mapped)
+
+
+def test_mb_parameter_sets_and_the_default_is_unchanged():
+    """make_log(params=...): the AV-21 multi-body car (at the multi-body benchmark's driver grip) runs with its own
+    nominal file and rolls less than the VW van (stiff race springs, a low centre of gravity); the default call is
+    that with the explicit defaults, and rows recorded before the families were added."""
+    ds = MB.make_log("putnam", CP.PlantEffects(), 4, CP.LogSettings(duration=1.0, roll_channel=True))
+    assert ds.states[10].tolist() == [187.832282479552, -121.10565374070595, -3.0668413551373854, 24.93989101567745,
+                                      -0.022191650559878595, 0.014637635454066274, 0.2502542937960925,
+                                      0.0012318977223476969]
+    assert float(ds.extras["roll"][25]) == -0.009682685365226132
+    explicit = MB.make_log("putnam", CP.PlantEffects(), 4, CP.LogSettings(duration=1.0, roll_channel="imu"),
+                           nominal=MB.NOMINAL_VEHICLE, params="vehicle2")
+    assert np.array_equal(ds.states, explicit.states) and np.array_equal(ds.extras["roll"], explicit.extras["roll"])
+    settings = CP.LogSettings(duration=8.0, noise_scale=0.0, start_s=1620.0, driver_grip=0.65)
+    av = MB.make_log("putnam", CP.PlantEffects(), 4, settings, params="av21")
+    van = MB.make_log("putnam", CP.PlantEffects(), 4, settings, params="vehicle3")
+    assert av.vehicle == "commonroad_av21_mb" and van.vehicle == "commonroad_vehicle3_mb"
+    assert "AV-21" in av.source and np.abs(av.states[:, 5]).max() > 0.3
+    ay = {k: np.abs(d.states[:, 3] * d.states[:, 5]).max() for k, d in (("av", av), ("van", van))}
+    roll = {k: np.abs(d.extras["true_body_roll"]).max() for k, d in (("av", av), ("van", van))}
+    assert roll["av"] / ay["av"] < 0.5 * roll["van"] / ay["van"]
+    with pytest.raises(DdynError, match="unknown CommonRoad parameter set"):
+        MB.make_log(params="vehicle4")

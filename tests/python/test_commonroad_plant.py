@@ -802,3 +802,175 @@ def test_cost_minima_find_a_hidden_steering_delay_one_step(monkeypatch):
     m = G.cost_minima(case, "steer_delay", (0.0, 0.04, 0.08, 0.16), fit="one-step")
     assert m["fit_minimum"] == pytest.approx(0.08) and m["heldout_minimum"] == pytest.approx(0.08)
     assert len(m["profile"]) == 4 and m["profile"][0]["fit_cost"] > m["profile"][2]["fit_cost"]
+
+
+# ---- plant families: parameter sets, the linear-tyre model, roll/pitch channel kinds
+
+# rows 0, 1, 10, 50 of the default log (seed 4, 2 s, imu roll and pitch), recorded before the families were added
+_DEFAULT_ROWS = {
+    0: ([197.5908743729411, -120.37074784600779, -3.0730335104699615, 24.001928760551287, 0.008732203773412186,
+         -0.006262124411283317, 0.2, -0.0037072713065619545], 0.0022948497401704604, 0.0007005096630555216),
+    1: ([196.66723353989846, -120.41567408022993, -3.0690069896471206, 24.005700086829194, -0.0020691973424618627,
+         -0.0020399614140861407, 0.4, -0.0021127224637619677], -0.0018289957255557387, 0.006705526743737641),
+    10: ([187.82622618732046, -121.10608937847479, -3.066802147600769, 24.955118701852026, -0.02731030645492969,
+          0.015627064935853172, 0.24169333850081448, 0.0011406887880532888], 0.0013058591251183785,
+         -0.0020950582262589013),
+    50: ([148.28157969787804, -124.11126886215139, -3.0655834170493663, 24.793127503645216, 0.005027002642496459,
+          -0.011648396532192878, -0.15032767988689036, -0.001872194847801984], 0.003812164596161945,
+         0.0001790006035416545),
+}
+FAMILY_START = 1620.0     # m: the log runs through Putnam's tightest corners (s 1690-1740)
+
+
+def test_the_default_log_is_bit_identical_to_before_the_families():
+    settings = CP.LogSettings(duration=2.0, roll_channel=True, pitch_channel=True)
+    ds = CP.make_log("putnam", CP.PlantEffects(), 4, settings)
+    for k, (row, roll, pitch) in _DEFAULT_ROWS.items():
+        assert ds.states[k].tolist() == row, k
+        assert float(ds.extras["roll"][k]) == roll and float(ds.extras["pitch"][k]) == pitch, k
+    explicit = CP.make_log("putnam", CP.PlantEffects(), 4, CP.LogSettings(duration=2.0, roll_channel="imu",
+                                                                          pitch_channel="imu"),
+                           nominal=CP.NOMINAL_VEHICLE, model="std", params="vehicle2")
+    assert np.array_equal(ds.states, explicit.states) and np.array_equal(ds.inputs, explicit.inputs)
+    assert all(np.array_equal(ds.extras[k], explicit.extras[k]) for k in ds.extras)
+    assert ds.metadata == explicit.metadata and ds.vehicle == "commonroad_vehicle2"
+    assert "parameters_vehicle2" in ds.metadata["plant"] and "BMW 320i" in ds.source
+    assert CP.nominal_vehicle("std", "vehicle2") == CP.NOMINAL_VEHICLE
+
+
+def test_parameter_sets_and_models_are_validated():
+    with pytest.raises(DdynError, match="unknown CommonRoad parameter set 'vehicle9'"):
+        CP.make_log("putnam", params="vehicle9")
+    with pytest.raises(DdynError, match="unknown CommonRoad parameter set"):
+        CP.commonroad_parameters("bmw")
+    with pytest.raises(DdynError, match="unknown CommonRoad plant model 'ks'"):
+        CP.make_log("putnam", model="ks")
+    for kind in ("roll_channel", "pitch_channel"):
+        with pytest.raises(DdynError, match=f"{kind} 'gyro' is not one of"):
+            CP.make_log("putnam", settings=CP.LogSettings(duration=1.0, **{kind: "gyro"}))
+    with pytest.raises(DdynError, match="linear tyres"):
+        CP.make_log("putnam", CP.PlantEffects(tire_relaxation=0.5), model="st")
+    # the AV-21 set: the project's mass and geometry on vehicle2's object, slicks; vehicle2's object untouched
+    av, v2 = CP.commonroad_parameters("av21"), CP.commonroad_parameters()
+    assert (av.m, av.a, av.b) == (790.0, 1.248, 1.7328) and 1000.0 <= av.I_z <= 1200.0
+    assert av.tire.p_dy1 > v2.tire.p_dy1 == 1.0489 and v2.m == NOMINAL.known.mass
+    assert abs(av.m_s + av.m_uf + av.m_ur - av.m) < 1e-9
+    assert CP.PARAMETER_SETS["vehicle2"] == CP.SetConstants("BMW 320i", CP.ACCEL_SCALE, CP.DRAG, CP.ROLLING,
+                                                            CP.ROLL_GRADIENT, CP.PITCH_GRADIENT)
+
+
+def test_the_nominal_files_are_what_the_generator_writes(tmp_path):
+    """The generator reproduces the hand-made vehicle2 file's numbers, and the committed files are its output."""
+    doc = CP.vehicle_document("std", "vehicle2")
+    for k, v in NOMINAL.true_coefficients.items():
+        assert doc["true_coefficients"][k] == pytest.approx(v, rel=1e-4), k
+    assert doc["known"]["mass"] == NOMINAL.known.mass
+    written = CP.write_vehicle_files(tmp_path)
+    assert len(written) == 10
+    for path in written:
+        committed = CP.PLANTS_DIR / path.name
+        assert committed.read_text() == path.read_text(), path.name
+        veh = load_vehicle(committed)
+        assert CP.WRITE_COMMAND in veh.description
+    for model in CP.MODELS:
+        for params in CP.PARAMETER_SETS:
+            assert load_vehicle(CP.nominal_vehicle(model, params)).known.mass == \
+                CP.commonroad_parameters(params).m
+    # the linear-tyre fit: the project's curve follows C alpha within a few % up to the driver's slips
+    fit = CP.linear_tyre_fit(CP.commonroad_parameters())
+    assert fit["rms"] < 0.04 and fit["max"] < 0.1 and 0.04 < fit["a_max"] < 0.05
+
+
+@pytest.fixture(scope="module")
+def families():
+    settings = CP.LogSettings(duration=16.0, noise_scale=0.0, start_s=FAMILY_START)
+    logs = {p: CP.make_log("putnam", CP.PlantEffects(), 4, settings, params=p) for p in CP.PARAMETER_SETS}
+    logs["st"] = CP.make_log("putnam", CP.PlantEffects(), 4, settings, model="st")
+    return logs
+
+
+def test_each_parameter_set_drives_putnam_in_its_own_way(families):
+    for p, ds in families.items():
+        vx = ds.states[:, 3]
+        assert 12.0 < vx.min() and vx.max() < 28.0 and np.all(np.isfinite(ds.states)), p
+        assert np.abs(ds.states[:, 5]).max() > 0.3, p          # the log turns
+    v1, v2, v3, av = (families[p] for p in ("vehicle1", "vehicle2", "vehicle3", "av21"))
+    mass = {p: load_vehicle(families[p].metadata["vehicle_file"]).known.mass for p in CP.PARAMETER_SETS}
+    assert mass["av21"] == 790.0 < mass["vehicle2"] < mass["vehicle1"] < mass["vehicle3"]
+    assert "AV-21" in av.source and "av21" in av.metadata["plant"] and av.vehicle == "commonroad_av21"
+    # the van's drag and the Escort's weaker pedal need more pedal over the same corners; the race car's slicks
+    # let the driver through the tightest corner faster than the saloon
+    pedal = {p: families[p].states[:, 6].mean() for p in CP.PARAMETER_SETS}
+    assert pedal["vehicle3"] > pedal["vehicle2"] and pedal["vehicle1"] > pedal["vehicle2"]
+    assert av.states[:, 3].min() > 1.05 * v2.states[:, 3].min()
+
+
+def test_the_linear_tyre_model_runs_and_differs_from_std(families, monkeypatch):
+    import vehiclemodels.vehicle_dynamics_st as st
+    import vehiclemodels.vehicle_dynamics_std as std
+
+    ds, ref = families["st"], families["vehicle2"]
+    assert ds.vehicle == "commonroad_vehicle2_st" and "vehicle_dynamics_st" in ds.metadata["plant"]
+    # the same driver on the same corners, another car: the linear tyres never saturate
+    assert np.max(np.abs(ds.states[:, 4] - ref.states[:, 4])) > 0.1
+    # its nominal file predicts it well one step ahead (the least-squares Pacejka stand-in for C alpha)
+    veh = load_vehicle(CP.nominal_vehicle("st", "vehicle2"))
+    pred = backends.step_numpy(ds.states[:-1], ds.inputs[:-1], veh.true_vector(), veh.known, ds.sample_time, "rk4",
+                               veh.rk4_substeps)
+    std_pred = backends.step_numpy(ds.states[:-1], ds.inputs[:-1], NOMINAL.true_vector(), NOMINAL.known,
+                                   ds.sample_time, "rk4", NOMINAL.rk4_substeps)
+    # (one step through Putnam's tightest corners: the speed well; the sideslip far better than with the Pacejka
+    # (std) file, whose saturating tyres the linear plant does not have)
+    err = np.sqrt(np.mean((pred[:, :6] - ds.states[1:, :6]) ** 2, axis=0))
+    err_std = np.sqrt(np.mean((std_pred[:, :6] - ds.states[1:, :6]) ** 2, axis=0))
+    assert err[3] < 0.5 * np.sqrt(np.mean(np.diff(ds.states[:, 3]) ** 2))
+    assert err[4] < 0.5 * err_std[4]
+    calls = {"st": 0}
+    real = st.vehicle_dynamics_st
+
+    def counting(x, u, p):
+        calls["st"] += 1
+        return real(x, u, p)
+
+    monkeypatch.setattr(st, "vehicle_dynamics_st", counting)
+    monkeypatch.setattr(std, "vehicle_dynamics_std", lambda *a: pytest.fail("std called"))
+    CP.make_log("putnam", CP.PlantEffects(), 4, CP.LogSettings(duration=0.2), model=CP.StModel())
+    assert calls["st"] == 4 * 200
+
+
+def test_roll_and_pitch_channel_kinds():
+    fx = CP.PlantEffects(bank_angle=0.08, grade=0.04)
+    logs = {}
+    for kind, seed in (("imu", 4), ("map", 4), ("broken", 4), ("map", 5)):
+        logs[kind, seed] = CP.make_log("putnam", fx, seed, CP.LogSettings(
+            duration=16.0, noise_scale=0.0, start_s=FAMILY_START, roll_channel=kind, pitch_channel=kind))
+    track = CP.load_track("putnam")
+    imu = logs["imu", 4]
+    bank, lean, grade = imu.extras["true_bank"], imu.extras["true_body_roll"], imu.extras["true_grade"]
+    assert np.abs(bank).max() > 0.04 and np.abs(grade).max() > 0.02 and np.abs(lean).max() > 0.01
+    assert np.std(imu.extras["roll"] - bank - lean) == pytest.approx(CP.ROLL_NOISE, rel=0.25)
+    # map: the bank at the car's 10 m cell, no body roll, no noise but the map's rounding; the same value
+    # wherever the car is in that cell, whichever log
+    slope = np.max(np.abs(np.diff(CP.bank_profile(track, 0.08)))) / (track.length / track.n)
+    for seed in (4, 5):
+        m = logs["map", seed]
+        err = m.extras["roll"] - m.extras["true_bank"]
+        assert np.abs(err).max() <= slope * 0.5 * CP.MAP_RESOLUTION + 0.6 * CP.MAP_ROUNDING + 1e-9
+        assert np.abs(err).max() > 0 and np.allclose(m.extras["roll"] / CP.MAP_ROUNDING,
+                                                     np.round(m.extras["roll"] / CP.MAP_ROUNDING))
+    cells = {}
+    for seed in (4, 5):
+        m = logs["map", seed]
+        s, _ = track.project(m.extras["true_x"], m.extras["true_y"])
+        for c, r, p in zip(np.floor(np.asarray(s) / CP.MAP_RESOLUTION), m.extras["roll"], m.extras["pitch"]):
+            cells.setdefault(c, set()).add((r, p))
+    assert len(cells) > 20 and all(len(v) == 1 for v in cells.values())
+    assert not np.array_equal(logs["map", 4].states, logs["map", 5].states)
+    # broken: drifts by radians, unrelated to the road
+    b = logs["broken", 4]
+    for ch, truth in (("roll", "true_bank"), ("pitch", "true_grade")):
+        x = b.extras[ch]
+        assert np.ptp(x) > 0.5 and np.abs(x - b.extras[truth]).max() > 0.5, ch
+        assert abs(np.corrcoef(x, b.extras[truth])[0, 1]) < 0.5, ch
+    # the channel kind changes nothing else
+    assert np.array_equal(b.states, imu.states)

@@ -48,6 +48,7 @@ class MbModel:
     name = "mb"
     label = "commonroad vehicle_dynamics_mb"
     tyres = 4
+    rolls = True                       # a body roll state (x[6]): the roll channel's lean
 
     def scale_mass(self, p, factor: float) -> None:
         for k in MASSES:
@@ -81,7 +82,8 @@ class MbModel:
         if env.downforce:
             # z points down in this model (dz/dt = g - sum of the upward forces / m_s)
             f[12] += CP.G * env.downforce * v2 * p.m / p.m_s
-        f[3] += -(CP.DRAG * v2 + (CP.ROLLING if vx > 0.5 else 0.0)) / p.m - CP.G * math.sin(env.grade)
+        c = env.consts
+        f[3] += -(c.drag * v2 + (c.rolling if vx > 0.5 else 0.0)) / p.m - CP.G * math.sin(env.grade)
         if env.bank:
             a_y = CP.G * math.sin(env.bank)
             f[10] += a_y
@@ -91,10 +93,13 @@ class MbModel:
 
 
 def make_log(track="putnam", effects: CP.PlantEffects = CP.PlantEffects(), seed: int = 0,
-             settings: CP.LogSettings = CP.LogSettings(), nominal=NOMINAL_VEHICLE):
-    """One log of the multi-body plant (commonroad_st.make_log with MbModel)."""
+             settings: CP.LogSettings = CP.LogSettings(), nominal=None, params: str = "vehicle2"):
+    """One log of the multi-body plant (commonroad_st.make_log with MbModel) with the CommonRoad parameter set
+    params (commonroad_st.PARAMETER_SETS); nominal None: commonroad_st.nominal_vehicle("mb", params)
+    (NOMINAL_VEHICLE for vehicle2)."""
+    CP.check_parameter_set(params)
     CP.require_commonroad()
-    return CP.make_log(track, effects, seed, settings, nominal, model=MbModel())
+    return CP.make_log(track, effects, seed, settings, nominal, model=MbModel(), params=params)
 
 
 def convergence(duration: float = 10.0, seed: int = 3, rates=(500.0, 1000.0, 2000.0)) -> dict:

@@ -69,7 +69,11 @@ from ddyn.model.vehicle import Vehicle
 try:  # the independent plant is a declared dependency (requirements.in); say so loudly if it is missing
     from vehiclemodels import vehicle_dynamics_std as _std_module
     from vehiclemodels.init_std import init_std
+    from vehiclemodels import vehicle_dynamics_st as _st_module
+    from vehiclemodels.init_st import init_st
+    from vehiclemodels.parameters_vehicle1 import parameters_vehicle1
     from vehiclemodels.parameters_vehicle2 import parameters_vehicle2
+    from vehiclemodels.parameters_vehicle3 import parameters_vehicle3
 except ImportError as _e:  # pragma: no cover
     _IMPORT_ERROR: ImportError | None = _e
 else:
@@ -93,6 +97,17 @@ ROLL_NOISE = 0.003           # rad: an EKF's roll noise
 PITCH_GRADIENT = 0.02        # rad of body pitch (nose up) per g of longitudinal acceleration (squat; ~1 deg/g)
 PITCH_NOISE = 0.003          # rad: an EKF's pitch noise
 MIN_RELAXATION = 0.05        # m: sigma / v stays above the RK4 step up to 50 m/s (RK4 is stable down to 0.36 steps)
+# the logged roll (pitch) channel's kinds (LogSettings.roll_channel, pitch_channel): False / "none", True / "imu" (an
+# EKF's: road bank minus body roll plus noise), "map" (a track map's bank at the car's position, MAP_RESOLUTION m cells
+# along the track, stored to MAP_ROUNDING rad), "broken" (the real Putnam log's roll column: a drifting random walk
+# with jumps of the order of radians, mostly unrelated to the dynamics; BROKEN_*)
+CHANNEL_KINDS = ("none", "imu", "map", "broken")
+MAP_RESOLUTION = 10.0        # m along the centre line per map cell (the value at the cell's centre)
+MAP_ROUNDING = 1e-3          # rad: the map's stored precision
+BROKEN_WALK = 0.1            # rad / sqrt(s): random walk of the broken channel
+BROKEN_DRIFT = (0.05, 0.15)  # rad/s: range of its steady drift rate (random sign)
+BROKEN_JUMP_RATE = 0.05      # 1/s: jumps per second
+BROKEN_JUMP = (0.5, 2.0)     # rad: range of a jump's size (random sign)
 
 
 def require_commonroad() -> None:
@@ -164,10 +179,101 @@ def grade_profile(track: Track, peak: float, phase: float = 0.0) -> np.ndarray:
     return peak * np.sin(2 * math.pi * GRADE_WAVES * s / float(track.length) + phase)
 
 
-def commonroad_parameters():
-    """CommonRoad's parameters_vehicle2 (BMW 320i): a fresh dataclass object (make_log sets its m and I_z)."""
+@dataclass(frozen=True)
+class SetConstants:
+    """What the plant adds to a CommonRoad parameter set (CommonRoad has no drag, rolling resistance, pedal map or
+    body roll/pitch gradient for the single-track models): per parameter set, vehicle2's the module constants."""
+
+    car: str                     # the car's name in log sources
+    accel_scale: float           # m/s^2 at throttle 1 (drive and brake) for the set's mass
+    drag: float                  # kg/m: 0.5 rho Cd A
+    rolling: float               # N: 1.5 % of the weight
+    roll_gradient: float         # rad of body roll per g of lateral acceleration (single-track models)
+    pitch_gradient: float        # rad of body pitch per g of longitudinal acceleration
+
+
+PARAMETER_SETS = {
+    "vehicle1": SetConstants("Ford Escort", 5.0, 0.41, 180.0, 0.06, 0.025),
+    "vehicle2": SetConstants("BMW 320i", ACCEL_SCALE, DRAG, ROLLING, ROLL_GRADIENT, PITCH_GRADIENT),
+    "vehicle3": SetConstants("VW Vanagon", 4.5, 0.82, 218.0, 0.09, 0.03),
+    "av21": SetConstants("Dallara AV-21", 6.0, 0.45, 116.0, 0.008, 0.005),
+}
+# where a constant comes from (the nominal vehicle files' sources cite these)
+SET_SOURCES = {
+    "vehicle1": "Ford Escort: 5 m/s^2 at full pedal (a small saloon); drag 0.5 rho Cd A with Cd 0.36, A 1.9 m^2; "
+                "rolling 1.5 % of 1226 kg g; roll 0.06 rad/g, pitch 0.025 rad/g (soft springs)",
+    "vehicle2": "BMW 320i: 6 m/s^2; drag 0.4 kg/m (Cd A 0.67 m^2); rolling 161 N (1.5 % of the weight); "
+                "roll 0.05 rad/g, pitch 0.02 rad/g",
+    "vehicle3": "VW Vanagon: 4.5 m/s^2 (a heavy van); drag 0.5 rho Cd A with Cd 0.44, A 3.1 m^2; rolling 1.5 % of "
+                "1479 kg g; roll 0.09 rad/g, pitch 0.03 rad/g (tall, soft)",
+    "av21": "Dallara AV-21: 6 m/s^2 as vehicle2 (rear drive with 42 % of the load on the rear axle: with more "
+            "pedal authority the PI driver powers the rear out of Putnam's corners); drag 0.45 kg/m "
+            "(the project's av21.json Cd); rolling 1.5 % of 790 kg g; roll 0.008 rad/g, pitch 0.005 rad/g "
+            "(stiff race springs)",
+}
+AV21_MASS_RATIO = 790.0 / 1093.2952334674046    # the AV-21's mass over vehicle2's (MB masses, springs scale by it)
+
+
+def _av21_parameters():
+    """The Dallara AV-21 built from parameters_vehicle2: the project's mass and geometry (train/vehicles/av21.json,
+    shared/data/README.md: m 790 kg, lf 1.248 m, lr 1.7328 m), yaw inertia 1000 kg m^2 (av21.json), a low centre of
+    gravity, racing slicks (friction 1.3 as av21.json's D, cornering stiffness 25 per unit load as av21.json's B C D
+    over its axle loads), a race car's power and brakes; the multi-body parts (sprung/unsprung masses and their
+    inertias) scaled by the mass ratio, springs and dampers by the mass ratio times 4 (ride frequency doubled),
+    wider track widths."""
+    p = copy.deepcopy(parameters_vehicle2())
+    r = AV21_MASS_RATIO
+    p.l, p.w = 4.9, 1.9
+    p.m, p.a, p.b, p.I_z = 790.0, 1.248, 1.7328, 1000.0
+    p.h_s, p.h_cg = 0.30, 0.28
+    for k in ("m_s", "m_uf", "m_ur", "I_Phi_s", "I_y_s", "I_uf", "I_ur"):
+        setattr(p, k, getattr(p, k) * r)
+    p.m_s = 790.0 - p.m_uf - p.m_ur                  # the total stays m
+    for k in ("K_sf", "K_sdf", "K_sr", "K_sdr", "K_tsf", "K_tsr"):
+        setattr(p, k, getattr(p, k) * r * 4.0)
+    for k in ("K_ras", "K_rad"):
+        setattr(p, k, getattr(p, k) * r)
+    p.T_f, p.T_r = 1.70, 1.62
+    p.D_f, p.D_r = 0.0, 0.0                          # no roll steer
+    p.tire.p_dy1, p.tire.p_dx1, p.tire.p_ky1 = 1.3, 1.45, -25.0
+    p.longitudinal.a_max = 13.0                      # braking limit of slicks (1.3 g)
+    p.longitudinal.v_switch = 39.0                   # drive power a_max v_switch m = 400 kW
+    p.longitudinal.v_max = 80.0
+    p.steering.v_min, p.steering.v_max = -0.6, 0.6   # the AV-21 file's steering rate limit
+    return p
+
+
+PARAMETER_LABELS = {"vehicle1": "parameters_vehicle1", "vehicle2": "parameters_vehicle2",
+                    "vehicle3": "parameters_vehicle3", "av21": "av21 (parameters_vehicle2 as a Dallara AV-21)"}
+
+
+def check_parameter_set(params: str) -> SetConstants:
+    if params not in PARAMETER_SETS:
+        raise DdynError(f"unknown CommonRoad parameter set {params!r}; expected one of {', '.join(PARAMETER_SETS)}")
+    return PARAMETER_SETS[params]
+
+
+def commonroad_parameters(params: str = "vehicle2"):
+    """A CommonRoad parameter set as a fresh dataclass object (make_log sets its m and I_z): parameters_vehicle1
+    (Ford Escort), parameters_vehicle2 (BMW 320i, the default), parameters_vehicle3 (VW Vanagon) or "av21" (the
+    Dallara AV-21 built from vehicle2's, _av21_parameters)."""
+    check_parameter_set(params)
     require_commonroad()
-    return copy.deepcopy(parameters_vehicle2())
+    if params == "av21":
+        return _av21_parameters()
+    make = {"vehicle1": parameters_vehicle1, "vehicle2": parameters_vehicle2, "vehicle3": parameters_vehicle3}
+    return copy.deepcopy(make[params]())
+
+
+def channel_kind(value, name: str = "roll_channel") -> str:
+    """A logged roll/pitch channel's kind: False or "none", True or "imu", "map", "broken"."""
+    if value is False or value is None:
+        return "none"
+    if value is True:
+        return "imu"
+    if isinstance(value, str) and value in CHANNEL_KINDS:
+        return value
+    raise DdynError(f"{name} {value!r} is not one of False/none, True/imu, map, broken")
 
 
 @dataclass
@@ -189,6 +295,7 @@ class _Env:
     relaxation: float = 0.0      # m
     alpha_eff: list = field(default_factory=list)
     gear_factor: float = 1.0     # drive force factor of the current gear (0 during a shift)
+    consts: SetConstants = field(default_factory=lambda: PARAMETER_SETS["vehicle2"])
 
 
 class _TyreHook:
@@ -264,6 +371,10 @@ class StdModel:
     label = "commonroad vehicle_dynamics_std"
     tyres = 2
 
+    @staticmethod
+    def dynamics():
+        return _std_module.vehicle_dynamics_std      # looked up per call (tests count the calls)
+
     def scale_mass(self, p, factor: float) -> None:
         p.I_z = p.I_z * factor          # the mass itself is env.m_true, set per call
 
@@ -284,9 +395,9 @@ class StdModel:
         env.p.m = env.m_true * q
         u = [u[0], u[1] / q]                             # the drive force stays the same with the heavier m
         if env.hook is None:
-            f, kin = _std_module.vehicle_dynamics_std(list(x), u, env.p), []
+            f, kin = self.dynamics()(list(x), u, env.p), []
         else:
-            f, kin = env.hook.call(_std_module.vehicle_dynamics_std, list(x), u, env.p, env.alpha_eff)
+            f, kin = env.hook.call(self.dynamics(), list(x), u, env.p, env.alpha_eff)
         # undo the downforce mass: forces / (m q) -> forces / m (yaw and wheel dynamics have no mass)
         f[3] *= q
         f[6] = -psi_dot + (f[6] + psi_dot) * q
@@ -294,13 +405,53 @@ class StdModel:
         a_x = -G * math.sin(env.grade)
         a_y = G * math.sin(env.bank)
         cb, sb = math.cos(beta), math.sin(beta)
-        f[3] += -(DRAG * v * v + (ROLLING if v > 0.5 else 0.0)) / env.m_true + a_x * cb + a_y * sb
+        c = env.consts
+        f[3] += -(c.drag * v * v + (c.rolling if v > 0.5 else 0.0)) / env.m_true + a_x * cb + a_y * sb
         if v > 0.5:
             f[6] += (a_y * cb - a_x * sb) / v
         return f, kin
 
     def speed(self, x) -> float:
         return x[3]
+
+
+class StModel(StdModel):
+    """CommonRoad's single-track model vehicle_dynamics_st (7 states: x, y, wheel angle, v, yaw, yaw rate, slip
+    angle): LINEAR tyres (lateral force mu C_S F_z alpha with C_S = -p_ky1 / p_dy1, no Pacejka curve, no
+    saturation), longitudinal load transfer, no wheel spin states (the drive/brake is its acceleration input, as
+    for std) and a kinematic model below 0.1 m/s. The additions (drag, rolling, bank, grade, downforce) are
+    StdModel's; the tyre relaxation effect has no tyre formula to act through here."""
+
+    name = "st"
+    label = "commonroad vehicle_dynamics_st"
+
+    @staticmethod
+    def dynamics():
+        return _st_module.vehicle_dynamics_st
+
+    def init(self, px, py, delta0, v0, psi0, p) -> list:
+        return list(init_st([px, py, delta0, v0, psi0, 0.0, 0.0]))
+
+    def clamp(self, x) -> None:
+        pass
+
+
+MODELS = ("std", "st", "mb")
+
+
+def plant_model(model=None):
+    """A plant model object from make_log's model argument: None or "std" (StdModel), "st" (StModel), "mb"
+    (ddyn.plants.commonroad_mb.MbModel), or a model object itself."""
+    if model is None or model == "std":
+        return StdModel()
+    if model == "st":
+        return StModel()
+    if model == "mb":
+        from ddyn.plants.commonroad_mb import MbModel
+        return MbModel()
+    if isinstance(model, str):
+        raise DdynError(f"unknown CommonRoad plant model {model!r}; expected one of {', '.join(MODELS)}")
+    return model
 
 
 def plant_rhs(x: list, steer_target: float, throttle: float, env: "_Env") -> list:
@@ -314,7 +465,7 @@ def plant_rhs(x: list, steer_target: float, throttle: float, env: "_Env") -> lis
         pedal = throttle ** env.gamma * env.gear_factor
     else:
         pedal = (1.0 + env.brake_gain) * throttle
-    accel = env.m_nominal * ACCEL_SCALE * pedal / env.m_true   # the drive force, whatever the mass
+    accel = env.m_nominal * env.consts.accel_scale * pedal / env.m_true   # the drive force, whatever the mass
     if env.hook is not None:
         env.alpha_eff = x[n:]
     f, kin = model.rhs(xm, [steer_rate, accel], env)
@@ -343,11 +494,37 @@ class LogSettings:
     excitation: float = 1.0
     start_s: float = 0.0
     extra: dict = field(default_factory=dict)
-    roll_channel: bool = False   # log extras "roll" (bank minus body roll, plus noise)
-    pitch_channel: bool = False  # log extras "pitch" (grade plus body pitch, plus noise)
+    roll_channel: bool | str = False   # log extras "roll": False/"none", True/"imu", "map", "broken" (CHANNEL_KINDS)
+    pitch_channel: bool | str = False  # log extras "pitch", the same kinds (grade plus body pitch for "imu")
     dbw_period: float | None = None   # s between the DBW unit's commands (None: the log's sample time)
     driver_grip: float | None = None  # share of the nominal's grip the driver's speed profile uses (None: simulate's)
     plant_rate: float = PLANT_RATE    # Hz: the RK4 step (the convergence check runs others)
+
+
+def map_channel(track: Track, profile, s_rows: np.ndarray) -> np.ndarray:
+    """A track map's value of a road profile (bank, grade; None: a flat road) at the car's arc length: the value at
+    the centre of the MAP_RESOLUTION cell the car is in, rounded to MAP_ROUNDING; a function of the position only,
+    so it repeats lap after lap."""
+    if profile is None:
+        return np.zeros(len(s_rows))
+    L = float(track.length)
+    centre = ((np.floor(np.asarray(s_rows) % L / MAP_RESOLUTION) + 0.5) * MAP_RESOLUTION) % L
+    return np.round(np.asarray(track.interpolate(np.asarray(profile, float), centre), float) / MAP_ROUNDING) \
+        * MAP_ROUNDING
+
+
+def broken_channel(truth: np.ndarray, Ts: float, rng: np.random.Generator) -> np.ndarray:
+    """An untrustworthy angle channel like the real Putnam log's roll column (-1.9 to 2.3 rad): the truth plus an
+    offset, a steady drift (BROKEN_DRIFT), a random walk (BROKEN_WALK) and jumps (BROKEN_JUMP_RATE, BROKEN_JUMP),
+    wrapped to [-pi, pi)."""
+    n = len(truth)
+    t = np.arange(n) * Ts
+    offset = rng.uniform(-1.0, 1.0)
+    rate = rng.choice((-1.0, 1.0)) * rng.uniform(*BROKEN_DRIFT)
+    walk = np.cumsum(rng.standard_normal(n)) * BROKEN_WALK * math.sqrt(Ts)
+    jump = (rng.random(n) < BROKEN_JUMP_RATE * Ts) * rng.choice((-1.0, 1.0), n) * rng.uniform(*BROKEN_JUMP, n)
+    out = np.asarray(truth, float) + offset + rate * t + walk + np.cumsum(jump)
+    return (out + math.pi) % (2 * math.pi) - math.pi
 
 
 def _command_at(history: list, t: float, delay: float, period: float) -> float:
@@ -357,12 +534,23 @@ def _command_at(history: list, t: float, delay: float, period: float) -> float:
 
 
 def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects(), seed: int = 0,
-             settings: LogSettings = LogSettings(), nominal: Vehicle | str | Path = NOMINAL_VEHICLE,
-             model=None) -> Dataset:
-    """One log of the CommonRoad plant driven around `track` (see the module docstring). model: StdModel()
-    (default) or ddyn.plants.commonroad_mb.MbModel()."""
+             settings: LogSettings = LogSettings(), nominal: Vehicle | str | Path | None = None,
+             model=None, params: str = "vehicle2") -> Dataset:
+    """One log of the CommonRoad plant driven around `track` (see the module docstring). model: "std" / StdModel()
+    (default), "st" / StModel() (linear tyres) or "mb" / ddyn.plants.commonroad_mb.MbModel(); params: the CommonRoad
+    parameter set (PARAMETER_SETS: vehicle1, vehicle2 (default), vehicle3, av21); nominal: the vehicle file the
+    driver plans with and the log is made for (None: nominal_vehicle(model, params)). The plant's mass is the
+    parameter set's."""
+    consts = check_parameter_set(params)
+    roll_kind = channel_kind(settings.roll_channel, "roll_channel")
+    pitch_kind = channel_kind(settings.pitch_channel, "pitch_channel")
     require_commonroad()
-    model = model or StdModel()
+    model = plant_model(model)
+    if effects.tire_relaxation and model.name == "st":
+        raise DdynError("tire_relaxation acts through CommonRoad's Pacejka tyres; vehicle_dynamics_st (model st) has "
+                        "linear tyres without them")
+    if nominal is None:
+        nominal = nominal_vehicle(model.name, params)
     track = load_track(track) if isinstance(track, str) else track
     veh = vehicle_ref.as_vehicle(nominal) if not isinstance(nominal, Vehicle) else nominal
     Ts = veh.sample_time
@@ -375,13 +563,13 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     if n_dbw < 1 or abs(n_dbw / rate - dbw) > 1e-9:
         raise DdynError(f"the DBW period {dbw} s is not a multiple of the plant's {1 / rate} s")
     h = 1.0 / rate
-    p = commonroad_parameters()
-    m_nom = veh.known.mass
+    p = commonroad_parameters(params)
+    m_nom = float(p.m)                # the plant's own mass (vehicle2's equals its nominal file's)
     model.scale_mass(p, 1.0 + effects.mass_offset)
     env = _Env(p=p, m_true=m_nom * (1.0 + effects.mass_offset), m_nominal=m_nom, downforce=effects.downforce,
                servo_tau=max(SERVO_TAU, effects.steer_lag),
                gamma=equivalent_gamma(effects.throttle_map) if effects.throttle_map else 1.0,
-               brake_gain=effects.brake_gain, model=model)
+               brake_gain=effects.brake_gain, model=model, consts=consts)
     if effects.tire_relaxation:
         if effects.tire_relaxation < MIN_RELAXATION:
             raise DdynError(f"tyre relaxation length {effects.tire_relaxation} m: below {MIN_RELAXATION} m the "
@@ -426,6 +614,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     body_roll = np.zeros(n)
     road_bank = np.zeros(n)
     road_grade = np.zeros(n)
+    s_rows = np.zeros(n)
     gears = np.zeros(n, dtype=np.int64)
     T_hist: list[float] = []
     D_hist: list[float] = []
@@ -464,7 +653,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             v_ref = scale * float(np.min(track.interpolate(profile, s + preview * ds_settings.speed_preview
                                                            * max(vx, 0))))
             err = v_ref - vx
-            t_new = (ds_settings.kp * err + ds_settings.ki * integ) / ACCEL_SCALE \
+            t_new = (ds_settings.kp * err + ds_settings.ki * integ) / consts.accel_scale \
                 + settings.excitation * ds_settings.throttle_excitation * ex[2]
             if t_lo < t_new < t_hi:
                 integ += err * dbw
@@ -475,6 +664,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             D_hist.append(D_cmd)
         if log_row == 0:
             rows[k] = (X, Y, psi, vx, vy, psi_dot)
+            s_rows[k] = s
             true_delta[k] = delta
             body_roll[k] = roll or 0.0
             if bank is not None:
@@ -520,21 +710,38 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     extras = {f"true_{c}": rows[:, i].copy() for i, c in enumerate(NOISY)}
     extras["true_steering"] = true_delta
     extras["true_bank"] = road_bank
-    if model.name != "std":
-        extras["true_body_roll"] = body_roll
+    rolls = getattr(model, "rolls", False)        # the model has a body roll state (the multi-body model)
+    # the body leans out of the turn: against the lateral acceleration vx omega (a roll gradient where the model
+    # has no roll state)
+    lean = body_roll if rolls else -consts.roll_gradient * rows[:, 3] * rows[:, 5] / G
+    if rolls or roll_kind != "none":
+        extras["true_body_roll"] = lean
+    if grade is not None or pitch_kind != "none":
+        extras["true_grade"] = road_grade
     if effects.gear_step:
         extras["true_gear"] = gears.astype(float)
-    if settings.roll_channel:
-        # bank minus body roll (the body leans out of the turn: against the lateral acceleration vx omega)
+    if roll_kind == "imu":
+        # bank minus body roll
         roll_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[4])
-        lean = body_roll if model.name != "std" else -ROLL_GRADIENT * rows[:, 3] * rows[:, 5] / G
         extras["roll"] = road_bank + lean + ROLL_NOISE * roll_rng.standard_normal(n)
-    if settings.pitch_channel:
+    elif roll_kind == "map":
+        extras["roll"] = map_channel(track, bank, s_rows)
+    elif roll_kind == "broken":
+        extras["roll"] = broken_channel(road_bank + lean, Ts,
+                                        np.random.default_rng(np.random.SeedSequence(seed).spawn(7)[6]))
+    if pitch_kind != "none":
         # grade (+: uphill, nose up) plus the body's squat under the longitudinal acceleration dvx/dt - vy omega
         # (nose up when accelerating); its own random stream, so the other channels are those of a log without it
-        pitch_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(6)[5])
         ax = np.gradient(rows[:, 3], Ts) - rows[:, 4] * rows[:, 5] if n > 1 else np.zeros(n)
-        extras["pitch"] = road_grade + PITCH_GRADIENT * ax / G + PITCH_NOISE * pitch_rng.standard_normal(n)
+        body_pitch = consts.pitch_gradient * ax / G
+        if pitch_kind == "imu":
+            pitch_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(6)[5])
+            extras["pitch"] = road_grade + body_pitch + PITCH_NOISE * pitch_rng.standard_normal(n)
+        elif pitch_kind == "map":
+            extras["pitch"] = map_channel(track, grade, s_rows)
+        else:
+            extras["pitch"] = broken_channel(road_grade + body_pitch, Ts,
+                                             np.random.default_rng(np.random.SeedSequence(seed).spawn(8)[7]))
     noisy = states.copy()
     if settings.noise_scale > 0:
         std = np.array([settings.noise_scale * veh.sensor_noise_std[c] for c in NOISY])
@@ -548,7 +755,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     noisy[:, 5] += effects.yaw_rate_bias      # a sensor bias: the driver and the dynamics see the true omega
     active = effects.active()
     metadata = {
-        "plant": f"{model.label}, parameters_vehicle2, RK4 at 1 kHz, DBW hold",
+        "plant": f"{model.label}, {PARAMETER_LABELS[params]}, RK4 at 1 kHz, DBW hold",
         "dbw_period": repr(dbw),
         "track": track.name, "seed": str(seed), "noise_scale": repr(float(settings.noise_scale)),
         "noise_color": repr(float(settings.noise_color)), "target_speed": repr(float(settings.target_speed)),
@@ -557,7 +764,156 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         "plant_effects": json.dumps(active),
         **vehicle_ref.metadata_for(veh),
     }
-    src = (f"commonroad plant ({model.label.split()[-1]}, BMW 320i) on {track.name}, seed {seed}, "
+    src = (f"commonroad plant ({model.label.split()[-1]}, {consts.car}) on {track.name}, seed {seed}, "
            f"effects {active or 'none'}")
     return Dataset(time=np.arange(n) * Ts, segment=np.zeros(n, dtype=np.int64), states=noisy, inputs=inputs,
                    sample_time=Ts, vehicle=veh.name, source=src, extras=extras, metadata=metadata)
+
+
+# ---- the nominal vehicle files of the plant families: the plant's parameters mapped onto the project's model
+PLANTS_DIR = NOMINAL_VEHICLE.parent
+WRITE_COMMAND = "python -m ddyn.plants.commonroad_st --write-vehicles"
+_MODEL_TEXT = {"std": "the independent plant (ddyn.plants.commonroad_st, vehicle_dynamics_std)",
+               "st": "the linear-tyre single-track plant (ddyn.plants.commonroad_st, model st: vehicle_dynamics_st)",
+               "mb": "the multi-body plant (ddyn.plants.commonroad_mb, vehicle_dynamics_mb)"}
+LINEAR_FIT_POINTS = 200
+
+
+def nominal_vehicle(model_name: str = "std", params: str = "vehicle2") -> Path:
+    """The vehicle file the (model, parameter set) plant's logs are made for and diagnosed with: vehicle2 with std
+    the original NOMINAL_VEHICLE, with mb commonroad_vehicle2_mb.json, else commonroad_<params>[_st|_mb].json
+    (written by write_vehicle_files)."""
+    check_parameter_set(params)
+    if model_name not in MODELS:
+        raise DdynError(f"unknown CommonRoad plant model {model_name!r}; expected one of {', '.join(MODELS)}")
+    path = PLANTS_DIR / f"commonroad_{params}{'' if model_name == 'std' else '_' + model_name}.json"
+    if not path.is_file():
+        raise DdynError(f"{path} is missing; write it with {WRITE_COMMAND}")
+    return path
+
+
+def linear_tyre_fit(p) -> dict:
+    """The project's Pacejka curve D sin(C atan(B a - E (B a - atan(B a)))) closest to vehicle_dynamics_st's linear
+    tyre |p_ky1| F_z a per unit load: D fixed at the friction p_dy1 F_z (what the ST model calls mu, and what the
+    driver's speed profile reads the grip from), B, C, E by least squares on LINEAR_FIT_POINTS evenly spaced slip
+    angles in [0, a_max] inside the project's ranges (B 5-30, C 0.5-2, E -2-0.5); a_max = 0.9 p_dy1 / |p_ky1| is
+    the slip at which the linear tyre carries 0.9 of the friction, the most the driver plans with (simulate's
+    max_grip). The same B, C, E fit both axles (K and D both scale with the axle load)."""
+    from scipy.optimize import least_squares
+
+    mu, k = float(p.tire.p_dy1), abs(float(p.tire.p_ky1))
+    a_max = 0.9 * mu / k
+    a = np.linspace(0.0, a_max, LINEAR_FIT_POINTS)
+
+    def res(x):
+        B, C, E = x
+        Ba = B * a
+        return mu * np.sin(C * np.arctan(Ba - E * (Ba - np.arctan(Ba)))) - k * a
+
+    r = least_squares(res, [k / (1.3 * mu), 1.3, -1.0], bounds=([5.0, 0.5, -2.0], [30.0, 2.0, 0.5]), xtol=1e-12,
+                      ftol=1e-12)
+    B, C, E = (float(v) for v in r.x)
+    top = k * a_max
+    return {"B": B, "C": C, "E": E, "a_max": a_max, "rms": float(np.sqrt(np.mean(r.fun ** 2)) / top),
+            "max": float(np.max(np.abs(r.fun)) / top)}
+
+
+def vehicle_document(model_name: str, params: str) -> dict:
+    """The nominal vehicle file of the (model, parameter set) plant as a JSON document (write_vehicle_files)."""
+    consts = check_parameter_set(params)
+    p = commonroad_parameters(params)
+    base = json.loads(NOMINAL_VEHICLE.read_text())
+    m, lf, lr = float(p.m), float(p.a), float(p.b)
+    L = lf + lr
+    mu = float(p.tire.p_dy1)
+    load_f, load_r = m * G * lr / L, m * G * lf / L
+    name = f"commonroad_{params}{'' if model_name == 'std' else '_' + model_name}"
+    label = PARAMETER_LABELS[params]
+    doc = {"name": name,
+           "description": f"CommonRoad {label} ({consts.car}) mapped onto the project's single-track model: the "
+                          f"nominal model of {_MODEL_TEXT[model_name]}; written by `{WRITE_COMMAND}` "
+                          f"(commonroad_st.write_vehicle_files)"}
+    for k in ("sample_time", "max_speed", "evaluation_horizon", "rk4_substeps"):
+        doc[k] = base[k]
+    doc["known"] = {"mass": m, "lf": lf, "lr": lr, "v_min": 0.5}
+    c = {"Gf": 0.0, "Kf": 0.0, "Gr": 0.0, "Kr": 0.0, "Cm1": round(m * consts.accel_scale, 2), "Cm2": 0.0,
+         "Cr0": consts.rolling, "Cd": consts.drag, "Iz": float(p.I_z)}
+    src = {}
+    if model_name == "st":
+        fit = linear_tyre_fit(p)
+        B, C, E = round(fit["B"], 4), round(fit["C"], 4), round(fit["E"], 4)
+        src["true Bf, Cf, Ef, Br, Cr, Er"] = (
+            f"vehicle_dynamics_st's linear tyre F = |p_ky1| F_z alpha ({abs(p.tire.p_ky1):g} per unit load, no "
+            f"saturation) matched by the project's magic formula: D fixed at p_dy1 F_z, B, C, E least squares on "
+            f"{LINEAR_FIT_POINTS} slip angles evenly in [0, {fit['a_max']:.4f}] rad (0.9 p_dy1 / |p_ky1|: the "
+            f"linear tyre at 0.9 of the friction, the driver's max_grip) within B 5-30, C 0.5-2, E -2-0.5 "
+            f"(commonroad_st.linear_tyre_fit); rms error {100 * fit['rms']:.1f} %, largest {100 * fit['max']:.1f} % "
+            f"of the force at the range's top. Beyond it the model saturates, the plant does not")
+    else:
+        B, C, E = round(abs(p.tire.p_ky1) / (p.tire.p_cy1 * mu), 3), float(p.tire.p_cy1), float(p.tire.p_ey1)
+        src["true Bf, Cf, Ef, Br, Cr, Er"] = base["sources"]["true Bf, Cf, Ef, Br, Cr, Er"]
+    c |= {"Bf": B, "Cf": C, "Ef": E, "Br": B, "Cr": C, "Er": E,
+          "Df": round(mu * load_f, 2), "Dr": round(mu * load_r, 2)}
+    doc["true_coefficients"] = {k: c[k] for k in base["true_coefficients"]}
+    ranges = {}
+    for k, (lo, hi) in base["ranges"].items():
+        v = c[k]
+        if not lo <= v <= hi:        # widen to half and double the truth
+            lo, hi = min(lo, 0.5 * v, 2 * v), max(hi, 0.5 * v, 2 * v)
+        ranges[k] = [lo, hi]
+    doc["ranges"] = ranges
+    limits = dict(base["input_limits"])
+    if params == "av21":
+        limits |= {"steering": [-0.25, 0.25], "dsteering": [-0.6, 0.6]}
+    doc["input_limits"] = limits
+    doc["sensor_noise_std"] = base["sensor_noise_std"]
+    sources = {"known": f"CommonRoad {label}: m, a (lf), b (lr)"
+                        + (" (the total of the sprung and unsprung masses)" if model_name == "mb" else ""),
+               **src,
+               "true Df, Dr": f"p_dy1 ({mu:g}) times the static axle load m g lr / L, m g lf / L"
+                              + ("; the multi-body plant splits each axle's load over two wheels and shifts it "
+                                 "through roll, so its axle grip in a turn is below this"
+                                 if model_name == "mb" else ""),
+               "true Gf, Kf, Gr, Kr": "zero: the shifts S_hy, S_vy vanish at camber 0 (none in the linear tyre)",
+               "true Cm1, Cm2": f"the plant's throttle map (ddyn.plants.commonroad_st, PARAMETER_SETS[{params!r}]): "
+                                f"drive force m {consts.accel_scale:g} m/s^2 T, no speed term; CommonRoad's power "
+                                f"limit above v_switch is not modelled",
+               "true Cr0, Cd": f"the rolling resistance ({consts.rolling:g} N) and drag ({consts.drag:g} kg/m) the "
+                               f"plant adds ({SET_SOURCES[params]}); CommonRoad itself has none",
+               "true Iz": "CommonRoad I_z" + (" (the AV-21's: train/vehicles/av21.json)" if params == "av21" else ""),
+               "input_limits": ("steering +-0.25 rad and rate +-0.6 rad/s as train/vehicles/av21.json (the plant's "
+                                "steering rate limit is set to 0.6 rad/s)" if params == "av21" else
+                                "steering rate: CommonRoad's steering v_max 0.4 rad/s; angle +-0.3 rad")
+                               + ", throttle rate as the AV-21",
+               "ranges": "commonroad_vehicle2.json's, widened to half and double a truth outside them",
+               "sensor_noise_std": base["sources"]["sensor_noise_std"],
+               "evaluation_horizon, max_speed, sample_time": base["sources"]["evaluation_horizon, max_speed, "
+                                                                         "sample_time"],
+               "generated": f"`{WRITE_COMMAND}` (commonroad_st.vehicle_document({model_name!r}, {params!r}))"}
+    doc["sources"] = sources
+    return doc
+
+
+def write_vehicle_files(directory: Path | None = None, models=MODELS, sets=tuple(PARAMETER_SETS)) -> list[Path]:
+    """Write the nominal vehicle file of every (model, parameter set) but the two hand-made vehicle2 files (std, mb)
+    into directory (default train/vehicles/plants); returns the paths written."""
+    directory = Path(directory) if directory is not None else PLANTS_DIR
+    out = []
+    for model_name in models:
+        for params in sets:
+            if params == "vehicle2" and model_name in ("std", "mb"):
+                continue
+            doc = vehicle_document(model_name, params)
+            path = directory / f"{doc['name']}.json"
+            path.write_text(json.dumps(doc, indent=2) + "\n")
+            out.append(path)
+    return out
+
+
+if __name__ == "__main__":   # pragma: no cover
+    import sys
+
+    if sys.argv[1:] != ["--write-vehicles"]:
+        raise SystemExit(f"usage: {WRITE_COMMAND}")
+    for path in write_vehicle_files():
+        print(path)
