@@ -44,7 +44,15 @@ How a log is made (the way a car with a drive-by-wire unit is logged):
     torque interruption at each shift;
   - LogSettings.dbw_period: a DBW unit at another rate than the log (the driver decides at each DBW tick, the
     log records the command in force at each row);
-  - the model is pluggable (StdModel here; ddyn.plants.commonroad_mb.MbModel: the multi-body model).
+  - the model is pluggable (StdModel here; StModel: vehicle_dynamics_st with linear tyres; ddyn.plants.commonroad_mb.MbModel:
+    the multi-body model), make_log(model="std" | "st" | "mb");
+  - the parameter set too (make_log(params=...), PARAMETER_SETS): CommonRoad's vehicle1 (Ford Escort), vehicle2 (BMW
+    320i, the default), vehicle3 (VW Vanagon) and "av21" (the Dallara AV-21 built from vehicle2's object,
+    _av21_parameters); the plant's additions (pedal scale, drag, rolling resistance, roll/pitch gradients) per set
+    (SetConstants), vehicle2's the module constants; the nominal vehicle file of each (model, set):
+    nominal_vehicle(), written by write_vehicle_files() (python -m ddyn.plants.commonroad_st --write-vehicles);
+  - the roll and pitch channels have kinds (CHANNEL_KINDS): imu (above), map (a track map's bank/grade at the car's
+    10 m cell), broken (like the real Putnam log's roll column: drift, random walk, jumps of radians).
 
 State mapping (CommonRoad -> canonical): x, y; yaw = psi; vx = v cos(beta), vy = v sin(beta);
 omega = psi_dot. The noise-free values and the actual wheel angle are kept as extras true_*.
