@@ -289,7 +289,8 @@ LENGTH_TOLERANCE = 0.1
 # effects on, and the plant that made the sweeps' logs. Hashed without comments and docstrings (ast), so a
 # calibration goes stale when what the code does changes, not when its words do.
 FITTING_MODULES = ("ddyn.gap.config", "ddyn.gap.candidates", "ddyn.gap.problem", "ddyn.gap.fit", "ddyn.gap.heldout",
-                   "ddyn.gap.selection", "ddyn.gap.limits", "ddyn.gap.eiv", "ddyn.gap.hold_estimate", "ddyn.model.effects",
+                   "ddyn.gap.selection", "ddyn.gap.limits", "ddyn.gap.eiv", "ddyn.gap.hold_estimate",
+                   "ddyn.data.roll_check", "ddyn.data.laps", "ddyn.model.effects",
                    "ddyn.model.single_track", "ddyn.model.integrators")
 PLANT_MODULES = {"commonroad": ("ddyn.plants.commonroad_st",),
                  "commonroad-mb": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb"),

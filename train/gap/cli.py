@@ -293,9 +293,6 @@ def _add_rescore(sub) -> None:
 # ----------------------------------------------------------------------------------------------- lofo
 
 def _run_lofo(args) -> int:
-    import shlex
-    import sys
-
     from ddyn.gap.benchmark import families as F
     from ddyn.gap.benchmark import lofo
 
@@ -308,6 +305,22 @@ def _run_lofo(args) -> int:
     if args.calibration_out:     # checked before the hours of work, not after
         _writable(Path(args.calibration_out))
     out = Path(args.out)
+    if args.from_results:        # a recorded study: its calibration again, nothing re-run
+        if not args.calibration_out:
+            raise DdynError("--from-results: give --calibration-out (what to make of the recorded study)")
+        path = out / "results.json"
+        try:
+            doc = json.loads(path.read_text())
+            doc["all_families_calibration"], doc["pass1"], doc["settings"]["seed"]
+        except FileNotFoundError:
+            raise DdynError(f"{path}: not found (a `ddyn gap lofo --out {out}` run writes it)") from None
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+            raise DdynError(f"{path}: not a leave-one-family-out study's results.json ({e})") from None
+        cal_doc = lofo.calibrate(doc["pass1"])
+        if cal_doc != json.loads(json.dumps(doc["all_families_calibration"], default=float)):
+            raise DdynError(f"{path}: its recorded calibration differs from what the current rules make of its "
+                            "pass 1: run the study again")
+        return _write_travelling(args, doc)
     durations = lofo.DURATIONS
     if args.durations:
         try:
@@ -319,13 +332,19 @@ def _run_lofo(args) -> int:
     doc = _with_scheduler(args, lambda: lofo.run(fams, args.logs, args.seed, out, args.jobs, not args.no_progress,
                                                  durations))
     _write_run(doc, out)
-    if args.calibration_out:
-        path = Path(args.calibration_out)
-        typed = sys.argv[1:3] == ["gap", "lofo"]
-        cal = CAL.travelling_from_study(args.name or path.stem, doc,
-                                        "ddyn gap lofo " + shlex.join(sys.argv[3:]) if typed else "")
-        CAL.write(cal, path)
-        print(f"wrote the calibration of all {len(cal.families)} families: {path}")
+    return _write_travelling(args, doc) if args.calibration_out else 0
+
+
+def _write_travelling(args, doc: dict) -> int:
+    import shlex
+    import sys
+
+    path = Path(args.calibration_out)
+    typed = sys.argv[1:3] == ["gap", "lofo"]
+    cal = CAL.travelling_from_study(args.name or path.stem, doc,
+                                    "ddyn gap lofo " + shlex.join(sys.argv[3:]) if typed else "")
+    CAL.write(cal, path)
+    print(f"wrote the calibration of all {len(cal.families)} families: {path}")
     return 0
 
 
@@ -357,6 +376,8 @@ def _add_lofo(sub) -> None:
     p.add_argument("--calibration-out", default=None, metavar="FILE",
                    help="also write the calibration of all families (a travelling calibration) to FILE")
     p.add_argument("--name", default=None, help="that calibration's name (default the file's stem)")
+    p.add_argument("--from-results", action="store_true",
+                   help="make --calibration-out from the study already recorded in --out (nothing re-run)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_lofo)
 
