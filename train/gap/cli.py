@@ -320,6 +320,8 @@ def _run_lofo(args) -> int:
         if cal_doc != json.loads(json.dumps(doc["all_families_calibration"], default=float)):
             raise DdynError(f"{path}: its recorded calibration differs from what the current rules make of its "
                             "pass 1: run the study again")
+        _summarised(doc)
+        _write_run(doc, out)
         return _write_travelling(args, doc)
     durations = lofo.DURATIONS
     if args.durations:
@@ -331,8 +333,17 @@ def _run_lofo(args) -> int:
             raise DdynError(f"--durations {args.durations!r}: each between 10 and 900 s")
     doc = _with_scheduler(args, lambda: lofo.run(fams, args.logs, args.seed, out, args.jobs, not args.no_progress,
                                                  durations))
+    _summarised(doc)
     _write_run(doc, out)
     return _write_travelling(args, doc) if args.calibration_out else 0
+
+
+def _summarised(doc: dict) -> None:
+    """The study's headline against the targets (the worst family on each) added to its document and table."""
+    from ddyn.gap.benchmark import lofo, lofo_summary
+
+    doc["summary"] = lofo_summary.summary(doc)
+    doc["markdown"] = lofo.markdown(doc) + "\n" + lofo_summary.markdown(doc["summary"])
 
 
 def _write_travelling(args, doc: dict) -> int:
