@@ -3,7 +3,9 @@
 Each command lives in the module that does the work; the module exposes `register(subparsers)`,
 which adds its parser(s) and sets `func` to a function taking the parsed arguments. A group
 (`ddyn sil run`, `ddyn can export`, ...) is a parser of its own whose subcommands come from the
-modules listed for it. Expected failures (DdynError) print one clear line and exit 2.
+modules listed for it. Expected failures (DdynError) print one clear line and exit 2; so do usage errors and
+an OSError naming a file that a command's own checks did not catch first. main() imports only the module(s)
+of the command it runs, so that one missing optional dependency breaks only the commands that need it.
 """
 from __future__ import annotations
 
@@ -63,29 +65,92 @@ def commands_named(*names: str) -> tuple[Command, ...]:
     return tuple(c for c in COMMANDS if c.name in names)
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line usage error (`ddyn train: error: ...`, exit 2), like every other expected failure;
+    the usage is one `--help` away. Subparsers are of this class too (argparse passes the parser's class on)."""
+
+    unavailable = ""   # a group's modules that could not be imported, named in its errors
+
+    def error(self, message: str):
+        note = f"; {self.unavailable}" if self.unavailable else ""
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help{note})\n")
+
+
+class _MissingDependency:
+    """The stand-in of a command whose module cannot be imported (a missing optional dependency): the other
+    commands still run, and this one fails with one line naming the module and what it lacks."""
+
+    def __init__(self, command: str, module: str, error: ImportError):
+        self.command, self.module, self.error = command, module, error
+
+    def __call__(self, args):
+        raise DdynError(f"this command needs {self.error.name or 'a module'} that {self.module} imports, "
+                        f"which is not installed ({self.error})")
+
+
+def _register(sub, cmd: Command, module: str) -> str | None:
+    """Add the module's parser(s) to sub; when the module cannot be imported, a stand-in (a top-level command)
+    or, for a group's module, whose subcommand names are in the module, the reason returned."""
+    module, _, fn = module.partition(":")     # "module:function": another register function of it
+    try:
+        register = getattr(importlib.import_module(module), fn or "register")
+    except ImportError as e:
+        if cmd.help is not None:
+            return f"{module} ({e})"
+        stub = sub.add_parser(cmd.name, help=f"(unavailable: {e})", add_help=False)
+        stub.set_defaults(func=_MissingDependency(cmd.name, module, e))
+        return None
+    register(sub)
+    return None
+
+
 def build_parser(commands: tuple[Command, ...] | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ddyn", description=__doc__.splitlines()[0])
+    """The parser of the given top-level commands (default all). Each command's module is imported here, so
+    main() builds the parser of the one command it runs: a command's dependencies are loaded only when it runs,
+    and one that is missing breaks that command alone."""
+    parser = _Parser(prog="ddyn", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for cmd in COMMANDS if commands is None else commands:
         if cmd.help is None:
             (module,) = cmd.modules
-            module, _, fn = module.partition(":")     # "module:function": another register function of it
-            getattr(importlib.import_module(module), fn or "register")(sub)
+            _register(sub, cmd, module)
             continue
         group = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
         group_sub = group.add_subparsers(dest="subcommand", required=True, metavar="SUBCOMMAND")
-        for module in cmd.modules:
-            importlib.import_module(module).register(group_sub)
+        missing = [m for m in (_register(group_sub, cmd, module) for module in cmd.modules) if m]
+        if missing:
+            group.unavailable = "unavailable here (a missing dependency): " + "; ".join(missing)
+            group.epilog = group.unavailable
     return parser
 
 
+def _command_of(argv: list[str]) -> tuple[Command, ...] | None:
+    """The top-level command argv names (its first word; the top-level parser has no options but --help),
+    or None (no command, --help, an unknown name): then the parser of every command, for its listing."""
+    first = next((a for a in argv if not a.startswith("-")), None)
+    if first is None or argv.index(first) > 0:
+        return None
+    return commands_named(first) if first in {c.name for c in COMMANDS} else None
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_command_of(argv))
+    args, rest = parser.parse_known_args(argv)
+    if rest and not isinstance(args.func, _MissingDependency):   # the stand-in takes any arguments
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
     name = " ".join(filter(None, (args.command, getattr(args, "subcommand", None))))
     try:
         result = args.func(args)
     except DdynError as e:
         print(f"ddyn {name}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        # a file the command could not read or write (a folder where a file belongs, a full disk, no
+        # permission) that its own checks did not catch first: still one line naming the file
+        if e.filename is None:
+            raise
+        print(f"ddyn {name}: error: {e.filename}: {e.strerror or e}", file=sys.stderr)
         return 2
     return int(result or 0)
 

@@ -41,6 +41,7 @@ from ddyn.model.track_files import open_track
 from ddyn.model.tracks import Track
 from ddyn.model.vehicle import Vehicle
 from ddyn.model.vehicle import load as load_vehicle
+from ddyn.paths import check_writable
 
 G = 9.81
 NOISY_CHANNELS = ("x", "y", "yaw", "vx", "vy", "omega")
@@ -423,6 +424,7 @@ def summary(ds: Dataset, track: Track | None = None) -> dict[str, float]:
 
 
 def _run(args: argparse.Namespace) -> int:
+    check_writable(args.output, "-o/--output")
     vehicle, track = _resolve(args.vehicle, args.track)
     laps = args.laps
     if laps is None and args.duration is None:

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import hashlib
 import io
+import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +34,7 @@ import torch
 from ddyn.data.windows import FEATURE_NAMES
 from ddyn.errors import DdynError
 from ddyn.learn.networks import DPM_OUTPUTS
-from ddyn.learn.training import TrainConfig, TrainResult, build_model, config_dict
+from ddyn.learn.training import TrainResult, build_model, config_dict, config_from_dict
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.single_track import COEFF_NAMES
 
@@ -95,21 +97,56 @@ def file_sha256(path: str | Path) -> str:
 
 
 def read(path: str | Path) -> dict:
-    """The checkpoint's dictionary, validated; DdynError names what is wrong."""
+    """The checkpoint's dictionary, validated by kind and keys; DdynError names the file and what is wrong."""
     path = Path(path)
     if not path.is_file():
         raise DdynError(f"checkpoint not found: {path}")
     try:
-        ckpt = torch.load(io.BytesIO(path.read_bytes()), map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():   # torch warns about pickle protocols of foreign files
+            warnings.simplefilter("ignore")
+            ckpt = torch.load(io.BytesIO(path.read_bytes()), map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for corrupt files; all mean the same to a user
-        raise DdynError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+        # torch's messages run to a paragraph (the weights_only advice): its first sentence is the cause
+        first = re.split(r"(?<=\.)\s", " ".join(str(e).split()), maxsplit=1)[0]
+        raise DdynError(f"{path}: not a readable checkpoint, not a file `ddyn train` writes ({type(e).__name__}"
+                        f"{': ' + first[:200] if first else ''})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise DdynError(f"{path}: not a ddyn checkpoint (no format field {FORMAT!r})")
     if ckpt.get("version") != VERSION:
         raise DdynError(f"{path}: checkpoint version {ckpt.get('version')} is not supported (expected {VERSION})")
-    for key in ("kind", "config", "state_dict", "vehicle", "normalisation"):
+    for key in ("kind", "config", "architecture", "state_dict", "vehicle", "normalisation"):
         if key not in ckpt:
             raise DdynError(f"{path}: checkpoint lacks {key!r}")
+    if ckpt["kind"] not in ("ddm", "dpm"):
+        raise DdynError(f"{path}: checkpoint kind {ckpt['kind']!r} is not ddm or dpm")
+    cfg = config_from_dict(ckpt["config"], str(path))
+    if cfg.kind != ckpt["kind"]:
+        raise DdynError(f"{path}: checkpoint kind {ckpt['kind']!r} differs from its config's {cfg.kind!r}")
+    arch = ckpt["architecture"]
+    if not isinstance(arch, dict):
+        raise DdynError(f"{path}: architecture must be a mapping, got {type(arch).__name__}")
+    for key in ("tau", "hidden", "layers", "gru_layers", "n_features"):
+        if key not in arch:
+            raise DdynError(f"{path}: architecture lacks {key!r}")
+        if isinstance(arch[key], bool) or not isinstance(arch[key], int) or arch[key] < 0:
+            raise DdynError(f"{path}: architecture.{key} must be a whole number >= 0, got {arch[key]!r}")
+    for key in ("features", "outputs"):
+        if not (isinstance(arch.get(key), list) and all(isinstance(x, str) for x in arch[key])):
+            raise DdynError(f"{path}: architecture.{key} must be a list of names, got {arch.get(key)!r}")
+    veh = ckpt["vehicle"]
+    if not isinstance(veh, dict):
+        raise DdynError(f"{path}: vehicle must be a mapping, got {type(veh).__name__}")
+    for key in ("name", "json"):
+        if not isinstance(veh.get(key), str):
+            raise DdynError(f"{path}: vehicle.{key} missing or not a string: the checkpoint must embed its vehicle file")
+    norm = ckpt["normalisation"]
+    for key in ("mean", "std"):
+        if not (isinstance(norm, dict) and isinstance(norm.get(key), list) and len(norm[key]) == len(FEATURE_NAMES)
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in norm[key])):
+            raise DdynError(f"{path}: normalisation.{key} must be a list of {len(FEATURE_NAMES)} numbers")
+    sd = ckpt["state_dict"]
+    if not (isinstance(sd, dict) and all(isinstance(v, torch.Tensor) for v in sd.values())):
+        raise DdynError(f"{path}: state_dict must map parameter names to tensors")
     return ckpt
 
 
@@ -121,13 +158,14 @@ def vehicle_of(ckpt: dict) -> vehicle_mod.Vehicle:
 def load(path: str | Path) -> tuple[torch.nn.Module, dict]:
     """Rebuild the network of a checkpoint (in eval mode) and return it with the checkpoint."""
     ckpt = read(path)
-    cfg = TrainConfig(**ckpt["config"])
+    cfg = config_from_dict(ckpt["config"], str(path))
     v = vehicle_of(ckpt)
     norm = ckpt["normalisation"]
     model = build_model(cfg, v, np.array(norm["mean"]), np.array(norm["std"]))
     try:
         model.load_state_dict(ckpt["state_dict"])
     except RuntimeError as e:
-        raise DdynError(f"{path}: weights do not fit the recorded architecture: {e}") from None
+        detail = " ".join(str(e).split())   # torch lists the keys over several lines
+        raise DdynError(f"{path}: weights do not fit the recorded architecture: {detail[:300]}") from None
     model.eval()
     return model, ckpt

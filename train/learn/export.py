@@ -21,6 +21,7 @@ import torch
 
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
+from ddyn.paths import check_writable
 
 PREFIX = "ddyn_net"
 
@@ -50,6 +51,7 @@ def _banner(ckpt_path: Path, sha: str) -> str:
 
 def export(ckpt_path: str | Path, out: str | Path, double: bool = False, torch_export: bool = True) -> list[Path]:
     ckpt_path, out = Path(ckpt_path), Path(out)
+    check_writable(out, "--out", directory=True)
     model, ckpt = checkpoint.load(ckpt_path)
     sha = checkpoint.file_sha256(ckpt_path)
     arch, sd = ckpt["architecture"], ckpt["state_dict"]

@@ -25,7 +25,7 @@ def read_ranges(path: str | Path) -> dict[str, tuple[float, float]]:
     path = Path(path)
     try:
         raw = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise DdynError(f"ranges file {path}: {e}") from None
     table = raw.get("coefficients", raw) if isinstance(raw, dict) else None
     if not isinstance(table, dict) or not table:
@@ -38,6 +38,8 @@ def read_ranges(path: str | Path) -> dict[str, tuple[float, float]]:
         pair = value.get("suggested") if isinstance(value, dict) else value
         if not (isinstance(pair, (list, tuple)) and len(pair) == 2):
             raise DdynError(f"ranges file {path}: {name}: expected [lo, hi], got {pair!r}")
+        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in pair):
+            raise DdynError(f"ranges file {path}: {name}: bounds must be numbers, got {pair!r}")
         lo, hi = (float(x) for x in pair)
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise DdynError(f"ranges file {path}: {name}: need finite lo < hi, got [{lo!r}, {hi!r}]")

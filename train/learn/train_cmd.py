@@ -8,8 +8,13 @@ from ddyn.data.windows import split_train_validation
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
 from ddyn.learn.evaluate import evaluate, format_summary, public
-from ddyn.learn.guard_ranges import describe, with_ranges
-from ddyn.learn.training import TrainConfig, train
+from ddyn.learn.guard_ranges import describe, read_ranges, with_ranges
+from ddyn.learn.training import DTYPES, TrainConfig, train
+from ddyn.model.integrators import DISCRETISATIONS
+from ddyn.paths import check_writable
+
+# the TrainConfig fields that take one of a few names: refused by the parser, before any work
+CHOICES = {"kind": ("ddm", "dpm"), "method": DISCRETISATIONS, "dtype": DTYPES}
 
 
 def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name: str | None = None,
@@ -18,11 +23,15 @@ def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name
     ranges_file: guard ranges in place of the vehicle file's (ddyn.learn.guard_ranges)."""
     from ddyn.data.importers import load_with_vehicle
 
-    ds, v = load_with_vehicle(data_path, vehicle_name)
-    ranges_record = None
+    # every input checked before any work: the output writable, the ranges file readable
+    check_writable(out, "checkpoint")
     if ranges_file:
         if cfg.kind != "ddm":
             raise DdynError("--ranges sets the Physics Guard's ranges: DDM only (the DPM has no guard)")
+        read_ranges(ranges_file)
+    ds, v = load_with_vehicle(data_path, vehicle_name)
+    ranges_record = None
+    if ranges_file:
         v, ranges_record = with_ranges(v, ranges_file)
     result = train(ds, v, cfg, progress=progress)
     ckpt = checkpoint.make(result, v, ds.content_hash(), str(data_path), len(ds))
@@ -39,6 +48,9 @@ def train_to_checkpoint(data_path: str, cfg: TrainConfig, out: str, vehicle_name
 def _run(args) -> int:
     overrides = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if getattr(args, f.name, None) is not None}
     cfg = TrainConfig(**overrides)
+    check_writable(args.out, "-o/--out")
+    if args.metrics_json:
+        check_writable(args.metrics_json, "--metrics-json")
     ckpt = train_to_checkpoint(args.data, cfg, args.out, args.vehicle, progress=not args.quiet,
                                ranges_file=args.ranges)
     t = ckpt["training"]
@@ -69,5 +81,5 @@ def register(subparsers) -> None:
     for f in fields(TrainConfig):
         flag = "--" + f.name.replace("_", "-")
         p.add_argument(flag, dest=f.name, type=type(getattr(defaults, f.name)), default=None,
-                       help=f"(default {getattr(defaults, f.name)})")
+                       choices=CHOICES.get(f.name), help=f"(default {getattr(defaults, f.name)})")
     p.set_defaults(func=_run)

@@ -9,8 +9,9 @@ exact to rounding, and float32 would floor the error above the papers' figures.
 """
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -20,8 +21,11 @@ from ddyn.data.dataset import Dataset
 from ddyn.data.windows import Windows, split_train_validation
 from ddyn.errors import DdynError
 from ddyn.learn.networks import DPM_OUTPUTS, DeepDynamics, DeepPacejka, bound_shares
+from ddyn.model.integrators import DISCRETISATIONS
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
+
+DTYPES = ("float32", "float64")   # torch dtypes a model trains in
 
 
 @dataclass
@@ -51,6 +55,29 @@ class TrainConfig:
     def __post_init__(self):
         if self.kind not in ("ddm", "dpm"):
             raise DdynError(f"model kind must be ddm or dpm, got {self.kind!r}")
+        if self.method not in DISCRETISATIONS:
+            raise DdynError(f"method must be one of {', '.join(DISCRETISATIONS)}, got {self.method!r}")
+        if self.dtype not in DTYPES:
+            raise DdynError(f"dtype must be one of {', '.join(DTYPES)}, got {self.dtype!r}")
+        for f in fields(self):   # a checkpoint's config or a caller may give a string where a number belongs
+            value, want = getattr(self, f.name), type(getattr(TrainConfig, f.name, None))
+            if want not in (int, float):
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise DdynError(f"{f.name} must be a finite number, got {value!r}")
+            if want is int:
+                if value != int(value):
+                    raise DdynError(f"{f.name} must be a whole number, got {value!r}")
+                setattr(self, f.name, int(value))
+        if not self.lr > 0:
+            raise DdynError(f"lr must be > 0, got {self.lr}")
+        if not 0 < self.val_fraction < 1:
+            raise DdynError(f"val_fraction must lie between 0 and 1, got {self.val_fraction}")
+        for name in ("gru_layers", "lbfgs_iterations", "weight_decay"):
+            if getattr(self, name) < 0:
+                raise DdynError(f"{name} must be at least 0, got {getattr(self, name)}")
+        if not self.dpm_iz_scale > 0:
+            raise DdynError(f"dpm_iz_scale must be > 0, got {self.dpm_iz_scale}")
         for name in ("tau", "hidden", "layers", "batch_size", "epochs", "restarts"):
             if getattr(self, name) < 1:
                 raise DdynError(f"{name} must be at least 1, got {getattr(self, name)}")
@@ -240,3 +267,19 @@ def _polish_lbfgs(model, cfg: TrainConfig, batch, va: Windows, scale, best, log,
 
 def config_dict(cfg: TrainConfig) -> dict:
     return asdict(cfg)
+
+
+def config_from_dict(raw, origin: str) -> TrainConfig:
+    """A TrainConfig from a recorded or given dict (a checkpoint's "config", an API call's config): unknown keys
+    and bad values are a DdynError naming origin and the key, not a TypeError."""
+    if not isinstance(raw, dict):
+        raise DdynError(f"{origin}: config must be a mapping of TrainConfig fields, got {type(raw).__name__}")
+    known = {f.name for f in fields(TrainConfig)}
+    unknown = sorted(str(k) for k in raw if k not in known)
+    if unknown:
+        raise DdynError(f"{origin}: unknown config key(s) {', '.join(map(repr, unknown))} "
+                        f"(known: {', '.join(sorted(known))})")
+    try:
+        return TrainConfig(**raw)
+    except DdynError as e:
+        raise DdynError(f"{origin}: config: {e}") from None

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,58 +82,132 @@ def load(name_or_path: str | Path) -> Vehicle:
     return parse(path.read_bytes(), str(path))
 
 
+def _mapping(raw: dict, key: str, path: str, required: bool = True) -> dict:
+    """raw[key] as a JSON object ({} when optional and absent); a list or number there is refused by name."""
+    if key not in raw:
+        if required:
+            raise DdynError(f"{path}: missing field {key!r}")
+        return {}
+    value = raw[key]
+    if not isinstance(value, dict):
+        raise DdynError(f"{path}: {key} must be a JSON object {{...}}, got {type(value).__name__}: {_short(value)}")
+    return value
+
+
+def _short(value) -> str:
+    text = repr(value) if isinstance(value, (str, float)) else json.dumps(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _number(value, where: str, path: str, positive: bool = False, nonnegative: bool = False) -> float:
+    """A finite JSON number (not a bool, not a string); positive/nonnegative as asked. where names the key."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DdynError(f"{path}: {where} must be a number, got {type(value).__name__}: {_short(value)}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise DdynError(f"{path}: {where} must be finite, got {x!r}")
+    if positive and not x > 0:
+        raise DdynError(f"{path}: {where} must be > 0, got {x!r}")
+    if nonnegative and not x >= 0:
+        raise DdynError(f"{path}: {where} must be >= 0, got {x!r}")
+    return x
+
+
+def _pair(value, where: str, path: str) -> tuple[float, float]:
+    """[lo, hi] of finite numbers."""
+    if not (isinstance(value, list) and len(value) == 2):
+        raise DdynError(f"{path}: {where} must be [lo, hi], got {_short(value)}")
+    return _number(value[0], f"{where}[0]", path), _number(value[1], f"{where}[1]", path)
+
+
+def _coefficients(raw: dict, key: str, path: str) -> dict[str, float] | None:
+    if raw.get(key) is None:
+        return None
+    table = _mapping(raw, key, path)
+    missing = [k for k in COEFF_NAMES if k not in table]
+    if missing:
+        raise DdynError(f"{path}: {key} lacks {', '.join(missing)}")
+    return {k: _number(table[k], f"{key}.{k}", path) for k in COEFF_NAMES}
+
+
 def _known(raw: dict, path: str) -> KnownParams:
     """mass, lf, lr, v_min from "known"; the drivetrain form from "drivetrain" (default the papers'), and
     for "powertrain" the brake gain from known.brake_gain (required there, refused elsewhere)."""
-    form = str(raw.get("drivetrain", "papers"))
+    form = raw.get("drivetrain", "papers")
     if form not in DRIVETRAINS:
-        raise DdynError(f"{path}: drivetrain {form!r} is not one of {', '.join(DRIVETRAINS)}")
-    gain = raw["known"].get("brake_gain")
-    if form == "powertrain" and not (gain is not None and float(gain) > 0.0):
+        raise DdynError(f"{path}: drivetrain {_short(form)} is not one of {', '.join(DRIVETRAINS)}")
+    known = _mapping(raw, "known", path)
+    gain = known.get("brake_gain")
+    if gain is not None:
+        gain = _number(gain, "known.brake_gain", path)
+    if form == "powertrain" and not (gain is not None and gain > 0.0):
         raise DdynError(f"{path}: the powertrain drivetrain needs known.brake_gain > 0 (N per unit brake input)")
     if form == "papers" and gain is not None:
         raise DdynError(f"{path}: known.brake_gain is used only by the powertrain drivetrain")
-    return KnownParams(**{k: float(raw["known"][k]) for k in ("mass", "lf", "lr", "v_min")},
-                       drivetrain=form, brake_gain=float(gain) if gain is not None else 0.0)
+    values = {}
+    for k in ("mass", "lf", "lr", "v_min"):
+        if k not in known:
+            raise DdynError(f"{path}: missing field {k!r} in known")
+        values[k] = _number(known[k], f"known.{k}", path, positive=k != "v_min", nonnegative=k == "v_min")
+    return KnownParams(**values, drivetrain=form, brake_gain=gain if gain is not None else 0.0)
 
 
 def parse(raw_bytes: bytes, origin: str) -> Vehicle:
-    """A vehicle from the bytes of a vehicle file (origin names it in errors), e.g. one embedded in a checkpoint."""
+    """A vehicle from the bytes of a vehicle file (origin names it in errors), e.g. one embedded in a checkpoint.
+
+    Every field is checked where it enters: the top level and known, ranges, input_limits, sensor_noise_std,
+    sources are JSON objects; numbers are finite (sample_time, max_speed, evaluation_horizon, mass, lf, lr > 0;
+    v_min, noise >= 0; rk4_substeps a whole number >= 1); a DdynError names the file and the key."""
     path = origin
     try:
-        raw = json.loads(raw_bytes)
+        raw_json = raw_bytes.decode()
+        raw = json.loads(raw_json)
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DdynError(f"{path}: not valid JSON: {e}") from None
-    try:
-        known = _known(raw, path)
-        ranges = {k: (float(raw["ranges"][k][0]), float(raw["ranges"][k][1])) for k in COEFF_NAMES}
-        true = raw.get("true_coefficients")
-        ref = raw.get("reference_dataset_coefficients")
-        ref = {k: float(ref[k]) for k in COEFF_NAMES} if ref is not None else None
-        true = {k: float(true[k]) for k in COEFF_NAMES} if true is not None else None
-        vehicle = Vehicle(
-            name=str(raw["name"]),
-            sample_time=float(raw["sample_time"]),
-            rk4_substeps=int(raw.get("rk4_substeps", 1)),
-            max_speed=float(raw["max_speed"]),
-            evaluation_horizon=float(raw["evaluation_horizon"]),
-            raw_json=raw_bytes.decode(),
-            known=known,
-            ranges=ranges,
-            true_coefficients=true,
-            reference_dataset_coefficients=ref,
-            input_limits={k: (float(v[0]), float(v[1])) for k, v in raw["input_limits"].items()},
-            sensor_noise_std={k: float(v) for k, v in raw.get("sensor_noise_std", {}).items()},
-            description=str(raw.get("description", "")),
-            variant_of=str(raw.get("variant_of", "")),
-            sources=dict(raw.get("sources", {})),
-            source_path=path,
-            digest=hashlib.sha256(raw_bytes).hexdigest(),
-        )
-    except KeyError as e:
-        raise DdynError(f"{path}: missing field {e.args[0]!r}") from None
-    except (TypeError, ValueError, IndexError) as e:
-        raise DdynError(f"{path}: malformed field: {e}") from None
+    if not isinstance(raw, dict):
+        raise DdynError(f"{path}: a vehicle file is a JSON object {{\"name\": ..., \"known\": {{...}}, ...}}, "
+                        f"got {type(raw).__name__}")
+    for key in ("name", "sample_time", "max_speed", "evaluation_horizon"):
+        if key not in raw:
+            raise DdynError(f"{path}: missing field {key!r}")
+    known = _known(raw, path)
+    range_table = _mapping(raw, "ranges", path)
+    missing = [k for k in COEFF_NAMES if k not in range_table]
+    if missing:
+        raise DdynError(f"{path}: ranges lacks {', '.join(missing)}")
+    ranges = {k: _pair(range_table[k], f"ranges.{k}", path) for k in COEFF_NAMES}
+    true = _coefficients(raw, "true_coefficients", path)
+    ref = _coefficients(raw, "reference_dataset_coefficients", path)
+    substeps = raw.get("rk4_substeps", 1)
+    if (isinstance(substeps, bool) or not isinstance(substeps, (int, float)) or not math.isfinite(substeps)
+            or substeps != int(substeps) or substeps < 1):
+        raise DdynError(f"{path}: rk4_substeps must be a whole number >= 1, got {_short(substeps)}")
+    substeps = int(substeps)
+    limits = _mapping(raw, "input_limits", path)
+    noise = _mapping(raw, "sensor_noise_std", path, required=False)
+    sources = _mapping(raw, "sources", path, required=False)
+    for key in ("name", "description", "variant_of"):
+        if key in raw and not isinstance(raw[key], str):
+            raise DdynError(f"{path}: {key} must be a string, got {_short(raw[key])}")
+    vehicle = Vehicle(
+        name=raw["name"],
+        sample_time=_number(raw["sample_time"], "sample_time", path, positive=True),
+        rk4_substeps=substeps,
+        max_speed=_number(raw["max_speed"], "max_speed", path, positive=True),
+        evaluation_horizon=_number(raw["evaluation_horizon"], "evaluation_horizon", path, positive=True),
+        raw_json=raw_json,
+        known=known,
+        ranges=ranges,
+        true_coefficients=true,
+        reference_dataset_coefficients=ref,
+        input_limits={k: _pair(v, f"input_limits.{k}", path) for k, v in limits.items()},
+        sensor_noise_std={k: _number(v, f"sensor_noise_std.{k}", path, nonnegative=True) for k, v in noise.items()},
+        description=raw.get("description", ""),
+        variant_of=raw.get("variant_of", ""),
+        sources=dict(sources),
+        source_path=path,
+        digest=hashlib.sha256(raw_bytes).hexdigest(),
+    )
     for k, (lo, hi) in vehicle.ranges.items():
         if not lo < hi:
             raise DdynError(f"{path}: range of {k} is empty: [{lo}, {hi}]")
@@ -141,4 +216,7 @@ def parse(raw_bytes: bytes, origin: str) -> Vehicle:
     for k in ("throttle", "steering", "dthrottle", "dsteering"):
         if k not in vehicle.input_limits:
             raise DdynError(f"{path}: input_limits lacks {k!r}")
+    for k, (lo, hi) in vehicle.input_limits.items():
+        if not lo <= hi:
+            raise DdynError(f"{path}: input_limits.{k} is empty: [{lo}, {hi}]")
     return vehicle
