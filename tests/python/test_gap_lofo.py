@@ -112,17 +112,32 @@ def test_decision_levels_need_enough_logs_and_take_the_low_tail():
     assert levels["steer_lag"] is None      # no logs of it: never claimed
 
 
-def test_margin_per_row_leaves_at_most_five_percent_of_no_claim_logs_claimed():
+def test_family_margins_leave_at_most_five_percent_of_alarm_logs_claimed():
     levels = {e: 0.5 for e in lofo.EFFECTS}
-    recs = [_rec("a", "none", 0.0, 0.05, -float(d), rows=1000) for d in range(1, 41)]
-    m = lofo.margin_per_row(recs, levels)
-    claimed = [r for r in recs if -r["delta_bic_top"] > m * r["heldout_rows"]]
-    assert len(claimed) <= 0.05 * len(recs)
-    assert m * 1000 > 35.0      # not looser than it needs to be... and not stricter than the worst log
-    assert m * 1000 <= 40.0 + 1e-6
-    # a first candidate below its decision level, at a range edge or tied would not be claimed at any margin
-    small = [_rec("a", "none", 0.0, 0.001, -500.0)]
-    assert lofo.margin_per_row(small, levels) == 0.0
+    # forty effect-free logs whose top candidate is a mass offset paying 1..40 dBIC per 1000 rows
+    recs = [_rec("a", "none", 0.0, 0.15, -float(d), rows=1000, top="mass_offset", size=0.1) for d in range(1, 41)]
+    # and a below-size steering delay that is the true effect: its decision level's to stop, not a margin's
+    recs.append(_rec("a", "steer_delay", 0.03, 0.05, -900.0, rows=1000))
+    m = lofo.family_margins(recs, levels)
+    claimed = [r for r in recs if r["effect"] == "none" and -r["delta_bic_top"] > m["mass_offset"] * 1000]
+    assert len(claimed) <= 0.05 * 41 and 0.035 < m["mass_offset"] <= 0.0400001
+    # one family's spurious gains do not raise another's margin
+    assert m["steer_delay"] == 0.0 and m["downforce"] == 0.0
+    # a first candidate below its decision level, at a range edge or tied is not an alarm at any margin
+    small = [_rec("a", "none", 0.0, 0.001, -500.0, top="mass_offset", size=0.1)]
+    assert lofo.family_margins(small, levels)["mass_offset"] == 0.0
+
+
+def test_a_family_below_its_margin_is_kept_as_a_nuisance(delay_log):
+    from ddyn.gap.selection import diagnose
+
+    n = None
+    cfg = DiagnosisConfig(hold=True, family_margins_per_row={"steer_delay": 50.0, "*": 0.0})
+    d = diagnose(delay_log, _nominal(delay_log), cfg)
+    n = d["split"]["heldout_rows"]
+    assert d["greedy"][0]["nuisance"] == "steer_delay" and "steer_delay" not in d["selected"]
+    # its stated limit follows its own margin: no steering delay in range pays 50 dBIC per row
+    assert d["limits"]["steer_delay"]["limit"] is None and n > 0
 
 
 def test_score_reads_the_issue_rules():
@@ -159,7 +174,7 @@ def test_a_travelling_calibration_covers_any_length_and_goes_stale_with_the_code
     cal = CAL.travelling_from_study("t", _study_doc(), "ddyn gap lofo --logs 4")
     path = CAL.write(cal, tmp_path / "t.json")
     back = CAL.load(path)
-    assert back.applied().min_evidence_per_row == cal.applied().min_evidence_per_row
+    assert back.applied().family_margins_per_row == cal.applied().family_margins_per_row
     assert back.applied().decision_levels["steer_delay"] == pytest.approx(1.0)
     for length in (30.0, 120.0, 900.0):
         assert back.covers(length, 0.04)[0]

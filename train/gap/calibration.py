@@ -485,12 +485,12 @@ SCHEMA_TRAVELLING = "ddyn-gap-calibration 2"
 @dataclass(frozen=True)
 class TravellingCalibration:
     """A calibration that applies to any log length (`ddyn gap lofo --calibration-out`): made on every plant
-    family's logs of several lengths, rates and cars, it holds an evidence margin per held-out row and decision
-    levels as shares of each effect family's size that matters, so both scale with the log (ddyn.gap.limits);
+    family's logs of several lengths, rates and cars, it holds each effect family's evidence margin per held-out
+    row and decision levels as shares of each effect family's size that matters, so both scale with the log (ddyn.gap.limits);
     what it is worth on a plant it never saw is its leave-one-family-out score (`lofo`)."""
 
     name: str
-    diagnosis: dict            # the applied DiagnosisConfig (min_evidence_per_row, decision_levels)
+    diagnosis: dict            # the applied DiagnosisConfig (family_margins_per_row, decision_levels)
     families: tuple
     logs: int
     durations: tuple           # (shortest, longest) s of the logs it was made on
@@ -533,6 +533,7 @@ class TravellingCalibration:
         d = self.diagnosis
         return {"name": self.name, "source": self.source, "kind": "travelling",
                 "margin": float(d.get("min_evidence") or 0.0), "margin_per_row": d.get("min_evidence_per_row"),
+                "family_margins_per_row": d.get("family_margins_per_row"),
                 "decision_levels": {}, "decision_shares": d.get("decision_levels"),
                 "families": list(self.families), "log_lengths_s": list(self.durations),
                 "sample_time": self.sample_time, "code_version": self.code_version, "lofo": self.lofo}

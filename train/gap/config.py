@@ -121,6 +121,11 @@ class DiagnosisConfig:
     # held-out rows. A plant mismatch's spurious gain grows with the rows, so a margin calibrated on short logs
     # and held constant lets it through on long ones (ddyn.gap.limits). 0: a constant margin.
     min_evidence_per_row: float = 0.0
+    # A margin per held-out row of each effect family on top ({family: margin per row}; "*": every other): what a
+    # family must pay before it is claimed, beyond the margin every effect pays to enter the model. A plant's
+    # systematic mismatch pays as one or two families (a mass offset, a downforce), not as all of them, so a
+    # travelling calibration sets each family's own (ddyn.gap.benchmark.lofo). None: none.
+    family_margins_per_row: dict | None = None
     # Limits of detection {effect family: smallest |estimate| claimed, or None: never claimed; "*": every other}.
     # An effect that pays with a size below its limit, or whose runner-up is within 2 dBIC, is reported, not
     # claimed. None: no limits (a calibration sets its decision levels).
@@ -227,7 +232,7 @@ def _validate(c: DiagnosisConfig) -> None:
         _number("gate", c.gate, 0.0)
     _number("min_evidence", c.min_evidence, 0.0)
     _number("min_evidence_per_row", c.min_evidence_per_row, 0.0)
-    for key in ("detection_limits", "decision_levels"):
+    for key in ("detection_limits", "decision_levels", "family_margins_per_row"):
         table = getattr(c, key)
         if table is None:
             continue

@@ -17,7 +17,8 @@ more cost than a few one-step evaluations:
                       the concentrated log-likelihood by n sum_c ln(1 + t^2 g_c).
   margin              min_evidence + min_evidence_per_row * n_heldout: a constant (the extended BIC's own
                       penalty is added by the criterion) and a part that grows with the rows, the form a
-                      systematic plant mismatch's spurious gain takes (a calibration sets both).
+                      systematic plant mismatch's spurious gain takes (a calibration sets both); a family is
+                      claimed only above that plus its own family_margins_per_row * n_heldout.
   limit               the smallest t * size whose expected dBIC, -n sum ln(1 + t^2 g) + dk ln n + 2 ln m, clears
                       -margin: "a steering delay below 31 ms would not be found on this log". Linear in the
                       effect (t^2 g): exact for small effects, a bound's order of magnitude for large ones.
@@ -136,13 +137,13 @@ def limit(size: float, g, n: int, margin: float, dk: int = 1, m: int = 1) -> flo
     return hi * size
 
 
-def log_limits(prob, base_rho, families, margin: float, m: int) -> dict:
+def log_limits(prob, base_rho, families, margins: dict, m: int) -> dict:
     """{family: {size_that_matters, limit (None: not found at any size), gain (3,), unit, sentence}} for this log
-    at evidence margin `margin` with m candidates in the first round."""
+    at each family's claim margin (margins {family: dBIC}) with m candidates in the first round."""
     n = len(prob.rows_held)
     out = {}
     for fam, (size, g) in gains(prob, base_rho, families).items():
-        lim = limit(size, g, n, margin, 1, m)
+        lim = limit(size, g, n, margins[fam], 1, m)
         word = WORDS.get(fam, fam.replace("_", " "))
         out[fam] = {"size_that_matters": size, "limit": lim, "gain_at_size": [float(x) for x in g],
                     "unit": C.UNITS.get(fam, ""), "limit_over_size": None if lim is None else lim / size,

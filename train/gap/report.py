@@ -56,9 +56,12 @@ def _calibration_lines(d: dict) -> list[str]:
     if c.get("kind") == "travelling":
         shares = ", ".join(f"{e} {_fmt(v)}" for e, v in (c.get("decision_shares") or {}).items()
                            if v is not None and e != ANY_OTHER)
-        return [f"Calibrated by {c['name']} ({c['why']}): evidence margin dBIC < -{d['gate']['min_evidence']:.4g} "
-                f"({_fmt(c['margin_per_row'])} per held-out row); decision levels as shares of each effect's size "
-                f"that matters: {shares or 'none'}; every other effect reported, never claimed.", ""]
+        margins = ", ".join(f"{e} {_fmt(v)}" for e, v in (c.get("family_margins_per_row") or {}).items()
+                            if v and e != ANY_OTHER)
+        return [f"Calibrated by {c['name']} ({c['why']}): a family is claimed when its dBIC is below minus its "
+                f"margin per held-out row times {d['split']['heldout_rows']} rows ({margins or 'none above 0'}) and "
+                f"its estimate reaches its decision level, a share of its size that matters ({shares or 'none'}); "
+                "every other effect reported, never claimed.", ""]
     limits = ", ".join(f"{e} {_fmt(v)}" for e, v in c["decision_levels"].items() if v is not None and e != ANY_OTHER)
     return [f"Calibrated by {c['name']} ({c['why']}): evidence margin dBIC < -{c['margin']:.3g}; decision levels "
             f"{limits or 'none'}; every other effect reported, never claimed.", ""]

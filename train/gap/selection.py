@@ -186,7 +186,13 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
     # levels relative to the size that matters, what a claim's estimate must clear
     margin = L.margin_of(cfg, len(prob.rows_held))
     families = list(dict.fromkeys(C.FAMILY[c] for c in candidates))
-    log_limits = L.log_limits(prob, base_fit.rho, families, margin, len(candidates))
+
+    def claim_margin(family: str) -> float:
+        """What a family must pay to be claimed: the margin plus its own per-row margin (family_margins_per_row)."""
+        has, per_row = _limit_of(family, cfg.family_margins_per_row)
+        return margin + (float(per_row or 0.0) * len(prob.rows_held) if has else 0.0)
+
+    log_limits = L.log_limits(prob, base_fit.rho, families, {f: claim_margin(f) for f in families}, len(candidates))
 
     def level_of(name: str) -> tuple[bool, float | None]:
         """(has a decision level, the level or None: never claimed) of a candidate on this log: the config's
@@ -236,7 +242,8 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
         edge = pays and at_bound(name, main_value, prob.ctx)
         size = C.magnitude(name, main_value, prob.layout)      # a channel candidate: the angle it reads
         has_level, level = level_of(name)
-        weak = pays and not edge and has_level and (level is None or abs(size) < level)
+        weak = pays and not edge and ((has_level and (level is None or abs(size) < level))
+                                      or not dbic < -claim_margin(C.FAMILY[name]))
         # under detection limits a claim must also be a choice the data make: a first effect whose runner-up of
         # another family is within AMBIGUITY_DBIC of it is reported, not claimed (on the four calibration sweeps at
         # their margin every such first effect lay below its threshold, and 4 of the 7 were the wrong one)
