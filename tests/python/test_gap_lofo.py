@@ -171,7 +171,9 @@ def _study_doc():
 
 
 def test_a_travelling_calibration_covers_any_length_and_goes_stale_with_the_code(tmp_path):
-    cal = CAL.travelling_from_study("t", _study_doc(), "ddyn gap lofo --logs 4")
+    doc = _study_doc()
+    cal = CAL.travelling_from_study("t", doc, lofo.applied_config(doc["all_families_calibration"]).to_dict(),
+                                    "ddyn gap lofo --logs 4")
     path = CAL.write(cal, tmp_path / "t.json")
     back = CAL.load(path)
     assert back.applied().family_margins_per_row == cal.applied().family_margins_per_row

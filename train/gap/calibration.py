@@ -543,10 +543,9 @@ class TravellingCalibration:
         return {"schema": SCHEMA_TRAVELLING, **{k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}}
 
 
-def travelling_from_study(name: str, doc: dict, command: str = "") -> TravellingCalibration:
-    """The calibration of a leave-one-family-out study's pass 1 over every family (ddyn.gap.benchmark.lofo)."""
-    from ddyn.gap.benchmark import lofo
-
+def travelling_from_study(name: str, doc: dict, diagnosis: dict, command: str = "") -> TravellingCalibration:
+    """The calibration of a leave-one-family-out study's pass 1 over every family (ddyn.gap.benchmark.lofo);
+    diagnosis: the DiagnosisConfig it applies, as a dict (lofo.applied_config of the study's calibration)."""
     cal = doc["all_families_calibration"]
     ok = [r for r in doc["pass1"] if r["status"] == "ok"]
     if not ok:
@@ -560,7 +559,7 @@ def travelling_from_study(name: str, doc: dict, command: str = "") -> Travelling
     worst = {"family": w.get("family"), **(doc["folds"][w["family"]]["score"] if w.get("family") else {})}
     worst.pop("per_effect", None)
     return TravellingCalibration(
-        name=name, diagnosis=lofo.applied_config(cal).to_dict(), families=tuple(cal["families"]), logs=len(ok),
+        name=name, diagnosis=dict(diagnosis), families=tuple(cal["families"]), logs=len(ok),
         durations=(min(r["duration"] for r in ok), max(r["duration"] for r in ok)),
         sample_time=float(ok[0].get("sample_time") or 0.04), lofo=worst,
         code_version=current_code_version("families"),

@@ -352,7 +352,10 @@ def _write_travelling(args, doc: dict) -> int:
 
     path = Path(args.calibration_out)
     typed = sys.argv[1:3] == ["gap", "lofo"]
+    from ddyn.gap.benchmark import lofo
+
     cal = CAL.travelling_from_study(args.name or path.stem, doc,
+                                    lofo.applied_config(doc["all_families_calibration"]).to_dict(),
                                     "ddyn gap lofo " + shlex.join(sys.argv[3:]) if typed else "")
     CAL.write(cal, path)
     print(f"wrote the calibration of all {len(cal.families)} families: {path}")

@@ -448,15 +448,14 @@ MODELS = ("std", "st", "mb")
 
 
 def plant_model(model=None):
-    """A plant model object from make_log's model argument: None or "std" (StdModel), "st" (StModel), "mb"
-    (ddyn.plants.commonroad_mb.MbModel), or a model object itself."""
+    """A plant model object from make_log's model argument: None or "std" (StdModel), "st" (StModel), or a model
+    object itself (ddyn.plants.commonroad_mb.MbModel: that module imports this one, so it is not named here)."""
     if model is None or model == "std":
         return StdModel()
     if model == "st":
         return StModel()
     if model == "mb":
-        from ddyn.plants.commonroad_mb import MbModel
-        return MbModel()
+        raise DdynError("the multi-body model: ddyn.plants.commonroad_mb.make_log (or model=MbModel())")
     if isinstance(model, str):
         raise DdynError(f"unknown CommonRoad plant model {model!r}; expected one of {', '.join(MODELS)}")
     return model
