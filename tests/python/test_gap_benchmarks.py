@@ -75,7 +75,7 @@ def test_a_bad_config_is_one_line_naming_the_file_and_key(tmp_path, capsys):
         assert len(err.splitlines()) == 1 and str(cfg) in err and msg in err, err
     assert main(["gap", "diagnose", "--vehicle", "orca_1_43", "--data", str(log), "--out", str(tmp_path / "o"),
                  "--config", "no-such-config"]) == 2
-    assert "no such file, nor a shipped config (commonroad_recipe" in capsys.readouterr().err
+    assert "no such file, nor a shipped config (dbw, sweep)" in capsys.readouterr().err
 
 
 def test_calibrate_from_recorded_sweeps(tmp_path, capsys):

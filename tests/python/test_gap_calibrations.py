@@ -17,26 +17,55 @@ def test_at_least_one_calibration_ships():
 def test_a_shipped_calibration_was_made_by_the_current_code(name):
     cal = CAL.load(name)
     assert cal.stale() is None, cal.stale()
-    assert cal.made["command"].startswith("ddyn gap calibrate")
+    command = cal.made["command"]
+    assert command.startswith("ddyn gap calibrate") or command.startswith("ddyn gap lofo"), command
 
 
-@pytest.mark.parametrize("name", CAL.shipped_names())
-def test_a_shipped_calibration_describes_what_it_covers_and_claims(name):
-    cal = CAL.load(name)
+def _check_sweep_calibration(cal):
     lo, hi = cal.length_range
     assert lo < cal.duration < hi and cal.sample_time > 0 and cal.seeds and cal.cases >= 8 * len(cal.seeds)
     assert cal.covers(cal.duration, cal.sample_time)[0]
     assert not cal.covers(2 * cal.duration, cal.sample_time)[0]
-    assert not cal.covers(cal.duration, 2 * cal.sample_time)[0]
-    # shipped calibrations put nothing into a user's nominal
-    assert not cal.diagnosis.get("steer_servo") and not cal.diagnosis.get("nominal_effects")
     applied = cal.applied()
-    assert isinstance(applied, DiagnosisConfig) and applied.min_evidence == pytest.approx(cal.margin)
+    assert applied.min_evidence == pytest.approx(cal.margin)
     # claimed: only effects with a decision level; every other effect reported, never claimed
     assert applied.detection_limits[ANY_OTHER] is None
     for effect, level in cal.decision_levels.items():
         assert (level is None) == (cal.thresholds.get(effect) is None)
     assert set(cal.claim_record.get("withdrawn", [])) <= {e for e, t in cal.thresholds.items() if t is None}
+
+
+def _check_travelling_calibration(cal):
+    # made on more than one plant family, logs of more than one length; it applies to any length at its rate
+    assert len(cal.families) >= 2 and cal.durations[0] < cal.durations[1] and cal.logs >= 8 * len(cal.families)
+    for length in (0.5 * cal.durations[0], cal.duration, 3 * cal.durations[1]):
+        assert cal.covers(length, cal.sample_time)[0]
+    applied = cal.applied()
+    assert applied.decision_levels[ANY_OTHER] is None
+    assert all(v >= 0 for v in applied.family_margins_per_row.values())
+    # what it is worth on a plant it never saw is recorded with it
+    assert cal.lofo.get("family") in cal.families
+
+
+@pytest.mark.parametrize("name", CAL.shipped_names())
+def test_a_shipped_calibration_describes_what_it_covers_and_claims(name):
+    cal = CAL.load(name)
+    assert not cal.covers(cal.duration, 2 * cal.sample_time)[0]
+    # shipped calibrations put nothing into a user's nominal
+    assert not cal.diagnosis.get("steer_servo") and not cal.diagnosis.get("nominal_effects")
+    assert isinstance(cal.applied(), DiagnosisConfig)
+    if isinstance(cal, CAL.TravellingCalibration):
+        _check_travelling_calibration(cal)
+    else:
+        _check_sweep_calibration(cal)
+
+
+def test_the_default_diagnosis_of_any_length_uses_a_shipped_calibration():
+    """`ddyn gap diagnose` with no flags claims under a calibration on a 25 Hz log of any length."""
+    for length in (45.0, 200.0, 900.0):
+        cal, cfg, why = CAL.choose(length, 0.04)
+        assert cal is not None, why
+        assert cfg == cal.applied()
 
 
 def test_the_code_version_follows_what_the_code_does_not_its_words(tmp_path, monkeypatch):
