@@ -38,6 +38,8 @@ from scipy.spatial import cKDTree
 MAX_GATE = 25.0      # m: the start line's half-width (a racing line's spread across a wide track)
 GATE_SHARE = 0.1     # of the path's extent: a small (model car's) track gets a narrower start line
 SMOOTH = 5.0         # m: the reference path's moving average (position noise, not the track's shape)
+MAX_REF_POINTS = 200_000   # reference lap points: 200 km at STEP, far beyond any circuit
+MAX_COORDINATE = 1e7       # m: positions beyond this (10,000 km) are no circuit's
 STEP = 1.0           # m between reference points (at most: a lap of under 500 m gets 500 points)
 WINDOW = 40.0        # m either side of the predicted position searched for the nearest reference point
 FALLBACK = 5.0       # m: a window's best this much farther than the nearest point anywhere is a miss
@@ -64,7 +66,10 @@ class Laps:
 def distance(xy: np.ndarray, segment: np.ndarray | None = None) -> np.ndarray:
     """Distance travelled along the path, continuing across segments (no step across a segment boundary)."""
     xy = np.asarray(xy, float)
-    step = np.r_[0.0, np.hypot(*np.diff(xy, axis=0).T)] if len(xy) else np.zeros(0)
+    with np.errstate(over="ignore", invalid="ignore"):   # a corrupt log's 1e308 m positions: inf, not a warning
+        step = np.r_[0.0, np.hypot(*np.diff(xy, axis=0).T)] if len(xy) else np.zeros(0)
+    # a step longer than MAX_COORDINATE is no vehicle's (a corrupt row): capped, so the sum stays finite
+    step = np.clip(np.where(np.isfinite(step), step, 0.0), 0.0, MAX_COORDINATE)
     if segment is not None and len(xy):
         seg = np.asarray(segment)
         step[np.r_[False, seg[1:] != seg[:-1]]] = 0.0
@@ -86,6 +91,8 @@ def from_xy(x, y, segment=None) -> Laps:
     n = len(xy)
     if n < 10 or not np.all(np.isfinite(xy)):
         return _not_circuit(np.nan_to_num(xy), segment, "fewer than 10 rows or positions not finite: no laps looked for")
+    if np.max(np.abs(xy)) > MAX_COORDINATE:
+        return _not_circuit(xy, segment, f"positions beyond {MAX_COORDINATE:.0e} m: not a vehicle log's; no laps looked for")
     step = np.r_[0.0, np.hypot(*np.diff(xy, axis=0).T)]      # across segment gaps too: the car got there
     d = np.cumsum(step)
     extent = float(np.hypot(*np.ptp(xy, axis=0)))
@@ -121,7 +128,8 @@ def from_xy(x, y, segment=None) -> Laps:
         pad = np.r_[lap_xy[-w:], lap_xy, lap_xy[:w]]                # a loop: the ends smooth into each other
         lap_xy = np.column_stack([np.convolve(pad[:, i], kern, mode="same")[w:-w] for i in range(2)])
     # the closed loop (the last row back to the start point), resampled evenly: M points, step_ref apart
-    m = int(max(500, math.ceil(lap_len / STEP)))
+    # at most MAX_REF_POINTS (a lap of any size, e.g. a corrupt log's 1e12 m coordinates, stays bounded in memory)
+    m = int(min(MAX_REF_POINTS, max(500, math.ceil(lap_len / STEP))))
     step_ref = lap_len / m
     loop_s = np.r_[lap_d - lap_d[0], lap_len]
     loop_xy = np.r_[lap_xy, lap_xy[:1]]
@@ -139,7 +147,8 @@ def from_xy(x, y, segment=None) -> Laps:
     scale[~done] = np.median(scale[done]) if done.any() else 1.0
     pred = (s0[lap_no] + d - d[starts[lap_no]]) * scale[lap_no]
     # the nearest reference point within the window around the prediction
-    offsets = np.arange(-WINDOW, WINDOW + step_ref / 2, step_ref)
+    window = min(WINDOW, 0.5 * lap_len)       # a lap shorter than the window: half a lap either side is all of it
+    offsets = np.arange(-window, window + step_ref / 2, step_ref)
     idx = np.empty(n, int)
     best = np.empty(n)
     for a in range(0, n, 20000):

@@ -328,7 +328,7 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
                                  if e["at_bound"] else "") for e in final["effects"])
                     + (f" (or {rival['effect']}: its held-out evidence is within {rival['evidence_difference']:.1f} "
                        f"dBIC of the first effect's, < {AMBIGUITY_DBIC:g}: not told apart)" if rival else "")
-                    + (f"; the rest is not explained by the effect library ({_unexplained_verdict(unexplained)[5:]})"
+                    + (f"; the rest is{_unexplained_verdict(unexplained)[5:]}"
                        if selected and unexplained else "")
                     + (f"; then {_below_limit_verdict(below_limit)}" if selected and below_limit else "")),
         "unexplained": unexplained,
