@@ -330,6 +330,24 @@ def current_code_version(plant: str) -> dict:
     return {"fitting": code_version(FITTING_MODULES), "plant": code_version(PLANT_MODULES.get(plant, ()))}
 
 
+def _stale(cal) -> str | None:
+    """Why a calibration no longer describes the code (another fitting or plant code than it records), or None."""
+    now = current_code_version(cal.plant)
+    changed = [k for k in ("fitting", "plant") if cal.code_version.get(k) != now[k]]
+    return (f"calibration {cal.name} was made by other {' and '.join(changed)} code ({cal.code_version}) than "
+            f"the current ({now}): make it again with its command ({cal.made.get('command', '?')})"
+            if changed else None)
+
+
+def _commit() -> str | None:
+    """The checkout's short commit (recorded in a calibration), or None outside a git checkout."""
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=False).stdout.strip() or None
+    except OSError:
+        return None
+
+
 @dataclass(frozen=True)
 class Calibration:
     """What `ddyn gap calibrate` writes: the settings the sweeps diagnosed with (margin 0, no limits), and what
@@ -383,11 +401,7 @@ class Calibration:
 
     def stale(self) -> str | None:
         """Why this calibration no longer describes the code (another fitting or plant code), or None."""
-        now = current_code_version(self.plant)
-        changed = [k for k in ("fitting", "plant") if self.code_version.get(k) != now[k]]
-        return (f"calibration {self.name} was made by other {' and '.join(changed)} code ({self.code_version}) than "
-                f"the current ({now}): make it again with its command ({self.made.get('command', '?')})"
-                if changed else None)
+        return _stale(self)
 
     def summary(self) -> dict:
         """What a report records of the calibration it applied."""
@@ -422,11 +436,7 @@ def from_runs(name: str, docs: list[dict], command: str = "") -> Calibration:
     if not first.get("sample_time"):
         raise DdynError("calibration: the sweep runs record no sample_time (runs of an older version: run them again)")
     margin = margin_of(docs)
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=False).stdout.strip() or None
-    except OSError:
-        commit = None
+    commit = _commit()
     return Calibration(
         name=name, diagnosis=dict(first["diagnosis"]), margin=float(margin),
         thresholds=thresholds_of(docs, margin, precision=True, decision=True),
@@ -523,11 +533,7 @@ class TravellingCalibration:
         return DiagnosisConfig.from_dict(self.diagnosis, f"calibration {self.name}")
 
     def stale(self) -> str | None:
-        now = current_code_version(self.plant)
-        changed = [k for k in ("fitting", "plant") if self.code_version.get(k) != now[k]]
-        return (f"calibration {self.name} was made by other {' and '.join(changed)} code ({self.code_version}) than "
-                f"the current ({now}): make it again with its command ({self.made.get('command', '?')})"
-                if changed else None)
+        return _stale(self)
 
     def summary(self) -> dict:
         d = self.diagnosis
@@ -550,11 +556,7 @@ def travelling_from_study(name: str, doc: dict, diagnosis: dict, command: str = 
     ok = [r for r in doc["pass1"] if r["status"] == "ok"]
     if not ok:
         raise DdynError("calibration: the study has no diagnosed logs")
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent, check=False).stdout.strip() or None
-    except OSError:
-        commit = None
+    commit = _commit()
     w = doc.get("worst") or {}
     worst = {"family": w.get("family"), **(doc["folds"][w["family"]]["score"] if w.get("family") else {})}
     worst.pop("per_effect", None)
