@@ -463,7 +463,12 @@ ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const u
     switch (r) {
     case DDYN_DBW_DECODE_OK: break;
     case DDYN_DBW_DECODE_FOREIGN_ID: return r;
-    case DDYN_DBW_DECODE_UNKNOWN_ID: fail(dbw, DDYN_DBW_FAIL_UNKNOWN_FRAME, -1, t_us); return r;
+    case DDYN_DBW_DECODE_UNKNOWN_ID:
+        /* an identifier the DBC lacks is one no endpoint can monitor: counted and named, never fatal,
+         * so that one stray node on the bus cannot stop the car (the frames it relies on have their
+         * own deadlines, which catch a stray node that drowns them) */
+        count_failure(dbw, DDYN_DBW_FAIL_UNKNOWN_FRAME, -1, t_us);
+        return r;
     case DDYN_DBW_DECODE_BAD_LENGTH:
     case DDYN_DBW_DECODE_CHECKSUM:
     case DDYN_DBW_DECODE_RANGE:
@@ -699,6 +704,12 @@ const char *ddyn_dbw_state_name(ddyn_dbw_state state)
 
 /* ---- frame ages on a degraded bus (ddyn/dbw.h) ---- */
 
+/* a + b, stopping at UINT32_MAX instead of wrapping */
+static uint32_t sat_add_u32(uint32_t a, uint32_t b)
+{
+    return a > UINT32_MAX - b ? UINT32_MAX : a + b;
+}
+
 void ddyn_dbw_link_init(ddyn_dbw_link *link)
 {
     if (link != NULL) {
@@ -726,18 +737,19 @@ ddyn_dbw_link_result ddyn_dbw_link_on_frame(ddyn_dbw_link *link, ddyn_dbw_frame 
     if (link->seen[f]) {
         step = (counter + DDYN_DBW_COUNTER_MODULO - link->last_counter[f]) % DDYN_DBW_COUNTER_MODULO;
         if (step == 0u) {
-            link->repeated += 1u;
+            link->repeated = sat_add_u32(link->repeated, 1u);
             return DDYN_DBW_LINK_REPEATED;
         }
         if (step > DDYN_DBW_COUNTER_MODULO / 2u) {
-            link->late += 1u;
+            link->late = sat_add_u32(link->late, 1u);
             return DDYN_DBW_LINK_LATE;
         }
-        link->lost += step - 1u;
+        link->lost = sat_add_u32(link->lost, step - 1u);
         if (lost != NULL) {
             *lost = step - 1u;
         }
-        link->seq[f] += (int64_t)step;
+        /* the sequence number saturates too (at 100 Hz, after 10^10 years) */
+        link->seq[f] = link->seq[f] > INT64_MAX - (int64_t)step ? INT64_MAX : link->seq[f] + (int64_t)step;
     } else {
         /* the first frame of a stream: fresh by assumption (corrected by the window minimum) */
         link->seq[f] = 0;
@@ -790,7 +802,7 @@ void ddyn_dbw_link_tick(ddyn_dbw_link *link)
 void ddyn_dbw_link_on_bad_frame(ddyn_dbw_link *link)
 {
     if (link != NULL) {
-        link->bad += 1u;
+        link->bad = sat_add_u32(link->bad, 1u);
     }
 }
 
@@ -809,7 +821,7 @@ uint32_t ddyn_dbw_link_take_faults(ddyn_dbw_link *link)
     if (link == NULL) {
         return 0u;
     }
-    n = link->lost + link->late + link->repeated + link->bad;
+    n = sat_add_u32(sat_add_u32(link->lost, link->late), sat_add_u32(link->repeated, link->bad));
     link->lost = link->late = link->repeated = link->bad = 0u;
     return n;
 }

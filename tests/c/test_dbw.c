@@ -389,12 +389,36 @@ static void test_defect_in_an_unmonitored_frame_is_counted_not_fatal(void **s)
     assert_int_equal(period_command(&d, &w), DDYN_DBW_WAIT_GOOD);
 }
 
+static void test_unknown_frame_is_counted_not_fatal(void **s)
+{
+    /* one stray node sending an identifier of the block that the DBC lacks must not stop the car:
+     * the frame is counted (and named), the active link keeps driving (it used to drop to the safe
+     * command, issue 35) */
+    ddyn_dbw_command d = driving(), w;
+    unsigned i;
+    (void)s;
+    bring_to_active();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    for (i = 0; i < 3u; ++i) {
+        inject_unknown();
+    }
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_UNKNOWN_FRAME], 3u);
+    assert_int_equal(ctl.last_failure, DDYN_DBW_FAIL_UNKNOWN_FRAME);
+    assert_int_equal(ddyn_dbw_take_failures(&ctl), 1u << DDYN_DBW_FAIL_UNKNOWN_FRAME);
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_true(fabs(w.throttle - 0.6) < 1e-4 && fabs(w.steering - 0.2) < 1e-4);
+    /* nor does it count against a link that is recovering */
+    deliver_period();
+    for (i = 0; i < DDYN_DBW_FAIL_COUNT; ++i) {
+        assert_int_equal(ctl.failures[i], i == (unsigned)DDYN_DBW_FAIL_UNKNOWN_FRAME ? 3u : 0u);
+    }
+}
+
 static void test_stale(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_STALE, inject_stale); }
 static void test_counter_jump(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_COUNTER_JUMP, inject_counter_jump); }
 static void test_counter_repeat(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_COUNTER_REPEAT, inject_counter_repeat); }
 static void test_checksum(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_CHECKSUM, inject_checksum); }
 static void test_range(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_RANGE, inject_range); }
-static void test_unknown_frame(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_UNKNOWN_FRAME, inject_unknown); }
 static void test_bad_length(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_BAD_LENGTH, inject_bad_length); }
 static void test_bus_off(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_BUS_OFF, inject_bus_off); }
 static void test_iface_gone(void **s) { (void)s; check_failure(DDYN_DBW_FAIL_IFACE_GONE, inject_iface_gone); }
@@ -498,6 +522,36 @@ static void test_link_counts_lost_late_repeated_and_bad_frames(void **state)
     assert_true(ddyn_dbw_link_age(&l, DDYN_DBW_FRAME_GNSS_POSITION) == -1.0); /* never received */
 }
 
+static void test_link_counts_saturate_instead_of_wrapping(void **state)
+{
+    /* a link left running (or flooded) must not wrap its fault counts back to small numbers: they
+     * stop at UINT32_MAX, and so does their sum (issue 35) */
+    ddyn_dbw_link l;
+    unsigned lost;
+    double age;
+    (void)state;
+    ddyn_dbw_link_init(&l);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 0u, &lost, &age), DDYN_DBW_LINK_NEW);
+    l.lost = UINT32_MAX - 1u;
+    l.late = UINT32_MAX;
+    l.repeated = UINT32_MAX;
+    l.bad = UINT32_MAX;
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 5u, &lost, &age), DDYN_DBW_LINK_NEW); /* 4 lost */
+    assert_int_equal(lost, 4u);
+    assert_true(l.lost == UINT32_MAX);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 4u, &lost, &age), DDYN_DBW_LINK_LATE);
+    assert_true(l.late == UINT32_MAX);
+    assert_int_equal(link_frame(&l, DDYN_DBW_FRAME_IMU, 5u, &lost, &age), DDYN_DBW_LINK_REPEATED);
+    assert_true(l.repeated == UINT32_MAX);
+    ddyn_dbw_link_on_bad_frame(&l);
+    assert_true(l.bad == UINT32_MAX);
+    assert_true(ddyn_dbw_link_take_faults(&l) == UINT32_MAX);
+    assert_int_equal(ddyn_dbw_link_take_faults(&l), 0u);
+    l.lost = 3u;
+    l.late = UINT32_MAX - 1u;
+    assert_true(ddyn_dbw_link_take_faults(&l) == UINT32_MAX);
+}
+
 static void test_link_measures_the_age_of_a_delayed_frame(void **state)
 {
     /* IMU (10 ms) and GNSS position (20 ms) sampled together; the GNSS frame of 20 ms arrives only
@@ -568,7 +622,7 @@ int main(void)
         cmocka_unit_test_setup(test_checksum, setup),
         cmocka_unit_test_setup(test_defect_in_an_unmonitored_frame_is_counted_not_fatal, setup),
         cmocka_unit_test_setup(test_range, setup),
-        cmocka_unit_test_setup(test_unknown_frame, setup),
+        cmocka_unit_test_setup(test_unknown_frame_is_counted_not_fatal, setup),
         cmocka_unit_test_setup(test_bad_length, setup),
         cmocka_unit_test_setup(test_bus_off, setup),
         cmocka_unit_test_setup(test_iface_gone, setup),
@@ -577,6 +631,7 @@ int main(void)
         cmocka_unit_test_setup(test_stale_is_counted_once_per_lapse, setup),
         cmocka_unit_test_setup(test_fault_bits_for_the_status_frame, setup),
         cmocka_unit_test(test_link_counts_lost_late_repeated_and_bad_frames),
+        cmocka_unit_test(test_link_counts_saturate_instead_of_wrapping),
         cmocka_unit_test(test_link_measures_the_age_of_a_delayed_frame),
         cmocka_unit_test(test_link_tick_aligns_a_stream_whose_first_frame_looked_old),
     };

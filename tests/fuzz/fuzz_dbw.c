@@ -16,7 +16,8 @@
  *   op % 8 == 7    a control period with 3 raw doubles (NaN, infinities, anything)
  * Invariants checked after every step (a violation traps, which libFuzzer reports as a crash):
  * the command frame always decodes back with a valid checksum and in-range values; anything but
- * ACTIVE sends the safe command; the last good values are always finite.
+ * ACTIVE sends the safe command; the last good values are always finite; an unknown identifier
+ * never changes the link's state.
  * Built and run by scripts/fuzz_can.sh (clang -fsanitize=fuzzer,address,undefined).
  */
 #include <math.h>
@@ -141,7 +142,13 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
                 data[7] = ddyn_dbw_checksum(id, data);
             }
             now += (uint64_t)dt * 1000u;
-            (void)ddyn_dbw_on_frame(&d, id, data, len, now);
+            {
+                const ddyn_dbw_state before = d.state;
+                /* an unknown identifier is counted, never fatal: the state stays what it was */
+                if (ddyn_dbw_on_frame(&d, id, data, len, now) == DDYN_DBW_DECODE_UNKNOWN_ID) {
+                    CHECK(d.state == before);
+                }
+            }
             break;
         }
         case 2: {

@@ -68,7 +68,8 @@ typedef enum {
     DDYN_DBW_FAIL_COUNTER_REPEAT, /* counter equal to the previous one: a stuck sender */
     DDYN_DBW_FAIL_CHECKSUM,       /* CRC-8 mismatch */
     DDYN_DBW_FAIL_RANGE,          /* a received signal outside its DBC range */
-    DDYN_DBW_FAIL_UNKNOWN_FRAME,  /* an identifier inside the protocol's block that the DBC does not define */
+    DDYN_DBW_FAIL_UNKNOWN_FRAME,  /* an identifier inside the protocol's block that the DBC does not define:
+                                   * counted, never fatal (no endpoint monitors an identifier it does not know) */
     DDYN_DBW_FAIL_BAD_LENGTH,     /* a known identifier with a data length other than 8 */
     DDYN_DBW_FAIL_BUS_OFF,        /* the controller went bus-off (reported by the transport) */
     DDYN_DBW_FAIL_BUS_ERROR,      /* other error frames: error passive, protocol, transceiver, lost arbitration excluded */
@@ -209,7 +210,9 @@ void ddyn_dbw_default_config(ddyn_dbw_config *config, uint32_t monitored_mask);
 ddyn_status ddyn_dbw_init(ddyn_dbw *dbw, const ddyn_dbw_config *config);
 
 /* Feed one received frame (kernel receive time t_us). Foreign identifiers are ignored; everything
- * else either updates `latest` or is a failure. Returns the decode result. */
+ * else either updates `latest` or is a failure. A failure drops the link only when this endpoint
+ * monitors the frame (deadline > 0); a defect of an unmonitored frame and an unknown identifier of
+ * the block are counted, not fatal. Returns the decode result. */
 ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const uint8_t *data, size_t len,
                                          uint64_t t_us);
 
@@ -268,7 +271,8 @@ uint8_t ddyn_dbw_fault_bits(uint32_t failure_mask);
  * amounts.
  *
  * Lost frames (counter jumps), late frames, repeats and bad frames (checksum, length, range) are
- * counted since the last ddyn_dbw_link_take_faults(): the controller's degraded-bus detection. */
+ * counted since the last ddyn_dbw_link_take_faults(): the controller's degraded-bus detection.
+ * Every count, their sum and the sequence numbers saturate instead of wrapping. */
 #define DDYN_DBW_LINK_WINDOW 16
 
 typedef enum {
