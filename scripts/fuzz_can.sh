@@ -11,7 +11,7 @@ out="${DDYN_BUILD_DIR:-$ROOT/build}/fuzz-can"
 mkdir -p "$out/corpus"
 command -v clang >/dev/null || { echo "fuzz: FAIL: clang not installed (scripts/setup.sh installs it)"; exit 1; }
 clang -std=c99 -g -O1 -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=all \
-  -Wall -Wextra -Wpedantic -Werror -Wno-unused-parameter \
+  -Wall -Wextra -Wpedantic -Wvla -Werror -Wno-unused-parameter \
   -I"$ROOT/c_src/include" -I"$ROOT/c_src/generated/can" \
   "$ROOT/tests/fuzz/fuzz_dbw.c" "$ROOT/c_src/src/dbw.c" "$ROOT/c_src/generated/can/ddyn_can.c" -lm \
   -o "$out/fuzz_dbw" || { echo "fuzz: FAIL: could not build the fuzz target with libFuzzer"; exit 1; }
