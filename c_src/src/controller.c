@@ -522,6 +522,70 @@ static void predict_latency(ddyn_ctrl *ctl, double latency, double x[NX])
     }
 }
 
+/* Re-anchoring after a blind spell. When no reading has been fused for max_sensor_faults periods or
+ * more (a silent bus, a plant that restarted), the prediction has run on with nothing to hold it: the
+ * estimate of a car that braked, or of one that did not move, can be anywhere by the time readings come
+ * back, and a filter restarted at that estimate (as a divergence restarts it) gates the returning
+ * readings or, through the covariance the blind prediction built up, moves the position the wrong way
+ * on a speed reading. In the SIL's plant restart the filter stayed wrong for the rest of the run in one
+ * guest run (vx stuck at -0.5 m/s, every reading gated) and needed several restarts in the others.
+ * Instead the filter restarts on this period's own readings: every state that one of them measures
+ * directly (a row of the sensor's Jacobian with a single nonzero entry, 1, whose model value is that
+ * state: position, heading, yaw rate, rear wheel speed, steering angle) is set to the reading (the
+ * heading as the wrapped difference to the estimate, so the yaw stays unwrapped); the filter restarts
+ * there with P0. A state that some sensor measures directly but whose reading is missing this period
+ * (e.g. the position in a period caught up without its position frame) starts wider
+ * (REACQUIRE_P0_SCALE), so its reading of a later period is fused instead of gated; the others (vy,
+ * the throttle, which the filter was told while safe) keep their estimate with P0. Returns 1 when the
+ * filter was restarted. */
+static int reanchor(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
+{
+    const double *x_now = ddyn_all_finite(ctl->ekf.x, NX) ? ctl->ekf.x : ctl->x_prev;
+    double x[NX], p[NX];
+    int direct[NX] = {0}, set[NX] = {0}, k, i, j, any = 0;
+    memcpy(x, x_now, sizeof x);
+    for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
+        const ddyn_ctrl_reading *r = &in->reading[k];
+        const int m = ddyn_meas_dim((ddyn_meas_kind)k);
+        const int have = r->valid && ddyn_all_finite(r->z, m);
+        double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX];
+        if (ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_now, ctl->coeffs, h, H, &ctl->ekf.work) != DDYN_OK) {
+            continue;
+        }
+        for (i = 0; i < m; ++i) {
+            int n = 0, at = -1;
+            for (j = 0; j < NX; ++j) {
+                if (H[i + j * m] != 0.0) { /* H column-major, m x NX */
+                    n += 1;
+                    at = j;
+                }
+            }
+            if (n != 1 || H[i + at * m] != 1.0 || h[i] != x_now[at]) {
+                continue; /* not a direct reading of one state */
+            }
+            direct[at] = 1;
+            if (have && !set[at]) {
+                double d = r->z[i] - x_now[at];
+                if (k == DDYN_MEAS_HEADING) {
+                    d = atan2(sin(d), cos(d));
+                }
+                x[at] = x_now[at] + d;
+                set[at] = 1;
+                any = 1;
+            }
+        }
+    }
+    if (!any || !ddyn_all_finite(x, NX)) {
+        return 0;
+    }
+    for (i = 0; i < NX; ++i) {
+        const double p0 = ctl->cfg.p0_diag[i];
+        p[i] = direct[i] && !set[i] ? fmax(p0, fmin(REACQUIRE_P0_SCALE * p0, 0.01 * ctl->cfg.p_max[i])) : p0;
+    }
+    (void)ddyn_ekf_init(&ctl->ekf, ctl->model, ctl->cfg.ekf_disc, x, p, ctl->cfg.q_diag);
+    return 1;
+}
+
 /* Step 3: predict, fuse this period's readings, check the filter. */
 static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
 {
@@ -531,6 +595,10 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
     unsigned reacquire = 0u; /* sensors whose repeated restart this is (bit k) */
     if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_prev, ctl->coeffs) != DDYN_OK) {
         diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
+    }
+    if (ctl->started && ctl->blind_steps >= ctl->cfg.max_sensor_faults && reanchor(ctl, in)) {
+        st |= DDYN_CTRL_EKF_DIVERGED; /* the filter restarted (on its readings): safe until it recovers */
+        diverged = 0;
     }
     for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
         const ddyn_ctrl_reading *r = &in->reading[k];

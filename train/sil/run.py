@@ -365,7 +365,8 @@ def build_binaries(export_dir: Path | None, build_root: Path | None = None, quie
     given network export in their own build dir."""
     net = export_dir if export_dir is not None else REPO / "tests" / "c" / "generated" / "net_fixture"
     key = hashlib.sha256(str(Path(net).resolve()).encode()).hexdigest()[:12]
-    build = (build_root or REPO / "build-sil") / key
+    # DDYN_SIL_BUILD_DIR: another root for these builds (several checkouts or workers sharing a machine)
+    build = (build_root or Path(os.environ.get("DDYN_SIL_BUILD_DIR") or REPO / "build-sil")) / key
     cmd = ["cmake", "-S", str(REPO), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release", "-DDDYN_BUILD_TESTS=OFF",
            f"-DDDYN_NET_EXPORT_DIR={Path(net).resolve()}"]
     for c in (cmd, ["cmake", "--build", str(build), "-j2", "--target", "ddyn_sil_plant", "ddyn_controller_app",
