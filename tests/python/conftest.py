@@ -19,3 +19,19 @@ def shared_data() -> Path:
         pytest.skip(f"SHARED DATA MISSING: {d} does not exist (set DDYN_SHARED_DATA)")
     return d
 
+
+
+@pytest.fixture(scope="session")
+def multicast_route() -> str:
+    """A route for LCM's multicast group (the tests that log over UDP multicast need one): set up here
+    when the host has none (`ip route add GROUP/32 dev lo`, as scripts/test.sh does before pytest); a
+    host where it cannot be added fails the test with the command, never a skip."""
+    import subprocess
+
+    from ddyn.sil.run import LCM_GROUP
+    if subprocess.run(["ip", "route", "get", LCM_GROUP], capture_output=True).returncode != 0:
+        r = subprocess.run(["ip", "route", "add", f"{LCM_GROUP}/32", "dev", "lo"], capture_output=True, text=True)
+        if r.returncode != 0:
+            pytest.fail(f"no route for LCM's multicast group {LCM_GROUP} and none could be added "
+                        f"({r.stderr.strip()}): run `ip route add {LCM_GROUP}/32 dev lo` as root")
+    return LCM_GROUP

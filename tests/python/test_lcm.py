@@ -8,9 +8,6 @@ lcm.EventLog with the generated Python types.
 from __future__ import annotations
 
 import re
-import signal
-import subprocess
-import time
 import warnings
 from pathlib import Path
 
@@ -254,25 +251,22 @@ def test_non_finite_state_is_refused(tmp_path):
 # ---- over the network: lcm-logger on UDP multicast
 
 
-def test_lcm_logger_over_udp_multicast(tmp_path, sim, tool):
-    # the binary itself: the venv's lcm-logger is a Python wrapper that SIGKILLs the logger on SIGINT,
-    # which loses the logger's unflushed tail
-    logger = Path(lcm.LCM_BIN_DIR).resolve() / "lcm-logger"
-    if not logger.is_file():
-        pytest.fail(f"{logger} missing: lcm-logger ships with the `lcm` package (scripts/setup.sh)")
-    url = "udpm://239.255.76.67:7667?ttl=0"
-    out = tmp_path / "udp.lcm"
-    proc = subprocess.Popen([str(logger), "--lcm-url", url, "-q", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+def test_lcm_logger_over_udp_multicast(tmp_path, sim, tool, multicast_route):
+    """lcm-logger (the binary itself: the venv's lcm-logger is a Python wrapper that SIGKILLs the logger on
+    SIGINT, which loses its unflushed tail) records a paced replay over UDP multicast. The logger's start
+    and stop are those of `ddyn sil run` on a host: it is started and polled until it listens (its socket
+    on the port, the group joined), and drained before SIGINT; no fixed waits. An empty log is a failure."""
+    from ddyn.sil.run import start_host_logger, stop_host_logger
+    proc, url = start_host_logger(tmp_path)
     try:
-        time.sleep(1.0)   # the logger joins the group
         replay(sim, url, tool, speed=5.0)   # paced: a burst would overrun the logger's socket buffer
-        time.sleep(1.0)
     finally:
-        proc.send_signal(signal.SIGINT)
-        proc.wait(timeout=10)
-    if not out.exists() or out.stat().st_size == 0:
-        pytest.skip("NO UDP MULTICAST on this host: lcm-logger received nothing "
-                    "(add a route: ip route add 239.255.76.67/32 dev lo); the file:// tests cover the rest")
+        rc = stop_host_logger(proc, url)
+    assert rc == 0
+    out = tmp_path / "controller.lcm"
+    assert out.exists() and out.stat().st_size > 0, (
+        f"lcm-logger received nothing over {url} although the route for {multicast_route} is set "
+        f"({(tmp_path / 'lcm-logger.stdout').read_text()[-500:]})")
     back = load_any(out)
     # UDP may still drop messages on a loaded host: those that arrived are exact, a loss starts a segment
     first = int(back.metadata["utime_start"]) * 1e-6   # the replay's utime is the row's time in microseconds

@@ -463,7 +463,7 @@ def start_host_logger(work: Path) -> tuple[subprocess.Popen, str]:
     proc = subprocess.Popen([str(lcm_logger_binary()), "--lcm-url", url, "-f", str(log)],
                             stdout=open(work / "lcm-logger.stdout", "w"), stderr=subprocess.STDOUT)
     group_hex = "".join(f"{int(b):02X}" for b in reversed(LCM_GROUP.split(".")))
-    deadline = time.monotonic() + 10.0
+    deadline = time.monotonic() + 60.0  # a generous cap on a loaded machine: the loop ends when it listens
     while not (_udp_sockets(port) and group_hex in Path("/proc/net/igmp").read_text()):
         if proc.poll() is not None or time.monotonic() > deadline:
             proc.kill()
@@ -476,10 +476,19 @@ def start_host_logger(work: Path) -> tuple[subprocess.Popen, str]:
 def stop_host_logger(proc: subprocess.Popen, url: str) -> int:
     """Let the logger drain its socket, then SIGINT (it closes the log cleanly); its exit status."""
     port = int(url.rsplit(":", 1)[1].split("?")[0])
-    deadline = time.monotonic() + 5.0
+    deadline = time.monotonic() + 60.0  # caps, not waits: each loop ends as soon as its condition holds
     while time.monotonic() < deadline and any(int(f[4].split(":")[1], 16) for f in _udp_sockets(port)):
         time.sleep(0.05)
-    time.sleep(0.3)  # its reader thread hands the last datagrams to the writer
+    # its reader thread hands the last datagrams to the writer: until the log has not grown for 0.3 s
+    log = Path(proc.args[proc.args.index("-f") + 1]) if "-f" in proc.args else None
+    last, since = -1, time.monotonic()
+    while log is not None and time.monotonic() < deadline:
+        size = log.stat().st_size if log.exists() else 0
+        if size != last:
+            last, since = size, time.monotonic()
+        elif time.monotonic() - since >= 0.3:
+            break
+        time.sleep(0.05)
     proc.send_signal(signal.SIGINT)
     try:
         return proc.wait(timeout=10)
