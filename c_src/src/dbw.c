@@ -41,6 +41,12 @@ int ddyn_dbw_frame_of_id(uint32_t can_id)
     return -1;
 }
 
+bool ddyn_dbw_is_authenticator_id(uint32_t can_id)
+{
+    return can_id == DDYN_CAN_SEC_OC_CONTROLLER_FRAME_ID || can_id == DDYN_CAN_SEC_OC_DBW_FRAME_ID ||
+           can_id == DDYN_CAN_SEC_OC_SENSORS_FRAME_ID;
+}
+
 uint32_t ddyn_dbw_cycle_us(ddyn_dbw_frame frame)
 {
     return ((unsigned)frame < DDYN_DBW_FRAME_COUNT) ? CYCLE_MS[frame] * 1000u : 0u;
@@ -328,6 +334,15 @@ ddyn_dbw_decode_result ddyn_dbw_decode(uint32_t can_id, const uint8_t *data, siz
     }
     f = ddyn_dbw_frame_of_id(can_id);
     if (f < 0) {
+        if (ddyn_dbw_is_authenticator_id(can_id)) {
+            /* a SecOC_* authenticator: checked for length and checksum here, verified by dbw_auth.c */
+            *frame = DDYN_DBW_FRAME_COUNT;
+            if (len != DDYN_DBW_FRAME_LEN) {
+                return DDYN_DBW_DECODE_BAD_LENGTH;
+            }
+            return data[CHECKSUM_BYTE] != ddyn_dbw_checksum(can_id, data) ? DDYN_DBW_DECODE_CHECKSUM
+                                                                          : DDYN_DBW_DECODE_AUTHENTICATOR;
+        }
         return DDYN_DBW_DECODE_UNKNOWN_ID;
     }
     *frame = (ddyn_dbw_frame)f;
@@ -446,6 +461,73 @@ void ddyn_dbw_report(ddyn_dbw *dbw, ddyn_dbw_failure kind, uint64_t t_us)
     fail(dbw, kind, -1, t_us);
 }
 
+/* a good frame (decoded, authenticated when authentication is on): counter check, then the values */
+static ddyn_dbw_decode_result apply_good_frame(ddyn_dbw *dbw, ddyn_dbw_frame frame, uint8_t counter,
+                                               const ddyn_dbw_signals *decoded, uint64_t t_us)
+{
+    ddyn_dbw_rx_track *rx = &dbw->rx[frame];
+    if (rx->counter_valid) {
+        uint8_t expected = (uint8_t)((rx->last_counter + 1u) % DDYN_DBW_COUNTER_MODULO);
+        if (counter != expected) {
+            ddyn_dbw_failure kind = counter == rx->last_counter ? DDYN_DBW_FAIL_COUNTER_REPEAT
+                                                                : DDYN_DBW_FAIL_COUNTER_JUMP;
+            /* follow the sender's counter so that the next in-sequence frame counts as good */
+            rx->last_counter = counter;
+            fail_received(dbw, kind, frame, t_us);
+            return DDYN_DBW_DECODE_OK;
+        }
+    }
+    rx->last_counter = counter;
+    rx->counter_valid = true;
+    rx->last_rx_us = t_us;
+    rx->seen = true;
+    rx->stale = false;
+    if (rx->good_streak < UINT32_MAX) {
+        rx->good_streak++;
+    }
+    if (rx->received < UINT32_MAX) {
+        rx->received++;
+    }
+    dbw->latest = *decoded;
+    dbw->fresh_mask |= 1u << frame;
+    return DDYN_DBW_DECODE_OK;
+}
+
+/* an authenticator frame: verify it against the held frame, and apply that frame when it passes */
+static ddyn_dbw_decode_result on_authenticator(ddyn_dbw *dbw, uint32_t can_id, const uint8_t *data, size_t len,
+                                               uint64_t t_us)
+{
+    ddyn_dbw_frame frame = DDYN_DBW_FRAME_COUNT, f2 = DDYN_DBW_FRAME_COUNT;
+    uint8_t held[DDYN_DBW_FRAME_LEN], counter = 0u;
+    uint64_t held_us = 0u;
+    ddyn_dbw_signals decoded;
+    ddyn_dbw_failure kind = ddyn_dbw_auth_verify(&dbw->auth, can_id, data, len, t_us, &frame, held, &held_us);
+    if (kind != DDYN_DBW_FAIL_COUNT) {
+        /* forged, replayed or stale: counted, the frame dropped, the link untouched */
+        count_failure(dbw, kind, (unsigned)frame < DDYN_DBW_FRAME_COUNT ? (int)frame : -1, t_us);
+        return DDYN_DBW_DECODE_AUTH_REJECTED;
+    }
+    /* frames of that identifier held from before the authenticated one never got an authenticator:
+     * stale, dropped, and their counter values not trusted (no counter jump of the accepted frame) */
+    {
+        unsigned k;
+        for (k = 0; k < DDYN_DBW_AUTH_HOLD; ++k) {
+            if (dbw->auth.pending_valid[frame][k] && dbw->auth.pending_us[frame][k] <= held_us) {
+                dbw->auth.pending_valid[frame][k] = false;
+                dbw->rx[frame].counter_valid = false;
+                count_failure(dbw, DDYN_DBW_FAIL_AUTH_STALE, (int)frame, t_us);
+            }
+        }
+    }
+    decoded = dbw->latest;
+    if (ddyn_dbw_decode(ddyn_dbw_frame_id(frame), held, DDYN_DBW_FRAME_LEN, &decoded, &f2, &counter) !=
+            DDYN_DBW_DECODE_OK ||
+        f2 != frame) {
+        return DDYN_DBW_DECODE_AUTH_REJECTED; /* cannot happen: only good frames are held */
+    }
+    return apply_good_frame(dbw, frame, counter, &decoded, held_us);
+}
+
 ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const uint8_t *data, size_t len,
                                          uint64_t t_us)
 {
@@ -453,7 +535,6 @@ ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const u
     ddyn_dbw_frame frame = DDYN_DBW_FRAME_COUNT;
     uint8_t counter = 0u;
     ddyn_dbw_decode_result r;
-    ddyn_dbw_rx_track *rx;
     if (dbw == NULL) {
         return DDYN_DBW_DECODE_ARGUMENT;
     }
@@ -469,12 +550,32 @@ ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const u
          * own deadlines, which catch a stray node that drowns them) */
         count_failure(dbw, DDYN_DBW_FAIL_UNKNOWN_FRAME, -1, t_us);
         return r;
+    case DDYN_DBW_DECODE_AUTHENTICATOR:
+        return dbw->auth.enabled ? on_authenticator(dbw, can_id, data, len, t_us) : r;
     case DDYN_DBW_DECODE_BAD_LENGTH:
     case DDYN_DBW_DECODE_CHECKSUM:
     case DDYN_DBW_DECODE_RANGE:
+        if ((unsigned)frame >= DDYN_DBW_FRAME_COUNT) {
+            /* a broken authenticator frame: it vouches for nothing; counted, not fatal */
+            if (dbw->auth.enabled) {
+                count_failure(dbw, DDYN_DBW_FAIL_AUTH_FORGED, -1, t_us);
+            }
+            return r;
+        }
         /* the rejected frame used up a counter value the receiver cannot trust: accept any counter
          * next, so that one defect is counted once (recovery needs N good frames anyway) */
         dbw->rx[frame].counter_valid = false;
+        if (dbw->auth.enabled) {
+            /* with authentication on, only authenticated frames move the link: a broken frame cannot
+             * be told from one forged to stop the car, so it is counted, not fatal; a sender whose
+             * frames keep failing is caught by the deadline of its frame */
+            count_failure(dbw,
+                          r == DDYN_DBW_DECODE_BAD_LENGTH ? DDYN_DBW_FAIL_BAD_LENGTH
+                          : r == DDYN_DBW_DECODE_CHECKSUM ? DDYN_DBW_FAIL_CHECKSUM
+                                                          : DDYN_DBW_FAIL_RANGE,
+                          (int)frame, t_us);
+            return r;
+        }
         fail_received(dbw,
                       r == DDYN_DBW_DECODE_BAD_LENGTH ? DDYN_DBW_FAIL_BAD_LENGTH
                       : r == DDYN_DBW_DECODE_CHECKSUM ? DDYN_DBW_FAIL_CHECKSUM
@@ -483,32 +584,16 @@ ddyn_dbw_decode_result ddyn_dbw_on_frame(ddyn_dbw *dbw, uint32_t can_id, const u
         return r;
     default: return r;
     }
-    rx = &dbw->rx[frame];
-    if (rx->counter_valid) {
-        uint8_t expected = (uint8_t)((rx->last_counter + 1u) % DDYN_DBW_COUNTER_MODULO);
-        if (counter != expected) {
-            ddyn_dbw_failure kind = counter == rx->last_counter ? DDYN_DBW_FAIL_COUNTER_REPEAT
-                                                                : DDYN_DBW_FAIL_COUNTER_JUMP;
-            /* follow the sender's counter so that the next in-sequence frame counts as good */
-            rx->last_counter = counter;
-            fail_received(dbw, kind, frame, t_us);
-            return r;
+    if (dbw->auth.enabled && dbw->config.deadline_us[frame] != 0u) {
+        /* a frame this endpoint relies on counts only once its authenticator has vouched for it */
+        if (ddyn_dbw_auth_hold(&dbw->auth, frame, data, t_us)) {
+            /* the one it replaced never was: stale, and its counter value not trusted */
+            dbw->rx[frame].counter_valid = false;
+            count_failure(dbw, DDYN_DBW_FAIL_AUTH_STALE, (int)frame, t_us);
         }
+        return DDYN_DBW_DECODE_AUTH_PENDING;
     }
-    rx->last_counter = counter;
-    rx->counter_valid = true;
-    rx->last_rx_us = t_us;
-    rx->seen = true;
-    rx->stale = false;
-    if (rx->good_streak < UINT32_MAX) {
-        rx->good_streak++;
-    }
-    if (rx->received < UINT32_MAX) {
-        rx->received++;
-    }
-    dbw->latest = decoded;
-    dbw->fresh_mask |= 1u << frame;
-    return r;
+    return apply_good_frame(dbw, frame, counter, &decoded, t_us);
 }
 
 static bool frame_is_late(const ddyn_dbw_rx_track *rx, uint32_t deadline_us, uint64_t now_us)
@@ -523,6 +608,20 @@ ddyn_dbw_state ddyn_dbw_check(ddyn_dbw *dbw, uint64_t now_us)
     bool all_good = true;
     if (dbw == NULL) {
         return DDYN_DBW_WAIT_GOOD;
+    }
+    if (dbw->auth.enabled) {
+        /* held frames whose authenticator never came: stale, counted, dropped; the counter value they
+         * used is not trusted, so the next authenticated frame starts a new sequence (one defect is
+         * counted once, not again as a counter jump that would trip the link) */
+        uint32_t lost = 0u, n = ddyn_dbw_auth_expire(&dbw->auth, now_us, &lost);
+        for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
+            if (lost & (1u << f)) {
+                dbw->rx[f].counter_valid = false;
+            }
+        }
+        for (; n > 0u; --n) {
+            count_failure(dbw, DDYN_DBW_FAIL_AUTH_STALE, -1, now_us);
+        }
     }
     for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
         ddyn_dbw_rx_track *rx = &dbw->rx[f];
@@ -664,7 +763,8 @@ uint8_t ddyn_dbw_fault_bits(uint32_t failure_mask)
         bits |= DDYN_DBW_FAULT_CMD_COUNTER;
     }
     if (failure_mask & ((1u << DDYN_DBW_FAIL_CHECKSUM) | (1u << DDYN_DBW_FAIL_BAD_LENGTH) |
-                        (1u << DDYN_DBW_FAIL_UNKNOWN_FRAME))) {
+                        (1u << DDYN_DBW_FAIL_UNKNOWN_FRAME) | (1u << DDYN_DBW_FAIL_AUTH_FORGED) |
+                        (1u << DDYN_DBW_FAIL_AUTH_REPLAY) | (1u << DDYN_DBW_FAIL_AUTH_STALE))) {
         bits |= DDYN_DBW_FAULT_CMD_CHECKSUM;
     }
     if (failure_mask & (1u << DDYN_DBW_FAIL_RANGE)) {
@@ -678,6 +778,7 @@ const char *ddyn_dbw_failure_name(ddyn_dbw_failure kind)
     static const char *const names[DDYN_DBW_FAIL_COUNT] = {
         "stale", "counter_jump", "counter_repeat", "checksum", "range", "unknown_frame",
         "bad_length", "bus_off", "bus_error", "iface_gone", "command_range",
+        "auth_forged", "auth_replay", "auth_stale",
     };
     return ((unsigned)kind < DDYN_DBW_FAIL_COUNT) ? names[kind] : "none";
 }

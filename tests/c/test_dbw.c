@@ -14,6 +14,8 @@
 #include <cmocka.h>
 
 #include "ddyn/dbw.h"
+#include "ddyn_can.h"
+#include "ddyn_dbw_test_key.h" /* made at build time: cmake/dbw_test_key.cmake */
 
 #define PERIOD_US 10000u /* the controller's period in these tests: the DBC's 10 ms */
 
@@ -49,12 +51,20 @@ static void fill_truth(void)
     truth.sensors.fix_type = 4;
 }
 
-/* one frame of `frame` from the sender, received by the controller at `now` */
+/* one frame of `frame` from the sender, received by the controller at `now` (followed by its
+ * authenticator when the sender authenticates) */
 static ddyn_dbw_decode_result deliver(ddyn_dbw_frame frame)
 {
-    uint8_t data[8];
+    uint8_t data[8], auth[8];
+    uint32_t auth_id = 0u;
+    ddyn_dbw_decode_result r;
     assert_int_equal(ddyn_dbw_next_frame(&sender, frame, &truth, data), 0);
-    return ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(frame), data, 8, now);
+    r = ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(frame), data, 8, now);
+    if (!sender.auth.enabled) {
+        return r;
+    }
+    assert_int_equal(ddyn_dbw_authenticator(&sender, frame, data, &auth_id, auth), 0);
+    return ddyn_dbw_on_frame(&ctl, auth_id, auth, 8, now + 100u);
 }
 
 /* one control period: every feedback and sensor frame once, then the clock advances */
@@ -354,7 +364,7 @@ static void inject_range(void)
 static void inject_unknown(void)
 {
     const uint8_t data[8] = {0};
-    assert_int_equal(ddyn_dbw_on_frame(&ctl, 0x121u, data, 8, now), DDYN_DBW_DECODE_UNKNOWN_ID);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, 0x122u, data, 8, now), DDYN_DBW_DECODE_UNKNOWN_ID);
 }
 static void inject_bad_length(void)
 {
@@ -484,6 +494,274 @@ static void test_fault_bits_for_the_status_frame(void **state)
     assert_int_equal(ddyn_dbw_fault_bits(0u), 0u);
     assert_string_equal(ddyn_dbw_failure_name(DDYN_DBW_FAIL_BUS_OFF), "bus_off");
     assert_string_equal(ddyn_dbw_frame_name(DDYN_DBW_FRAME_IMU), "IMU");
+}
+
+/* ---- authentication (SecOC-style authenticator frames, c_src/src/dbw_auth.c) ---- */
+
+static int setup_auth(void **state)
+{
+    (void)setup(state);
+    assert_int_equal(ddyn_dbw_auth_enable(&ctl, DDYN_DBW_TEST_KEY, 0u), 0);
+    assert_int_equal(ddyn_dbw_auth_enable(&sender, DDYN_DBW_TEST_KEY, 0u), 0);
+    return 0;
+}
+
+static unsigned auth_failures(void)
+{
+    return ctl.failures[DDYN_DBW_FAIL_AUTH_FORGED] + ctl.failures[DDYN_DBW_FAIL_AUTH_REPLAY] +
+           ctl.failures[DDYN_DBW_FAIL_AUTH_STALE];
+}
+
+/* every failure count but the authentication ones is zero */
+static void assert_no_link_failure(void)
+{
+    unsigned i;
+    for (i = 0; i < DDYN_DBW_FAIL_AUTH_FORGED; ++i) {
+        assert_int_equal(ctl.failures[i], 0u);
+    }
+}
+
+static void test_auth_mac_is_keyed_blake2b(void **state)
+{
+    /* known answer from an independent BLAKE2b (Python's hashlib.blake2b(msg, key=key,
+     * digest_size=8)): key 00..1f, identifier 0x100, data 01..08, freshness 0x0102030405060708 */
+    uint8_t key[32], data[8];
+    unsigned i;
+    (void)state;
+    for (i = 0; i < 32u; ++i) {
+        key[i] = (uint8_t)i;
+    }
+    for (i = 0; i < 8u; ++i) {
+        data[i] = (uint8_t)(i + 1u);
+    }
+    assert_int_equal(ddyn_dbw_auth_mac(key, 0x100u, data, 0x0102030405060708ull), 0xA3DC4Du);
+    /* each input matters */
+    assert_int_not_equal(ddyn_dbw_auth_mac(key, 0x110u, data, 0x0102030405060708ull), 0xA3DC4Du);
+    assert_int_not_equal(ddyn_dbw_auth_mac(key, 0x100u, data, 0x0102030405060709ull), 0xA3DC4Du);
+    data[3] ^= 1u;
+    assert_int_not_equal(ddyn_dbw_auth_mac(key, 0x100u, data, 0x0102030405060708ull), 0xA3DC4Du);
+}
+
+static void test_auth_frames_share_one_layout(void **state)
+{
+    /* dbw_auth.c packs all three authenticators with SecOC_Controller's packer: the DBC gives them
+     * one layout, and the generated packers of the other two agree byte for byte */
+    struct ddyn_can_sec_oc_controller_t a = {0x11u, 0x2ABCDEu, 0x987654u, 9u, 0u};
+    struct ddyn_can_sec_oc_dbw_t b = {0x11u, 0x2ABCDEu, 0x987654u, 9u, 0u};
+    struct ddyn_can_sec_oc_sensors_t c = {0x11u, 0x2ABCDEu, 0x987654u, 9u, 0u};
+    uint8_t pa[8], pb[8], pc[8];
+    (void)state;
+    assert_int_equal(ddyn_can_sec_oc_controller_pack(pa, &a, 8), 8);
+    assert_int_equal(ddyn_can_sec_oc_dbw_pack(pb, &b, 8), 8);
+    assert_int_equal(ddyn_can_sec_oc_sensors_pack(pc, &c, 8), 8);
+    assert_memory_equal(pa, pb, 8);
+    assert_memory_equal(pa, pc, 8);
+    assert_int_equal(ddyn_dbw_auth_id(DDYN_DBW_FRAME_COMMAND), DDYN_CAN_SEC_OC_CONTROLLER_FRAME_ID);
+    assert_int_equal(ddyn_dbw_auth_id(DDYN_DBW_FRAME_STATUS), DDYN_CAN_SEC_OC_DBW_FRAME_ID);
+    assert_int_equal(ddyn_dbw_auth_id(DDYN_DBW_FRAME_GNSS_HEADING), DDYN_CAN_SEC_OC_SENSORS_FRAME_ID);
+}
+
+static void test_auth_valid_frames_are_accepted(void **state)
+{
+    ddyn_dbw_command d = driving(), w;
+    uint8_t data[8];
+    (void)state;
+    /* a protected frame alone is held, not applied */
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_IMU, &truth, data), 0);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_IMU), data, 8, now),
+                     DDYN_DBW_DECODE_AUTH_PENDING);
+    assert_int_equal(ddyn_dbw_take_fresh(&ctl), 0u);
+    sender.tx_counter[DDYN_DBW_FRAME_IMU] = 0u;
+    /* with their authenticators, frames go through and the link comes up as without authentication */
+    bring_to_active();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_true(fabs(ctl.latest.sensors.yaw_rate - truth.sensors.yaw_rate) < 1e-3);
+    assert_int_equal(ctl.auth.accepted, 6u * ctl.config.recovery_good_frames);
+    assert_no_link_failure();
+    /* the held IMU frame above was displaced by the first authenticated one: one stale frame */
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_STALE], 1u);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_FORGED] + ctl.failures[DDYN_DBW_FAIL_AUTH_REPLAY], 0u);
+}
+
+static void test_auth_forged_mac_is_dropped_and_counted(void **state)
+{
+    /* a node without the key sends a steering measurement of its own, with a good counter and CRC
+     * and an authenticator made with another key: counted, dropped, and the car keeps driving */
+    ddyn_dbw_command d = driving(), w;
+    uint8_t data[8], auth[8], wrong_key[32];
+    ddyn_dbw_signals forged = truth;
+    const double before = truth.feedback.steering;
+    (void)state;
+    bring_to_active();
+    memset(wrong_key, 0x5A, sizeof wrong_key);
+    forged.feedback.steering = 0.5;
+    assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_STEERING, &forged, sender.tx_counter[DDYN_DBW_FRAME_STEERING], data), 0);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_STEERING), data, 8, now),
+                     DDYN_DBW_DECODE_AUTH_PENDING);
+    assert_int_equal(ddyn_dbw_auth_encode(wrong_key, DDYN_DBW_FRAME_STEERING, data,
+                                          sender.auth.tx_freshness[DDYN_DBW_FRAME_STEERING], 0u, auth), 0);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, DDYN_CAN_SEC_OC_DBW_FRAME_ID, auth, 8, now),
+                     DDYN_DBW_DECODE_AUTH_REJECTED);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_FORGED], 1u);
+    assert_true(fabs(ctl.latest.feedback.steering - before) < 1e-3); /* never applied */
+    /* a forged authenticator with a flipped MAC bit for a genuine frame: the same */
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_STEERING, &truth, data), 0);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_STEERING), data, 8, now),
+                     DDYN_DBW_DECODE_AUTH_PENDING);
+    {
+        uint32_t aid;
+        assert_int_equal(ddyn_dbw_authenticator(&sender, DDYN_DBW_FRAME_STEERING, data, &aid, auth), 0);
+        uint8_t fake[8];
+        memcpy(fake, auth, 8);
+        fake[5] ^= 0x10u; /* inside the MAC */
+        fake[7] = ddyn_dbw_checksum(aid, fake);
+        /* injected between the genuine frame and its authenticator */
+        assert_int_equal(ddyn_dbw_on_frame(&ctl, aid, fake, 8, now), DDYN_DBW_DECODE_AUTH_REJECTED);
+        /* and a forged frame too: the genuine one stays held beside it */
+        assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_STEERING, &forged, sender.tx_counter[DDYN_DBW_FRAME_STEERING], fake), 0);
+        assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_STEERING), fake, 8, now),
+                         DDYN_DBW_DECODE_AUTH_PENDING);
+        /* the genuine authenticator still finds its frame */
+        assert_int_equal(ddyn_dbw_on_frame(&ctl, aid, auth, 8, now), DDYN_DBW_DECODE_OK);
+    }
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_FORGED], 2u);
+    /* with authentication on, a frame with a bad checksum or an out-of-range value (which anyone can
+     * send) is counted, not fatal: only authenticated frames move the link */
+    inject_checksum();
+    inject_range();
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_CHECKSUM], 1u);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_RANGE], 1u);
+    ctl.failures[DDYN_DBW_FAIL_CHECKSUM] = ctl.failures[DDYN_DBW_FAIL_RANGE] = 0u;
+    /* the link is not tripped: the command of this period is still the caller's */
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_true(fabs(w.steering - 0.2) < 1e-4);
+    assert_no_link_failure();
+    /* genuine frames go on (the rejected ones did not touch the counters: no jump) */
+    deliver_period();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_no_link_failure();
+    assert_int_equal(ddyn_dbw_take_failures(&ctl) & ~((1u << DDYN_DBW_FAIL_AUTH_FORGED) | (1u << DDYN_DBW_FAIL_AUTH_STALE) |
+                                                      (1u << DDYN_DBW_FAIL_CHECKSUM) | (1u << DDYN_DBW_FAIL_RANGE)),
+                     0u);
+}
+
+static void test_auth_replayed_freshness_is_dropped(void **state)
+{
+    /* a recorded genuine pair (frame + authenticator) sent again later: valid MAC, old freshness */
+    ddyn_dbw_command d = driving(), w;
+    uint8_t data[8], auth[8];
+    uint32_t aid;
+    double yaw;
+    (void)state;
+    bring_to_active();
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_IMU, &truth, data), 0);
+    assert_int_equal(ddyn_dbw_authenticator(&sender, DDYN_DBW_FRAME_IMU, data, &aid, auth), 0);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_IMU), data, 8, now),
+                     DDYN_DBW_DECODE_AUTH_PENDING);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, aid, auth, 8, now), DDYN_DBW_DECODE_OK);
+    now += PERIOD_US;
+    truth.sensors.yaw_rate = -1.0;
+    deliver_period();
+    yaw = ctl.latest.sensors.yaw_rate;
+    assert_true(fabs(yaw + 1.0) < 1e-3);
+    /* the replay */
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_IMU), data, 8, now),
+                     DDYN_DBW_DECODE_AUTH_PENDING);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, aid, auth, 8, now), DDYN_DBW_DECODE_AUTH_REJECTED);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_REPLAY], 1u);
+    assert_true(ctl.latest.sensors.yaw_rate == yaw); /* the old value did not come back */
+    /* the same authenticator twice in a row (its frame repeated) is a replay too */
+    deliver_period();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_no_link_failure();
+}
+
+static void test_auth_stale_frames_are_dropped(void **state)
+{
+    ddyn_dbw_command d = driving(), w;
+    uint8_t data[8], auth[8];
+    uint32_t aid;
+    (void)state;
+    bring_to_active();
+    /* an authenticator arriving after the timeout: the frame is stale, dropped */
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_GNSS_HEADING, &truth, data), 0);
+    assert_int_equal(ddyn_dbw_authenticator(&sender, DDYN_DBW_FRAME_GNSS_HEADING, data, &aid, auth), 0);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_GNSS_HEADING), data, 8, now),
+                     DDYN_DBW_DECODE_AUTH_PENDING);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, aid, auth, 8, now + DDYN_DBW_AUTH_TIMEOUT_US + 1u),
+                     DDYN_DBW_DECODE_AUTH_REJECTED);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_STALE], 1u);
+    /* the late frame itself is dropped (and counted) by the next check */
+    now += DDYN_DBW_AUTH_TIMEOUT_US + 1u;
+    (void)ddyn_dbw_check(&ctl, now);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_STALE], 2u);
+    /* an authenticator with no frame to vouch for (sent again): stale */
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, aid, auth, 8, now), DDYN_DBW_DECODE_AUTH_REJECTED);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_STALE], 3u);
+    /* a frame whose authenticator never comes: dropped at the next check after the timeout */
+    assert_int_equal(ddyn_dbw_next_frame(&sender, DDYN_DBW_FRAME_GNSS_HEADING, &truth, data), 0);
+    assert_int_equal(ddyn_dbw_on_frame(&ctl, ddyn_dbw_frame_id(DDYN_DBW_FRAME_GNSS_HEADING), data, 8, now),
+                     DDYN_DBW_DECODE_AUTH_PENDING);
+    (void)ddyn_dbw_check(&ctl, now + DDYN_DBW_AUTH_TIMEOUT_US + 1u);
+    assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_STALE], 4u);
+    /* none of it tripped the link, and the two dropped frames (whose counter values the controller
+     * never saw) do not come back as a counter jump of the next genuine frame */
+    now += PERIOD_US;
+    deliver_period();
+    assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
+    assert_no_link_failure();
+}
+
+static void test_auth_forged_steering_command_is_rejected_by_the_dbw_unit(void **state)
+{
+    /* the DBW unit's side: commands authenticated by the controller go through; a steering command
+     * injected by another node (good counter, good CRC, no valid MAC) never reaches the actuators */
+    ddyn_dbw unit, controller;
+    ddyn_dbw_config c;
+    ddyn_dbw_signals s;
+    uint8_t data[8], auth[8];
+    uint32_t aid;
+    unsigned i;
+    (void)state;
+    ddyn_dbw_default_config(&c, DDYN_DBW_MONITOR_DBW_UNIT);
+    assert_int_equal(ddyn_dbw_init(&unit, &c), 0);
+    assert_int_equal(ddyn_dbw_auth_enable(&unit, DDYN_DBW_TEST_KEY, 0u), 0);
+    ddyn_dbw_default_config(&c, DDYN_DBW_MONITOR_CONTROLLER);
+    assert_int_equal(ddyn_dbw_init(&controller, &c), 0);
+    assert_int_equal(ddyn_dbw_auth_enable(&controller, DDYN_DBW_TEST_KEY, 0u), 0);
+    memset(&s, 0, sizeof s);
+    for (i = 0; i < 10u; ++i) {
+        s.command.throttle = 0.8;
+        s.command.steering = 0.05;
+        s.command.enable = true;
+        s.command.mode = DDYN_DBW_MODE_AUTONOMOUS;
+        assert_int_equal(ddyn_dbw_next_frame(&controller, DDYN_DBW_FRAME_COMMAND, &s, data), 0);
+        assert_int_equal(ddyn_dbw_authenticator(&controller, DDYN_DBW_FRAME_COMMAND, data, &aid, auth), 0);
+        assert_int_equal(ddyn_dbw_on_frame(&unit, ddyn_dbw_frame_id(DDYN_DBW_FRAME_COMMAND), data, 8, now),
+                         DDYN_DBW_DECODE_AUTH_PENDING);
+        assert_int_equal(ddyn_dbw_on_frame(&unit, aid, auth, 8, now + 50u), DDYN_DBW_DECODE_OK);
+        assert_true(fabs(unit.latest.command.steering - 0.05) < 1e-4);
+        if (i == 5u) {
+            /* the attacker: full left, the next counter, a valid CRC, and a guessed authenticator */
+            s.command.steering = 0.6;
+            assert_int_equal(ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, controller.tx_counter[DDYN_DBW_FRAME_COMMAND], data), 0);
+            assert_int_equal(ddyn_dbw_on_frame(&unit, ddyn_dbw_frame_id(DDYN_DBW_FRAME_COMMAND), data, 8, now + 100u),
+                             DDYN_DBW_DECODE_AUTH_PENDING);
+            memcpy(auth, data, 8);
+            auth[0] = (uint8_t)(DDYN_CAN_DBW_COMMAND_FRAME_ID - 0x100u);
+            auth[7] = ddyn_dbw_checksum(aid, auth);
+            assert_int_equal(ddyn_dbw_on_frame(&unit, aid, auth, 8, now + 150u), DDYN_DBW_DECODE_AUTH_REJECTED);
+            assert_true(fabs(unit.latest.command.steering - 0.05) < 1e-4);
+        }
+        now += PERIOD_US;
+        (void)ddyn_dbw_check(&unit, now);
+    }
+    assert_int_equal(unit.failures[DDYN_DBW_FAIL_AUTH_FORGED] + unit.failures[DDYN_DBW_FAIL_AUTH_REPLAY], 1u);
+    for (i = 0; i < DDYN_DBW_FAIL_AUTH_FORGED; ++i) {
+        assert_int_equal(unit.failures[i], 0u);
+    }
+    assert_int_equal(ddyn_dbw_check(&unit, now), DDYN_DBW_READY);
+    (void)auth_failures;
 }
 
 /* ---- frame ages on a degraded bus (ddyn_dbw_link) ---- */
@@ -630,6 +908,13 @@ int main(void)
         cmocka_unit_test_setup(test_bad_frame_keeps_last_good_values, setup),
         cmocka_unit_test_setup(test_stale_is_counted_once_per_lapse, setup),
         cmocka_unit_test_setup(test_fault_bits_for_the_status_frame, setup),
+        cmocka_unit_test(test_auth_mac_is_keyed_blake2b),
+        cmocka_unit_test(test_auth_frames_share_one_layout),
+        cmocka_unit_test_setup(test_auth_valid_frames_are_accepted, setup_auth),
+        cmocka_unit_test_setup(test_auth_forged_mac_is_dropped_and_counted, setup_auth),
+        cmocka_unit_test_setup(test_auth_replayed_freshness_is_dropped, setup_auth),
+        cmocka_unit_test_setup(test_auth_stale_frames_are_dropped, setup_auth),
+        cmocka_unit_test_setup(test_auth_forged_steering_command_is_rejected_by_the_dbw_unit, setup),
         cmocka_unit_test(test_link_counts_lost_late_repeated_and_bad_frames),
         cmocka_unit_test(test_link_counts_saturate_instead_of_wrapping),
         cmocka_unit_test(test_link_measures_the_age_of_a_delayed_frame),

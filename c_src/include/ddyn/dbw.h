@@ -75,6 +75,11 @@ typedef enum {
     DDYN_DBW_FAIL_BUS_ERROR,      /* other error frames: error passive, protocol, transceiver, lost arbitration excluded */
     DDYN_DBW_FAIL_IFACE_GONE,     /* the interface went down or disappeared (reported by the transport) */
     DDYN_DBW_FAIL_COMMAND_RANGE,  /* the caller asked to send a non-finite or out-of-range command */
+    /* authentication (ddyn_dbw_auth_enable): counted and the frame dropped, never fatal (a node that
+     * forges frames must not be able to stop the car; the deadlines still catch genuine frames that stop) */
+    DDYN_DBW_FAIL_AUTH_FORGED,    /* an authenticator whose MAC does not match its frame, or a bad authenticator frame */
+    DDYN_DBW_FAIL_AUTH_REPLAY,    /* a freshness value not newer than the last one accepted for that frame */
+    DDYN_DBW_FAIL_AUTH_STALE,     /* a protected frame without its authenticator in time, or an authenticator without a frame */
     DDYN_DBW_FAIL_COUNT
 } ddyn_dbw_failure;
 
@@ -92,8 +97,43 @@ typedef enum {
     DDYN_DBW_DECODE_BAD_LENGTH,
     DDYN_DBW_DECODE_CHECKSUM,
     DDYN_DBW_DECODE_RANGE,
-    DDYN_DBW_DECODE_ARGUMENT     /* NULL pointer */
+    DDYN_DBW_DECODE_ARGUMENT,    /* NULL pointer */
+    /* authentication (ddyn_dbw_on_frame with ddyn_dbw_auth_enable; ddyn_dbw_decode gives the first only) */
+    DDYN_DBW_DECODE_AUTHENTICATOR, /* a SecOC_* authenticator frame (length and checksum good) */
+    DDYN_DBW_DECODE_AUTH_PENDING,  /* a good protected frame, held until its authenticator arrives */
+    DDYN_DBW_DECODE_AUTH_REJECTED  /* an authenticator refused: forged, replayed or stale (counted) */
 } ddyn_dbw_decode_result;
+
+/* ---- authentication in the manner of AUTOSAR SecOC (c_src/src/dbw_auth.c, docs/can.md) ----
+ * Every protected frame is followed by an authenticator frame of its sender (SecOC_Controller 0x101,
+ * SecOC_DBW 0x113, SecOC_Sensors 0x121; can/ddyn_dbw.dbc) carrying the protected identifier, the low
+ * 22 bits of a 64-bit freshness value (+1 per frame, per identifier) and a 24-bit MAC: the first 24
+ * bits of keyed BLAKE2b (Monocypher, 32-byte key, 8-byte digest) over identifier (2 bytes LE), the
+ * frame's 8 data bytes and the full freshness value (8 bytes LE). The receiver holds a good protected
+ * frame until its authenticator arrives (at most timeout_us), reconstructs the full freshness value
+ * from its low bits (newer than the last accepted; not newer = replay), checks the MAC, and only then
+ * applies the frame. Forged, replayed and stale frames are counted and dropped; none trips the link. */
+#define DDYN_DBW_AUTH_KEY_LEN 32u
+#define DDYN_DBW_AUTH_MAC_BITS 24u
+#define DDYN_DBW_AUTH_FRESHNESS_BITS 22u
+#define DDYN_DBW_AUTH_TIMEOUT_US 5000u /* default: an authenticator follows its frame within 5 ms */
+#define DDYN_DBW_AUTH_HOLD 2u /* held frames per identifier */
+
+typedef struct {
+    bool enabled;
+    uint8_t key[DDYN_DBW_AUTH_KEY_LEN];
+    uint32_t timeout_us;
+    uint64_t tx_freshness[DDYN_DBW_FRAME_COUNT]; /* per frame: the next value sent */
+    uint8_t tx_counter[3];           /* rolling counters of the three authenticator identifiers */
+    uint64_t rx_freshness[DDYN_DBW_FRAME_COUNT];        /* the last value accepted per frame */
+    bool rx_freshness_valid[DDYN_DBW_FRAME_COUNT];
+    /* good protected frames waiting for their authenticator, DDYN_DBW_AUTH_HOLD per frame: a frame
+     * injected between a genuine frame and its authenticator does not push the genuine one out */
+    uint8_t pending[DDYN_DBW_FRAME_COUNT][DDYN_DBW_AUTH_HOLD][DDYN_DBW_FRAME_LEN];
+    uint64_t pending_us[DDYN_DBW_FRAME_COUNT][DDYN_DBW_AUTH_HOLD];
+    bool pending_valid[DDYN_DBW_FRAME_COUNT][DDYN_DBW_AUTH_HOLD];
+    uint32_t accepted;               /* frames authenticated since enable (saturating) */
+} ddyn_dbw_auth;
 
 /* The actuator command in physical units (DBW_Command). */
 typedef struct {
@@ -170,6 +210,7 @@ typedef struct {
     uint8_t tx_counter[DDYN_DBW_FRAME_COUNT];
     double held_steering;             /* the last steering sent while ACTIVE: the safe command holds it */
     bool any_failure;
+    ddyn_dbw_auth auth;               /* frame authentication, off until ddyn_dbw_auth_enable() */
 } ddyn_dbw;
 
 /* ---- frames: pure functions ---- */
@@ -177,6 +218,8 @@ typedef struct {
 /* CAN identifier of a frame, and the frame of an identifier (-1 when unknown). */
 uint32_t ddyn_dbw_frame_id(ddyn_dbw_frame frame);
 int ddyn_dbw_frame_of_id(uint32_t can_id);
+/* Whether an identifier is one of the SecOC_* authenticator frames. */
+bool ddyn_dbw_is_authenticator_id(uint32_t can_id);
 /* The DBC's cycle time of a frame in microseconds. */
 uint32_t ddyn_dbw_cycle_us(ddyn_dbw_frame frame);
 
@@ -245,6 +288,53 @@ ddyn_dbw_state ddyn_dbw_command_frame(ddyn_dbw *dbw, uint64_t now_us, const ddyn
  * unit / simulator side sending feedback and sensors). Returns as ddyn_dbw_encode. */
 ddyn_status ddyn_dbw_next_frame(ddyn_dbw *dbw, ddyn_dbw_frame frame, const ddyn_dbw_signals *s,
                         uint8_t data[DDYN_DBW_FRAME_LEN]);
+
+/* ---- authentication (c_src/src/dbw_auth.c) ---- */
+
+/* Authenticate the frames this endpoint monitors and sign the frames it sends, with `key` (copied;
+ * the caller should wipe its copy). timeout_us 0 = DDYN_DBW_AUTH_TIMEOUT_US. Freshness counters
+ * start at 0. Returns DDYN_OK or DDYN_ERR_ARGUMENT. */
+ddyn_status ddyn_dbw_auth_enable(ddyn_dbw *dbw, const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], uint32_t timeout_us);
+/* Off again; the key is wiped. */
+void ddyn_dbw_auth_disable(ddyn_dbw *dbw);
+
+/* The authenticator of a frame this endpoint has just encoded (ddyn_dbw_command_frame,
+ * ddyn_dbw_next_frame): send it right after `data`, under identifier *auth_id. Consumes one freshness
+ * value of the frame. Returns DDYN_OK, DDYN_ERR_ARGUMENT (NULL, unknown frame) or DDYN_ERR_NOT_READY
+ * when authentication is off. */
+ddyn_status ddyn_dbw_authenticator(ddyn_dbw *dbw, ddyn_dbw_frame frame, const uint8_t data[DDYN_DBW_FRAME_LEN],
+                                   uint32_t *auth_id, uint8_t auth_data[DDYN_DBW_FRAME_LEN]);
+
+/* Pure pieces, for any caller (the simulator's plant, tools): */
+/* the authenticator identifier of the node that sends `frame` (0 for an unknown frame) */
+uint32_t ddyn_dbw_auth_id(ddyn_dbw_frame frame);
+/* the 24-bit MAC of one frame with a full freshness value */
+uint32_t ddyn_dbw_auth_mac(const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], uint32_t can_id,
+                           const uint8_t data[DDYN_DBW_FRAME_LEN], uint64_t freshness);
+/* encode an authenticator frame (counter and checksum included) for `frame` with `freshness` */
+ddyn_status ddyn_dbw_auth_encode(const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], ddyn_dbw_frame frame,
+                                 const uint8_t data[DDYN_DBW_FRAME_LEN], uint64_t freshness, uint8_t counter,
+                                 uint8_t auth_data[DDYN_DBW_FRAME_LEN]);
+/* decode an authenticator frame: length, checksum, identifier; *frame, *freshness_low, *mac, *counter */
+ddyn_dbw_decode_result ddyn_dbw_auth_decode(uint32_t can_id, const uint8_t *data, size_t len, ddyn_dbw_frame *frame,
+                                            uint32_t *freshness_low, uint32_t *mac, uint8_t *counter);
+
+/* Receiver state without the monitor (the simulator's plant uses it for DBW_Command): */
+void ddyn_dbw_auth_init(ddyn_dbw_auth *auth, const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], uint32_t timeout_us);
+/* hold a good protected frame (the oldest of DDYN_DBW_AUTH_HOLD makes room); returns true when it
+ * displaced one that was never authenticated (stale) */
+bool ddyn_dbw_auth_hold(ddyn_dbw_auth *auth, ddyn_dbw_frame frame, const uint8_t data[DDYN_DBW_FRAME_LEN],
+                        uint64_t t_us);
+/* verify an authenticator frame against the held frames of its identifier; on DDYN_DBW_FAIL_COUNT
+ * (accepted) the matching frame is released into *frame, data and *data_t_us; otherwise the failure
+ * kind (AUTH_FORGED, AUTH_REPLAY, AUTH_STALE). A rejected authenticator leaves the held frames held,
+ * so that the genuine authenticator that follows still finds its frame. */
+ddyn_dbw_failure ddyn_dbw_auth_verify(ddyn_dbw_auth *auth, uint32_t can_id, const uint8_t *auth_data, size_t len,
+                                      uint64_t t_us, ddyn_dbw_frame *frame, uint8_t data[DDYN_DBW_FRAME_LEN],
+                                      uint64_t *data_t_us);
+/* drop held frames older than the timeout at now_us; returns how many (each a stale frame), and in
+ * *frames (may be NULL) the bit of each frame that lost one */
+uint32_t ddyn_dbw_auth_expire(ddyn_dbw_auth *auth, uint64_t now_us, uint32_t *frames);
 
 /* Read-and-clear of the fresh-frame and failure bit sets. */
 uint32_t ddyn_dbw_take_fresh(ddyn_dbw *dbw);
