@@ -9,13 +9,16 @@
 #include <stdarg.h>
 #include <stddef.h>
 #include <stdint.h>
+#include <stdio.h>
 #include <string.h>
+#include <sys/stat.h>
 
 #include <cmocka.h>
 
 #include "ddyn/dbw.h"
 #include "ddyn_can.h"
 #include "ddyn_dbw_test_key.h" /* made at build time: cmake/dbw_test_key.cmake */
+#include "dbw_auth_key.h"
 
 #define PERIOD_US 10000u /* the controller's period in these tests: the DBC's 10 ms */
 
@@ -764,6 +767,37 @@ static void test_auth_forged_steering_command_is_rejected_by_the_dbw_unit(void *
     (void)auth_failures;
 }
 
+static void test_auth_key_file_is_read_and_a_readable_one_refused(void **state)
+{
+    uint8_t key[32];
+    const char *why = "x";
+    const char *scratch = DDYN_TEST_SCRATCH_DIR "/dbw_key_world_readable.key";
+    FILE *f;
+    (void)state;
+    assert_int_equal(ddyn_dbw_auth_read_key_file(DDYN_DBW_TEST_KEY_FILE, key, &why), 0);
+    assert_null(why);
+    assert_memory_equal(key, DDYN_DBW_TEST_KEY, 32);
+    assert_string_equal(ddyn_dbw_auth_key_path("/etc/car.key"), "/etc/car.key");
+    /* the same key in a file others can read: refused, the buffer wiped */
+    f = fopen(scratch, "w");
+    assert_non_null(f);
+    fputs("a4a1e444efc3eccb69541e28ded12f94509d6b135a2ba7d482d96370678aa803\n", f);
+    fclose(f);
+    assert_int_equal(chmod(scratch, 0644), 0);
+    assert_int_equal(ddyn_dbw_auth_read_key_file(scratch, key, &why), DDYN_ERR_CONFIG);
+    assert_non_null(why);
+    assert_true(key[0] == 0u && key[31] == 0u);
+    /* owner-only but not hex */
+    f = fopen(scratch, "w");
+    assert_non_null(f);
+    fputs("zz", f);
+    fclose(f);
+    assert_int_equal(chmod(scratch, 0600), 0);
+    assert_int_equal(ddyn_dbw_auth_read_key_file(scratch, key, &why), DDYN_ERR_CONFIG);
+    assert_int_equal(ddyn_dbw_auth_read_key_file("/nonexistent/dbw.key", key, &why), DDYN_ERR_CONFIG);
+    (void)remove(scratch);
+}
+
 /* ---- frame ages on a degraded bus (ddyn_dbw_link) ---- */
 
 static ddyn_dbw_link_result link_frame(ddyn_dbw_link *l, ddyn_dbw_frame f, unsigned counter, unsigned *lost, double *age)
@@ -915,6 +949,7 @@ int main(void)
         cmocka_unit_test_setup(test_auth_replayed_freshness_is_dropped, setup_auth),
         cmocka_unit_test_setup(test_auth_stale_frames_are_dropped, setup_auth),
         cmocka_unit_test_setup(test_auth_forged_steering_command_is_rejected_by_the_dbw_unit, setup),
+        cmocka_unit_test(test_auth_key_file_is_read_and_a_readable_one_refused),
         cmocka_unit_test(test_link_counts_lost_late_repeated_and_bad_frames),
         cmocka_unit_test(test_link_counts_saturate_instead_of_wrapping),
         cmocka_unit_test(test_link_measures_the_age_of_a_delayed_frame),
