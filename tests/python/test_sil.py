@@ -197,9 +197,13 @@ def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_pat
     lat = m["controller"]["first_stale_latency"]
     # an IMU frame may be missing for one period; without frames the controller's timer runs a
     # period after 1.5 periods (30 ms), then every period: the safe command follows at the second
-    # one, 50 ms by design. This is wall time in an emulated guest on a shared machine: measured
-    # 60-85 ms, 103 ms once under heavy load; the bound leaves room for that, the target is 100 ms
-    assert 0.04 < lat < 0.15, lat
+    # one, 50 ms by design, plus the emulated step. In the guest this is the guest's clock, driven by
+    # the instruction count (-icount, run_guest): the host's load cannot stretch it (measured 51.1-51.6
+    # ms; on the host's clock it had been 60-165 ms depending on the load); the target is 100 ms
+    if m["run"].get("clock") == "emulated":
+        assert 0.045 < lat < 0.1, lat
+    else:  # a host with vcan (--where host): the host's own clock, not asserted against load
+        assert lat > 0.04, lat
     assert m["safe_state"]["controller_stale_latency_wall"] == lat
     assert json.loads((tmp_path / "plant_resume.json").read_text())["resume"].endswith("snapshot.json")
     # the controller's LCM log goes straight into ddyn import
@@ -207,6 +211,28 @@ def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_pat
     ds = load_any(tmp_path / "controller.lcm")
     assert len(ds) == m["controller"]["periods"]
     check_live_lcm_log(m, tmp_path, orca)
+
+
+def test_the_lap_completes_after_a_plant_restart(orca, mobil, tmp_path, sil_bins):
+    """Recovery (issue 35): the plant dies 2 s into the lap at full speed and comes back 0.5 s later from its
+    snapshot; the controller, blind meanwhile, restarts its filter on the returning readings and the lap
+    completes inside the bounds. On the guest's emulated clock (-icount) the run does not depend on the
+    host's load: 10 of 10 runs gave the same lap (docs/sil.md); before the filter's restart on its
+    readings, 4 of 6 runs on the host's clock completed and one stayed at vx -0.5 m/s."""
+    spec = spec_for(orca, mobil, faults={"restart_plant": 2.0})
+    m = sil.run_sil(spec, tmp_path, None)
+    assert m["run"]["plant_exit"] == 0
+    assert m["lap_completed"], (m["end_reason"], m["violations"])
+    assert m["violations"] == 0
+    assert m["lap_times"][0] < 6.5  # the 0.5 s outage is not lap time (the plant's clock stops)
+    counts = m["controller"]["status_counts"]
+    assert counts["DDYN_CTRL_RECOVERED"] >= 1  # safe while blind, then back to the MPC
+    assert counts["DDYN_CTRL_SENSOR_FAULT"] == 0  # the returning readings were fused, not gated
+    clog = sil.read_csv(tmp_path / "controller_log.csv")
+    # back on the MPC for the rest of the lap: no safe command in its last second (measured: safe from the
+    # outage until 10 healthy periods after the readings came back, periods 101-146 of 322; the last
+    # period or two run on the controller's timer after the plant has finished the lap, without frames)
+    assert not clog["safe"][-50:-2].any()
 
 
 def test_timer_pacing_runs_on_absolute_deadlines_with_the_realtime_settings(orca, mobil, tmp_path, sil_bins):
@@ -316,7 +342,7 @@ def test_build_guest_takes_dynamic_binaries_with_their_libraries():
         bg.shared_closure(bg.BUSYBOX)
 
 
-def test_host_lcm_logger_records_a_publisher(tmp_path, shared_data):
+def test_host_lcm_logger_records_a_publisher(tmp_path, shared_data, multicast_route):
     """The host path's logger lifecycle (--where host; this machine has no vcan for the whole run):
     lcm-logger listening on a free port before the publisher starts, drained and stopped by SIGINT
     after it, every message in the log."""
@@ -324,10 +350,7 @@ def test_host_lcm_logger_records_a_publisher(tmp_path, shared_data):
     from ddyn.data.lcm_replay import DEFAULT_TOOL, replay
     if not DEFAULT_TOOL.is_file():
         pytest.fail(f"{DEFAULT_TOOL} missing: build the C side with DDYN_WITH_LCM=ON first (scripts/test.sh does)")
-    try:
-        proc, url = sil.start_host_logger(tmp_path)
-    except DdynError as e:
-        pytest.skip(f"NO MULTICAST ROUTE on this host, the host logger cannot be tested: {e}")
+    proc, url = sil.start_host_logger(tmp_path)  # the route: the multicast_route fixture (conftest.py)
     try:
         ds = simulate.simulate(load_vehicle("orca_1_43"), load_track("ethz", shared_data), duration=1.0, seed=1,
                                progress=False)
