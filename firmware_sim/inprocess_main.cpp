@@ -11,14 +11,26 @@
 // of this machine's CPU, and it needs no vcan. Lock-step by construction: one controller period per
 // position frame. Writes the same files as the two processes (plant_metrics.json, trajectory.csv,
 // controller_metrics.json, controller_log.csv). A restarting plant is not supported here.
+//
+// Frame authentication (docs/can.md): when the plant has a key (PLANT.json "auth": {"key_file"}, or
+// $DDYN_DBW_KEY_FILE), this loop is the controller's side of it as its transport would be: the
+// plant's frames reach the node only once their authenticator verifies, and each command goes out
+// with its authenticator. --inject-forged-steering T0:T1 plays an attacker on the bus from T0 to T1 s
+// of simulated time: after every genuine command it sends a forged DBW_Command (full steering
+// left, full throttle, the next counter, a valid CRC) with an authenticator made without the key;
+// the plant's metrics count what its DBW unit refused ("auth") and the lap's violations.
 #include <algorithm>
 #include <chrono>
+#include <deque>
+#include <optional>
+#include <string>
 #include <cstdio>
 #include <fstream>
 #include <memory>
 #include <vector>
 
 #include "controller_config.h"
+#include "fsim/frame_auth.hpp"
 #include "fsim/plant_app.hpp"
 
 extern "C" const ddyn_net_tables ddyn_net_weights;
@@ -31,9 +43,36 @@ double now_s() {
 
 }  // namespace
 
+// the attacker's frames: a forged command (valid counter and CRC) and an authenticator without the key
+void forged_steering(uint8_t counter, std::deque<fsim::CanFrame>& q) {
+  ddyn_dbw_signals s{};
+  s.command.throttle = 1.0;
+  s.command.brake = 0.0;
+  s.command.steering = 0.6;
+  s.command.enable = true;
+  s.command.mode = DDYN_DBW_MODE_AUTONOMOUS;
+  fsim::CanFrame f, a;
+  f.id = ddyn_dbw_frame_id(DDYN_DBW_FRAME_COMMAND);
+  f.dlc = 8;
+  (void)ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &s, counter, f.data.data());
+  uint8_t guess[DDYN_DBW_AUTH_KEY_LEN];
+  for (unsigned i = 0; i < DDYN_DBW_AUTH_KEY_LEN; ++i) guess[i] = static_cast<uint8_t>(0xA5u ^ i);
+  a.id = ddyn_dbw_auth_id(DDYN_DBW_FRAME_COMMAND);
+  a.dlc = 8;
+  // a freshness value ahead of any the controller has used, so that only the MAC can refuse it
+  (void)ddyn_dbw_auth_encode(guess, DDYN_DBW_FRAME_COMMAND, f.data.data(), (1u << 20) + counter, counter, a.data.data());
+  q.push_back(f);
+  q.push_back(a);
+}
+
 int main(int argc, char** argv) {
+  double inject_from = -1.0, inject_to = -1.0;
+  if (argc == 5 && std::string(argv[3]) == "--inject-forged-steering" &&
+      std::sscanf(argv[4], "%lf:%lf", &inject_from, &inject_to) == 2 && inject_from >= 0.0 && inject_to > inject_from) {
+    argc = 3;
+  }
   if (argc != 3) {
-    std::fprintf(stderr, "usage: %s PLANT.json CONTROLLER.json\n", argv[0]);
+    std::fprintf(stderr, "usage: %s PLANT.json CONTROLLER.json [--inject-forged-steering T0:T1]\n", argv[0]);
     return 2;
   }
   try {
@@ -54,6 +93,9 @@ int main(int argc, char** argv) {
     fsim::MemoryLink link;
     fsim::MemoryBus plant_end(link, true);
     fsim::PlantApp app(cfg, plant_end);
+    // the controller's side of the frame authentication, with the plant's key
+    std::optional<fsim::FrameAuth> auth = fsim::FrameAuth::from_key_file(cfg.auth_key_file, DDYN_DBW_MONITOR_CONTROLLER);
+    long injected = 0;
     if (setup->log[0] == '\0') throw std::runtime_error("the configuration names no telemetry.log");
     std::FILE* log = std::fopen(setup->log, "w");
     if (log == nullptr) throw std::runtime_error(std::string("cannot write ") + setup->log);
@@ -66,10 +108,21 @@ int main(int argc, char** argv) {
     const double wall0 = now_s();
     while (app.step()) {
       auto& q = link.a_to_b;
+      const double t_bus = app.plant().time();
+      if (auth) (void)auth->expire(t_bus);
       while (!q.empty()) {
-        const fsim::CanFrame f = q.front();
+        fsim::CanFrame f = q.front();
         q.pop_front();
         if (!alive) continue;
+        if (auth) {
+          fsim::CanFrame released;
+          const auto v = auth->on_frame(f, t_bus, &released);
+          if (v == fsim::FrameAuth::Verdict::kAccepted) {
+            f = released;
+          } else if (v != fsim::FrameAuth::Verdict::kPassThrough || ddyn_dbw_is_authenticator_id(f.id)) {
+            continue;  // held for its authenticator, or refused (counted by auth)
+          }
+        }
         const int runs = ddyn_sil_node_on_frame(node.get(), f.id, f.data.data(), f.dlc);
         for (int r = 0; r < runs && alive; ++r) {
           if (node->steps == setup->die_at_step) {
@@ -100,6 +153,11 @@ int main(int argc, char** argv) {
           cmd.dlc = 8;
           std::copy(per.data, per.data + 8, cmd.data.begin());
           link.b_to_a.push_back(cmd);
+          if (auth) link.b_to_a.push_back(auth->sign(cmd));
+          if (t_bus >= inject_from && t_bus <= inject_to) {
+            forged_steering(static_cast<uint8_t>((cmd.data[6] >> 4) + 1u), link.b_to_a);
+            ++injected;
+          }
         }
       }
     }
@@ -138,6 +196,12 @@ int main(int argc, char** argv) {
     m["fixed_coefficients"] = setup->fixed != 0;
     m["checkpoint_hash"] = ddyn_net_weights.checkpoint_sha256 != nullptr ? ddyn_net_weights.checkpoint_sha256 : "";
     m["where"] = "in-process (host CPU, frames through memory)";
+    m["auth"] = {{"enabled", auth.has_value()},
+                 {"accepted", auth ? auth->accepted() : 0L},
+                 {"forged", auth ? auth->forged() : 0L},
+                 {"replayed", auth ? auth->replayed() : 0L},
+                 {"stale", auth ? auth->stale() : 0L},
+                 {"forged_commands_injected", injected}};
     if (alive) std::ofstream(setup->metrics) << m.dump(2) << "\n";  // a dead controller writes nothing
     std::printf("in-process: %s, %zu controller periods, loop median %.0f us\n", app.end_reason().c_str(), n,
                 n ? sorted[n / 2] : 0.0);

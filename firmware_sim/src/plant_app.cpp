@@ -117,6 +117,7 @@ PlantAppConfig PlantAppConfig::from_json(const nlohmann::json& j) {
     get_if(j.at("dbw"), "stop_speed", c.dbw.stop_speed);
   }
   c.dbw.brake_throttle = c.limits.throttle_min;
+  if (j.contains("auth")) get_if(j.at("auth"), "key_file", c.auth_key_file);
   if (j.contains("faults")) {
     get_if(j.at("faults"), "drop", c.faults.drop);
     get_if(j.at("faults"), "delay_max", c.faults.delay_max);
@@ -136,6 +137,7 @@ PlantApp::PlantApp(const PlantAppConfig& cfg, Bus& bus)
       sensors_(cfg.sensors, cfg.effects.yaw_rate_bias, cfg.seed),
       dbw_(cfg.dbw),
       monitor_(track_, cfg.footprint),
+      auth_(FrameAuth::from_key_file(cfg.auth_key_file, DDYN_DBW_MONITOR_DBW_UNIT)),
       fault_rng_(cfg.seed * 7919u + 17u) {
   plant_.reset(cfg.start, 0.0);
   if (!cfg.resume.empty()) restore(cfg.resume);
@@ -177,7 +179,17 @@ bool PlantApp::faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dro
   return true;
 }
 
-void PlantApp::handle_command(const CanFrame& f, double t) {
+void PlantApp::handle_command(const CanFrame& in, double t) {
+  CanFrame f = in;
+  if (auth_) {
+    // only a command whose authenticator verifies reaches the DBW unit; forged, replayed and stale
+    // ones are counted (metrics "auth") and dropped, and do not touch the unit
+    switch (auth_->on_frame(in, t, &f)) {
+      case FrameAuth::Verdict::kAccepted: break;
+      case FrameAuth::Verdict::kPassThrough: break;  // a damaged command (the decoder refuses it) or not ours
+      default: return;
+    }
+  }
   if (f.id != DDYN_CAN_DBW_COMMAND_FRAME_ID) return;  // other nodes' frames
   DbwCommand cmd;
   const CommandCheck check = decoder_.decode(f, cmd);
@@ -237,14 +249,32 @@ void PlantApp::emit(double t_prev, double t) {
   last_sent_.clear();
   for (auto& f : out) {
     bool damaged = false;
-    if (faulty(f, tx_held_, t, tx_dropped_, tx_corrupted_, &damaged)) {
-      bus_.send(f);
-      last_sent_.push_back(f);
-      ++frames_sent_;
-      // a damaged position frame gets no answer: no lock-step wait for it
-      if (f.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && !damaged) gnss_sent_ = answered_position(f);
-    }
+    // a damaged position frame gets no answer: no lock-step wait for it
+    if (send_pair(f, t, &damaged) && f.id == DDYN_CAN_GNSS_POSITION_FRAME_ID && !damaged)
+      gnss_sent_ = answered_position(f);
   }
+}
+
+bool PlantApp::send_pair(CanFrame f, double t, bool* damaged) {
+  // the authenticator is computed over the frame as sent, before the bus may damage it
+  std::optional<CanFrame> a;
+  if (auth_) a = auth_->sign(f);
+  const size_t held_before = tx_held_.size();
+  if (faulty(f, tx_held_, t, tx_dropped_, tx_corrupted_, damaged)) {
+    bus_.send(f);
+    last_sent_.push_back(f);
+    ++frames_sent_;
+    if (a) {
+      bus_.send(*a);
+      last_sent_.push_back(*a);
+      ++frames_sent_;
+    }
+    return true;
+  }
+  if (a && tx_held_.size() > held_before) {
+    tx_held_.push_back({tx_held_.back().release, *a});  // delayed with its frame, released right after it
+  }
+  return false;
 }
 
 bool PlantApp::step() {
@@ -256,7 +286,20 @@ bool PlantApp::step() {
   while (bus_.receive(f, 0)) {
     ++frames_received_;
     if (f.id == DDYN_CAN_DBW_COMMAND_FRAME_ID) controller_quiet_ = false;
-    if (faulty(f, rx_held_, t, rx_dropped_, rx_corrupted_)) handle_command(f, t);
+    if (auth_ && ddyn_dbw_is_authenticator_id(f.id)) {
+      // an authenticator shares the fate of the frame before it (the pair is one transmission)
+      if (last_rx_fate_.sent) handle_command(f, t);
+      else if (last_rx_fate_.held) rx_held_.push_back({last_rx_fate_.release, f});
+      continue;
+    }
+    const size_t held_before = rx_held_.size();
+    last_rx_fate_ = Fate{};
+    last_rx_fate_.sent = faulty(f, rx_held_, t, rx_dropped_, rx_corrupted_);
+    if (!last_rx_fate_.sent && rx_held_.size() > held_before) {
+      last_rx_fate_.held = true;
+      last_rx_fate_.release = rx_held_.back().release;
+    }
+    if (last_rx_fate_.sent) handle_command(f, t);
   }
   for (size_t i = 0; i < rx_held_.size();) {
     if (rx_held_[i].release <= t) {
@@ -266,6 +309,7 @@ bool PlantApp::step() {
       ++i;
     }
   }
+  if (auth_) auth_->expire(t);  // commands whose authenticator never came: stale, dropped
   // 2. the DBW unit drives the actuators
   const DbwOutput out = dbw_.update(t, plant_.state()[kVx]);
   plant_.set_command(out.throttle, out.steering);
@@ -393,6 +437,11 @@ nlohmann::json PlantApp::metrics() const {
               {"tx_dropped", tx_dropped_}, {"tx_corrupted", tx_corrupted_},
               {"rx_dropped", rx_dropped_}, {"rx_corrupted", rx_corrupted_},
               {"lockstep_timeouts", lockstep_timeouts_}};
+  j["auth"] = {{"enabled", auth_.has_value()},
+               {"accepted", auth_ ? auth_->accepted() : 0L},
+               {"forged", auth_ ? auth_->forged() : 0L},
+               {"replayed", auth_ ? auth_->replayed() : 0L},
+               {"stale", auth_ ? auth_->stale() : 0L}};
   j["effects"] = {{"steer_delay", cfg_.effects.steer_delay}, {"throttle_delay", cfg_.effects.throttle_delay},
                   {"steer_lag", cfg_.effects.steer_lag}, {"mass_offset", cfg_.effects.mass_offset},
                   {"yaw_rate_bias", cfg_.effects.yaw_rate_bias}};

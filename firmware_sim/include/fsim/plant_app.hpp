@@ -5,12 +5,14 @@
 #pragma once
 
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <random>
 #include <string>
 #include <vector>
 
 #include "fsim/bus.hpp"
 #include "fsim/dbw_unit.hpp"
+#include "fsim/frame_auth.hpp"
 #include "fsim/lap_monitor.hpp"
 #include "fsim/plant.hpp"
 #include "fsim/sensors.hpp"
@@ -52,6 +54,10 @@ struct PlantAppConfig {
   std::string resume;              // snapshot to resume from (plant restart)
   double snapshot_period = 0.05;   // s between state snapshots (0: none)
   double crash_at = -1.0;          // s: fault scenario, the process ends abruptly (exit 3) here
+  // frame authentication (docs/can.md): the key file ("auth": {"key_file": PATH}, else
+  // $DDYN_DBW_KEY_FILE); none: off. With a key the plant signs every frame it sends and applies
+  // only commands whose authenticator verifies.
+  std::string auth_key_file;
 
   static PlantAppConfig from_json(const nlohmann::json& j);
 };
@@ -85,6 +91,9 @@ class PlantApp {
   bool answered_position(const CanFrame& f);  // a position frame the controller will answer (lock-step)
   bool faulty(CanFrame& f, std::vector<Held>& queue, double t, long& dropped, long& corrupted, bool* damaged = nullptr);
   void handle_command(const CanFrame& f, double t);
+  // the bus faults on a pair (frame + its authenticator): the authenticator shares its frame's fate;
+  // true when the frame went out now (not dropped, not held back)
+  bool send_pair(CanFrame f, double t, bool* damaged);
   void emit(double t_prev, double t);
   void snapshot(double t) const;
   void restore(const std::string& path);
@@ -99,6 +108,12 @@ class PlantApp {
   LapMonitor monitor_;
   CommandDecoder decoder_;
   FeedbackEncoder encoder_;
+  std::optional<FrameAuth> auth_;
+  struct Fate {
+    bool sent = true;
+    bool held = false;
+    double release = 0.0;
+  } last_rx_fate_;  // what the bus did to the last received frame (its authenticator follows it)
   std::mt19937_64 fault_rng_;
   std::uniform_real_distribution<double> uni_{0.0, 1.0};
   std::vector<Held> rx_held_, tx_held_;
