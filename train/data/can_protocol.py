@@ -5,9 +5,14 @@ comment and c_src/src/dbw.c implements: the 4-bit rolling Counter (+1 modulo 16 
 and the Checksum byte, CRC-8/SAE-J1850 (crccheck's Crc8SaeJ1850) over the identifier as two
 little-endian bytes and data bytes 0-6. Decoding checks what the C checks, in the same order,
 and names the defect with the C's failure names (docs/can.md).
+
+The SecOC-style authenticator frames (SecOC_Controller/_DBW/_Sensors, docs/can.md) are messages of
+the DBC like the others; auth_mac() and authenticator() compute them as c_src/src/dbw_auth.c does
+(keyed BLAKE2b with an 8-byte digest, hashlib's, truncated to 24 bits), e.g. to sign or check a log.
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -34,6 +39,32 @@ def database(path: str | Path = DBC_PATH):
 
 def checksum(frame_id: int, data: bytes) -> int:
     return Crc8SaeJ1850.calc(bytes((frame_id & 0xFF, (frame_id >> 8) & 0xFF)) + bytes(data[:7]))
+
+
+AUTH_KEY_LEN, AUTH_MAC_BITS, AUTH_FRESHNESS_BITS = 32, 24, 22
+# the authenticator message of each protected frame's sender
+AUTHENTICATOR_OF = {0x100: "SecOC_Controller", 0x110: "SecOC_DBW", 0x111: "SecOC_DBW", 0x112: "SecOC_DBW",
+                    0x120: "SecOC_Sensors", 0x130: "SecOC_Sensors", 0x131: "SecOC_Sensors"}
+
+
+def auth_mac(key: bytes, frame_id: int, data: bytes, freshness: int) -> int:
+    """The 24-bit MAC of one frame: the first 24 bits of keyed BLAKE2b (8-byte digest) over the identifier
+    (2 bytes LE), the 8 data bytes and the full freshness value (8 bytes LE), as c_src/src/dbw_auth.c."""
+    if len(key) != AUTH_KEY_LEN or len(data) != FRAME_LEN:
+        raise DdynError(f"auth_mac: a {AUTH_KEY_LEN}-byte key and {FRAME_LEN} data bytes, not {len(key)} and {len(data)}")
+    msg = frame_id.to_bytes(2, "little") + bytes(data) + (freshness & (2**64 - 1)).to_bytes(8, "little")
+    d = hashlib.blake2b(msg, key=bytes(key), digest_size=8).digest()
+    return (d[0] << 16) | (d[1] << 8) | d[2]
+
+
+def authenticator(key: bytes, frame_id: int, data: bytes, freshness: int, counter: int, db=None) -> tuple[int, bytes]:
+    """(identifier, 8 data bytes) of the authenticator frame that follows frame (frame_id, data)."""
+    name = AUTHENTICATOR_OF.get(frame_id)
+    if name is None:
+        raise DdynError(f"identifier 0x{frame_id:03X} is not a protected frame of the DBC")
+    return encode(name, {"AuthenticatedId": frame_id - ID_BLOCK_BASE,
+                         "Freshness": freshness % (1 << AUTH_FRESHNESS_BITS),
+                         "Mac": auth_mac(key, frame_id, data, freshness)}, counter, db)
 
 
 def encode(name: str, signals: dict[str, float], counter: int, db=None) -> tuple[int, bytes]:
