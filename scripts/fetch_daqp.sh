@@ -3,7 +3,7 @@
 # from the package index into DIR (default build/third_party), hash-pinned: cmake/fetch_sdist.py reads
 # the index's simple page, downloads the exact file and checks its SHA-256 before it is moved into DIR.
 # Nothing of the archive runs (no pip, no build backend). Idempotent: an archive with the right hash is
-# kept. Called by cmake/daqp.cmake when the archive is missing, and by scripts/setup.sh.
+# kept. Called by cmake/daqp.cmake (cmake/third_party.cmake) when the archive is missing.
 # usage: scripts/fetch_daqp.sh [DIR]
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
