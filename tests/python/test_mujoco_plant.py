@@ -97,6 +97,31 @@ def test_identified_nominal_predicts_a_fresh_log():
         assert fit[c]["rms_residual"] < 0.8 * fit[c]["rms_change"], (c, fit[c])
 
 
+def test_the_cars_own_downforce_is_in_its_nominal(tmp_path):
+    # the contact tyres' grip grows with speed: on every effect-free log the identification diagnosed, downforce
+    # came first at one size (ddyn.gap.baseline), so the nominal carries it; on a fresh effect-free log a
+    # downforce on top of it then pays far less than it does against the coefficients alone
+    from ddyn.gap import baseline
+    from ddyn.gap.problem import nominal_from_vehicle
+    from ddyn.gap.selection import diagnose
+    from ddyn.model.vehicle import load as load_vehicle
+
+    own = load_vehicle(M.NOMINAL_VEHICLE)
+    assert set(own.effects) == {"downforce"} and own.effects["downforce"] > 0
+    raw = json.loads(own.raw_json)
+    raw.pop("effects")
+    bare_file = tmp_path / "bare.json"
+    bare_file.write_text(json.dumps(raw))
+    ds = M.make_log(TRACK, PlantEffects(), 9412, LogSettings(duration=60.0, target_speed=24.0))
+
+    def downforce_dbic(veh):
+        d = diagnose(ds, nominal_from_vehicle(veh, ds), baseline.config().with_(candidates=("downforce",)))
+        return next(c["delta_bic"] for c in d["candidates"] if c["effect"] == "downforce")
+
+    with_own, bare = downforce_dbic(own), downforce_dbic(load_vehicle(bare_file))
+    assert bare < -50.0 and with_own > 0.25 * bare, (with_own, bare)
+
+
 def test_steer_delay_delays_the_wheels():
     base = _log(seed=12)
     late = _log(PlantEffects(steer_delay=0.1), seed=12)

@@ -296,7 +296,7 @@ PLANT_MODULES = {"commonroad": ("ddyn.plants.commonroad_st",),
                  "commonroad-mb": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb"),
                  # a travelling calibration: every plant family's code and the study that drew their logs
                  "families": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb", "ddyn.plants.mujoco_car",
-                              "ddyn.gap.benchmark.families", "ddyn.gap.benchmark.lofo")}
+                              "ddyn.gap.benchmark.families", "ddyn.gap.benchmark.lofo", "ddyn.gap.baseline")}
 
 
 def _stripped(source: str) -> str:

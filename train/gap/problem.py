@@ -3,7 +3,7 @@ into fit and held-out rows (`Problem`), and where the nominal comes from (a vehi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace as _replace
+from dataclasses import dataclass, field, replace as _replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +31,9 @@ class Nominal:
     method: str
     substeps: int
     label: str
+    # effects the vehicle file says the car itself carries (Vehicle.effects): a hypothesis of the same effect
+    # is what comes on top of them
+    effects: dict = field(default_factory=dict)
 
 
 def nominal_from_vehicle(vehicle: Vehicle, ds: Dataset, coeffs=None, method: str | None = None,
@@ -44,7 +47,9 @@ def nominal_from_vehicle(vehicle: Vehicle, ds: Dataset, coeffs=None, method: str
     method = method or ds.metadata.get("method", "euler")
     if substeps is None:
         substeps = int(ds.metadata.get("substeps", vehicle.rk4_substeps if method == "rk4" else 1))
-    return Nominal(vehicle, coeffs, np.ones(len(ds), bool), method, substeps, label)
+    if vehicle.effects:
+        label += " with its effects " + ", ".join(f"{k} {v:g}" for k, v in vehicle.effects.items())
+    return Nominal(vehicle, coeffs, np.ones(len(ds), bool), method, substeps, label, dict(vehicle.effects))
 
 
 def nominal_from_checkpoint(path: str | Path, ds: Dataset) -> Nominal:
@@ -197,6 +202,8 @@ class Problem:
         """The effects of a hypothesis, with the command hold's half-sample delays added when hold is on."""
         if self._hold_values:
             values = {**values, **{k: values.get(k, 0.0) + v for k, v in self._hold_values.items()}}
+        if self.nominal.effects:    # the car's own (Vehicle.effects): a hypothesis adds to them
+            values = {**values, **{k: values.get(k, 0.0) + v for k, v in self.nominal.effects.items()}}
         if self.nominal_effects:
             values = {**self.nominal_effects, **values}
         fx = C.effect_set(values, self.layout)

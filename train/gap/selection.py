@@ -349,7 +349,7 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
                     "refit_held_by": [c for c in candidates if C.holds_refit((c,), prob.bank_family_held)],
                     "command_hold_delay": prob.hold, "hold_estimate": hold_info,
                     "mass_offset_scales_iz": prob.mass_inertia, "steer_servo_tau": prob.steer_servo,
-                    "nominal_effects": prob.nominal_effects,
+                    "nominal_effects": prob.nominal_effects, "vehicle_effects": dict(nominal.effects),
                     "refit_only": {"rmse": _chan(base["rmse"]), "factors": {n: 1.0 + float(r) for n, r in
                                                                              zip(prob.refit, base_fit.rho)}}},
         "split": {"fit_fraction": fit_fraction, "fit_rows": int(len(prob.rows_fit)),

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ddyn.errors import DdynError
+from ddyn.model.effects import MAIN_PARAM
 from ddyn.model.single_track import COEFF_NAMES, DRIVETRAINS, KnownParams
 
 VEHICLE_DIR = Path(__file__).resolve().parents[1] / "vehicles"  # train/vehicles
@@ -45,6 +46,9 @@ class Vehicle:
     # ranges): never inferred from a log's clock in place of that car
     variant_of: str = ""
     sources: dict[str, str] = field(default_factory=dict)
+    # effects the car's nominal itself carries ({effect: main parameter}, ddyn.model.effects.MAIN_PARAM), e.g. a
+    # downforce identified on effect-free logs: what a gap diagnosis reports is what comes on top of them
+    effects: dict[str, float] = field(default_factory=dict)
     source_path: str = ""
     raw_json: str = ""
     digest: str = ""
@@ -130,6 +134,15 @@ def _coefficients(raw: dict, key: str, path: str) -> dict[str, float] | None:
     return {k: _number(table[k], f"{key}.{k}", path) for k in COEFF_NAMES}
 
 
+def _effects(raw: dict, path: str) -> dict[str, float]:
+    """The optional "effects" table: {effect name: its main parameter}, names from ddyn.model.effects.MAIN_PARAM."""
+    table = _mapping(raw, "effects", path, required=False)
+    unknown = [k for k in table if k not in MAIN_PARAM]
+    if unknown:
+        raise DdynError(f"{path}: effects.{unknown[0]} is not an effect; expected one of {', '.join(MAIN_PARAM)}")
+    return {k: _number(v, f"effects.{k}", path) for k, v in table.items()}
+
+
 def _known(raw: dict, path: str) -> KnownParams:
     """mass, lf, lr, v_min from "known"; the drivetrain form from "drivetrain" (default the papers'), and
     for "powertrain" the brake gain from known.brake_gain (required there, refused elsewhere)."""
@@ -186,6 +199,7 @@ def parse(raw_bytes: bytes, origin: str) -> Vehicle:
     limits = _mapping(raw, "input_limits", path)
     noise = _mapping(raw, "sensor_noise_std", path, required=False)
     sources = _mapping(raw, "sources", path, required=False)
+    effects = _effects(raw, path)
     for key in ("name", "description", "variant_of"):
         if key in raw and not isinstance(raw[key], str):
             raise DdynError(f"{path}: {key} must be a string, got {_short(raw[key])}")
@@ -205,6 +219,7 @@ def parse(raw_bytes: bytes, origin: str) -> Vehicle:
         description=raw.get("description", ""),
         variant_of=raw.get("variant_of", ""),
         sources=dict(sources),
+        effects=effects,
         source_path=path,
         digest=hashlib.sha256(raw_bytes).hexdigest(),
     )

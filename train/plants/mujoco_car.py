@@ -134,6 +134,8 @@ PITCH_NOISE = 0.003          # rad
 SETTLE_TIME = 0.6            # s: the car settles on its springs at standstill before the log starts
 IDENT_SEEDS = (9300, 9301)   # effect-free logs used for nothing but identifying the nominal
 IDENT_DURATION = 120.0       # s per identification log
+BASELINE_SEEDS = (9302, 9303, 9304)    # effect-free logs across the campaign's speeds for the car's own effects
+BASELINE_SPEEDS = (18.0, 22.0, 26.0)   # m/s (ddyn.gap.baseline)
 START_VEHICLE = {            # the rough coefficients the identification starts from (Df, Dr: mu m g lr / L ...)
     "Bf": 12.0, "Cf": 1.4, "Df": 7239.0, "Ef": 0.0, "Gf": 0.0, "Kf": 0.0,
     "Br": 12.0, "Cr": 1.4, "Dr": 7804.0, "Er": 0.0, "Gr": 0.0, "Kr": 0.0,
@@ -573,44 +575,84 @@ def one_step_fit(vehicle_file=NOMINAL_VEHICLE, seed: int = IDENT_SEEDS[1], durat
     return out
 
 
+def baseline_logs(vehicle_file) -> list:
+    """Effect-free logs across the speeds a campaign drives (BASELINE_SEEDS, BASELINE_SPEEDS)."""
+    return [make_log("putnam", PlantEffects(), seed, LogSettings(duration=IDENT_DURATION, target_speed=v),
+                     vehicle_file) for seed, v in zip(BASELINE_SEEDS, BASELINE_SPEEDS)]
+
+
+def _fit(start: dict, seed: int, hold: bool, tmp: Path) -> tuple:
+    from ddyn.gap.benchmark.commonroad import identified_coefficients
+
+    start_file = tmp / "mujoco_car.json"
+    start_file.write_text(json.dumps(start, indent=2))
+    return identified_coefficients(hold=hold, vehicle_file=start_file, seed=seed,
+                                   make_ident_log=lambda s, d: identification_log(s, d, start_file))
+
+
 def identify(out: Path = NOMINAL_VEHICLE, seed: int = IDENT_SEEDS[0], check_seed: int = IDENT_SEEDS[1],
              hold: bool = False) -> dict:
     """Write the nominal vehicle file: the project's 17 coefficients fitted (ddyn.gap.benchmark.commonroad.
-    identified_coefficients) on an effect-free log (seed), starting from start_vehicle(); then the one-step fit on
-    a fresh effect-free log (check_seed)."""
+    identified_coefficients) on an effect-free log (seed), starting from start_vehicle(); then the car's own
+    effects (ddyn.gap.baseline: an effect the diagnosis claims first on every effect-free log of baseline_logs) put
+    in the file's "effects", the tyre peaks scaled by the refit it was found with; then the one-step fit on a fresh
+    effect-free log (check_seed)."""
     import tempfile
 
+    from ddyn.gap import baseline
     from ddyn.gap.benchmark.commonroad import IDENT_DURATION as BENCH_IDENT_DURATION
-    from ddyn.gap.benchmark.commonroad import identified_coefficients
     from ddyn.model.single_track import COEFF_NAMES
+    from ddyn.model.vehicle import load as load_vehicle
 
     start = start_vehicle()
+    t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        start_file = Path(tmp) / "mujoco_car.json"
-        start_file.write_text(json.dumps(start, indent=2))
-        t0 = time.perf_counter()
-        c, info = identified_coefficients(
-            hold=hold, vehicle_file=start_file, seed=seed,
-            make_ident_log=lambda s, d: identification_log(s, d, start_file))
-        seconds = time.perf_counter() - t0
-    veh = dict(start)
-    veh["true_coefficients"] = {n: float(round(v, 6)) for n, v in zip(COEFF_NAMES, c)}
+        tmp = Path(tmp)
+        c, info = _fit(start, seed, hold, tmp)
+        veh = dict(start, true_coefficients={n: float(round(v, 6)) for n, v in zip(COEFF_NAMES, c)})
+        (tmp / "fitted.json").write_text(json.dumps(veh, indent=2))
+        logs = baseline_logs(tmp / "fitted.json")
+        claims = baseline.first_claims(logs, load_vehicle(tmp / "fitted.json"))
+        own = baseline.consistent_effect(claims)
+        after, factors = [], {}
+        if own:
+            # the effect with the tyre peaks' refit factors it was found with (ddyn.gap.baseline.refit_factors);
+            # a refit of all 17 with it on the one identification log trades it against the tyre curve instead
+            # (C at its range edge)
+            own = {k: float(f"{v:.4g}") for k, v in own.items()}
+            factors = baseline.refit_factors(claims)
+            coeffs = {n: float(round(v * factors.get(n, 1.0), 6)) for n, v in veh["true_coefficients"].items()}
+            veh = dict(veh, effects=own, true_coefficients=coeffs)
+            (tmp / "fitted.json").write_text(json.dumps(veh, indent=2))
+            after = baseline.first_claims(logs, load_vehicle(tmp / "fitted.json"))
+    seconds = time.perf_counter() - t0
     veh["description"] = (
         "the MuJoCo rigid-body car (ddyn.plants.mujoco_car: 1500 kg RWD saloon, contact tyres, suspension) as the "
         "project's single-track model: its 17 coefficients identified on an effect-free log of the plant "
-        f"(seed {seed}, {BENCH_IDENT_DURATION:g} s on putnam, hold {hold}) by "
+        f"(seed {seed}, {BENCH_IDENT_DURATION:g} s on putnam, hold {hold}) and its own effects on effect-free logs "
+        f"at {', '.join(f'{v:g}' for v in BASELINE_SPEEDS)} m/s (seeds {', '.join(map(str, BASELINE_SEEDS))}) by "
         "`python -m ddyn.plants.mujoco_car --identify` (ddyn.gap.benchmark.commonroad.identified_coefficients, "
-        "starting from mujoco_car.start_vehicle())")
+        "ddyn.gap.baseline, starting from mujoco_car.start_vehicle())")
     out.write_text(json.dumps(veh, indent=2) + "\n")
     fit = one_step_fit(out, check_seed)
+
+    def said(cl):
+        return "; ".join("none" if x["effect"] is None else f"{x['effect']} {x['value']:.4g}" for x in cl)
+
     veh["sources"] = dict(veh["sources"])
     veh["sources"]["true_coefficients"] = (
         f"identified: seed {seed} ({BENCH_IDENT_DURATION:g} s, effect-free), at the range edge: "
         f"{', '.join(info['at_range_edge']) or 'none'}; one-step rms residual on a fresh 60 s log (seed "
         f"{check_seed}): " + ", ".join(f"{k} {v['rms_residual']:.4f} (channel std {v['std']:.3f}, one-sample "
                                        f"change {v['rms_change']:.4f})" for k, v in fit.items()))
+    veh["sources"]["effects"] = (
+        f"the first claims of the diagnosis on the effect-free logs (ddyn.gap.baseline): {said(claims)}"
+        + (f"; the same one at a consistent size on every log, so the car's own: {own}; with it in the nominal "
+           f"(Df, Dr times {', '.join(f'{n} {x:.3f}' for n, x in factors.items())}), the first claims are: {said(after)}" if own else
+           "; no effect is the same on every log: none is the car's own"))
     out.write_text(json.dumps(veh, indent=2) + "\n")
-    return {"coefficients": veh["true_coefficients"], "info": info, "seconds": seconds, "one_step": fit}
+    return {"coefficients": veh["true_coefficients"], "effects": own, "claims": claims, "claims_after": after,
+            "info": info, "seconds": seconds, "one_step": fit}
 
 
 def main(argv=None) -> None:
