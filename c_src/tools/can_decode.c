@@ -22,6 +22,7 @@ static const char *result_name(ddyn_dbw_decode_result r)
     case DDYN_DBW_DECODE_BAD_LENGTH: return "bad_length";
     case DDYN_DBW_DECODE_CHECKSUM: return "checksum";
     case DDYN_DBW_DECODE_RANGE: return "range";
+    case DDYN_DBW_DECODE_AUTHENTICATOR: return "authenticator";
     default: return "argument";
     }
 }
