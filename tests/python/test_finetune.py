@@ -252,6 +252,31 @@ def test_register_adds_both_subcommands():
 # ---------------------------------------------------------------------------------------------
 # the study
 
+def test_fthd_beats_scratch_at_small_fractions_over_seeds(monkeypatch, shared_data, tmp_path):
+    """The paper's claim at small data fractions, in quick mode: fine-tuning the pre-trained DDM beats
+    training from scratch with the same counted steps. One training seed is a thin sample (seed 0: FTHD/DDM
+    validation loss 0.55, 0.97, 0.11 at 30, 20, 15 %; seed 5 lost at 20 %, 1.004), so the measured quantity
+    is the median of the ratio over five training seeds (both arms seeded alike), per fraction; the bound
+    stays 1 (FTHD better). Measured over seeds 0-4: medians 0.38, 0.59, 0.32 (over seeds 0-9: 0.48, 0.57,
+    0.17); the full study: 38-115x."""
+    import dataclasses
+    data = fthd_study.sim_data(tmp_path / "data", True)
+    settings = fthd_study.settings
+    ratios: dict[float, list[float]] = {}
+    for seed in range(5):
+        def seeded(quick, seed=seed):
+            st = settings(quick)
+            return dataclasses.replace(st, ddm=dataclasses.replace(st.ddm, seed=seed),
+                                       fthd=dataclasses.replace(st.fthd, seed=seed))
+        monkeypatch.setattr(fthd_study, "settings", seeded)
+        res = fthd_study.run_setting("sim", data, tmp_path / f"seed{seed}", (0.3, 0.2, 0.15), True, progress=False)
+        for r in res["fractions"]:
+            assert r["ddm"]["steps"] == r["fthd"]["steps"]
+            ratios.setdefault(r["fraction"], []).append(r["fthd"]["min_val_loss"] / r["ddm"]["min_val_loss"])
+    medians = {f: float(np.median(v)) for f, v in ratios.items()}
+    assert all(m < 1.0 for m in medians.values()), (medians, ratios)
+
+
 def test_study_quick_runs_end_to_end(monkeypatch, shared_data, tmp_path):
     out = tmp_path / "study"
     assert _cli(monkeypatch, ["study", "fthd", "all", "--quick", "--quiet", "--out", str(out)]) == 0
@@ -263,11 +288,8 @@ def test_study_quick_runs_end_to_end(monkeypatch, shared_data, tmp_path):
         assert r["ddm"]["steps"] == r["fthd"]["steps"]
         assert set(r["fthd"]["coefficients"]) == set(r["ddm"]["coefficients"])
         assert np.isfinite(r["fthd"]["coefficients"]["Bf"]["abs_error"])
-        if r["fraction"] <= 0.3:
-            # the paper's claim at small data fractions, in quick mode too: fine-tuning the pre-trained
-            # DDM beats training from scratch with the same counted steps (quick mode measured 0.31 vs
-            # 0.57 at 30 %, 0.41 vs 0.43 at 20 %, 0.39 vs 3.6 at 15 %; the full study: 38-115x)
-            assert r["fthd"]["min_val_loss"] < r["ddm"]["min_val_loss"], r["fraction"]
+        # the paper's claim at small fractions: test_fthd_beats_scratch_at_small_fractions_over_seeds (one
+        # seed's 0.41 against 0.43 at 20 % was too thin a margin to assert, issue 35)
     assert [r["fraction"] for r in res["sim"]["budget_check"]["fractions"]] == [0.8, 0.15]
     assert {"sim_val_loss", "sim_coefficients", "real_sim_val_loss", "real_log_val_loss"} <= set(res["targets"])
     md = (out / "results.md").read_text()
