@@ -127,21 +127,28 @@ def test_drivetrain_study_recovers_a_simulated_powertrain():
 
 
 def test_slip_offsets_recover_the_simulated_shifts():
-    """`ddyn study drivetrain`'s slip offsets on a log of av21_powertrain itself: on straight running the
+    """`ddyn study drivetrain`'s slip offsets on logs of av21_powertrain itself: on straight running the
     measured shifts are the simulator's Gf, Gr (opposite signs: a shared sensor bias would not tell them
-    apart) within the stated error of the measurement (AY_STRAIGHT: 0.0013 rad; K adds 0.0002 rad)."""
+    apart) within the stated error of the measurement (AY_STRAIGHT: 0.0013 rad; K adds 0.0002 rad). The
+    bound is the method's stated error, so one log is a thin sample of it (issue 35): five logs (seeds
+    4-8), each within it, and their median error at most a third of it. Measured: |error| Gf 0.00011-0.00040,
+    Gr 0.00002-0.00017 rad; medians 0.00031 and 0.00010."""
     from ddyn.data import simulate
     from ddyn.model import tracks
     from ddyn.studies import drivetrain
 
     v = vehicle.load("av21_powertrain")
-    ds = simulate.simulate(v, tracks.load_track("putnam"), duration=60.0, seed=4, progress=False)
-    res = drivetrain.run(ds, v)
-    so = res["slip_offsets"]
-    assert so["rows"] >= 50
-    for name in ("Gf", "Gr"):
-        assert abs(so[name]["offset"] - v.true_coefficients[name]) < 0.0015, (name, so[name])
-        assert so[name]["p05"] <= so[name]["offset"] <= so[name]["p95"]
+    errors: dict[str, list[float]] = {"Gf": [], "Gr": []}
+    for seed in (4, 5, 6, 7, 8):
+        ds = simulate.simulate(v, tracks.load_track("putnam"), duration=60.0, seed=seed, progress=False)
+        so = drivetrain.run(ds, v)["slip_offsets"]
+        assert so["rows"] >= 50
+        for name in ("Gf", "Gr"):
+            errors[name].append(abs(so[name]["offset"] - v.true_coefficients[name]))
+            assert errors[name][-1] < 0.0015, (seed, name, so[name])
+            assert so[name]["p05"] <= so[name]["offset"] <= so[name]["p95"]
+    for name, e in errors.items():
+        assert np.median(e) < 0.0015 / 3, (name, e)
 
 
 def test_slip_offsets_need_straight_running():
