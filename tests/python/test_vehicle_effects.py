@@ -68,19 +68,24 @@ def _claims(*pairs):
     return [{"effect": e, "value": v, "verdict": ""} for e, v in pairs]
 
 
-def test_an_effect_on_every_log_at_one_size_is_the_cars_own():
-    got = baseline.consistent_effect(_claims(("downforce", 0.0017), ("downforce", 0.0019), ("downforce", 0.0016)))
-    assert got == {"downforce": pytest.approx(0.0017)}
+def test_an_effect_first_on_most_logs_at_one_size_is_the_cars_own():
+    claims = _claims(("downforce", 0.0017), ("downforce", 0.0019), ("steer_delay", 0.02))
+    own, named = baseline.consistent_effect(claims)
+    assert own == {"downforce": pytest.approx(0.0018)} and named == claims[:2]
+    # the refit factors it was found with go with it
+    claims[0]["refit"], claims[1]["refit"] = {"Df": 0.5, "Dr": 0.6}, {"Df": 0.7, "Dr": 0.8}
+    assert baseline.refit_factors(named) == {"Df": pytest.approx(0.6), "Dr": pytest.approx(0.7)}
 
 
 @pytest.mark.parametrize("claims", [
-    _claims(("downforce", 0.0017), ("steer_delay", 0.02)),          # not the same effect
-    _claims(("downforce", 0.0017), (None, None)),                   # one log claims nothing
-    _claims(("downforce", 0.001), ("downforce", 0.002)),            # sizes a factor 2 apart
-    _claims(("yaw_rate_bias", 0.01), ("yaw_rate_bias", -0.01)),     # opposite signs
+    _claims(("downforce", 0.0017), ("steer_delay", 0.02)),                          # no majority
+    _claims(("downforce", 0.0017), (None, None), (None, None)),                     # one log of three
+    _claims(("downforce", 0.001), ("downforce", 0.002)),                            # sizes a factor 2 apart
+    _claims(("yaw_rate_bias", 0.01), ("yaw_rate_bias", -0.01)),                     # opposite signs
+    _claims(("downforce", 0.0017), ("downforce", 0.0018), (None, None), (None, None)),   # half is not most
 ])
 def test_anything_else_is_left_to_the_diagnosis(claims):
-    assert baseline.consistent_effect(claims) == {}
+    assert baseline.consistent_effect(claims) == ({}, [])
 
 
 def test_one_log_cannot_say_what_the_car_is():

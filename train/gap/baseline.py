@@ -9,9 +9,11 @@ and a later diagnosis reports what comes on top of it (ddyn.gap.problem.Problem.
 tyre peaks (Df, Dr) under every hypothesis, so the effect was found together with its refit factors: those go into
 the file's coefficients with it (refit_factors), or the nominal alone would predict worse than before.
 
-An effect is the car's own when it is the first claim on each of at least MIN_LOGS effect-free logs with the same
-sign and sizes within a factor CONSISTENT of each other; its value is their median. Anything else (different
-effects, or one log's claim) is left to the diagnosis: it is what one log shows, not what the car is.
+An effect is the car's own when it is the first claim on at least MIN_LOGS effect-free logs and on more than half
+of them, with one sign and sizes within a factor CONSISTENT of each other; its value is their median. A log that
+names something else or nothing does not veto it: a slow log cannot tell a downforce from the tyre peaks (its
+speed hardly varies), so it says nothing on it. Anything else (no majority, sizes apart, one log's claim) is left
+to the diagnosis: it is what one log shows, not what the car is.
 """
 from __future__ import annotations
 
@@ -56,20 +58,22 @@ def refit_factors(claims: list[dict]) -> dict:
     return {n: float(statistics.median(c["refit"][n] for c in claims if n in c.get("refit", {}))) for n in names}
 
 
-def consistent_effect(claims: list[dict]) -> dict:
-    """{effect: value} when every log's first claim is the same one-parameter effect at a consistent size, else {}."""
+def consistent_effect(claims: list[dict]) -> tuple[dict, list[dict]]:
+    """({effect: value}, the claims that name it) when one one-parameter effect is the first claim on at least
+    MIN_LOGS logs and on more than half of them, with one sign and sizes within CONSISTENT; else ({}, [])."""
     if len(claims) < MIN_LOGS:
         raise DdynError(f"the car's own effects need at least {MIN_LOGS} effect-free logs, got {len(claims)}")
-    names = {c["effect"] for c in claims}
-    if len(names) != 1 or None in names:
-        return {}
-    (name,) = names
-    values = [c["value"] for c in claims]
-    if name not in E.MAIN_PARAM or any(v is None or v == 0 for v in values):
-        return {}
-    if len({v > 0 for v in values}) != 1:
-        return {}
+    names = [c["effect"] for c in claims if c["effect"] is not None]
+    best = max(set(names), key=names.count, default=None)
+    if best is None or best not in E.MAIN_PARAM:
+        return {}, []
+    mine = [c for c in claims if c["effect"] == best]
+    if len(mine) < MIN_LOGS or 2 * len(mine) <= len(claims):
+        return {}, []
+    values = [c["value"] for c in mine]
+    if any(v is None or v == 0 for v in values) or len({v > 0 for v in values}) != 1:
+        return {}, []
     mags = sorted(abs(v) for v in values)
     if mags[-1] > CONSISTENT * mags[0]:
-        return {}
-    return {name: float(statistics.median(values))}
+        return {}, []
+    return {best: float(statistics.median(values))}, mine
