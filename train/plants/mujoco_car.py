@@ -60,11 +60,14 @@ Not supported (DdynError):
 
 The nominal vehicle file (NOMINAL_VEHICLE) is what a user would have for a car with no single-track equivalent:
 the project's model identified on effect-free logs of this plant (`python -m ddyn.plants.mujoco_car --identify`,
-which starts from the car's known mass, lf, lr, Iz and rough coefficients, START_VEHICLE).
-On seed 9300 (120 s) the fit puts Iz at its range's upper edge (4000 kg m^2 against the car's 2400: the contact
-tyres' force grows with slip velocity, not slip angle, and the DBW hold and servo lag the model does not have
-are absorbed there) and Cr0 at zero (taken up by Cd); its one-step rms residual on a fresh effect-free 60 s log
-(seed 9301) is at the sensor-noise floor: vx 0.072 m/s, vy 0.029 m/s, omega 0.0078 rad/s.
+which starts from the car's known mass, lf, lr, Iz and rough coefficients, START_VEHICLE), then the car's own
+effects (ddyn.gap.baseline) on three effect-free logs at 18, 22 and 26 m/s: downforce comes first on the two
+faster ones at one size (k 0.0017: the contact tyres' force grows with slip velocity, so with speed), so the file
+carries it, with the tyre peaks scaled by the refit it was found with (Df, Dr times 0.59). The fit puts Iz at its
+range's upper edge (4000 kg m^2 against the car's 2400: the DBW hold and servo lag the model does not have are
+absorbed there) and Cr0 at zero (taken up by Cd); its one-step rms residual on a fresh effect-free 60 s log
+(seed 9301) is at the sensor-noise floor: vx 0.072 m/s, vy 0.026 m/s, omega 0.0078 rad/s. The driver plans its
+speed from fixed coefficients (DRIVER_COEFFICIENTS), never from the nominal file.
 
 Cost: about 1.2-1.5 s of CPU per 60 s log (mj_step ~20 us per 1 ms step).
 """
