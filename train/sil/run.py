@@ -497,7 +497,7 @@ def stop_host_logger(proc: subprocess.Popen, url: str) -> int:
         raise DdynError("lcm-logger did not stop within 10 s of SIGINT") from None
 
 
-def wait_until_ready(ctl: subprocess.Popen, stdout: Path, timeout: float = 30.0) -> None:
+def wait_until_ready(ctl: subprocess.Popen, stdout: Path, timeout: float = 120.0) -> None:
     """Until the controller listens on the bus (its "running" line comes after the socket is bound):
     a position frame the plant sent before would be lost, and the lock-step plant would wait it out."""
     deadline = time.monotonic() + timeout
