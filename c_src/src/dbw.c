@@ -813,17 +813,37 @@ static uint32_t sat_add_u32(uint32_t a, uint32_t b)
 
 void ddyn_dbw_link_init(ddyn_dbw_link *link)
 {
+    int f;
     if (link != NULL) {
         memset(link, 0, sizeof *link);
+        for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
+            link->cycle_s[f] = (double)ddyn_dbw_cycle_us((ddyn_dbw_frame)f) * 1e-6;
+        }
     }
+}
+
+/* the DBC's attribute range of GenMsgCycleTime: INT 0 10000 (ms) */
+#define LINK_CYCLE_MAX_US 10000000u
+
+ddyn_status ddyn_dbw_link_set_cycle(ddyn_dbw_link *link, ddyn_dbw_frame frame, uint32_t cycle_us)
+{
+    if (link == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT || cycle_us > LINK_CYCLE_MAX_US) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    link->cycle_s[frame] = (double)(cycle_us != 0u ? cycle_us : ddyn_dbw_cycle_us(frame)) * 1e-6;
+    return DDYN_OK;
+}
+
+double ddyn_dbw_link_cycle(const ddyn_dbw_link *link, ddyn_dbw_frame frame)
+{
+    return (link == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT) ? -1.0 : link->cycle_s[frame];
 }
 
 ddyn_dbw_link_result ddyn_dbw_link_on_frame(ddyn_dbw_link *link, ddyn_dbw_frame frame, uint8_t counter,
                                             unsigned *lost, double *age_s)
 {
-    const double cycle = (double)ddyn_dbw_cycle_us(frame) * 1e-6;
     unsigned step = 1u;
-    double tau, age;
+    double tau, age, cycle;
     int f = (int)frame;
     if (lost != NULL) {
         *lost = 0u;
@@ -834,6 +854,7 @@ ddyn_dbw_link_result ddyn_dbw_link_on_frame(ddyn_dbw_link *link, ddyn_dbw_frame 
     if (link == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT) {
         return DDYN_DBW_LINK_REPEATED;
     }
+    cycle = link->cycle_s[f];
     counter = (uint8_t)(counter % DDYN_DBW_COUNTER_MODULO);
     if (link->seen[f]) {
         step = (counter + DDYN_DBW_COUNTER_MODULO - link->last_counter[f]) % DDYN_DBW_COUNTER_MODULO;
@@ -913,7 +934,7 @@ double ddyn_dbw_link_age(const ddyn_dbw_link *link, ddyn_dbw_frame frame)
     if (link == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT || !link->seen[f]) {
         return -1.0;
     }
-    return link->now_s - (link->phase_s[f] + (double)link->seq[f] * (double)ddyn_dbw_cycle_us(frame) * 1e-6);
+    return link->now_s - (link->phase_s[f] + (double)link->seq[f] * link->cycle_s[f]);
 }
 
 uint32_t ddyn_dbw_link_take_faults(ddyn_dbw_link *link)

@@ -919,6 +919,61 @@ static void test_link_tick_aligns_a_stream_whose_first_frame_looked_old(void **s
     }
 }
 
+static void test_link_dates_each_stream_at_its_own_cycle(void **state)
+{
+    /* issue 34: the AV-21 sends its GNSS frames once per 40 ms period, the DBC says 20 ms. Dated at
+     * the DBC's cycle, a clean GNSS stream falls 20 ms further behind the 100 Hz IMU at every frame,
+     * and the phase correction (one window of 16 periods) comes too late: the controller saw every
+     * period as late. Told the real cycle, the same clean bus shows no age at all. */
+    ddyn_dbw_link wrong, right;
+    double age, worst_wrong = 0.0, worst_right = 0.0;
+    unsigned lost, k, i;
+    (void)state;
+    ddyn_dbw_link_init(&wrong);
+    ddyn_dbw_link_init(&right);
+    assert_true(fabs(ddyn_dbw_link_cycle(&right, DDYN_DBW_FRAME_GNSS_POSITION) - 0.020) < 1e-12); /* the DBC's */
+    assert_int_equal(ddyn_dbw_link_set_cycle(&right, DDYN_DBW_FRAME_GNSS_POSITION, 40000u), DDYN_OK);
+    assert_int_equal(ddyn_dbw_link_set_cycle(&right, DDYN_DBW_FRAME_GNSS_HEADING, 40000u), DDYN_OK);
+    assert_true(fabs(ddyn_dbw_link_cycle(&right, DDYN_DBW_FRAME_GNSS_POSITION) - 0.040) < 1e-12);
+    assert_true(fabs(ddyn_dbw_link_cycle(&right, DDYN_DBW_FRAME_IMU) - 0.010) < 1e-12); /* untouched */
+    for (k = 1u; k <= 100u; ++k) { /* 4 s of a clean bus: four IMU frames, then heading and position */
+        ddyn_dbw_link *links[2];
+        links[0] = &wrong;
+        links[1] = &right;
+        for (i = 0u; i < 2u; ++i) {
+            unsigned n;
+            for (n = 0u; n < 4u; ++n) {
+                assert_int_equal(link_frame(links[i], DDYN_DBW_FRAME_IMU, 4u * k + n, &lost, &age), DDYN_DBW_LINK_NEW);
+            }
+            assert_int_equal(link_frame(links[i], DDYN_DBW_FRAME_GNSS_HEADING, k, &lost, &age), DDYN_DBW_LINK_NEW);
+            assert_int_equal(link_frame(links[i], DDYN_DBW_FRAME_GNSS_POSITION, k, &lost, &age), DDYN_DBW_LINK_NEW);
+            assert_int_equal(lost, 0u);
+            ddyn_dbw_link_tick(links[i]);
+        }
+        if (k > 1u) { /* after the first period (the first window) */
+            double a = ddyn_dbw_link_age(&wrong, DDYN_DBW_FRAME_GNSS_POSITION);
+            worst_wrong = a > worst_wrong ? a : worst_wrong;
+            a = ddyn_dbw_link_age(&right, DDYN_DBW_FRAME_GNSS_POSITION);
+            worst_right = a > worst_right ? a : worst_right;
+            a = ddyn_dbw_link_age(&right, DDYN_DBW_FRAME_GNSS_HEADING);
+            worst_right = a > worst_right ? a : worst_right;
+            a = ddyn_dbw_link_age(&right, DDYN_DBW_FRAME_IMU);
+            worst_right = a > worst_right ? a : worst_right;
+        }
+    }
+    assert_int_equal(ddyn_dbw_link_take_faults(&right), 0u);
+    assert_true(worst_right < 1e-9);
+    assert_true(worst_wrong > 0.040); /* older than a whole 40 ms period: the old reading of a clean bus */
+    /* 0 restores the DBC's; unknown frames, NULL and cycles beyond the DBC's range are refused */
+    assert_int_equal(ddyn_dbw_link_set_cycle(&right, DDYN_DBW_FRAME_GNSS_HEADING, 0u), DDYN_OK);
+    assert_true(fabs(ddyn_dbw_link_cycle(&right, DDYN_DBW_FRAME_GNSS_HEADING) - 0.020) < 1e-12);
+    assert_int_equal(ddyn_dbw_link_set_cycle(&right, DDYN_DBW_FRAME_COUNT, 40000u), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_dbw_link_set_cycle(NULL, DDYN_DBW_FRAME_IMU, 40000u), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_dbw_link_set_cycle(&right, DDYN_DBW_FRAME_IMU, 10000001u), DDYN_ERR_ARGUMENT);
+    assert_true(ddyn_dbw_link_cycle(NULL, DDYN_DBW_FRAME_IMU) == -1.0);
+    assert_true(ddyn_dbw_link_cycle(&right, DDYN_DBW_FRAME_COUNT) == -1.0);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -954,6 +1009,7 @@ int main(void)
         cmocka_unit_test(test_link_counts_saturate_instead_of_wrapping),
         cmocka_unit_test(test_link_measures_the_age_of_a_delayed_frame),
         cmocka_unit_test(test_link_tick_aligns_a_stream_whose_first_frame_looked_old),
+        cmocka_unit_test(test_link_dates_each_stream_at_its_own_cycle),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

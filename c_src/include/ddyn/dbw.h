@@ -360,6 +360,12 @@ uint8_t ddyn_dbw_fault_bits(uint32_t failure_mask);
  * to its phase: its least delayed frame is fresh by definition. Phases only move forward, by measured
  * amounts.
  *
+ * Cycles: the DBC's GenMsgCycleTime by default (ddyn_dbw_cycle_us). A car whose nodes send a frame at
+ * another rate (the AV-21 sends its GNSS frames once per 40 ms control period, the DBC says 20 ms) must
+ * say so (ddyn_dbw_link_set_cycle): dated with the wrong cycle, a clean stream drifts against the others
+ * by (DBC cycle - real cycle) per frame, and every period reads as late (issue 34: 2,616 of 2,619
+ * periods of a clean AV-21 lap were in the degraded-bus mode).
+ *
  * Lost frames (counter jumps), late frames, repeats and bad frames (checksum, length, range) are
  * counted since the last ddyn_dbw_link_take_faults(): the controller's degraded-bus detection.
  * Every count, their sum and the sequence numbers saturate instead of wrapping. */
@@ -373,6 +379,7 @@ typedef enum {
 
 typedef struct {
     double now_s;                              /* bus clock: sample time of the freshest frame */
+    double cycle_s[DDYN_DBW_FRAME_COUNT];      /* each stream's cycle (init: the DBC's) */
     double phase_s[DDYN_DBW_FRAME_COUNT];      /* sample time of sequence number 0 */
     double window_min_s[DDYN_DBW_FRAME_COUNT]; /* smallest age at the ticks of the current window */
     int64_t seq[DDYN_DBW_FRAME_COUNT];         /* unwrapped sequence number of the newest frame */
@@ -385,7 +392,13 @@ typedef struct {
     uint32_t lost, late, repeated, bad;
 } ddyn_dbw_link;
 
+/* Every stream at the DBC's cycle time. */
 void ddyn_dbw_link_init(ddyn_dbw_link *link);
+
+/* The cycle at which this car's sender really sends `frame`, in microseconds; 0 = the DBC's. Call it
+ * after ddyn_dbw_link_init and before the stream's first frame. Returns DDYN_OK, or DDYN_ERR_ARGUMENT
+ * (NULL link, unknown frame, or a cycle above 10 s, the DBC's largest GenMsgCycleTime). */
+ddyn_status ddyn_dbw_link_set_cycle(ddyn_dbw_link *link, ddyn_dbw_frame frame, uint32_t cycle_us);
 
 /* One good frame (decoded with a good checksum) of `frame` with `counter`. On NEW, *lost (may be
  * NULL) is the number of frames of this stream skipped before it and *age_s (may be NULL) its age
@@ -398,6 +411,9 @@ void ddyn_dbw_link_tick(ddyn_dbw_link *link);
 
 /* A frame refused by its checksum, length or range: counted as bad. */
 void ddyn_dbw_link_on_bad_frame(ddyn_dbw_link *link);
+
+/* The cycle (s) the link dates `frame` with (-1 for an unknown frame or a NULL link). */
+double ddyn_dbw_link_cycle(const ddyn_dbw_link *link, ddyn_dbw_frame frame);
 
 /* The age now (s) of the newest frame received of `frame` (-1 when none yet). */
 double ddyn_dbw_link_age(const ddyn_dbw_link *link, ddyn_dbw_frame frame);
