@@ -12,17 +12,20 @@
 // position frame. Writes the same files as the two processes (plant_metrics.json, trajectory.csv,
 // controller_metrics.json, controller_log.csv). A restarting plant is not supported here.
 //
-// Frame authentication (docs/can.md): when the plant has a key (PLANT.json "auth": {"key_file"}, or
-// $DDYN_DBW_KEY_FILE), this loop is the controller's side of it as its transport would be: the
-// plant's frames reach the node only once their authenticator verifies, and each command goes out
-// with its authenticator. --inject-forged-steering T0:T1 plays an attacker on the bus from T0 to T1 s
-// of simulated time: after every genuine command it sends a forged DBW_Command (full steering
-// left, full throttle, the next counter, a valid CRC) with an authenticator made without the key;
-// the plant's metrics count what its DBW unit refused ("auth") and the lap's violations.
+// Frame authentication (docs/can.md): the plant signs and verifies with PLANT.json's key ("auth":
+// {"key_file"}, else $DDYN_DBW_KEY_FILE), the controller node with CONTROLLER.json's (can.key_file,
+// else $DDYN_DBW_KEY_FILE) exactly as in ddyn_controller: the plant's frames reach the node's
+// checks only once their authenticator verifies (receive time: the plant's simulated time), and
+// each command goes out with its authenticator. --inject-forged-steering T0:T1 plays an attacker
+// on the bus from T0 to T1 s of simulated time: after every genuine command it sends a forged
+// DBW_Command (full steering left, full throttle, the next counter, a valid CRC) with an
+// authenticator made without the key; the plant's metrics count what its DBW unit refused ("auth")
+// and the lap's violations, controller_metrics.json "auth" the controller's side and the count of
+// forged commands sent.
 #include <algorithm>
 #include <chrono>
 #include <deque>
-#include <optional>
+#include <cmath>
 #include <string>
 #include <cstdio>
 #include <fstream>
@@ -30,7 +33,6 @@
 #include <vector>
 
 #include "controller_config.h"
-#include "fsim/frame_auth.hpp"
 #include "fsim/plant_app.hpp"
 
 extern "C" const ddyn_net_tables ddyn_net_weights;
@@ -40,6 +42,8 @@ namespace {
 double now_s() {
   return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
+
+uint64_t sim_us(double t) { return t > 0.0 ? static_cast<uint64_t>(std::llround(t * 1e6)) : 0u; }
 
 }  // namespace
 
@@ -93,8 +97,6 @@ int main(int argc, char** argv) {
     fsim::MemoryLink link;
     fsim::MemoryBus plant_end(link, true);
     fsim::PlantApp app(cfg, plant_end);
-    // the controller's side of the frame authentication, with the plant's key
-    std::optional<fsim::FrameAuth> auth = fsim::FrameAuth::from_key_file(cfg.auth_key_file, DDYN_DBW_MONITOR_CONTROLLER);
     long injected = 0;
     if (setup->log[0] == '\0') throw std::runtime_error("the configuration names no telemetry.log");
     std::FILE* log = std::fopen(setup->log, "w");
@@ -109,21 +111,12 @@ int main(int argc, char** argv) {
     while (app.step()) {
       auto& q = link.a_to_b;
       const double t_bus = app.plant().time();
-      if (auth) (void)auth->expire(t_bus);
       while (!q.empty()) {
         fsim::CanFrame f = q.front();
         q.pop_front();
         if (!alive) continue;
-        if (auth) {
-          fsim::CanFrame released;
-          const auto v = auth->on_frame(f, t_bus, &released);
-          if (v == fsim::FrameAuth::Verdict::kAccepted) {
-            f = released;
-          } else if (v != fsim::FrameAuth::Verdict::kPassThrough || ddyn_dbw_is_authenticator_id(f.id)) {
-            continue;  // held for its authenticator, or refused (counted by auth)
-          }
-        }
-        const int runs = ddyn_sil_node_on_frame(node.get(), f.id, f.data.data(), f.dlc);
+        // the node authenticates (can.key_file): a frame is held until its authenticator verifies
+        const int runs = ddyn_sil_node_on_frame_at(node.get(), f.id, f.data.data(), f.dlc, sim_us(t_bus));
         for (int r = 0; r < runs && alive; ++r) {
           if (node->steps == setup->die_at_step) {
             alive = false;  // the controller "dies": no more commands
@@ -153,7 +146,13 @@ int main(int argc, char** argv) {
           cmd.dlc = 8;
           std::copy(per.data, per.data + 8, cmd.data.begin());
           link.b_to_a.push_back(cmd);
-          if (auth) link.b_to_a.push_back(auth->sign(cmd));
+          if (per.has_auth) {
+            fsim::CanFrame a;
+            a.id = per.auth_can_id;
+            a.dlc = 8;
+            std::copy(per.auth_data, per.auth_data + 8, a.data.begin());
+            link.b_to_a.push_back(a);
+          }
           if (t_bus >= inject_from && t_bus <= inject_to) {
             forged_steering(static_cast<uint8_t>((cmd.data[6] >> 4) + 1u), link.b_to_a);
             ++injected;
@@ -196,11 +195,11 @@ int main(int argc, char** argv) {
     m["fixed_coefficients"] = setup->fixed != 0;
     m["checkpoint_hash"] = ddyn_net_weights.checkpoint_sha256 != nullptr ? ddyn_net_weights.checkpoint_sha256 : "";
     m["where"] = "in-process (host CPU, frames through memory)";
-    m["auth"] = {{"enabled", auth.has_value()},
-                 {"accepted", auth ? auth->accepted() : 0L},
-                 {"forged", auth ? auth->forged() : 0L},
-                 {"replayed", auth ? auth->replayed() : 0L},
-                 {"stale", auth ? auth->stale() : 0L},
+    m["auth"] = {{"enabled", node->auth_on != 0},
+                 {"accepted", node->auth_accepted},
+                 {"forged", node->auth_forged},
+                 {"replayed", node->auth_replayed},
+                 {"stale", node->auth_stale},
                  {"forged_commands_injected", injected}};
     if (alive) std::ofstream(setup->metrics) << m.dump(2) << "\n";  // a dead controller writes nothing
     std::printf("in-process: %s, %zu controller periods, loop median %.0f us\n", app.end_reason().c_str(), n,

@@ -7,6 +7,7 @@
 #include "controller_config.h"
 
 #include <cjson/cJSON.h>
+#include "dbw_auth_key.h"
 #include <errno.h>
 #include <math.h>
 #include <stdarg.h>
@@ -85,6 +86,9 @@ static const key_spec KEYS[] = {
      "the SocketCAN interface (can0, vcan0)"},
     {"can.stale_periods", K_NAMED_INT, OFF(stale), 0, DDYN_DBW_FRAME_COUNT, 0, 1000, 0, FRAME_NAMES, NONE,
      "per frame, periods it may be missing before the safe command; 0 = not monitored (default 0 1 1 1 1 2 2)"},
+    {"can.key_file", K_FILE, OFF(key_file), FSZ(key_file), 0, 0, 0, 0, NULL, NONE,
+     "frame authentication key (docs/can.md): 64 hex digits, mode 0600/0400; every frame read must verify, every "
+     "command is signed (default: $DDYN_DBW_KEY_FILE, else off)"},
     {"control", K_SECTION, 0, 0, 0, 0, 0, 1, NULL, NONE, "the control loop"},
     {"control.period", K_NUMBER, OFF(period), 0, 0, 1e-4, 10.0, 1, NULL, NONE,
      "the control period, s (the vehicle's sample time: 0.02 for orca_1_43)"},
@@ -295,6 +299,9 @@ static int leaf(parse_ctx *p, const char *key, const key_spec *k, const cJSON *v
         }
         if (!resolve(p, key, v->valuestring, dst, k->size)) {
             return 0;
+        }
+        if (k->type == K_FILE && dst[0] == '\0' && !k->required) {
+            return 1; /* "": none (the key's default) */
         }
         if (k->type == K_FILE) {
             FILE *f = fopen(dst, "r");
@@ -677,6 +684,22 @@ ddyn_status ddyn_app_node_init(ddyn_sil_node *node, const ddyn_app_config *c, co
     if (st == DDYN_OK) {
         st = ddyn_ctrl_set_track(&node->ctl, c->n_track, c->track[0], c->track[1], c->track[2], c->track[3],
                                  c->track[4]);
+    }
+    if (st == DDYN_OK) {
+        /* frame authentication: can.key_file, else $DDYN_DBW_KEY_FILE, else off */
+        const char *key_path = ddyn_dbw_auth_key_path(c->key_file);
+        if (key_path != NULL) {
+            uint8_t key[DDYN_DBW_AUTH_KEY_LEN];
+            const char *why = NULL;
+            st = ddyn_dbw_auth_read_key_file(key_path, key, &why);
+            if (st != DDYN_OK) {
+                fprintf(stderr, "ddyn_controller: %s %s: %s\n", c->key_file[0] ? "can.key_file" : DDYN_DBW_KEY_FILE_ENV,
+                        key_path, why != NULL ? why : "unreadable");
+                return st;
+            }
+            st = ddyn_sil_node_auth_enable(node, key);
+            memset(key, 0, sizeof key);
+        }
     }
     if (st != DDYN_OK) {
         fprintf(stderr, "ddyn_controller: the controller refused the configuration: %s%s\n", ddyn_status_name(st),

@@ -37,6 +37,7 @@ typedef struct {
     /* CAN */
     char can_interface[32];             /* can.interface */
     int stale[DDYN_DBW_FRAME_COUNT];    /* can.stale_periods.<frame> (0 = not monitored) */
+    char key_file[DDYN_APP_PATH_LEN];   /* can.key_file: the frame authentication key ("" = $DDYN_DBW_KEY_FILE, else off) */
     /* control */
     double period;                      /* control.period, s */
     int throttle_pid;                   /* control.throttle: "mpc" 0 / "pid" 1 */
@@ -82,8 +83,10 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
 int ddyn_app_check_network(const ddyn_app_config *c, const ddyn_net_tables *tables, char err[DDYN_APP_ERROR_LEN]);
 
 /* The controller configuration (ddyn_ctrl_default_config, then the file's settings), the node
- * initialised with it and the raceline set. Prints the reason to stderr and returns the error on
- * failure (after ddyn_app_check_network). */
+ * initialised with it and the raceline set, and frame authentication enabled with the key of
+ * can.key_file (else $DDYN_DBW_KEY_FILE; neither: off; a key file that cannot be used is refused by
+ * name, never a silent fall back to unauthenticated frames). Prints the reason to stderr and returns
+ * the error on failure (after ddyn_app_check_network). */
 ddyn_status ddyn_app_node_init(ddyn_sil_node *node, const ddyn_app_config *c, const ddyn_net_tables *tables);
 
 /* The table of keys, one line each (key, type, range, default, meaning), for --keys and docs. */

@@ -70,7 +70,69 @@ static void take_reading(ddyn_dbw_frame f, const ddyn_dbw_signals *s, ddyn_ctrl_
     }
 }
 
+ddyn_status ddyn_sil_node_auth_enable(ddyn_sil_node *node, const uint8_t key[DDYN_DBW_AUTH_KEY_LEN])
+{
+    if (node == NULL || key == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    ddyn_dbw_auth_init(&node->auth, key, 0u);
+    node->auth_on = 1;
+    node->auth_freshness = 0u;
+    node->auth_counter = 0u;
+    return DDYN_OK;
+}
+
+/* a frame the policy below takes (with authentication on: one whose authenticator verified) */
+static int on_good_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len);
+
 int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len)
+{
+    return ddyn_sil_node_on_frame_at(node, can_id, data, len, node->rx_us);
+}
+
+int ddyn_sil_node_on_frame_at(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len, uint64_t t_us)
+{
+    int frame;
+    node->rx_us = t_us;
+    if (!node->auth_on) {
+        return on_good_frame(node, can_id, data, len);
+    }
+    if (ddyn_dbw_is_authenticator_id(can_id)) {
+        ddyn_dbw_frame f = DDYN_DBW_FRAME_COUNT;
+        uint8_t released[DDYN_DBW_FRAME_LEN];
+        uint64_t t_data = 0u;
+        ddyn_dbw_failure kind = ddyn_dbw_auth_verify(&node->auth, can_id, data, len, t_us, &f, released, &t_data);
+        if (kind == DDYN_DBW_FAIL_COUNT) {
+            node->auth_accepted += 1;
+            return on_good_frame(node, ddyn_dbw_frame_id(f), released, DDYN_DBW_FRAME_LEN);
+        }
+        /* another node's pair (a command and its authenticator of another controller) is not ours */
+        if ((unsigned)f < DDYN_DBW_FRAME_COUNT && (DDYN_DBW_MONITOR_CONTROLLER & (1u << f)) == 0u) {
+            return 0;
+        }
+        if (kind == DDYN_DBW_FAIL_AUTH_REPLAY) {
+            node->auth_replayed += 1;
+        } else if (kind == DDYN_DBW_FAIL_AUTH_STALE) {
+            node->auth_stale += 1;
+        } else {
+            node->auth_forged += 1;
+        }
+        return 0;
+    }
+    frame = ddyn_dbw_frame_of_id(can_id);
+    /* a good frame the controller reads waits for its authenticator; anything else (a damaged frame,
+     * a command, a foreign identifier) goes to the checks below, which count and drop it */
+    if (frame >= 0 && (DDYN_DBW_MONITOR_CONTROLLER & (1u << frame)) != 0u && len == DDYN_DBW_FRAME_LEN &&
+        data != NULL && ddyn_dbw_checksum(can_id, data) == data[DDYN_DBW_FRAME_LEN - 1]) {
+        if (ddyn_dbw_auth_hold(&node->auth, (ddyn_dbw_frame)frame, data, t_us)) {
+            node->auth_stale += 1; /* it pushed out a held frame that never got its authenticator */
+        }
+        return 0;
+    }
+    return on_good_frame(node, can_id, data, len);
+}
+
+static int on_good_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len)
 {
     ddyn_dbw_frame f;
     uint8_t counter;
@@ -153,6 +215,10 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
     ddyn_dbw_signals cmd;
     int k;
     memset(p, 0, sizeof *p);
+    if (node->auth_on) {
+        /* frames whose authenticator never came (stale): dropped, once per period */
+        node->auth_stale += (long)ddyn_dbw_auth_expire(&node->auth, node->rx_us, NULL);
+    }
     /* (the degraded mode's extra periods as of the last period) */
     for (k = 0; k < DDYN_DBW_FRAME_COUNT; ++k) {
         if (node->stale[k] > 0 && node->steps - node->last_rx_step[k] > ddyn_ctrl_stale_limit(&node->ctl, node->stale[k])) {
@@ -214,6 +280,15 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
     p->can_id = ddyn_dbw_frame_id(DDYN_DBW_FRAME_COMMAND);
     (void)ddyn_dbw_encode(DDYN_DBW_FRAME_COMMAND, &cmd, node->tx_counter, p->data); /* in range by the clamps */
     node->tx_counter = (uint8_t)((node->tx_counter + 1u) % DDYN_DBW_COUNTER_MODULO);
+    if (node->auth_on) {
+        /* the authenticator over the command as encoded: one freshness value per command sent */
+        p->has_auth = 1;
+        p->auth_can_id = ddyn_dbw_auth_id(DDYN_DBW_FRAME_COMMAND);
+        (void)ddyn_dbw_auth_encode(node->auth.key, DDYN_DBW_FRAME_COMMAND, p->data, node->auth_freshness,
+                                   node->auth_counter, p->auth_data);
+        node->auth_freshness += 1u;
+        node->auth_counter = (uint8_t)((node->auth_counter + 1u) % DDYN_DBW_COUNTER_MODULO);
+    }
     node->safe_steps += p->safe ? 1 : 0;
     node->steps += 1;
 }

@@ -14,6 +14,15 @@
  * ddyn/dbw.h, where every counter jump is a failure that needs an explicit re-enable, would stop
  * the car at the first lost frame; a lossy bus needs this tolerant policy.)
  *
+ * Frame authentication (docs/can.md "Authenticated frames", AUTOSAR SecOC style), when enabled with a
+ * key (ddyn_sil_node_auth_enable; the application reads it from can.key_file or DDYN_DBW_KEY_FILE):
+ * a good protected frame (length 8, valid CRC) of the six the controller reads is held until its
+ * sender's authenticator arrives and verifies; only then does it go through the policy above. A
+ * forged, replayed or stale frame is counted (auth_forged, auth_replayed, auth_stale) and dropped,
+ * never fatal: a genuine sender whose frames stop verifying is caught by the missing-frame limit.
+ * Each command goes out with its authenticator (ddyn_sil_period.auth_data under auth_can_id, to be
+ * sent right after the command frame). Off (the default), nothing of this runs.
+ *
  * C99, no allocation: the caller owns the (large) node.
  */
 #ifndef DDYN_SIL_CONTROLLER_NODE_H
@@ -43,8 +52,15 @@ typedef struct {
     long steps;
     int catch_up;              /* periods still to run before the one of the last position frame */
     uint8_t tx_counter;
+    /* frame authentication (off unless ddyn_sil_node_auth_enable) */
+    int auth_on;
+    ddyn_dbw_auth auth;        /* the held frames, the freshness values accepted, the key */
+    uint64_t auth_freshness;   /* the next command's freshness value */
+    uint8_t auth_counter;      /* SecOC_Controller's rolling counter */
+    uint64_t rx_us;            /* receive time of the latest frame (the clock of the expiry) */
     /* counts */
     long frames_ok, frames_lost, repeated_counter, late, checksum, bad_length, range, unknown_id, safe_steps;
+    long auth_accepted, auth_forged, auth_replayed, auth_stale;
 } ddyn_sil_node;
 
 typedef struct {
@@ -54,6 +70,9 @@ typedef struct {
     double throttle, steering; /* the set-points sent */
     uint8_t data[DDYN_DBW_FRAME_LEN];
     uint32_t can_id;
+    int has_auth;              /* authentication on: send auth_data under auth_can_id right after data */
+    uint8_t auth_data[DDYN_DBW_FRAME_LEN];
+    uint32_t auth_can_id;
 } ddyn_sil_period;
 
 /* Set up the node around an initialised controller configuration. Returns DDYN_OK or the
@@ -70,10 +89,20 @@ ddyn_status ddyn_sil_node_init(ddyn_sil_node *node, const ddyn_vehicle_model *mo
  * it by a period), so the filter predicts them with the actuators held. */
 #define DDYN_SIL_MAX_CATCH_UP 3
 int ddyn_sil_node_on_frame(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len);
+/* The same with the frame's receive time in microseconds (any monotonic clock): with authentication
+ * on, a held frame whose authenticator has not come within DDYN_DBW_AUTH_TIMEOUT_US of it is dropped
+ * (stale). ddyn_sil_node_on_frame uses the time of the previous frame. */
+int ddyn_sil_node_on_frame_at(ddyn_sil_node *node, uint32_t can_id, const uint8_t *data, size_t len, uint64_t t_us);
+
+/* Authenticate the frames the node reads and sign its commands with key[32] (copied; the caller
+ * wipes its own copy). After ddyn_sil_node_init. Returns DDYN_OK or DDYN_ERR_ARGUMENT. */
+ddyn_status ddyn_sil_node_auth_enable(ddyn_sil_node *node, const uint8_t key[DDYN_DBW_AUTH_KEY_LEN]);
 
 /* One control period with the readings received since the last one (after the catch-up periods of
  * lost position frames, whose commands are not sent); the command frame is encoded into p->data
- * (identifier p->can_id). */
+ * (identifier p->can_id), with authentication on its authenticator into p->auth_data
+ * (p->auth_can_id). With authentication on, held frames older than the timeout at the latest
+ * receive time are dropped first (stale). */
 void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p);
 
 #ifdef __cplusplus

@@ -29,6 +29,11 @@
  * (timer: after the next deadline) is an overrun; counted, in the metrics and on stdout, and in
  * the telemetry's FAULTS bits.
  *
+ * Frame authentication (docs/can.md, AUTOSAR SecOC style): with a key (can.key_file, else
+ * $DDYN_DBW_KEY_FILE) every frame it reads must be followed by its sender's authenticator that
+ * verifies (controller_node.h; forged, replayed and stale frames are counted in the metrics' "auth"
+ * and dropped), and every command goes out with its authenticator right after it.
+ *
  * With telemetry.lcm_url (a build with DDYN_WITH_LCM) it publishes the telemetry live over LCM
  * (ddyn/telemetry.h, c_src/linux/telemetry_lcm.c): every period the state estimate with its
  * covariance diagonal, the coefficients with the guard bounds, the fault bits; the MPC plan and the
@@ -192,6 +197,12 @@ static double now_s(void)
     return (double)ddyn_rt_now_ns() * 1e-9;
 }
 
+/* a frame's receive time for the authentication's timeout, microseconds (the monotonic clock) */
+static uint64_t rx_us(void)
+{
+    return (uint64_t)(ddyn_rt_now_ns() / 1000);
+}
+
 static int cmp_double(const void *a, const void *b)
 {
     double x = *(const double *)a, y = *(const double *)b;
@@ -265,6 +276,13 @@ static void run_period(app_loop *L, int trigger, double start)
     memcpy(cf.data, per.data, DDYN_DBW_FRAME_LEN);
     if (write(L->fd, &cf, sizeof cf) != (ssize_t)sizeof cf) {
         L->send_failed += 1;
+    }
+    if (per.has_auth) { /* its authenticator right after it (can.key_file) */
+        cf.can_id = per.auth_can_id;
+        memcpy(cf.data, per.auth_data, DDYN_DBW_FRAME_LEN);
+        if (write(L->fd, &cf, sizeof cf) != (ssize_t)sizeof cf) {
+            L->send_failed += 1;
+        }
     }
     t1 = now_s(); /* the command is out */
     if (cfg.prepare) {
@@ -349,7 +367,7 @@ static void loop_frame(app_loop *L)
             struct can_frame cf;
             if (read(L->fd, &cf, sizeof cf) == (ssize_t)sizeof cf) {
                 L->last_any_rx = now_s();
-                runs = ddyn_sil_node_on_frame(&node, cf.can_id & CAN_EFF_MASK, cf.data, cf.can_dlc);
+                runs = ddyn_sil_node_on_frame_at(&node, cf.can_id & CAN_EFF_MASK, cf.data, cf.can_dlc, rx_us());
                 if (runs > 0) {
                     trigger = 1;
                     L->last_gnss_wall = L->last_any_rx;
@@ -406,7 +424,7 @@ static void loop_timer(app_loop *L)
         L->n_late += L->n_late < MAX_STEPS ? 1 : 0;
         while (read(L->fd, &cf, sizeof cf) == (ssize_t)sizeof cf) {
             L->last_any_rx = now_s();
-            if (ddyn_sil_node_on_frame(&node, cf.can_id & CAN_EFF_MASK, cf.data, cf.can_dlc) > 0) {
+            if (ddyn_sil_node_on_frame_at(&node, cf.can_id & CAN_EFF_MASK, cf.data, cf.can_dlc, rx_us()) > 0) {
                 L->last_gnss_wall = L->last_any_rx;
             }
         }
@@ -454,6 +472,9 @@ static int write_metrics(const app_loop *L, const ddyn_rt_state *rt)
                "\"bad_length\": %ld, \"checksum\": %ld, \"range\": %ld, \"send_failed\": %ld},\n",
             node.frames_ok, node.frames_lost, node.repeated_counter, node.late, node.unknown_id, node.bad_length,
             node.checksum, node.range, L->send_failed);
+    /* frame authentication (can.key_file): frames accepted, refused (forged, replayed), dropped stale */
+    fprintf(m, "  \"auth\": {\"enabled\": %s, \"accepted\": %ld, \"forged\": %ld, \"replayed\": %ld, \"stale\": %ld},\n",
+            node.auth_on ? "true" : "false", node.auth_accepted, node.auth_forged, node.auth_replayed, node.auth_stale);
     fprintf(m, "  \"status_counts\": {");
     for (k = 0; k < DDYN_CTRL_STATUS_BITS; ++k) {
         fprintf(m, "%s\"%s\": %ld", k ? ", " : "", ddyn_ctrl_status_name(1u << k), L->status_count[k]);
@@ -581,9 +602,11 @@ int main(int argc, char **argv)
     /* after every allocation of the set-up (files, sockets, LCM): locked from here on */
     rt = ddyn_rt_setup(cfg.priority, cfg.cpu, cfg.lock_memory);
     /* the "running" line says the bus is bound and the set-up done (the SIL starts its plant on it) */
-    printf("ddyn_controller: running %s on %s, period %.4f s, pacing %s, prepare %s, memory %s, SCHED_FIFO %d, cpu %d\n",
+    printf("ddyn_controller: running %s on %s, period %.4f s, pacing %s, prepare %s, memory %s, SCHED_FIFO %d, cpu %d, "
+           "frame authentication %s\n",
            cfg.vehicle, cfg.can_interface, cfg.period, cfg.pacing == DDYN_APP_PACING_TIMER ? "timer" : "frame",
-           cfg.prepare ? "on" : "off", rt.memory_locked ? "locked" : "not locked", rt.fifo_priority, rt.cpu);
+           cfg.prepare ? "on" : "off", rt.memory_locked ? "locked" : "not locked", rt.fifo_priority, rt.cpu,
+           node.auth_on ? "on" : "off");
     fflush(stdout);
 
     if (cfg.pacing == DDYN_APP_PACING_TIMER) {
