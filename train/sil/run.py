@@ -200,6 +200,10 @@ class SilSpec:
     pacing: str = "frame"                      # the controller's realtime.pacing: frame, or timer (needs realtime > 0)
     rt_priority: int = 0                       # realtime.priority: SCHED_FIFO priority, 0 = none
     rt_cpu: int = -1                           # realtime.cpu: the CPU to pin the controller to, -1 = none
+    auth: bool = False                         # frame authentication (docs/can.md) on both sides with the
+                                               # build's fixed TEST key (plant.json auth.key_file, can.key_file)
+    forged_steering: tuple | None = None       # (t0, t1) s: an attacker's forged steering commands in that
+                                               # window of simulated time (ddyn_sil_inprocess only)
 
 
 def dbw_deadline(spec: SilSpec) -> float:
@@ -209,7 +213,8 @@ def dbw_deadline(spec: SilSpec) -> float:
     return overrides(spec.vehicle.name, "sil").get("dbw_deadline_periods", 4) * spec.vehicle.sample_time
 
 
-def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray | None = None) -> dict:
+def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray | None = None,
+                 key_file: str | None = None) -> dict:
     v = spec.vehicle
     lim = v.input_limits
     noise = sensor_noise(v, spec.noise_scale)
@@ -246,6 +251,8 @@ def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray 
     }
     if "restart_plant" in f:
         cfg["crash_at"] = float(f["restart_plant"])
+    if key_file:  # frame authentication: the plant signs its frames and applies only verified commands
+        cfg["auth"] = {"key_file": key_file}
     return cfg
 
 
@@ -274,10 +281,11 @@ def raceline_csv(table: np.ndarray) -> str:
 
 
 def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: str = "",
-                      table: np.ndarray | None = None) -> dict:
+                      table: np.ndarray | None = None, key_file: str | None = None) -> dict:
     """ddyn_controller's configuration for a SIL run (the car's format: docs/deploy.md). The raceline is
     RACELINE_CSV beside it; outputs go to out_dir (the folder of the run, /out in the guest). table: the
-    raceline the run uses (computed from the spec when not given), for the filter's start."""
+    raceline the run uses (computed from the spec when not given), for the filter's start. key_file: the
+    frame authentication key as the controller sees it (can.key_file; None: none named)."""
     if table is None:
         table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin, line=spec.line)
     v = spec.vehicle
@@ -312,11 +320,14 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     if spec.throttle == "pid" and spec.pid_gains is not None:
         control["pid"] = dict(zip(("kp", "ki", "kd", "preview"), (float(g) for g in spec.pid_gains)))
     dims = {"gnss_position": 2, "heading": 1, "yaw_rate": 1, "acceleration": 2, "wheel_speed": 2, "steering": 1}
+    can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS)}
+    if key_file:
+        can_cfg["key_file"] = key_file
     return {
         "vehicle": v.name,
         "nominal_coefficients": named(spec.nominal),
         "coefficients": coefficients,
-        "can": {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS)},
+        "can": can_cfg,
         "control": control,
         "filter": {
             "x0": [float(c) for c in controller_start(spec, table)],
@@ -341,12 +352,39 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     }
 
 
-def write_controller_files(spec: SilSpec, table: np.ndarray, work: Path, out_dir: str, lcm_url: str = "") -> Path:
+def write_controller_files(spec: SilSpec, table: np.ndarray, work: Path, out_dir: str, lcm_url: str = "",
+                           key_file: str | None = None) -> Path:
     """controller.json and raceline.csv into the run's folder; the configuration's path."""
     (work / RACELINE_CSV).write_text(raceline_csv(table))
     path = work / CONTROLLER_CONFIG
-    path.write_text(json.dumps(controller_config(spec, out_dir, lcm_url=lcm_url, table=table), indent=1) + "\n")
+    path.write_text(json.dumps(controller_config(spec, out_dir, lcm_url=lcm_url, table=table, key_file=key_file),
+                               indent=1) + "\n")
     return path
+
+
+# The frame authentication's key in a SIL run (--auth): the fixed TEST key the build makes at configure
+# time (cmake/dbw_test_key.cmake; never a car's), named by both configs; in the guest a copy, mode 0600.
+GUEST_KEY_FILE = "/sil/dbw_test.key"
+
+
+def dbw_test_key(bins: Path) -> Path:
+    """The build's test key (<build>/dbw_test_key/dbw_test.key) beside the SIL binaries' build."""
+    key = bins.parent / "dbw_test_key" / "dbw_test.key"
+    if not key.is_file():
+        raise DdynError(f"{key} is missing: the build makes the frame authentication's test key at configure time "
+                        "(cmake/dbw_test_key.cmake); reconfigure the SIL build")
+    return key
+
+
+def parse_window(text: str) -> tuple[float, float]:
+    """`T0:T1` (simulated seconds, 0 <= T0 < T1) for --inject-forged-steering."""
+    try:
+        t0, t1 = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected T0:T1 (seconds)") from None
+    if not (math.isfinite(t0) and math.isfinite(t1) and 0.0 <= t0 < t1):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 0 <= T0 < T1")
+    return t0, t1
 
 
 def set_lcm_url(path: Path, url: str) -> bytes:
@@ -546,13 +584,15 @@ def run_host(bins: Path, work: Path, restart: bool, lcm: bool = False) -> dict:
     return out
 
 
-def run_inprocess(bins: Path, work: Path) -> dict:
+def run_inprocess(bins: Path, work: Path, forged_steering: tuple | None = None) -> dict:
     """Plant and controller node in one process, frames through memory (not the SIL path: for
-    development and host-native controller timings)."""
+    development and host-native controller timings). forged_steering (t0, t1): an attacker's forged
+    steering commands in that window of simulated time."""
     t0 = time.monotonic()
+    extra = ["--inject-forged-steering", f"{forged_steering[0]!r}:{forged_steering[1]!r}"] if forged_steering else []
     with open(work / "plant.stdout", "w") as out:
-        rc = subprocess.call([str(bins / "ddyn_sil_inprocess"), str(work / "plant.json"), str(work / CONTROLLER_CONFIG)],
-                             stdout=out, stderr=subprocess.STDOUT)
+        rc = subprocess.call([str(bins / "ddyn_sil_inprocess"), str(work / "plant.json"), str(work / CONTROLLER_CONFIG)]
+                             + extra, stdout=out, stderr=subprocess.STDOUT)
     if rc != 0:
         raise DdynError(f"ddyn_sil_inprocess failed ({rc}): {(work / 'plant.stdout').read_text()[-2000:]}")
     return {"where": "in-process on the host (one process, frames through memory; not vcan)", "plant_exit": rc,
@@ -660,7 +700,7 @@ def guest_clock(kvm: bool) -> list[str]:
 
 
 def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, timeout: float,
-              lcm: bool = False) -> dict:
+              lcm: bool = False, key_file: Path | None = None) -> dict:
     """Both processes inside a qemu guest with vcan (the kernel, modules and busybox of scripts/vcan_guest);
     with lcm, the controller publishes its telemetry over UDP multicast on the guest's loopback and
     lcm-logger records it into controller.lcm (both dynamically linked, with their libraries)."""
@@ -698,6 +738,8 @@ def run_guest(bins: Path, work: Path, track_dir: Path, track: str, kvm: bool, ti
     for name in ("plant.json", "plant_resume.json", CONTROLLER_CONFIG, RACELINE_CSV):
         if (work / name).is_file():
             c.file(f"sil/{name}", (work / name).read_bytes(), 0o644)
+    if key_file is not None:  # the key reader refuses a key others can read
+        c.file(GUEST_KEY_FILE.lstrip("/"), key_file.read_bytes(), 0o600)
     fill = dict(libdir=bg.GUEST_LIB_DIR, group=LCM_GROUP, url=url, log=LCM_LOG_NAME,
                 port_hex=f"{LCM_GUEST_PORT:04X}", group_hex="".join(f"{int(b):02X}" for b in reversed(LCM_GROUP.split("."))))
     c.file("init", GUEST_INIT.format(modules=" ".join(meta["modules"]), libdir=bg.GUEST_LIB_DIR,
@@ -808,7 +850,14 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "effects": spec.effects, "faults": spec.faults,
         "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
         "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
+        # frame authentication: the plant's DBW unit's counts (commands accepted; forged, replayed, stale
+        # refused) and the controller's (frames accepted and refused); the attacker's forged commands
+        "auth": {"requested": spec.auth, "plant": pm.get("auth"), "controller": cm.get("auth") if cm else None},
     }
+    if spec.forged_steering is not None:
+        out["attack"] = {"forged_steering": list(spec.forged_steering),
+                         "forged_commands_sent": (cm or {}).get("auth", {}).get("forged_commands_injected"),
+                         "refused_by_the_dbw_unit": (pm.get("auth") or {}).get("forged")}
     if cm is not None:
         out["controller"] = {"loop_us": cm["loop_us"], "deadline_misses": cm["deadline_misses"],
                              "periods": cm["steps"], "safe_periods": cm["safe_steps"],
@@ -966,31 +1015,37 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
         raise DdynError(f"raceline of {len(table)} points; the MPC holds at most 1024")
     if where == "inprocess" and spec.pacing != "frame":
         raise DdynError("--where inprocess has no clock of its own: only the frame pacing")
+    if spec.forged_steering is not None and where != "inprocess":
+        raise DdynError("--inject-forged-steering: the attacker is played by ddyn_sil_inprocess only (--where inprocess)")
+    if spec.forged_steering is not None and "restart_plant" in spec.faults:
+        raise DdynError("--inject-forged-steering: not with a restarting plant (in process)")
     bins = build_binaries(export_dir)
+    key = dbw_test_key(bins) if spec.auth else None
     if spec.checkpoint_hash:
         require_network(bins / "ddyn_controller", spec.checkpoint_hash)
     track_dir = plant_track_dir(spec.track, out)
     use_host = where in ("host", "inprocess") or (where == "auto" and host_has_vcan())
     inside = "/out" if not use_host else str(out.resolve())
-    pc = plant_config(spec, "/sil/tracks" if not use_host else str(track_dir), inside, table)
+    key_seen = None if key is None else (str(key.resolve()) if use_host else GUEST_KEY_FILE)
+    pc = plant_config(spec, "/sil/tracks" if not use_host else str(track_dir), inside, table, key_file=key_seen)
     (out / "plant.json").write_text(json.dumps(pc, indent=1) + "\n")
     (out / "plant_resume.json").unlink(missing_ok=True)
     if "restart_plant" in spec.faults:
         (out / "plant_resume.json").write_text(json.dumps(dict(pc, resume=f"{inside}/snapshot.json"), indent=1))
     (out / "controller.txt").unlink(missing_ok=True)  # the positional format of before: gone
-    write_controller_files(spec, table, out, inside)
+    write_controller_files(spec, table, out, inside, key_file=key_seen)
     # the controller publishes its telemetry live over LCM (and lcm-logger records it) wherever it
     # runs as its own process in a build with LCM; otherwise its CSV log is converted (fallback)
     live = where != "inprocess" and controller_has_lcm(bins)
     (out / LCM_LOG_NAME).unlink(missing_ok=True)
     if where == "inprocess":
-        run = run_inprocess(bins, out)
+        run = run_inprocess(bins, out, spec.forged_steering)
     elif use_host:
         run = run_host(bins, out, "restart_plant" in spec.faults, lcm=live)
     else:
         if kvm is None:  # as scripts/vcan_guest: software emulation unless asked (KVM is not everywhere)
             kvm = os.environ.get("DDYN_VCAN_KVM", "0") == "1"
-        run = run_guest(bins, out, track_dir, spec.track.name, kvm, timeout, lcm=live)
+        run = run_guest(bins, out, track_dir, spec.track.name, kvm, timeout, lcm=live, key_file=key)
     metrics = summarise(out, spec, table, run)
     cm_path = out / "controller_metrics.json"
     if live:
@@ -1042,7 +1097,8 @@ def _run(args: argparse.Namespace) -> int:
                    effects=parse_effects(args.effects), faults=parse_faults(args.faults),
                    noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin, line=args.line,
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
-                   pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing)
+                   pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
+                   forged_steering=args.inject_forged_steering)
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
     ctl = m["controller"] or {}
@@ -1051,6 +1107,11 @@ def _run(args: argparse.Namespace) -> int:
           f"tracking error mean {m['tracking_error']['mean'] or float('nan'):.3f} m; controller loop "
           f"median {lu.get('median', float('nan')):.0f} us, p99 {lu.get('p99', float('nan')):.0f} us, "
           f"max {lu.get('max', float('nan')):.0f} us, {ctl.get('deadline_misses')} deadline misses")
+    if m.get("attack"):
+        a = m["attack"]
+        print(f"sil: attack: {a['forged_commands_sent']} forged steering commands sent, "
+              f"{a['refused_by_the_dbw_unit']} refused by the DBW unit (frame authentication "
+              f"{'on' if (m['auth']['plant'] or {}).get('enabled') else 'off'})")
     print(f"sil: wrote {Path(args.out) / 'sil_metrics.json'} and lap.png")
     return 0
 
@@ -1103,6 +1164,12 @@ def register(subparsers) -> None:
     p.add_argument("--pid-gains", type=parse_gains, default=None, metavar="KP,KI,KD[,PREVIEW]",
                    help="PID gains for --throttle pid, and the preview time (s) of its reference speed, 0 if "
                         "not given (default: the controller's, docs/sil.md)")
+    p.add_argument("--auth", action="store_true",
+                   help="authenticate every frame (AUTOSAR SecOC style, docs/can.md) on both sides with the build's "
+                        "fixed TEST key (default: off, unless DDYN_DBW_KEY_FILE names a key for host runs)")
+    p.add_argument("--inject-forged-steering", type=parse_window, default=None, metavar="T0:T1",
+                   help="an attacker on the bus from T0 to T1 s of simulated time: after every command a forged one "
+                        "(full left, full throttle, valid counter and CRC, no key); --where inprocess only")
     add_common(p)
     p.set_defaults(func=_run)
 
