@@ -89,6 +89,9 @@ static const key_spec KEYS[] = {
     {"can.key_file", K_FILE, OFF(key_file), FSZ(key_file), 0, 0, 0, 0, NULL, NONE,
      "frame authentication key (docs/can.md): 64 hex digits, mode 0600/0400; every frame read must verify, every "
      "command is signed (default: $DDYN_DBW_KEY_FILE, else off)"},
+    {"can.cycle_ms", K_NAMED_INT, OFF(cycle_ms), 0, DDYN_DBW_FRAME_COUNT, 0, 10000, 0, FRAME_NAMES, NONE,
+     "per frame, the cycle (ms) this car sends it at, which dates its frames (degraded-bus mode); 0 (default) = "
+     "the DBC's (gnss_position 20, gnss_heading 20, the others 10); gnss_position's must be control.period"},
     {"control", K_SECTION, 0, 0, 0, 0, 0, 1, NULL, NONE, "the control loop"},
     {"control.period", K_NUMBER, OFF(period), 0, 0, 1e-4, 10.0, 1, NULL, NONE,
      "the control period, s (the vehicle's sample time: 0.02 for orca_1_43)"},
@@ -576,6 +579,19 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
             }
         }
     }
+    if (ok) {
+        /* a position frame starts each period: dated at another cycle than the one it comes at, every
+         * clean period reads as late (issue 34: the AV-21's 40 ms periods against the DBC's 20 ms) */
+        double gnss = c->cycle_ms[DDYN_DBW_FRAME_GNSS_POSITION] > 0
+                          ? 1e-3 * c->cycle_ms[DDYN_DBW_FRAME_GNSS_POSITION]
+                          : 1e-6 * (double)ddyn_dbw_cycle_us(DDYN_DBW_FRAME_GNSS_POSITION);
+        if (fabs(gnss - c->period) > 1e-9) {
+            ok = fail(&p, "can.cycle_ms.gnss_position",
+                      "%g ms, but a position frame starts each period of control.period %g s: set it to the "
+                      "period (the DBC's is %g ms)",
+                      gnss * 1e3, c->period, 1e-3 * (double)ddyn_dbw_cycle_us(DDYN_DBW_FRAME_GNSS_POSITION));
+        }
+    }
     if (ok && p.seen[find_key("telemetry.metrics")] == 0) {
         ok = resolve(&p, "telemetry.metrics", "controller_metrics.json", c->metrics, sizeof c->metrics);
     }
@@ -681,6 +697,10 @@ ddyn_status ddyn_app_node_init(ddyn_sil_node *node, const ddyn_app_config *c, co
         }
     }
     st = ddyn_sil_node_init(node, model, tables, &cfg, c->x0, c->period, c->stale);
+    for (k = 0; st == DDYN_OK && k < DDYN_DBW_FRAME_COUNT; ++k) {
+        /* the link dates each frame by its counter and the cycle it really comes at */
+        st = ddyn_dbw_link_set_cycle(&node->link, (ddyn_dbw_frame)k, (uint32_t)c->cycle_ms[k] * 1000u);
+    }
     if (st == DDYN_OK) {
         st = ddyn_ctrl_set_track(&node->ctl, c->n_track, c->track[0], c->track[1], c->track[2], c->track[3],
                                  c->track[4]);

@@ -38,6 +38,7 @@ typedef struct {
     char can_interface[32];             /* can.interface */
     int stale[DDYN_DBW_FRAME_COUNT];    /* can.stale_periods.<frame> (0 = not monitored) */
     char key_file[DDYN_APP_PATH_LEN];   /* can.key_file: the frame authentication key ("" = $DDYN_DBW_KEY_FILE, else off) */
+    int cycle_ms[DDYN_DBW_FRAME_COUNT]; /* can.cycle_ms.<frame>: the rate the car sends it at (0 = the DBC's) */
     /* control */
     double period;                      /* control.period, s */
     int throttle_pid;                   /* control.throttle: "mpc" 0 / "pid" 1 */

@@ -391,7 +391,8 @@ bool PlantApp::step() {
         continue;
       }
       ++frames_received_;
-      got = f.id == DDYN_CAN_DBW_COMMAND_FRAME_ID;
+      // with authentication the answer is complete with the command's authenticator, which follows it
+      got = f.id == (auth_ ? ddyn_dbw_auth_id(DDYN_DBW_FRAME_COMMAND) : DDYN_CAN_DBW_COMMAND_FRAME_ID);
       // handled at the start of the next period, like any frame that arrived during this one
       if (faulty(f, rx_held_, t1, rx_dropped_, rx_corrupted_)) rx_held_.push_back({t1, f});
     }

@@ -87,7 +87,7 @@ def test_every_key_sil_writes_is_in_the_table(bins, good):
             p = f"{prefix}{k}"
             yield p
             if isinstance(v, dict) and p not in ("nominal_coefficients", "coefficients.fixed", "can.stale_periods",
-                                                 "control.pid"):
+                                                 "can.cycle_ms", "control.pid"):
                 yield from paths(v, p + ".")
     assert set(paths(good)) <= listed
     assert "realtime.priority" in listed and "coefficients.checkpoint_hash" in listed
@@ -118,6 +118,8 @@ BAD = [
     ("can.interface", DELETE, "can.interface: missing (required)"),
     ("can", DELETE, "can: missing (required)"),
     ("can.stale_periods.imu", 1.5, "can.stale_periods.imu: 1.5 is not an integer"),
+    ("can.cycle_ms.imu", 20000, "can.cycle_ms.imu: 20000 is out of range"),
+    ("can.cycle_ms.gnss_position", 40, "can.cycle_ms.gnss_position: 40 ms, but a position frame starts each period"),
     ("nominal_coefficients.Iz", DELETE, "nominal_coefficients.Iz: missing"),
     ("vehicle", "kart", "vehicle: no generated model 'kart'"),
     ("vehicle", 3, "vehicle: expected a string, got a number"),

@@ -120,11 +120,6 @@ def test_the_attacker_is_played_in_process_only(orca, mobil, tmp_path):
         sil.parse_window("4:1")
 
 
-@pytest.mark.xfail(strict=True, reason="the plant's lock-step wait (firmware_sim/src/plant_app.cpp) ends at the command "
-                   "frame, so its authenticator reaches the next period's receive loop before the held command and "
-                   "both expire as stale (no command applied: measured 0 accepted, 211 stale in 3 s): the wait must end at the command's "
-                   "authenticator when the plant has a key (a one-line patch, docs/sil.md); with it this lap is "
-                   "5.467 s, 0 violations, 273 commands and 2,730 frames verified")
 def test_an_authenticated_lap_over_vcan_in_the_guest(orca, mobil, tmp_path, sil_bins):
     """The two-process SIL with --auth: plant and ddyn_controller over vcan in the qemu guest (or a host's
     vcan), both with the build's test key; every frame both sides use is verified. About 10 s wall in the

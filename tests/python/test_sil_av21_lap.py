@@ -17,14 +17,6 @@ from ddyn.model.track_files import open_track
 from ddyn.model.vehicle import load as load_vehicle
 from ddyn.sil import run as sil
 
-# the controller configuration's can.cycle_ms (firmware_sim/controller/controller_config.c) and the SIL's
-# writing of it (ddyn.sil.run.frame_cycles_ms): the part of the fix outside the link (issue 34)
-CYCLES_IN_CONFIG = hasattr(sil, "frame_cycles_ms")
-
-
-@pytest.mark.xfail(not CYCLES_IN_CONFIG, strict=True,
-                   reason="the SIL does not yet tell the controller the AV-21's 40 ms GNSS cycle (can.cycle_ms, "
-                          "issue 34): every clean period reads as degraded and the lap leaves the track")
 def test_av21_completes_a_clean_lap_of_putnam_in_process(shared_data, tmp_path):
     av21 = load_vehicle("av21")
     putnam = open_track("putnam", "av21")

@@ -213,15 +213,33 @@ def dbw_deadline(spec: SilSpec) -> float:
     return overrides(spec.vehicle.name, "sil").get("dbw_deadline_periods", 4) * spec.vehicle.sample_time
 
 
+# the plant's DBW_Status rate (Hz): the DBC's 10 ms
+STATUS_RATE = 100.0
+
+
+def sensor_rates(v) -> dict:
+    """The plant's rate (Hz) per sensor. A position frame starts a control period (firmware_sim/controller):
+    GNSS comes once a period, 50 Hz for the 1:43 car as the DBC's cycle time, 25 Hz for the AV-21 (at 50 Hz
+    its controller ran two 40 ms periods per 40 ms and its filter, ahead of the car, rejected every position)."""
+    return dict(SENSOR_RATES, gnss_position=1.0 / v.sample_time, heading=1.0 / v.sample_time)
+
+
+def frame_cycles_ms(v) -> dict:
+    """The controller's can.cycle_ms: the cycle each frame comes at from this plant, which dates its frames
+    (the DBC's cycle times are the 1:43 car's; dated at 20 ms, the AV-21's 40 ms GNSS frames made every
+    clean period look late: issue 34)."""
+    r = sensor_rates(v)
+    hz = {"steering": r["steering"], "status": STATUS_RATE, "wheel_speeds": r["wheel_speed"], "imu": r["yaw_rate"],
+          "gnss_position": r["gnss_position"], "gnss_heading": r["heading"]}
+    return {"command": 0, **{k: int(round(1000.0 / f)) for k, f in hz.items()}}
+
+
 def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray | None = None,
                  key_file: str | None = None) -> dict:
     v = spec.vehicle
     lim = v.input_limits
     noise = sensor_noise(v, spec.noise_scale)
-    # a position frame starts a control period (firmware_sim/controller): GNSS comes once a period, 50 Hz
-    # for the 1:43 car as the DBC's cycle time, 25 Hz for the AV-21 (at 50 Hz its controller ran two
-    # 40 ms periods per 40 ms and its filter, ahead of the car, rejected every position)
-    rates = dict(SENSOR_RATES, gnss_position=1.0 / v.sample_time, heading=1.0 / v.sample_time)
+    rates = sensor_rates(v)
     sensors = {k: {"rate": rates[k], "noise": noise[k]} for k in SENSOR_ORDER}
     f = spec.faults
     if "silent" in f:
@@ -244,7 +262,7 @@ def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray 
         # the first command may take this long (wall s): an emulated guest starts the controller slowly, and
         # the AV-21's rolling start coasted off Putnam in 1.7 s before it came
         "start_timeout": 60.0,
-        "sensors": sensors, "status_rate": 100.0, "seed": spec.seed,
+        "sensors": sensors, "status_rate": STATUS_RATE, "seed": spec.seed,
         "dbw": {"deadline": dbw_deadline(spec), "rearm_count": 0},
         "faults": {"drop": f.get("drop", 0.0), "delay_max": f.get("delay", 0.0), "corrupt": f.get("corrupt", 0.0)},
         "out_dir": out_dir, "log_period": 0.01, "snapshot_period": 0.05,
@@ -320,7 +338,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     if spec.throttle == "pid" and spec.pid_gains is not None:
         control["pid"] = dict(zip(("kp", "ki", "kd", "preview"), (float(g) for g in spec.pid_gains)))
     dims = {"gnss_position": 2, "heading": 1, "yaw_rate": 1, "acceleration": 2, "wheel_speed": 2, "steering": 1}
-    can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS)}
+    can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS), "cycle_ms": frame_cycles_ms(v)}
     if key_file:
         can_cfg["key_file"] = key_file
     return {
