@@ -42,8 +42,10 @@ def test_every_result_file_validates():
     assert sorted(r.name for r in results if r.fast) == sorted(FAST)
     rows = rows_of(results)
     assert 0 < len(rows) <= MAX_ROWS
-    broken = {r.name for r in results if not r.holds_ok}
-    assert {"sil_av21_putnam"} <= broken
+    # a file that does not hold says why, and the README row shows it
+    for r in results:
+        if not r.holds_ok:
+            assert r.holds_why and "does not hold" in r.measured_text(), r.name
 
 
 def test_readme_table_is_current_and_readme_small():
