@@ -48,6 +48,24 @@ CanFrame FrameAuth::sign(const CanFrame& f) {
   return a;
 }
 
+FrameAuth::Freshness FrameAuth::freshness() const {
+  Freshness s;
+  for (unsigned i = 0; i < DDYN_DBW_FRAME_COUNT; ++i) {
+    s.tx[i] = tx_freshness_[i];
+    s.rx[i] = auth_.rx_freshness[i];
+    s.rx_valid[i] = auth_.rx_freshness_valid[i];
+  }
+  return s;
+}
+
+void FrameAuth::restore_freshness(const Freshness& saved, uint64_t tx_margin) {
+  for (unsigned i = 0; i < DDYN_DBW_FRAME_COUNT; ++i) {
+    tx_freshness_[i] = saved.tx[i] > UINT64_MAX - tx_margin ? UINT64_MAX : saved.tx[i] + tx_margin;
+    auth_.rx_freshness[i] = saved.rx[i];
+    auth_.rx_freshness_valid[i] = saved.rx_valid[i];
+  }
+}
+
 FrameAuth::Verdict FrameAuth::on_frame(const CanFrame& f, double t, CanFrame* released) {
   if (ddyn_dbw_is_authenticator_id(f.id)) {
     ddyn_dbw_frame frame = DDYN_DBW_FRAME_COUNT;

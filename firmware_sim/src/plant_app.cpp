@@ -19,6 +19,15 @@ namespace {
 
 const char* kSensorNames[DDYN_MEAS_COUNT] = DDYN_MEAS_NAMES;
 
+// Frame authentication across a restart (docs/sil.md): the snapshot holds the transmit freshness values
+// as they were when it was written, but the plant went on sending until it died (up to one snapshot
+// period, 50 ms: 5 frames of a 100 Hz identifier, a few more with the start-up re-sends), and the
+// controller accepted those. A restarted plant therefore resumes each value this far ahead, so none is
+// sent twice (a reused value is a replay to the controller). 1024 frames is 10 s of a 100 Hz frame:
+// far more than a snapshot period, and far below half the 22-bit freshness window (2^21) inside which
+// the controller reconstructs the full value as newer; the values skipped cost nothing.
+constexpr uint64_t kFreshnessResumeMargin = 1024;
+
 double wall_now() {
   return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
@@ -463,6 +472,12 @@ void PlantApp::snapshot(double t) const {
   j["worst_clearance"] = r.worst_clearance;
   j["progress"] = r.progress;
   j["distance"] = r.distance;
+  if (auth_) {
+    // SecOC freshness values survive a reset (non-volatile in a real ECU): a restarted plant that sent
+    // from 0 again would have every frame refused as a replay by the controller (docs/sil.md)
+    const FrameAuth::Freshness fr = auth_->freshness();
+    j["auth_freshness"] = {{"tx", fr.tx}, {"rx", fr.rx}, {"rx_valid", fr.rx_valid}};
+  }
   // write-then-rename: a killed plant leaves a whole snapshot behind
   const std::string path = cfg_.out_dir + "/snapshot.json", tmp = path + ".tmp";
   {
@@ -489,6 +504,14 @@ void PlantApp::restore(const std::string& path) {
   r.progress = j.at("progress").get<double>();
   r.distance = j.at("distance").get<double>();
   monitor_.restore(t, x[kX], x[kY], j.at("s").get<double>(), j.at("lap_start_time").get<double>(), r);
+  if (auth_ && j.contains("auth_freshness")) {
+    const auto& a = j.at("auth_freshness");
+    FrameAuth::Freshness fr;
+    fr.tx = a.at("tx").get<decltype(fr.tx)>();
+    fr.rx = a.at("rx").get<decltype(fr.rx)>();
+    fr.rx_valid = a.at("rx_valid").get<decltype(fr.rx_valid)>();
+    auth_->restore_freshness(fr, kFreshnessResumeMargin);
+  }
 }
 
 PlantRunResult PlantApp::run() {

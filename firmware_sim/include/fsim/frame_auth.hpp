@@ -35,6 +35,21 @@ class FrameAuth {
   // held frames whose authenticator did not come in time, dropped (counted as stale)
   int expire(double t);
 
+  // The freshness values that must survive a reset (AUTOSAR SecOC's freshness value manager keeps them
+  // in non-volatile memory): per ddyn_dbw_frame the next value this node sends, and the last value it
+  // accepted from its peer (valid or not yet seen). Saved in the plant's snapshot (PlantApp::snapshot).
+  struct Freshness {
+    std::array<uint64_t, DDYN_DBW_FRAME_COUNT> tx{};
+    std::array<uint64_t, DDYN_DBW_FRAME_COUNT> rx{};
+    std::array<bool, DDYN_DBW_FRAME_COUNT> rx_valid{};
+  };
+  Freshness freshness() const;
+  // After a restart from a snapshot: each transmit value is put back advanced by tx_margin, since the
+  // node kept sending (and its peer kept accepting) after the snapshot was written; a value reused
+  // would be refused as a replay. The receive values are put back as they were (a peer's value only
+  // grows, so its next frame is newer; commands captured before the snapshot stay refused as replays).
+  void restore_freshness(const Freshness& saved, uint64_t tx_margin);
+
   long accepted() const { return accepted_; }
   long forged() const { return forged_; }
   long replayed() const { return replayed_; }
