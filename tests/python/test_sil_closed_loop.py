@@ -79,7 +79,10 @@ def test_a_lap_on_a_bus_that_delays_frames(orca, mobil, tmp_path, shared_data):
     assert ctl["status_counts"]["DDYN_CTRL_BUS_DEGRADED"] > 0.5 * ctl["periods"]
     assert m["lap_completed"], m["end_reason"]
     assert m["violations"] == 0
-    # with the runtime's QP on DAQP this lap has 3 safe periods (0 with the interior point): rejected
-    # steering readings, then a sensor fault near the end of the lap, the weakness docs/sil.md names
-    # (the commands' own delay is not measured); a few periods, not a stop
-    assert ctl["safe_periods"] <= 5
+    # rejected readings, then a sensor fault near the end of the lap (the weakness docs/sil.md names: the
+    # commands' own delay is not measured). Since the filter restarts on the readings after a blind spell
+    # (controller.c reanchor, issue 35 item 4: what makes the lap after a plant restart complete), that fault
+    # restarts the filter once, and the restart holds the safe command until 10 healthy periods have passed
+    # (measured: 11 safe periods, lap 6.036 s; before the reanchor 3 periods, 5.811 s): one restart, not a stop
+    assert ctl["status_counts"]["DDYN_CTRL_RECOVERED"] <= 1
+    assert ctl["safe_periods"] <= 12
