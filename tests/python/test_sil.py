@@ -32,13 +32,6 @@ def mobil(shared_data):
     return load_track("ethzMobil", shared_data)
 
 
-def spec_for(orca, mobil, **kw) -> sil.SilSpec:
-    base = dict(vehicle=orca, track=mobil, coeffs_plant=orca.true_vector(), coeffs_controller=orca.true_vector(),
-                nominal=orca.true_vector())
-    base.update(kw)
-    return sil.SilSpec(**base)
-
-
 def test_effects_and_faults_parse_and_refuse():
     assert sil.parse_effects("steer_delay=0.04,mass_offset=0.1") == {"steer_delay": 0.04, "mass_offset": 0.1}
     with pytest.raises(DdynError, match="not_an_effect"):
@@ -75,7 +68,7 @@ def test_raceline_table_room_matches_the_track(orca, mobil):
 
 
 def test_plant_config_and_controller_config(orca, mobil, tmp_path):
-    spec = spec_for(orca, mobil, effects={"steer_delay": 0.02},
+    spec = sil.SilSpec.true_car(orca, mobil, effects={"steer_delay": 0.02},
                     faults={"drop": 0.05, "silent": "imu", "silent_at": 1.5, "kill_controller": 2.0})
     pc = sil.plant_config(spec, "/tracks", "/out")
     assert pc["coefficients"] == pytest.approx(list(orca.true_vector()))
@@ -100,16 +93,16 @@ def test_plant_config_and_controller_config(orca, mobil, tmp_path):
 
 
 def test_controller_config_carries_the_throttle_mode_gains_and_hash(orca, mobil):
-    cc = sil.controller_config(spec_for(orca, mobil, throttle="pid"), "/out")
+    cc = sil.controller_config(sil.SilSpec.true_car(orca, mobil, throttle="pid"), "/out")
     assert cc["control"]["throttle"] == "pid" and "pid" not in cc["control"]  # the controller's gains
-    cc = sil.controller_config(spec_for(orca, mobil, throttle="pid", pid_gains=(0.5, 2.0, 0.0, 0.3),
+    cc = sil.controller_config(sil.SilSpec.true_car(orca, mobil, throttle="pid", pid_gains=(0.5, 2.0, 0.0, 0.3),
                                         checkpoint_hash="ab" * 32), "/out")
     assert cc["control"]["pid"] == {"kp": 0.5, "ki": 2.0, "kd": 0.0, "preview": 0.3}
     assert cc["coefficients"]["checkpoint_hash"] == "ab" * 32
     with pytest.raises(DdynError, match="mpc or pid"):
-        sil.controller_config(spec_for(orca, mobil, throttle="bangbang"), "/out")
+        sil.controller_config(sil.SilSpec.true_car(orca, mobil, throttle="bangbang"), "/out")
     with pytest.raises(DdynError, match="four finite numbers"):
-        sil.controller_config(spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, -1.0, 0.0, 0.0)), "/out")
+        sil.controller_config(sil.SilSpec.true_car(orca, mobil, throttle="pid", pid_gains=(1.0, -1.0, 0.0, 0.0)), "/out")
 
 
 def test_sil_command_line_throttle_flags():
@@ -143,7 +136,7 @@ def test_the_processes_refuse_a_malformed_config(sil_bins, tmp_path):
 def test_the_controller_reads_the_throttle_config(orca, mobil, sil_bins, tmp_path):
     """The controller process parses what controller_config writes: an unknown throttle mode, gains that
     are not numbers and negative gains all stop it with exit 2 before any CAN, naming the key."""
-    spec = spec_for(orca, mobil, throttle="pid", pid_gains=(1.0, 1.0, 0.0, 0.2))
+    spec = sil.SilSpec.true_car(orca, mobil, throttle="pid", pid_gains=(1.0, 1.0, 0.0, 0.2))
     path = sil.write_controller_files(spec, sil.raceline_table(mobil, orca), tmp_path, str(tmp_path))
     good = json.loads(path.read_text())
     r = subprocess.run([str(sil_bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
@@ -166,7 +159,7 @@ def test_controller_killed_mid_run_stops_the_car_within_the_deadline(orca, mobil
     """Two processes over vcan: damaged command checksums are refused by the DBW unit; the controller
     dies at 1 s (SIGKILL, no last words); the plant's DBW watchdog brings the car to a controlled stop
     within its 80 ms deadline. (The controller side of checksum damage: test_fsim's SilLoop tests.)"""
-    spec = spec_for(orca, mobil, faults={"corrupt": 0.1, "kill_controller": 1.0}, max_time=6.0)
+    spec = sil.SilSpec.true_car(orca, mobil, faults={"corrupt": 0.1, "kill_controller": 1.0}, max_time=6.0)
     m = sil.run_sil(spec, tmp_path, None)
     dbw, bus = m["plant"]["dbw"], m["plant"]["bus"]
     assert m["end_reason"] == "safe_stop"
@@ -188,7 +181,7 @@ def test_controller_killed_mid_run_stops_the_car_within_the_deadline(orca, mobil
 def test_plant_restart_resumes_and_the_controller_goes_safe(orca, mobil, tmp_path, sil_bins):
     """The plant process dies at 1 s and comes back 0.5 s later from its last snapshot; meanwhile the
     controller sees no frames and commands the safe stop within 100 ms."""
-    spec = spec_for(orca, mobil, faults={"restart_plant": 1.0}, max_time=2.0)
+    spec = sil.SilSpec.true_car(orca, mobil, faults={"restart_plant": 1.0}, max_time=2.0)
     m = sil.run_sil(spec, tmp_path, None)
     assert m["run"]["plant_exit"] == 0  # the restarted plant finished the run
     traj = sil.read_csv(tmp_path / "trajectory.csv")
@@ -219,7 +212,7 @@ def test_the_lap_completes_after_a_plant_restart(orca, mobil, tmp_path, sil_bins
     completes inside the bounds. On the guest's emulated clock (-icount) the run does not depend on the
     host's load: 10 of 10 runs gave the same lap (docs/sil.md); before the filter's restart on its
     readings, 4 of 6 runs on the host's clock completed and one stayed at vx -0.5 m/s."""
-    spec = spec_for(orca, mobil, faults={"restart_plant": 2.0})
+    spec = sil.SilSpec.true_car(orca, mobil, faults={"restart_plant": 2.0})
     m = sil.run_sil(spec, tmp_path, None)
     assert m["run"]["plant_exit"] == 0
     assert m["lap_completed"], (m["end_reason"], m["violations"])
@@ -242,7 +235,7 @@ def test_timer_pacing_runs_on_absolute_deadlines_with_the_realtime_settings(orca
     effect (root in the guest), and a CPU that does not exist is a warning, not a failure. (The emulated
     CPU cannot hold 20 ms periods, so overruns happen and the DBW unit stops the car: the mechanics are
     what is checked here, not the lap.)"""
-    spec = spec_for(orca, mobil, realtime=1.0, pacing="timer", rt_priority=10, rt_cpu=1023, max_time=1.5)
+    spec = sil.SilSpec.true_car(orca, mobil, realtime=1.0, pacing="timer", rt_priority=10, rt_cpu=1023, max_time=1.5)
     m = sil.run_sil(spec, tmp_path, None)
     c = m["controller"]
     assert c["realtime"] == {"pacing": "timer", "prepare": True, "memory_locked": True, "fifo_priority": 10,
@@ -259,7 +252,7 @@ def test_timer_pacing_runs_on_absolute_deadlines_with_the_realtime_settings(orca
     assert c["overruns"]["periods"] == int(clog["overrun"].sum())
     assert np.all(clog["trigger"] == 2)  # the clock, not the frames, runs each period
     with pytest.raises(DdynError, match="real time"):
-        sil.controller_config(spec_for(orca, mobil, pacing="timer"), "/out")
+        sil.controller_config(sil.SilSpec.true_car(orca, mobil, pacing="timer"), "/out")
 
 
 CHANNELS = {"DDYN_STATE": "state_estimate_t", "DDYN_COEFFS": "guard_coeffs_t", "DDYN_PLAN": "mpc_plan_t",
@@ -368,7 +361,7 @@ def test_host_lcm_logger_records_a_publisher(tmp_path, shared_data, multicast_ro
 def test_a_lap_with_the_true_coefficients_in_process(orca, mobil, tmp_path, sil_bins):
     """Plant and controller node in one process (frames through memory, host CPU): one lap of ETHZMobil
     from 0.1 m/s at 90 % of the raceline's speed completes inside the bounds."""
-    spec = spec_for(orca, mobil, speed_scale=0.9, max_time=15.0)
+    spec = sil.SilSpec.true_car(orca, mobil, speed_scale=0.9, max_time=15.0)
     m = sil.run_sil(spec, tmp_path, None, where="inprocess")
     assert m["lap_completed"], m["end_reason"]
     assert m["violations"] == 0
@@ -392,7 +385,7 @@ def test_a_lap_with_pid_throttle_in_process(orca, mobil, tmp_path, sil_bins):
     """The DPM rows' set-up with the true coefficients (throttle by the controller's PID, the MPC steering
     only), in one process: the lap completes inside the bounds and the car follows the reference speed."""
     from ddyn.sil.table import speed_error
-    spec = spec_for(orca, mobil, speed_scale=0.9, max_time=15.0, throttle="pid")
+    spec = sil.SilSpec.true_car(orca, mobil, speed_scale=0.9, max_time=15.0, throttle="pid")
     m = sil.run_sil(spec, tmp_path, None, where="inprocess")
     assert m["throttle"] == "pid" and m["pid_gains"] == "default"
     assert json.loads((tmp_path / "controller.json").read_text())["control"]["throttle"] == "pid"

@@ -38,22 +38,15 @@ def sil_bins():
     return sil.build_binaries(None)
 
 
-def spec_for(orca, mobil, **kw) -> sil.SilSpec:
-    base = dict(vehicle=orca, track=mobil, coeffs_plant=orca.true_vector(), coeffs_controller=orca.true_vector(),
-                nominal=orca.true_vector())
-    base.update(kw)
-    return sil.SilSpec(**base)
-
-
 @pytest.fixture(scope="module")
 def clean_lap(orca, mobil, sil_bins, tmp_path_factory):
     """The authenticated lap without an attack: the reference the attacked lap must equal."""
     out = tmp_path_factory.mktemp("auth_clean")
-    return sil.run_sil(spec_for(orca, mobil, auth=True), out, None, where="inprocess")
+    return sil.run_sil(sil.SilSpec.true_car(orca, mobil, auth=True), out, None, where="inprocess")
 
 
 def test_with_the_key_forged_steering_is_refused_and_the_lap_is_clean(orca, mobil, tmp_path, sil_bins, clean_lap):
-    m = sil.run_sil(spec_for(orca, mobil, auth=True, forged_steering=ATTACK), tmp_path, None, where="inprocess")
+    m = sil.run_sil(sil.SilSpec.true_car(orca, mobil, auth=True, forged_steering=ATTACK), tmp_path, None, where="inprocess")
     assert m["lap_completed"], (m["end_reason"], m["violations"])
     assert m["violations"] == 0
     attack, plant, ctl = m["attack"], m["auth"]["plant"], m["auth"]["controller"]
@@ -75,7 +68,7 @@ def test_with_the_key_forged_steering_is_refused_and_the_lap_is_clean(orca, mobi
 def test_without_authentication_the_same_attack_takes_the_car_off_the_track(orca, mobil, tmp_path, sil_bins):
     """The check above could fail: without a key the DBW unit applies the forged commands (valid
     counter and CRC), and the car leaves the track (measured: 4 violations, ended left_the_track)."""
-    m = sil.run_sil(spec_for(orca, mobil, auth=False, forged_steering=ATTACK), tmp_path, None, where="inprocess")
+    m = sil.run_sil(sil.SilSpec.true_car(orca, mobil, auth=False, forged_steering=ATTACK), tmp_path, None, where="inprocess")
     assert not m["auth"]["plant"]["enabled"] and m["attack"]["refused_by_the_dbw_unit"] == 0
     assert m["attack"]["forged_commands_sent"] > 0
     assert m["violations"] > 0
@@ -85,13 +78,13 @@ def test_without_authentication_the_same_attack_takes_the_car_off_the_track(orca
 def test_the_configs_name_the_test_key_on_both_sides(orca, mobil, tmp_path, sil_bins):
     key = sil.dbw_test_key(sil_bins)
     assert oct(key.stat().st_mode & 0o777) in ("0o600", "0o400")
-    spec = spec_for(orca, mobil, auth=True)
+    spec = sil.SilSpec.true_car(orca, mobil, auth=True)
     pc = sil.plant_config(spec, "/tracks", "/out", key_file=str(key))
     cc = sil.controller_config(spec, "/out", key_file=str(key))
     assert pc["auth"]["key_file"] == cc["can"]["key_file"] == str(key)
     # without --auth neither names a key (the default stays unauthenticated)
-    assert "auth" not in sil.plant_config(spec_for(orca, mobil), "/tracks", "/out")
-    assert "key_file" not in sil.controller_config(spec_for(orca, mobil), "/out")["can"]
+    assert "auth" not in sil.plant_config(sil.SilSpec.true_car(orca, mobil), "/tracks", "/out")
+    assert "key_file" not in sil.controller_config(sil.SilSpec.true_car(orca, mobil), "/out")["can"]
 
 
 def test_the_controller_refuses_a_key_others_can_read(orca, mobil, tmp_path, sil_bins):
@@ -100,7 +93,7 @@ def test_the_controller_refuses_a_key_others_can_read(orca, mobil, tmp_path, sil
     key = tmp_path / "open.key"
     key.write_text(sil.dbw_test_key(sil_bins).read_text())
     key.chmod(0o644)
-    path = sil.write_controller_files(spec_for(orca, mobil), sil.raceline_table(mobil, orca), tmp_path, str(tmp_path),
+    path = sil.write_controller_files(sil.SilSpec.true_car(orca, mobil), sil.raceline_table(mobil, orca), tmp_path, str(tmp_path),
                                       key_file=str(key))
     env = {k: v for k, v in os.environ.items() if k != "DDYN_DBW_KEY_FILE"}
     r = subprocess.run([str(sil_bins / "ddyn_controller"), str(path)], capture_output=True, text=True, timeout=60,
@@ -114,7 +107,7 @@ def test_the_controller_refuses_a_key_others_can_read(orca, mobil, tmp_path, sil
 
 def test_the_attacker_is_played_in_process_only(orca, mobil, tmp_path):
     with pytest.raises(DdynError, match="inprocess"):
-        sil.run_sil(spec_for(orca, mobil, forged_steering=ATTACK), tmp_path, None, where="guest")
+        sil.run_sil(sil.SilSpec.true_car(orca, mobil, forged_steering=ATTACK), tmp_path, None, where="guest")
     assert sil.parse_window("1:4") == (1.0, 4.0)
     with pytest.raises(Exception, match="T0 < T1"):
         sil.parse_window("4:1")
@@ -124,7 +117,7 @@ def test_an_authenticated_lap_over_vcan_in_the_guest(orca, mobil, tmp_path, sil_
     """The two-process SIL with --auth: plant and ddyn_controller over vcan in the qemu guest (or a host's
     vcan), both with the build's test key; every frame both sides use is verified. About 10 s wall in the
     guest; bounded by 8 s of simulated time, not by the wall clock."""
-    m = sil.run_sil(spec_for(orca, mobil, auth=True, max_time=8.0), tmp_path, None)
+    m = sil.run_sil(sil.SilSpec.true_car(orca, mobil, auth=True, max_time=8.0), tmp_path, None)
     plant, ctl = m["auth"]["plant"], m["auth"]["controller"]
     assert plant["enabled"] and ctl["enabled"]
     assert plant["accepted"] == m["controller"]["periods"] > 0, plant
@@ -143,7 +136,7 @@ def test_an_authenticated_lap_survives_a_plant_restart_in_the_guest(orca, mobil,
     from 0 again: 604 frames refused as replays, safe state, 1 violation.
     On the receive side the restarted plant takes the controller's commands, whose freshness kept counting.
     Bounded by 8 s of simulated time, not by the wall clock."""
-    m = sil.run_sil(spec_for(orca, mobil, auth=True, max_time=8.0, faults={"restart_plant": 2.0}), tmp_path, None)
+    m = sil.run_sil(sil.SilSpec.true_car(orca, mobil, auth=True, max_time=8.0, faults={"restart_plant": 2.0}), tmp_path, None)
     assert m["run"]["plant_exit"] == 0
     plant, ctl = m["auth"]["plant"], m["auth"]["controller"]
     assert plant["enabled"] and ctl["enabled"]

@@ -20,8 +20,7 @@ from ddyn.sil import run as sil
 def test_av21_completes_a_clean_lap_of_putnam_in_process(shared_data, tmp_path):
     av21 = load_vehicle("av21")
     putnam = open_track("putnam", "av21")
-    spec = sil.SilSpec(vehicle=av21, track=putnam, coeffs_plant=av21.true_vector(),
-                       coeffs_controller=av21.true_vector(), nominal=av21.true_vector(), laps=1)
+    spec = sil.SilSpec.true_car(av21, putnam, laps=1)
     out = tmp_path / "run"
     m = sil.run_sil(spec, out, None, where="inprocess")
     ctl = m["controller"]

@@ -205,6 +205,13 @@ class SilSpec:
     forged_steering: tuple | None = None       # (t0, t1) s: an attacker's forged steering commands in that
                                                # window of simulated time (ddyn_sil_inprocess only)
 
+    @classmethod
+    def true_car(cls, vehicle: Vehicle, track: Track, **settings) -> "SilSpec":
+        """The car driven with its own true coefficients in the plant, the controller and the nominal (what
+        `--coeffs true` gives); settings: any other field."""
+        c = vehicle.true_vector()
+        return cls(vehicle=vehicle, track=track, coeffs_plant=c, coeffs_controller=c, nominal=c, **settings)
+
 
 def dbw_deadline(spec: SilSpec) -> float:
     from ddyn.control.vehicle_settings import overrides
