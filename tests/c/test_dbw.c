@@ -673,7 +673,7 @@ static void test_auth_replayed_freshness_is_dropped(void **state)
     assert_int_equal(ddyn_dbw_on_frame(&ctl, aid, auth, 8, now), DDYN_DBW_DECODE_AUTH_REJECTED);
     assert_int_equal(ctl.failures[DDYN_DBW_FAIL_AUTH_REPLAY], 1u);
     assert_true(ctl.latest.sensors.yaw_rate == yaw); /* the old value did not come back */
-    /* the same authenticator twice in a row (its frame repeated) is a replay too */
+    /* the replay tripped nothing: the next genuine period drives on */
     deliver_period();
     assert_int_equal(period_command(&d, &w), DDYN_DBW_ACTIVE);
     assert_no_link_failure();
