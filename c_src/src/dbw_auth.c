@@ -45,39 +45,100 @@ static void put_le64(uint8_t *p, uint64_t v)
     }
 }
 
+#define MAC_DIGEST_LEN 8u
+#define MAC_ID_LEN 2u
+#define MAC_TAIL_LEN (DDYN_DBW_FRAME_LEN + 8u)
+
+/* the SecOC "data to authenticate": data identifier (2 bytes LE), authentic payload, full freshness value
+ * (8 bytes LE); split so that the identifier can be hashed ahead (mac_state_init) */
+static void mac_id(uint8_t id[MAC_ID_LEN], uint32_t can_id)
+{
+    id[0] = (uint8_t)(can_id & 0xFFu);
+    id[1] = (uint8_t)((can_id >> 8) & 0xFFu);
+}
+
+static void mac_tail(uint8_t tail[MAC_TAIL_LEN], const uint8_t data[DDYN_DBW_FRAME_LEN], uint64_t freshness)
+{
+    memcpy(tail, data, DDYN_DBW_FRAME_LEN);
+    put_le64(&tail[DDYN_DBW_FRAME_LEN], freshness);
+}
+
+/* truncation to the most significant bits of the digest's first bytes (SecOC: leftmost bits) */
+static uint32_t mac_of_digest(const uint8_t digest[MAC_DIGEST_LEN])
+{
+    return (((uint32_t)digest[0] << 16) | ((uint32_t)digest[1] << 8) | (uint32_t)digest[2]) & MAC_MASK;
+}
+
 uint32_t ddyn_dbw_auth_mac(const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], uint32_t can_id,
                            const uint8_t data[DDYN_DBW_FRAME_LEN], uint64_t freshness)
 {
-    /* the SecOC "data to authenticate": data identifier, authentic payload, full freshness value */
-    uint8_t msg[2u + DDYN_DBW_FRAME_LEN + 8u];
-    uint8_t digest[8];
+    uint8_t msg[MAC_ID_LEN + MAC_TAIL_LEN];
+    uint8_t digest[MAC_DIGEST_LEN];
     uint32_t mac;
-    msg[0] = (uint8_t)(can_id & 0xFFu);
-    msg[1] = (uint8_t)((can_id >> 8) & 0xFFu);
-    memcpy(&msg[2], data, DDYN_DBW_FRAME_LEN);
-    put_le64(&msg[2u + DDYN_DBW_FRAME_LEN], freshness);
+    mac_id(msg, can_id);
+    mac_tail(&msg[MAC_ID_LEN], data, freshness);
     crypto_blake2b_keyed(digest, sizeof digest, key, DDYN_DBW_AUTH_KEY_LEN, msg, sizeof msg);
-    /* truncation to the most significant bits of the digest's first bytes (SecOC: leftmost bits) */
-    mac = ((uint32_t)digest[0] << 16) | ((uint32_t)digest[1] << 8) | (uint32_t)digest[2];
+    mac = mac_of_digest(digest);
     crypto_wipe(digest, sizeof digest);
-    return mac & MAC_MASK;
+    return mac;
 }
 
-ddyn_status ddyn_dbw_auth_encode(const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], ddyn_dbw_frame frame,
-                                 const uint8_t data[DDYN_DBW_FRAME_LEN], uint64_t freshness, uint8_t counter,
-                                 uint8_t auth_data[DDYN_DBW_FRAME_LEN])
+/* ---- the prepared MAC states (issue 35) ----
+ * A keyed BLAKE2b of the 18-byte message is two compressions: the 32-byte key padded to a 128-byte
+ * block, then the message block (RFC 7693). The first depends on the key alone, so it is done once per
+ * key: ddyn_dbw_auth_init keeps, per frame, the state after crypto_blake2b_keyed_init and
+ * crypto_blake2b_update of the frame's 2 identifier bytes (Monocypher compresses a full block only when
+ * more input follows, so these 2 bytes are what makes it compress the key block; they are the same for
+ * every MAC of the frame). A MAC copies that state and goes on with crypto_blake2b_update (the other 16
+ * bytes: no compression) and crypto_blake2b_final (one compression). Only Monocypher's public functions
+ * run on the state; what is assumed of its type is that a copy of it is a valid state (it holds no
+ * pointers) and that it fits DDYN_DBW_AUTH_STATE_WORDS (checked below); its fields are not touched.
+ * tests/c/test_dbw_auth_cache.c checks the result against crypto_blake2b_keyed. */
+typedef char mac_state_fits[sizeof(crypto_blake2b_ctx) <= sizeof(((ddyn_dbw_auth *)0)->mac_state[0]) ? 1 : -1];
+
+static void mac_state_init(ddyn_dbw_auth *auth)
+{
+    crypto_blake2b_ctx ctx;
+    uint8_t id[MAC_ID_LEN];
+    unsigned f;
+    for (f = 0; f < DDYN_DBW_FRAME_COUNT; ++f) {
+        crypto_blake2b_keyed_init(&ctx, MAC_DIGEST_LEN, auth->key, DDYN_DBW_AUTH_KEY_LEN);
+        mac_id(id, ddyn_dbw_frame_id((ddyn_dbw_frame)f));
+        crypto_blake2b_update(&ctx, id, sizeof id);
+        memcpy(auth->mac_state[f], &ctx, sizeof ctx);
+    }
+    crypto_wipe(&ctx, sizeof ctx);
+}
+
+uint32_t ddyn_dbw_auth_frame_mac(const ddyn_dbw_auth *auth, ddyn_dbw_frame frame, const uint8_t data[DDYN_DBW_FRAME_LEN],
+                                 uint64_t freshness)
+{
+    crypto_blake2b_ctx ctx;
+    uint8_t tail[MAC_TAIL_LEN];
+    uint8_t digest[MAC_DIGEST_LEN];
+    uint32_t mac;
+    if (auth == NULL || data == NULL || !auth->enabled || (unsigned)frame >= DDYN_DBW_FRAME_COUNT) {
+        return 0u;
+    }
+    memcpy(&ctx, auth->mac_state[frame], sizeof ctx);
+    mac_tail(tail, data, freshness);
+    crypto_blake2b_update(&ctx, tail, sizeof tail);
+    crypto_blake2b_final(&ctx, digest); /* wipes ctx */
+    mac = mac_of_digest(digest);
+    crypto_wipe(digest, sizeof digest);
+    return mac;
+}
+
+/* the authenticator frame of `frame` carrying `mac` (frame, data and auth_data checked by the caller) */
+static ddyn_status pack_authenticator(ddyn_dbw_frame frame, uint32_t mac, uint64_t freshness, uint8_t counter,
+                                      uint8_t auth_data[DDYN_DBW_FRAME_LEN])
 {
     /* the three authenticator frames share one layout (can/ddyn_dbw.dbc); SecOC_Controller's packer
      * serves all three (tests/c/test_dbw.c checks the others give the same bytes) */
     struct ddyn_can_sec_oc_controller_t m;
-    uint32_t id;
-    if (key == NULL || data == NULL || auth_data == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT) {
-        return DDYN_ERR_ARGUMENT;
-    }
-    id = ddyn_dbw_frame_id(frame);
-    m.authenticated_id = (uint8_t)(id - DDYN_DBW_ID_BLOCK_BASE);
+    m.authenticated_id = (uint8_t)(ddyn_dbw_frame_id(frame) - DDYN_DBW_ID_BLOCK_BASE);
     m.freshness = (uint32_t)(freshness & FRESH_MASK);
-    m.mac = ddyn_dbw_auth_mac(key, id, data, freshness);
+    m.mac = mac;
     m.counter = (uint8_t)(counter % DDYN_DBW_COUNTER_MODULO);
     m.checksum = 0u;
     if (ddyn_can_sec_oc_controller_pack(auth_data, &m, DDYN_DBW_FRAME_LEN) != (int)DDYN_DBW_FRAME_LEN) {
@@ -85,6 +146,30 @@ ddyn_status ddyn_dbw_auth_encode(const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], ddyn_
     }
     auth_data[AUTH_CHECKSUM_BYTE] = ddyn_dbw_checksum(ddyn_dbw_auth_id(frame), auth_data);
     return DDYN_OK;
+}
+
+ddyn_status ddyn_dbw_auth_encode(const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], ddyn_dbw_frame frame,
+                                 const uint8_t data[DDYN_DBW_FRAME_LEN], uint64_t freshness, uint8_t counter,
+                                 uint8_t auth_data[DDYN_DBW_FRAME_LEN])
+{
+    if (key == NULL || data == NULL || auth_data == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    return pack_authenticator(frame, ddyn_dbw_auth_mac(key, ddyn_dbw_frame_id(frame), data, freshness), freshness,
+                              counter, auth_data);
+}
+
+ddyn_status ddyn_dbw_auth_sign(const ddyn_dbw_auth *auth, ddyn_dbw_frame frame, const uint8_t data[DDYN_DBW_FRAME_LEN],
+                               uint64_t freshness, uint8_t counter, uint8_t auth_data[DDYN_DBW_FRAME_LEN])
+{
+    if (auth == NULL || data == NULL || auth_data == NULL || (unsigned)frame >= DDYN_DBW_FRAME_COUNT) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    if (!auth->enabled) {
+        return DDYN_ERR_NOT_READY;
+    }
+    return pack_authenticator(frame, ddyn_dbw_auth_frame_mac(auth, frame, data, freshness), freshness, counter,
+                              auth_data);
 }
 
 ddyn_dbw_decode_result ddyn_dbw_auth_decode(uint32_t can_id, const uint8_t *data, size_t len, ddyn_dbw_frame *frame,
@@ -123,9 +208,10 @@ void ddyn_dbw_auth_init(ddyn_dbw_auth *auth, const uint8_t key[DDYN_DBW_AUTH_KEY
     if (auth == NULL) {
         return;
     }
-    memset(auth, 0, sizeof *auth);
+    crypto_wipe(auth, sizeof *auth); /* a previous key's states too */
     if (key != NULL) {
         memcpy(auth->key, key, DDYN_DBW_AUTH_KEY_LEN);
+        mac_state_init(auth);
         auth->enabled = true;
     }
     auth->timeout_us = timeout_us != 0u ? timeout_us : DDYN_DBW_AUTH_TIMEOUT_US;
@@ -205,7 +291,7 @@ ddyn_dbw_failure ddyn_dbw_auth_verify(ddyn_dbw_auth *auth, uint32_t can_id, cons
     for (k = 0; k < DDYN_DBW_AUTH_HOLD; ++k) {
         /* every held frame is tried (no early exit on the first match) */
         if (usable(auth, f, k, t_us) &&
-            (ddyn_dbw_auth_mac(auth->key, ddyn_dbw_frame_id(f), auth->pending[f][k], full) ^ mac) == 0u) {
+            (ddyn_dbw_auth_frame_mac(auth, f, auth->pending[f][k], full) ^ mac) == 0u) {
             match = (int)k;
         }
     }
@@ -278,7 +364,7 @@ ddyn_status ddyn_dbw_authenticator(ddyn_dbw *dbw, ddyn_dbw_frame frame, const ui
         return DDYN_ERR_NOT_READY;
     }
     k = FRAME_STREAM[frame];
-    rc = ddyn_dbw_auth_encode(a->key, frame, data, a->tx_freshness[frame], a->tx_counter[k], auth_data);
+    rc = ddyn_dbw_auth_sign(a, frame, data, a->tx_freshness[frame], a->tx_counter[k], auth_data);
     if (rc != DDYN_OK) {
         return rc;
     }

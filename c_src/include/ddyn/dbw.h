@@ -118,10 +118,15 @@ typedef enum {
 #define DDYN_DBW_AUTH_FRESHNESS_BITS 22u
 #define DDYN_DBW_AUTH_TIMEOUT_US 5000u /* default: an authenticator follows its frame within 5 ms */
 #define DDYN_DBW_AUTH_HOLD 2u /* held frames per identifier */
+/* room for one BLAKE2b state (Monocypher's crypto_blake2b_ctx, 216-224 bytes; dbw_auth.c checks it fits) */
+#define DDYN_DBW_AUTH_STATE_WORDS 28u
 
 typedef struct {
     bool enabled;
     uint8_t key[DDYN_DBW_AUTH_KEY_LEN];
+    /* per frame, the keyed BLAKE2b state after the key block and the frame's 2 identifier bytes, made once
+     * by ddyn_dbw_auth_init: each MAC is then one compression instead of two (dbw_auth.c); wiped with the key */
+    uint64_t mac_state[DDYN_DBW_FRAME_COUNT][DDYN_DBW_AUTH_STATE_WORDS];
     uint32_t timeout_us;
     uint64_t tx_freshness[DDYN_DBW_FRAME_COUNT]; /* per frame: the next value sent */
     uint8_t tx_counter[3];           /* rolling counters of the three authenticator identifiers */
@@ -295,7 +300,7 @@ ddyn_status ddyn_dbw_next_frame(ddyn_dbw *dbw, ddyn_dbw_frame frame, const ddyn_
  * the caller should wipe its copy). timeout_us 0 = DDYN_DBW_AUTH_TIMEOUT_US. Freshness counters
  * start at 0. Returns DDYN_OK or DDYN_ERR_ARGUMENT. */
 ddyn_status ddyn_dbw_auth_enable(ddyn_dbw *dbw, const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], uint32_t timeout_us);
-/* Off again; the key is wiped. */
+/* Off again; the key and its prepared MAC states are wiped. */
 void ddyn_dbw_auth_disable(ddyn_dbw *dbw);
 
 /* The authenticator of a frame this endpoint has just encoded (ddyn_dbw_command_frame,
@@ -311,15 +316,24 @@ uint32_t ddyn_dbw_auth_id(ddyn_dbw_frame frame);
 /* the 24-bit MAC of one frame with a full freshness value */
 uint32_t ddyn_dbw_auth_mac(const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], uint32_t can_id,
                            const uint8_t data[DDYN_DBW_FRAME_LEN], uint64_t freshness);
+/* the same MAC with the key of an initialised `auth` (its prepared state: one BLAKE2b compression instead of
+ * two); 0 when `auth` has no key */
+uint32_t ddyn_dbw_auth_frame_mac(const ddyn_dbw_auth *auth, ddyn_dbw_frame frame, const uint8_t data[DDYN_DBW_FRAME_LEN],
+                                 uint64_t freshness);
 /* encode an authenticator frame (counter and checksum included) for `frame` with `freshness` */
 ddyn_status ddyn_dbw_auth_encode(const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], ddyn_dbw_frame frame,
                                  const uint8_t data[DDYN_DBW_FRAME_LEN], uint64_t freshness, uint8_t counter,
                                  uint8_t auth_data[DDYN_DBW_FRAME_LEN]);
+/* ddyn_dbw_auth_encode with the key of an initialised `auth` (ddyn_dbw_auth_frame_mac); DDYN_ERR_NOT_READY
+ * when it has no key */
+ddyn_status ddyn_dbw_auth_sign(const ddyn_dbw_auth *auth, ddyn_dbw_frame frame, const uint8_t data[DDYN_DBW_FRAME_LEN],
+                               uint64_t freshness, uint8_t counter, uint8_t auth_data[DDYN_DBW_FRAME_LEN]);
 /* decode an authenticator frame: length, checksum, identifier; *frame, *freshness_low, *mac, *counter */
 ddyn_dbw_decode_result ddyn_dbw_auth_decode(uint32_t can_id, const uint8_t *data, size_t len, ddyn_dbw_frame *frame,
                                             uint32_t *freshness_low, uint32_t *mac, uint8_t *counter);
 
-/* Receiver state without the monitor (the simulator's plant uses it for DBW_Command): */
+/* Receiver state without the monitor (the simulator's plant uses it for DBW_Command); with a key, its MAC
+ * states are prepared here (7 BLAKE2b compressions): */
 void ddyn_dbw_auth_init(ddyn_dbw_auth *auth, const uint8_t key[DDYN_DBW_AUTH_KEY_LEN], uint32_t timeout_us);
 /* hold a good protected frame (the oldest of DDYN_DBW_AUTH_HOLD makes room); returns true when it
  * displaced one that was never authenticated (stale) */
