@@ -120,21 +120,117 @@ static void axpy(double *restrict y, const double *restrict x, double a, int n)
     }
 }
 
-/* y -= a0 r0 + a1 r1 + a2 r2 + a3 r3 over contiguous memory: four rows per pass over y, so y is loaded
- * and stored once per four multiply-adds (the factorisation's inner kernel) */
-static void sub4(double *restrict y, const double *restrict r0, const double *restrict r1, const double *restrict r2,
-                 const double *restrict r3, double a0, double a1, double a2, double a3, int n)
+/* y += a0 x0, then y += a1 x1, in one pass over y (the same roundings as two axpy calls in that order;
+ * on the Cortex-M7 one load and one store of y per two multiply-adds) */
+static void axpy2(double *restrict y, const double *restrict x0, double a0, const double *restrict x1, double a1,
+                  int n)
 {
     int k;
     for (k = 0; k < n; ++k) {
-        y[k] -= (a0 * r0[k] + a1 * r1[k]) + (a2 * r2[k] + a3 * r3[k]);
+        y[k] = (y[k] + a0 * x0[k]) + a1 * x1[k];
+    }
+}
+
+/* Two weighted sums down the rows of a row-major matrix M (row stride `stride`), over `rows` rows, for
+ * the columns j = 0..3 of m (= &M[0][j0]) at once, with the weights of row r at c[r * cstride] and
+ * c[r * cstride + 1]:
+ *   acc0[j] = sum_r c[r cstride] m[r stride + j],   acc1[j] = sum_r c[r cstride + 1] m[r stride + j].
+ * The factorisation's inner kernel: per row two weights and four entries loaded for eight multiply-adds,
+ * the eight sums in registers. */
+static void sum2x4(const double *restrict m, int stride, const double *restrict c, int cstride, int rows,
+                   double acc0[4], double acc1[4])
+{
+    double a0 = 0.0, a1 = 0.0, a2 = 0.0, a3 = 0.0, b0 = 0.0, b1 = 0.0, b2 = 0.0, b3 = 0.0;
+    const double *const end = c + rows * cstride;
+    for (; c < end; c += cstride) {
+        const double u = c[0], v = c[1], m0 = m[0], m1 = m[1], m2 = m[2], m3 = m[3];
+        a0 += u * m0;
+        a1 += u * m1;
+        a2 += u * m2;
+        a3 += u * m3;
+        b0 += v * m0;
+        b1 += v * m1;
+        b2 += v * m2;
+        b3 += v * m3;
+        m += stride;
+    }
+    acc0[0] = a0;
+    acc0[1] = a1;
+    acc0[2] = a2;
+    acc0[3] = a3;
+    acc1[0] = b0;
+    acc1[1] = b1;
+    acc1[2] = b2;
+    acc1[3] = b3;
+}
+
+/* the same for two columns (the last block of a row pair when n - i is not a multiple of four) */
+static void sum2x2(const double *restrict m, int stride, const double *restrict c, int cstride, int rows,
+                   double acc0[4], double acc1[4])
+{
+    double a0 = 0.0, a1 = 0.0, b0 = 0.0, b1 = 0.0;
+    const double *const end = c + rows * cstride;
+    for (; c < end; c += cstride) {
+        const double u = c[0], v = c[1], m0 = m[0], m1 = m[1];
+        a0 += u * m0;
+        a1 += u * m1;
+        b0 += v * m0;
+        b1 += v * m1;
+        m += stride;
+    }
+    acc0[0] = a0;
+    acc0[1] = a1;
+    acc1[0] = b0;
+    acc1[1] = b1;
+}
+
+/* row i of K formed in y (columns i..n-1): scaled Hessian, box and integrator rows; the integrator term
+ * (every other column from i on) added in the same pass over the row pairs (2p, 2p + 1) */
+static void form_row(const ddyn_mpc_qp *qp, const layout *l, const double *D, double scale,
+                     double suffix[2][DDYN_MPC_MAX_HORIZON], int i, double *restrict y)
+{
+    const double *restrict hcol = qp->hess + i * DDYN_QP_NV; /* H symmetric: column i is row i */
+    const double *restrict sfx = suffix[i & 1];
+    const int a = i / 2;
+    int p;
+    y[i] = (hcol[i] * scale + (D[i] + D[l->o_lb + i])) + sfx[a];
+    if ((i & 1) == 0) { /* column i + 1 of the first pair: not an integrator column of row i */
+        y[i + 1] = hcol[i + 1] * scale;
+    }
+    if (i & 1) {
+        for (p = a + 1; p < l->h; ++p) {
+            y[2 * p] = hcol[2 * p] * scale;
+            y[2 * p + 1] = hcol[2 * p + 1] * scale + sfx[p];
+        }
+    } else {
+        for (p = a + 1; p < l->h; ++p) {
+            y[2 * p] = hcol[2 * p] * scale + sfx[p];
+            y[2 * p + 1] = hcol[2 * p + 1] * scale;
+        }
+    }
+}
+
+/* the pivot of row i (regularised when too small; counted in *regularised), row i scaled by it */
+static void finish_row(double *restrict y, int i, int n, double ref, int *regularised)
+{
+    double pivot = y[i], d, inv;
+    int j;
+    if (!(pivot > REG_PIVOT * (fabs(ref) + 1.0))) {
+        pivot = REG_PIVOT * (fabs(ref) + 1.0);
+        ++*regularised;
+    }
+    d = sqrt(pivot);
+    inv = 1.0 / d;
+    y[i] = d;
+    for (j = i + 1; j < n; ++j) {
+        y[j] *= inv;
     }
 }
 
 int ddyn_mpc_qp_newton_factor(ddyn_mpc_qp *qp, const double *D, double scale)
 {
     double *K = qp->kkt;
-    double suffix[2][DDYN_MPC_MAX_HORIZON], wsoft[DDYN_QP_NS];
+    double suffix[2][DDYN_MPC_MAX_HORIZON], wsoft[DDYN_QP_NS], cs[DDYN_QP_NS][2];
     const layout lay = make_layout(qp->horizon);
     const layout *l = &lay;
     int n = l->n, i, j, k, q, ch, regularised = 0;
@@ -153,52 +249,59 @@ int ddyn_mpc_qp_newton_factor(ddyn_mpc_qp *qp, const double *D, double scale)
         double mq = 2.0 * qp->rho2 * scale + da + db + dc;
         wsoft[q] = da + db - (db - da) * (db - da) / mq;
     }
-    /* Row by row (upper triangle, ROW-major: element (i, j), j >= i, at [i*n + j]): form row i of K,
-     * then eliminate it against the finished rows of U (left-looking Cholesky, K = U'U). Every inner
-     * loop is a contiguous multi-row axpy the compiler vectorises without reassociating a sum. */
-    for (i = 0; i < n; ++i) {
-        const double *restrict hcol = qp->hess + i * DDYN_QP_NV; /* H symmetric: column i is row i */
-        double *restrict y = K + i * n;
-        double pivot, ref, d, inv;
-        int a = i / 2, len = n - i;
-        for (j = i; j < n; ++j) {
-            y[j] = hcol[j] * scale;
+    /* Two rows at a time, i and i + 1 (n = 2H is even; upper triangle, ROW-major: element (i, j), j >= i,
+     * at [i*n + j]): form both rows of K, add the soft rows' rank-one terms, eliminate both against the
+     * finished rows of U above (left-looking Cholesky, K = U'U), finish row i, eliminate row i + 1 against
+     * it, finish row i + 1. The sums run down the rows (sum2x4: four columns of both rows at once, the
+     * partial results in registers), so that the Cortex-M7 loads 1.5 operands per multiply-add instead
+     * of 2.5 plus a store (streaming along the rows, four rows at a time, before). Only the rounding of the
+     * sums differs (their order). Row i + 1's entry in column i (lower triangle) is computed and dropped. */
+    for (i = 0; i < n; i += 2) {
+        double *restrict y0 = K + i * n, *restrict y1 = y0 + n;
+        double ref0 = 0.0, ref1 = 0.0, acc0[4], acc1[4], u01;
+        const int a = i / 2; /* both rows: soft row q reaches columns i and i + 1 when q >= i / 2 */
+        form_row(qp, l, D, scale, suffix, i, y0);
+        form_row(qp, l, D, scale, suffix, i + 1, y1);
+        /* soft row q's entries from 2(q + 1) on are zero (explicit: ddyn_mpc_qp_solve), so columns j..j+3
+         * need the rows q >= j / 2 */
+        for (q = a; q < l->ns; ++q) {
+            cs[q][0] = wsoft[q] * qp->soft_row[q * DDYN_QP_NV + i]; /* the two rows' weights side by side */
+            cs[q][1] = wsoft[q] * qp->soft_row[q * DDYN_QP_NV + i + 1];
         }
-        y[i] += D[i] + D[l->o_lb + i];
-        for (j = a; j < l->h; ++j) {
-            y[2 * j + (i & 1)] += suffix[i & 1][j];
+        for (j = i; j < n; j += 4) {
+            const int q0 = j / 2, w = n - j >= 4 ? 4 : 2;
+            if (w == 4) {
+                sum2x4(qp->soft_row + q0 * DDYN_QP_NV + j, DDYN_QP_NV, cs[q0], 2, l->ns - q0, acc0, acc1);
+            } else {
+                sum2x2(qp->soft_row + q0 * DDYN_QP_NV + j, DDYN_QP_NV, cs[q0], 2, l->ns - q0, acc0, acc1);
+            }
+            for (k = 0; k < w; ++k) {
+                y0[j + k] += acc0[k];
+                y1[j + k] += acc1[k];
+            }
+            if (j == i) {
+                ref0 = y0[i];
+                ref1 = y1[i + 1];
+            }
+            /* the rows of U above: y_j -= sum_{k < i} U_ki U_kj (and U_k,i+1 U_kj) */
+            if (i > 0) {
+                if (w == 4) {
+                    sum2x4(K + j, n, K + i, n, i, acc0, acc1); /* U_ki, U_k,i+1 side by side */
+                } else {
+                    sum2x2(K + j, n, K + i, n, i, acc0, acc1);
+                }
+                for (k = 0; k < w; ++k) {
+                    y0[j + k] -= acc0[k];
+                    y1[j + k] -= acc1[k];
+                }
+            }
         }
-        /* soft row q reaches column i when 2(q + 1) > i, i.e. q >= i / 2; its entries from 2(q + 1) on are
-         * zero, so four rows q..q+3 together need the columns below 2(q + 4) */
-        for (q = a; q + 4 <= l->ns; q += 4) {
-            const double *g = qp->soft_row + q * DDYN_QP_NV + i;
-            sub4(y + i, g, g + DDYN_QP_NV, g + 2 * DDYN_QP_NV, g + 3 * DDYN_QP_NV, -wsoft[q] * g[0],
-                 -wsoft[q + 1] * g[DDYN_QP_NV], -wsoft[q + 2] * g[2 * DDYN_QP_NV], -wsoft[q + 3] * g[3 * DDYN_QP_NV],
-                 soft_len(q + 3) - i);
-        }
-        for (; q < l->ns; ++q) {
-            const double *g = qp->soft_row + q * DDYN_QP_NV + i;
-            axpy(y + i, g, wsoft[q] * g[0], soft_len(q) - i);
-        }
-        ref = y[i];
-        for (k = 0; k + 4 <= i; k += 4) {
-            const double *u0 = K + k * n, *u1 = u0 + n, *u2 = u1 + n, *u3 = u2 + n;
-            sub4(y + i, u0 + i, u1 + i, u2 + i, u3 + i, u0[i], u1[i], u2[i], u3[i], len);
-        }
-        for (; k < i; ++k) {
-            axpy(y + i, K + k * n + i, -K[k * n + i], len);
-        }
-        pivot = y[i];
-        if (!(pivot > REG_PIVOT * (fabs(ref) + 1.0))) {
-            pivot = REG_PIVOT * (fabs(ref) + 1.0);
-            ++regularised;
-        }
-        d = sqrt(pivot);
-        inv = 1.0 / d;
-        y[i] = d;
+        finish_row(y0, i, n, ref0, &regularised);
+        u01 = y0[i + 1];
         for (j = i + 1; j < n; ++j) {
-            y[j] *= inv;
+            y1[j] -= u01 * y0[j];
         }
+        finish_row(y1, i + 1, n, ref1, &regularised);
     }
     return regularised;
 }
@@ -207,9 +310,14 @@ void ddyn_mpc_qp_newton_solve(const ddyn_mpc_qp *qp, double *b)
 {
     const double *U = qp->kkt;
     int n = 2 * qp->horizon, i;
-    for (i = 0; i < n; ++i) { /* U' y = b, by columns of U' (rows of U): axpy */
+    for (i = 0; i + 1 < n; i += 2) { /* U' y = b, by columns of U' (rows of U): axpy, two rows per pass */
+        const double *u0 = U + i * n, *u1 = u0 + n;
+        b[i] /= u0[i];
+        b[i + 1] = (b[i + 1] + -b[i] * u0[i + 1]) / u1[i + 1];
+        axpy2(b + i + 2, u0 + i + 2, -b[i], u1 + i + 2, -b[i + 1], n - i - 2);
+    }
+    if (i < n) {
         b[i] /= U[i * n + i];
-        axpy(b + i + 1, U + i * n + i + 1, -b[i], n - i - 1);
     }
     for (i = n - 1; i >= 0; --i) { /* U x = y, by rows of U: dot */
         b[i] = (b[i] - dot(U + i * n + i + 1, b + i + 1, n - i - 1)) / U[i * n + i];
@@ -304,7 +412,10 @@ static double residuals(ddyn_mpc_qp *qp, const layout *l, double scale, double d
     for (i = 0; i < n; ++i) {
         hz[i] = qp->grad[i];
     }
-    for (j = 0; j < n; ++j) { /* H z + f by columns of H: axpy */
+    for (j = 0; j + 1 < n; j += 2) { /* H z + f by columns of H: axpy, two columns per pass */
+        axpy2(hz, qp->hess + j * DDYN_QP_NV, qp->z[j], qp->hess + (j + 1) * DDYN_QP_NV, qp->z[j + 1], n);
+    }
+    if (j < n) {
         axpy(hz, qp->hess + j * DDYN_QP_NV, qp->z[j], n);
     }
     for (i = 0; i < n; ++i) {
