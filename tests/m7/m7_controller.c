@@ -153,8 +153,9 @@ static void kv(const char *key, unsigned long v)
 
 #ifdef M7_PROFILE
 /* Profiling build (scripts/m7_profile.sh): SysTick interrupts every M7_PROFILE ticks (40 M7_PROFILE
- * instructions) during pass 1 and the handler counts the interrupted PC in 16-byte buckets; the
- * instruction counts of such a build include the handler and are not the figures. */
+ * instructions) during pass 1 (with M7_PROFILE_COLD: during pass 4's steps, the cold path, instead) and the
+ * handler counts the interrupted PC in 16-byte buckets; the instruction counts of such a build include
+ * the handler and are not the figures. */
 #define PROFILE_BUCKETS (0x100000u >> 4) /* the first MB of code */
 static uint32_t profile_hist[PROFILE_BUCKETS];
 static volatile int profiling;
@@ -171,6 +172,7 @@ void m7_systick(void)
 {
     __asm__ volatile("mrs r0, msp\n\tb m7_profile_sample");
 }
+static void profile_dump(void);
 #endif
 
 /* ---- SysTick: 24-bit down-counter on the processor clock ---- */
@@ -253,8 +255,10 @@ static void input_of(const m7_seg_period *p, ddyn_ctrl_input *in)
  * DBW_WheelSpeeds and IMU every 10 ms, GNSS_Position and GNSS_Heading every 20 ms) bring 10 protected
  * frames, each followed by its own authenticator (SecOC_DBW 0x113 or SecOC_Sensors 0x121): 10 holds,
  * 10 verifies (one keyed-BLAKE2b MAC each, two with an injected frame held beside the genuine one), one
- * expire at the period's end, and one authenticator (SecOC_Controller) encoded for DBW_Command. The
- * senders' side (the frames and their authenticators) is made outside the counted region. */
+ * expire at the period's end, and one authenticator (SecOC_Controller) signed for DBW_Command. Every MAC
+ * of the controller's goes on from its key state prepared once at ddyn_dbw_auth_init (one compression, not
+ * two). The senders' side (the frames and their authenticators, with the key: two compressions each) is made
+ * outside the counted region. */
 #define AUTH_RX_PER_PERIOD 10
 #define AUTH_PERIOD_US 20000u
 static const ddyn_dbw_frame auth_rx_frames[AUTH_RX_PER_PERIOD] = {
@@ -323,15 +327,23 @@ static uint32_t auth_period(int period, int inject, const double u[DDYN_NU], int
                                       out[j], &data_t_us);
     }
     (void)ddyn_dbw_auth_expire(&auth_rx, t0_us + AUTH_PERIOD_US, NULL);
-    (void)ddyn_dbw_auth_encode(DDYN_DBW_TEST_KEY, DDYN_DBW_FRAME_COMMAND, cmd, auth_cmd_fresh,
-                               (uint8_t)(auth_cmd_fresh % 16u), cmd_auth);
-    ++auth_cmd_fresh;
+    /* signed with the controller's prepared key state (one BLAKE2b compression per MAC, issue 35) */
+    (void)ddyn_dbw_auth_sign(&auth_rx, DDYN_DBW_FRAME_COMMAND, cmd, auth_cmd_fresh, (uint8_t)(auth_cmd_fresh % 16u),
+                             cmd_auth);
     n = ticks_since(t0) * INSN_PER_TICK;
     for (j = 0; j < AUTH_RX_PER_PERIOD; ++j) {
         *bad += res[j] != DDYN_DBW_FAIL_COUNT || got[j] != auth_rx_frames[j] ||
                 memcmp(out[j], data[j], DDYN_DBW_FRAME_LEN) != 0;
     }
     *bad += cmd_auth[7] != ddyn_dbw_checksum(ddyn_dbw_auth_id(DDYN_DBW_FRAME_COMMAND), cmd_auth);
+    /* the same bytes as the one-shot keyed BLAKE2b with the key (not counted) */
+    {
+        uint8_t want[DDYN_DBW_FRAME_LEN];
+        *bad += ddyn_dbw_auth_encode(DDYN_DBW_TEST_KEY, DDYN_DBW_FRAME_COMMAND, cmd, auth_cmd_fresh,
+                                     (uint8_t)(auth_cmd_fresh % 16u), want) != DDYN_OK ||
+                memcmp(want, cmd_auth, sizeof want) != 0;
+    }
+    ++auth_cmd_fresh;
     return n;
 }
 
@@ -352,6 +364,24 @@ static uintptr_t stack_pointer(void)
     __asm__ volatile("mov %0, sp" : "=r"(sp));
     return sp;
 }
+
+#ifdef M7_PROFILE
+static void profile_dump(void)
+{
+    uint32_t b;
+    profiling = 0;
+    SYST_CSR = 0u;
+    for (b = 0; b < PROFILE_BUCKETS; ++b) {
+        if (profile_hist[b]) {
+            put_str("m7: profile ");
+            put_ulong((unsigned long)b << 4);
+            put_str(" ");
+            put_ulong(profile_hist[b]);
+            flush();
+        }
+    }
+}
+#endif
 
 int main(void)
 {
@@ -404,7 +434,9 @@ int main(void)
     SYST_RVR = M7_PROFILE - 1u;
     SYST_CVR = 0u;
     SYST_CSR = 7u; /* enable, processor clock, interrupt */
+#ifndef M7_PROFILE_COLD
     profiling = 1;
+#endif
 #endif
     /* pass 1: the recorded segment, commands compared with the host's */
     auth_reset();
@@ -477,18 +509,8 @@ int main(void)
             worst_capped_pass1 = insn[i] > worst_capped_pass1 ? insn[i] : worst_capped_pass1;
         }
     }
-#ifdef M7_PROFILE
-    profiling = 0;
-    SYST_CSR = 0u;
-    for (i = 0; i < (int)PROFILE_BUCKETS; ++i) {
-        if (profile_hist[i]) {
-            put_str("m7: profile ");
-            put_ulong((unsigned long)i << 4);
-            put_str(" ");
-            put_ulong(profile_hist[i]);
-            flush();
-        }
-    }
+#if defined(M7_PROFILE) && !defined(M7_PROFILE_COLD)
+    profile_dump();
     return 0;
 #endif
     kv("periods", (unsigned long)steps);
@@ -581,9 +603,15 @@ int main(void)
             uint32_t t0;
             input_of(&m7_seg_periods[i], &in);
             ddyn_mpc_reset(&ctl.mpc);
+#ifdef M7_PROFILE_COLD
+            profiling = 1;
+#endif
             t0 = SYST_CVR;
             ddyn_ctrl_step(&ctl, &in, &out);
             insn[i] = ticks_since(t0) * INSN_PER_TICK;
+#ifdef M7_PROFILE_COLD
+            profiling = 0;
+#endif
             cold += out.mpc_info.qp_cold_start;
             at_cap += out.mpc_info.qp_cold_start && out.mpc_info.qp_iterations == ctl.cfg.mpc.qp_cold_max_iterations;
             worst_cold = insn[i] > worst_cold ? insn[i] : worst_cold;
@@ -606,6 +634,10 @@ int main(void)
             fail = 1;
         }
     }
+#ifdef M7_PROFILE_COLD
+    profile_dump();
+    return 0;
+#endif
 
     /* pass 3: the real-time iteration split, feedback and preparation counted apart */
     if (!controller_init(0.0)) {
