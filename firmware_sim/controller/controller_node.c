@@ -284,8 +284,8 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
         /* the authenticator over the command as encoded: one freshness value per command sent */
         p->has_auth = 1;
         p->auth_can_id = ddyn_dbw_auth_id(DDYN_DBW_FRAME_COMMAND);
-        (void)ddyn_dbw_auth_encode(node->auth.key, DDYN_DBW_FRAME_COMMAND, p->data, node->auth_freshness,
-                                   node->auth_counter, p->auth_data);
+        (void)ddyn_dbw_auth_sign(&node->auth, DDYN_DBW_FRAME_COMMAND, p->data, node->auth_freshness,
+                                 node->auth_counter, p->auth_data); /* the prepared key state: one compression */
         node->auth_freshness += 1u;
         node->auth_counter = (uint8_t)((node->auth_counter + 1u) % DDYN_DBW_COUNTER_MODULO);
     }

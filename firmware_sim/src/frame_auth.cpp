@@ -42,7 +42,7 @@ CanFrame FrameAuth::sign(const CanFrame& f) {
   a.id = ddyn_dbw_auth_id(fr);
   a.dlc = 8;
   const int k = stream_of(a.id);
-  (void)ddyn_dbw_auth_encode(auth_.key, fr, f.data.data(), tx_freshness_[frame], tx_counter_[k], a.data.data());
+  (void)ddyn_dbw_auth_sign(&auth_, fr, f.data.data(), tx_freshness_[frame], tx_counter_[k], a.data.data());
   tx_counter_[k] = static_cast<uint8_t>((tx_counter_[k] + 1u) % 16u);
   ++tx_freshness_[frame];
   return a;
