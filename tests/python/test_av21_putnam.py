@@ -5,6 +5,7 @@ command (docs/tracks.md), not a test: 108 s of simulated time."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -26,7 +27,32 @@ def test_av21_settings_leave_the_1_43_defaults_alone():
     assert settings_for("orca_1_43") == MpcSettings()
     assert R.settings_for("orca_1_43") == R.RacelineSettings()
     a = settings_for("av21")
-    assert a.spacing == 3.0 and a.margin == 0.3 and a.speed_scale < 1.0
+    assert a.spacing == 3.0 and a.margin == 0.3 and a.lateral_grip > 0.0 and a.brake_limit > 0.0
+
+
+def test_av21_reference_asks_no_more_than_its_caps(putnam):
+    """The MPC's table (issue 34): the line's own speed at most, no more lateral acceleration than lateral_grip of
+    the tyres' peak, no harder braking than brake_limit of the full brake plus drag."""
+    from ddyn.control.mpc_setup import raceline_table
+
+    s = settings_for("av21")
+    t = raceline_table(putnam, "av21", s)
+    line = R.load_for("av21", putnam)
+    av21 = load_vehicle("av21")
+    c, mass = av21.true_coefficients, float(av21.known.mass)
+    v, xy = t["speed"], np.column_stack([t["x"], t["y"]])
+    assert v.max() <= s.speed_scale * line.speed.max() + 1e-9
+    ds = np.hypot(*(np.roll(xy, -1, axis=0) - xy).T)
+    nxt = np.roll(v, -1)
+    decel = (v ** 2 - nxt ** 2) / (2 * ds)
+    cap = s.brake_limit * ((c["Cm1"] - c["Cm2"] * nxt) + c["Cr0"] + c["Cd"] * nxt ** 2) / mass
+    assert np.all(decel <= cap + 1e-6)
+    a, b = np.roll(xy, 2, axis=0), np.roll(xy, -2, axis=0)  # the curvature over two points either side, as capped
+    cross = (xy - a)[:, 0] * (b - xy)[:, 1] - (xy - a)[:, 1] * (b - xy)[:, 0]
+    kappa = 2 * np.abs(cross) / np.prod([np.linalg.norm(d, axis=1) for d in (xy - a, b - xy, a - b)], axis=0)
+    assert np.all(v ** 2 * kappa <= s.lateral_grip * (c["Df"] + c["Dr"]) / mass + 1e-6)
+    uncapped = raceline_table(putnam, "av21", replace(s, lateral_grip=0.0, brake_limit=0.0))
+    assert np.all(v <= uncapped["speed"] + 1e-9) and np.mean(v < uncapped["speed"] - 1e-9) < 0.5
 
 
 def test_committed_av21_line_is_a_flying_lap_inside_putnam(putnam):

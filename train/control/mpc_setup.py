@@ -38,6 +38,10 @@ class MpcSettings:
     margin: float = 0.03        # m, kept between the footprint's half width and the bounds (docs/tracks.md)
     speed_floor: float = 0.5    # m/s, lowest reference speed
     speed_scale: float = 1.0    # reference speed = raceline speed * this (docs/mpc.md, tuning)
+    lateral_grip: float = 0.0   # > 0: reference speed <= sqrt(this * (Df + Dr) / mass / |curvature|) of the table's
+                                # path: the tracker's share of the tyres' peak lateral force (0: no cap)
+    brake_limit: float = 0.0    # > 0: the reference decelerates at most this * (full brake + drag) / mass
+                                # (a backward pass): no tyre scrub or drift asked for (0: no limit)
     spacing: float = 0.025      # m, raceline table spacing
     line: str = "default"       # the vehicle's own line, or "flying" / "standing" (ddyn.control.raceline.LINES)
 
@@ -63,6 +67,8 @@ def raceline_table(track: Track, vehicle_name: str, settings: MpcSettings) -> di
 
     The speed profile is the raceline's own (a standing-start lap: low at the start line, floored
     at settings.speed_floor), so later laps slow down through the start area as the first did.
+    It is times settings.speed_scale and, where settings ask (lateral_grip, brake_limit: the AV-21),
+    capped to what a position tracker can follow (tracker_speed_limit).
     """
     from ddyn.control.raceline import LINES
     if settings.line not in LINES:
@@ -87,12 +93,49 @@ def raceline_table(track: Track, vehicle_name: str, settings: MpcSettings) -> di
     # across the closing segment the speed continues at the lap's final value
     speed = np.maximum(settings.speed_scale * np.interp(s_new, s_pts, np.concatenate([speed_rl, speed_rl[-1:]])),
                        settings.speed_floor)
+    if settings.lateral_grip > 0.0 or settings.brake_limit > 0.0:
+        speed = np.maximum(tracker_speed_limit(xy, speed, vehicle_name, settings), settings.speed_floor)
     # room along the normal: centre-line half widths at the projection, minus the lateral offset
     s_c, lat = track.project(xy[:, 0], xy[:, 1])
     wl, wr = track.half_widths(s_c)
     half = 0.5 * FOOTPRINT[vehicle_name][1] + settings.margin
     return {"x": xy[:, 0], "y": xy[:, 1], "speed": speed, "room_left": wl - lat - half,
             "room_right": wr + lat - half}
+
+
+def tracker_speed_limit(xy: np.ndarray, speed: np.ndarray, vehicle_name: str, settings: MpcSettings) -> np.ndarray:
+    """The closed table's reference speed lowered to what a position tracker can follow with the vehicle's
+    true coefficients (its vehicle file), as settings ask:
+
+    lateral_grip: at most sqrt(lateral_grip * (Df + Dr) / mass / |kappa|), kappa the path's curvature over
+    the circle through the points two either side (a chord of ~4 spacings: the 3 m table's position noise of
+    a few mm would otherwise read as curvature);
+    brake_limit: a backward pass (three times round the closed table) so that between consecutive points
+    v_i^2 <= v_{i+1}^2 + 2 ds brake_limit ((Cm1 - Cm2 v) + Cr0 + Cd v^2) / mass, the full brake and the drag
+    at v_{i+1}. A line may brake harder (its tyres' lateral force projected onto the path: steering at the
+    lock with the front tyre past its peak, sideslip at its bound; the AV-21's Putnam line does, docs/tracks.md);
+    a tracker that follows positions does not find that, falls behind the reference and reaches the corner
+    too fast."""
+    from ddyn.model.vehicle import load as load_vehicle
+    v = load_vehicle(vehicle_name)
+    c, mass = v.true_coefficients, float(v.known.mass)
+    out = np.asarray(speed, float).copy()
+    if settings.lateral_grip > 0.0:
+        a, b = np.roll(xy, 2, axis=0), np.roll(xy, -2, axis=0)
+        ab, bc, ca = xy - a, b - xy, a - b
+        cross = ab[:, 0] * bc[:, 1] - ab[:, 1] * bc[:, 0]
+        kappa = 2.0 * np.abs(cross) / (np.linalg.norm(ab, axis=1) * np.linalg.norm(bc, axis=1) *
+                                       np.linalg.norm(ca, axis=1))
+        out = np.minimum(out, np.sqrt(settings.lateral_grip * (c["Df"] + c["Dr"]) / mass / np.maximum(kappa, 1e-9)))
+    if settings.brake_limit > 0.0:
+        ds = np.hypot(*(np.roll(xy, -1, axis=0) - xy).T)
+        n = len(out)
+        for _ in range(3):
+            for i in range(n - 1, -1, -1):
+                nxt = out[(i + 1) % n]
+                decel = settings.brake_limit * ((c["Cm1"] - c["Cm2"] * nxt) + c["Cr0"] + c["Cd"] * nxt * nxt) / mass
+                out[i] = min(out[i], np.sqrt(nxt * nxt + 2.0 * ds[i] * decel))
+    return out
 
 
 class TableGeometry:

@@ -295,6 +295,24 @@ def controller_start(spec: SilSpec, table: np.ndarray) -> list[float]:
     return x
 
 
+# MpcSettings fields the controller's configuration takes (docs/deploy.md: mpc.*)
+MPC_CONFIG_FIELDS = ("horizon", "q_x", "q_y", "q_terminal", "r_dthrottle", "r_dsteering", "slack_l1", "slack_l2")
+
+
+def mpc_section(vehicle_name: str) -> dict:
+    """The controller's `mpc` section: the vehicle's own weights and horizon (train/vehicles/mpc/, the same
+    MpcSettings `ddyn mpc lap` drives with), all of them when its settings file sets any; empty when it sets
+    none (the 1:43 car: the C defaults, its configuration as before)."""
+    from ddyn.control.mpc_setup import settings_for
+    from ddyn.control.vehicle_settings import overrides
+    if not set(overrides(vehicle_name, "mpc")) & set(MPC_CONFIG_FIELDS):
+        return {}
+    s = settings_for(vehicle_name)
+    return {"horizon": int(s.horizon), "q_pos": [float(s.q_x), float(s.q_y)], "q_terminal_scale": float(s.q_terminal),
+            "r_rate": [float(s.r_dthrottle), float(s.r_dsteering)], "slack_l1": float(s.slack_l1),
+            "slack_l2": float(s.slack_l2)}
+
+
 CONTROLLER_CONFIG = "controller.json"
 RACELINE_CSV = "raceline.csv"
 
@@ -348,7 +366,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS), "cycle_ms": frame_cycles_ms(v)}
     if key_file:
         can_cfg["key_file"] = key_file
-    return {
+    cfg = {
         "vehicle": v.name,
         "nominal_coefficients": named(spec.nominal),
         "coefficients": coefficients,
@@ -375,6 +393,10 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
                      "idle_exit": 60.0},
         "sil": {"die_at_step": die},
     }
+    mpc = mpc_section(v.name)
+    if mpc:
+        cfg["mpc"] = mpc
+    return cfg
 
 
 def write_controller_files(spec: SilSpec, table: np.ndarray, work: Path, out_dir: str, lcm_url: str = "",
