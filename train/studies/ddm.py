@@ -10,6 +10,14 @@
         with drivetrain ranges from the training part (`ddyn study drivetrain`, via
         `--ranges`), and the powertrain drivetrain of av21_powertrain (its ranges come from
         the same study, committed in the vehicle file).
+        `--holdout laps` (issue 36) leaves whole laps out instead: the laps are found from x, y
+        (ddyn.data.laps), the named laps test (default HOLDOUT_LAPS) and the others train (their
+        last fifth validates); `--holdout speed` trains on the rows below a speed and tests on those
+        at or above it. Either way the training part's rows are renumbered into segments wherever a
+        held-out row was taken out (split_rows), so no window reads across the cut; each run is
+        also evaluated on its own training part (in_sample) beside the held-out one, and
+        `--seeds` trains several seeds into one results.json with their mean and spread
+        (holdout_summary).
 
 Writes DIR/results.json, DIR/results.md, and per model a checkpoint, metrics.json and
 plots; `--update-doc` replaces the block between the study markers in docs/learning.md.
@@ -21,13 +29,15 @@ import re
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from ddyn.data import simulate
-from ddyn.data.dataset import write_canonical
+from ddyn.data.dataset import Dataset, write_canonical
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
 from ddyn.learn.evaluate import evaluate, public
+from ddyn.learn.networks import SATURATION_TOL
 from ddyn.learn.plots import plot_evaluation
 from ddyn.learn.train_cmd import train_to_checkpoint
 from ddyn.learn.training import TrainConfig
@@ -54,7 +64,23 @@ REAL_RUNS = (("ddm_putnam", "av21", "DDM, papers' drivetrain, papers' ranges", F
               f"DDM, powertrain drivetrain, guard prior {REAL_GUARD_PRIOR:g}", False, {"guard_prior": REAL_GUARD_PRIOR}),
              ("ddm_putnam_powertrain_prior_tau", "av21_powertrain",
               f"DDM, powertrain drivetrain, guard prior {REAL_GUARD_PRIOR:g}, history {REAL_TAU}", False,
-              {"guard_prior": REAL_GUARD_PRIOR, "tau": REAL_TAU}))
+              {"guard_prior": REAL_GUARD_PRIOR, "tau": REAL_TAU}),
+             ("ddm_putnam_powertrain_prior_tau_iz", "av21_powertrain",
+              f"DDM, powertrain drivetrain, guard prior {REAL_GUARD_PRIOR:g}, history {REAL_TAU}, Iz in the papers' "
+              f"[500, 2000] kg m2", False, {"guard_prior": REAL_GUARD_PRIOR, "tau": REAL_TAU}))
+# runs trained without --only (the papers' table in docs/learning.md); the others only when named
+REAL_DEFAULT_RUNS = tuple(r[0] for r in REAL_RUNS[:5])
+# guard ranges a run takes in place of its vehicle file's (through the `ddyn train --ranges` path): the papers'
+# nominal Iz range for this car (shared/data/README.md), fixed before any selection (issue 36)
+REAL_RANGE_OVERRIDES = {"ddm_putnam_powertrain_prior_tau_iz": {"Iz": [500.0, 2000.0]}}
+# how the real log is split into training and held-out parts (--holdout)
+HOLDOUTS = ("time", "laps", "speed")
+# --holdout laps: the laps that test by default. The Putnam log holds 2.6 laps (ddyn.data.laps: lap 0 from the
+# first row, slow, 5,726 rows; lap 1 the one whole lap after it, 4,012 rows; lap 2 the fastest, partial, 1,768
+# rows); lap 1 is the whole lap with training data on both sides of it in time
+HOLDOUT_LAPS = (1,)
+# --holdout speed: rows at or above this vx (m/s) test, those below train (about the log's 80th percentile)
+HOLDOUT_SPEED = 20.0
 STUDY_BEGIN, STUDY_END = "<!-- study:begin -->", "<!-- study:end -->"
 STUDY_DOC = REPO / "docs" / "learning.md"
 
@@ -106,12 +132,87 @@ def run_sim(out: Path, quick: bool = False) -> list[dict]:
     return results
 
 
+def split_rows(ds: Dataset, keep: np.ndarray) -> Dataset:
+    """The rows of ds where `keep` (a boolean mask), in order, with segments renumbered: a new segment starts
+    wherever ds's segment changes or rows were taken out in between, so no window of the part reads across a
+    row that is not in it (the time between the kept rows would otherwise pass as one sample time)."""
+    keep = np.asarray(keep, dtype=bool)
+    if keep.shape != (len(ds),):
+        raise DdynError(f"row mask of {keep.shape} for a dataset of {len(ds)} rows")
+    idx = np.flatnonzero(keep)
+    part = ds.subset(idx)
+    if len(idx):
+        part.segment = np.r_[0, np.cumsum((np.diff(idx) != 1) | (np.diff(ds.segment[idx]) != 0))].astype(np.int64)
+    return part
+
+
+def split_real(ds: Dataset, holdout: str = "time", test_laps: tuple[int, ...] = HOLDOUT_LAPS,
+               speed: float = HOLDOUT_SPEED) -> tuple[Dataset, Dataset, dict]:
+    """(training part, held-out part, what was held out) of a real log.
+    time: the first TRAIN_FRACTION of the rows train, the rest test (the study's split before issue 36);
+    laps: the laps numbered in test_laps (ddyn.data.laps, from x, y) test, the other laps train;
+    speed: rows with vx >= speed test, the rows below train."""
+    from ddyn.data import laps as laps_mod
+    from ddyn.studies import drivetrain
+
+    if holdout == "time":
+        cut = int(len(ds) * drivetrain.TRAIN_FRACTION)
+        return (ds.subset(slice(0, cut)), ds.subset(slice(cut, None)),
+                {"holdout": "time", "train_rows": cut, "test_rows": len(ds) - cut,
+                 "what": f"first {drivetrain.TRAIN_FRACTION:.0%} of the rows train, the rest test"})
+    if holdout == "laps":
+        lp = laps_mod.from_dataset(ds)
+        if not lp.circuit:
+            raise DdynError(f"--holdout laps: the log has no laps ({lp.reason})")
+        present = sorted(int(x) for x in np.unique(lp.lap))
+        bad = sorted(set(test_laps) - set(present))
+        if bad or not test_laps:
+            raise DdynError(f"--holdout-laps {' '.join(map(str, test_laps)) or '(none)'}: the log's laps are "
+                            f"{', '.join(map(str, present))} ({lp.source}); {', '.join(map(str, bad))} not among them")
+        test = np.isin(lp.lap, list(test_laps))
+        if test.all():
+            raise DdynError(f"--holdout-laps {' '.join(map(str, test_laps))}: every lap of the log would test; "
+                            f"keep at least one of {', '.join(map(str, present))} for training")
+        info = {"holdout": "laps", "test_laps": sorted(test_laps),
+                "train_laps": [x for x in present if x not in test_laps], "laps_source": lp.source,
+                "what": f"laps {', '.join(map(str, sorted(test_laps)))} test, laps "
+                        f"{', '.join(str(x) for x in present if x not in test_laps)} train ({lp.source})"}
+    elif holdout == "speed":
+        if not np.isfinite(speed) or speed <= 0:
+            raise DdynError(f"--holdout-speed must be a positive speed in m/s, got {speed}")
+        test = ds.states[:, 3] >= speed
+        if test.all() or not test.any():
+            raise DdynError(f"--holdout-speed {speed:g}: no rows on one side (vx spans "
+                            f"{ds.states[:, 3].min():.1f}-{ds.states[:, 3].max():.1f} m/s)")
+        info = {"holdout": "speed", "speed": speed,
+                "what": f"rows with vx >= {speed:g} m/s test, those below train"}
+    else:
+        raise DdynError(f"holdout must be one of {', '.join(HOLDOUTS)}, got {holdout!r}")
+    train_part, test_part = split_rows(ds, ~test), split_rows(ds, test)
+    return train_part, test_part, {**info, "train_rows": len(train_part), "test_rows": len(test_part)}
+
+
+def any_bound_share(m: dict, ckpt: dict) -> float | None:
+    """Share of the evaluated samples with at least one coefficient within SATURATION_TOL of the range width of a
+    guard bound (None for a model without a guard)."""
+    r = ckpt.get("ranges")
+    if not r:
+        return None
+    c = np.asarray(m["_series"]["coeffs"])
+    lo, hi = np.asarray(r["lo"]), np.asarray(r["hi"])
+    tol = SATURATION_TOL * (hi - lo)
+    return float(((c <= lo + tol) | (c >= hi - tol)).any(axis=1).mean())
+
+
 def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...] = (), restarts: int = 1,
-             guard_prior: float | None = None, method: str = "euler", tau: int | None = None) -> list[dict]:
-    """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run (all if empty);
-    restarts: TrainConfig.restarts (seeds seed..seed+restarts-1, the lowest validation loss kept);
-    guard_prior, tau: TrainConfig.guard_prior, TrainConfig.tau of every run (None: each run's own in REAL_RUNS);
-    method: the physics step of the model (TrainConfig.method)."""
+             guard_prior: float | None = None, method: str = "euler", tau: int | None = None,
+             holdout: str = "time", test_laps: tuple[int, ...] = HOLDOUT_LAPS, speed: float = HOLDOUT_SPEED,
+             epochs: int | None = None, lbfgs_iterations: int | None = None) -> list[dict]:
+    """seed: the training seed of every run (TrainConfig.seed); only: run names of REAL_RUNS to run
+    (REAL_DEFAULT_RUNS if empty); restarts: TrainConfig.restarts (seeds seed..seed+restarts-1, the lowest
+    validation loss kept); guard_prior, tau: TrainConfig.guard_prior, TrainConfig.tau of every run (None: each
+    run's own in REAL_RUNS); method: the physics step of the model (TrainConfig.method); holdout, test_laps,
+    speed: the split (split_real); epochs, lbfgs_iterations: the training budget (None: TrainConfig's)."""
     from ddyn.data.importers import load_any
 
     out.mkdir(parents=True, exist_ok=True)
@@ -125,17 +226,18 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
         raise DdynError(f"unknown real run(s) {', '.join(sorted(unknown))}; expected {', '.join(r[0] for r in REAL_RUNS)}")
     base = (TrainConfig(epochs=5, lbfgs_iterations=40, seed=seed, restarts=restarts, method=method) if quick
             else TrainConfig(seed=seed, restarts=restarts, method=method))
+    budget = {k: v for k, v in (("epochs", epochs), ("lbfgs_iterations", lbfgs_iterations)) if v is not None}
+    base = replace(base, **budget)
     results = []
     for name, vehicle_name, label, data_ranges, fields in REAL_RUNS:
-        if only and name not in only:
+        if name not in (only or REAL_DEFAULT_RUNS):
             continue
         run_prior, run_tau = fields.get("guard_prior", 0.0), fields.get("tau", base.tau)
         prior = run_prior if guard_prior is None else guard_prior
         history = run_tau if tau is None else tau
         cfg = replace(base, **{**fields, "guard_prior": prior, "tau": history})
         ds = load_any(src, vehicle=vehicle_name)
-        cut = int(len(ds) * drivetrain.TRAIN_FRACTION)
-        train_part, test_part = ds.subset(slice(0, cut)), ds.subset(slice(cut, None))
+        train_part, test_part, split = split_real(ds, holdout, test_laps, speed)
         ranges_file = None
         if data_ranges:
             # the papers' form with ranges from the training part: its own drivetrain fit's, and
@@ -146,18 +248,90 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
                      if k not in drivetrain.DRIVE}
             ranges_file = out / f"ranges_{name}.json"
             ranges_file.write_text(json.dumps({**other, **fit["forms"]["papers"]["ranges"]}, indent=2))
+        elif name in REAL_RANGE_OVERRIDES:
+            ranges_file = out / f"ranges_{name}.json"
+            ranges_file.write_text(json.dumps(REAL_RANGE_OVERRIDES[name], indent=2))
         if quick:
             train_part = train_part.subset(slice(0, 1500))
         train_path = out / f"putnam_train_{vehicle_name}.csv"
         write_canonical(train_part, train_path)
-        results.append(_run_model(name, train_path, None, test_part, cfg, out, ranges_file)
+        r = _run_model(name, train_path, None, test_part, cfg, out, ranges_file)
+        extra = {}
+        if holdout != "time":
+            # the same model on the rows it was fitted on (its validation fifth included) beside the held-out part
+            model, ckpt = checkpoint.load(out / name / "model.ckpt")
+            m_test, m_train = evaluate(model, ckpt, test_part), evaluate(model, ckpt, train_part)
+            extra = {"test_any_bound": any_bound_share(m_test, ckpt),
+                     "in_sample": {**public(m_train), "any_bound": any_bound_share(m_train, ckpt)}}
+        results.append(r | extra
                        | {"label": label + (f" (seed {seed})" if seed and restarts == 1 else "")
                           + (f" (seeds {seed}-{seed + restarts - 1}, best validation kept)" if restarts > 1 else "")
                           + (f" (guard prior {prior:g})" if prior != run_prior else "")
                           + (f" (history {history})" if history != run_tau else "")
                           + (f" ({method} step)" if method != "euler" else ""),
-                          "seed": seed, "restarts_requested": restarts, "guard_prior": prior, "tau": history})
+                          "seed": seed, "restarts_requested": restarts, "guard_prior": prior, "tau": history,
+                          "vehicle": vehicle_name, "epochs": cfg.epochs, "lbfgs_iterations": cfg.lbfgs_iterations,
+                          "split": split})
     return results
+
+
+HOLDOUT_FIGURES = ("vx", "vy", "omega", "ade", "fde", "any_bound", "worst_bound")
+
+
+def _figures(m: dict, any_bound: float | None) -> dict:
+    worst = max((c.get("at_lower_bound", 0) + c.get("at_upper_bound", 0) for c in m["coefficients"].values()),
+                default=0.0)
+    return {"vx": m["rmse"]["vx"], "vy": m["rmse"]["vy"], "omega": m["rmse"]["omega"], "ade": m["ade"],
+            "fde": m["fde"], "any_bound": any_bound, "worst_bound": worst,
+            "Iz_mean": m["coefficients"].get("Iz", {}).get("mean")}
+
+
+def holdout_summary(real: list[dict]) -> list[dict]:
+    """Per run name over its seeds: mean, min, max and spread (max - min) of the held-out (test) and in-sample
+    figures (RMSE vx, vy, omega; ADE, FDE; any_bound: share of samples with some coefficient at a guard bound;
+    worst_bound: the largest share of one coefficient; Iz_mean: the mean Iz estimate)."""
+    out = []
+    for name in dict.fromkeys(r["name"] for r in real):
+        runs = [r for r in real if r["name"] == name and "in_sample" in r]
+        if not runs:
+            continue
+        row = {"name": name, "label": re.sub(r" \(seed \d+\)", "", runs[0]["label"]),
+               "seeds": [r["seed"] for r in runs]}
+        for part, get in (("test", lambda r: _figures(r, r.get("test_any_bound"))),
+                          ("in_sample", lambda r: _figures(r["in_sample"], r["in_sample"].get("any_bound")))):
+            vals = [get(r) for r in runs]
+            row[part] = {}
+            for k in vals[0]:
+                xs = [v[k] for v in vals if v[k] is not None]
+                if xs:
+                    row[part][k] = {"mean": float(np.mean(xs)), "min": float(np.min(xs)), "max": float(np.max(xs)),
+                                    "spread": float(np.max(xs) - np.min(xs))}
+        out.append(row)
+    return out
+
+
+def holdout_markdown(summary: list[dict], split: dict) -> str:
+    def cell(f: dict | None, pct: bool = False) -> str:
+        if f is None:
+            return "-"
+        if pct:
+            return f"{100 * f['mean']:.1f} ({100 * f['min']:.1f}-{100 * f['max']:.1f}) %"
+        return f"{_fmt(f['mean'])} ({_fmt(f['min'])}-{_fmt(f['max'])})"
+
+    lines = ["", f"**Held out: {split['what']}** ({split['train_rows']} training rows, {split['test_rows']} held-out "
+             "rows). Mean (min-max) over the seeds; held-out figures first, in-sample (the training part, its "
+             "validation fifth included) below.", "",
+             "| model | part | seeds | vx (m/s) | vy (m/s) | omega (rad/s) | ADE (m) | FDE (m) | samples with a coefficient at a bound | worst coefficient at a bound | mean Iz (kg m2) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in summary:
+        for part in ("test", "in_sample"):
+            f = row[part]
+            lines.append(f"| {row['label']} | {'held out' if part == 'test' else 'in sample'} | {len(row['seeds'])} | "
+                         + " | ".join(cell(f.get(k)) for k in ("vx", "vy", "omega", "ade", "fde")) + " | "
+                         + cell(f.get("any_bound"), True) + " | " + cell(f.get("worst_bound"), True) + " | "
+                         + (f"{f['Iz_mean']['mean']:.0f} ({f['Iz_mean']['min']:.0f}-{f['Iz_mean']['max']:.0f})"
+                            if "Iz_mean" in f else "-") + " |")
+    return "\n".join(lines) + "\n"
 
 
 def _slug(name: str) -> str:
@@ -223,17 +397,35 @@ def update_doc(block: str, doc: Path = STUDY_DOC) -> None:
 def _run(args) -> int:
     out = Path(args.out)
     sim = run_sim(out / "sim", args.quick) if args.which in ("sim", "all") else None
-    real = (run_real(out / "real", args.quick, args.seed, tuple(args.only or ()), args.restarts, args.guard_prior,
-                     args.method, args.tau)
-            if args.which in ("real", "all") else None)
+    seeds = tuple(dict.fromkeys(args.seeds)) if args.seeds else (args.seed,)
+    if args.holdout_laps and args.holdout != "laps":
+        raise DdynError("--holdout-laps needs --holdout laps")
+    if args.holdout_speed is not None and args.holdout != "speed":
+        raise DdynError("--holdout-speed needs --holdout speed")
+    real = None
+    if args.which in ("real", "all"):
+        real = []
+        for s in seeds:
+            # one folder per seed when there are several (each run's checkpoint, metrics and plots)
+            real += run_real(out / "real" / (f"seed{s}" if len(seeds) > 1 else ""), args.quick, s,
+                             tuple(args.only or ()), args.restarts, args.guard_prior, args.method, args.tau,
+                             args.holdout, tuple(args.holdout_laps or HOLDOUT_LAPS),
+                             HOLDOUT_SPEED if args.holdout_speed is None else args.holdout_speed,
+                             args.epochs, args.lbfgs_iterations)
     results = {"sim": sim, "real": real, "quick": args.quick}
-    (out / "results.json").write_text(json.dumps(results, indent=2))
     md = markdown(sim, real)
+    if real and args.holdout != "time":
+        results["holdout"] = real[0]["split"]
+        results["holdout_summary"] = holdout_summary(real)
+        md += holdout_markdown(results["holdout_summary"], real[0]["split"])
+    (out / "results.json").write_text(json.dumps(results, indent=2))
     (out / "results.md").write_text(md)
     print(md)
     if args.update_doc:
         if (args.quick or args.which != "all" or args.only or args.seed or args.restarts != 1
-                or args.guard_prior is not None or args.tau is not None or args.method != "euler"):
+                or args.guard_prior is not None or args.tau is not None or args.method != "euler"
+                or args.seeds or args.holdout != "time" or args.epochs is not None
+                or args.lbfgs_iterations is not None):
             raise DdynError("--update-doc needs the full study: `ddyn study ddm all` without --quick")
         update_doc(md)
         print(f"{STUDY_DOC.relative_to(REPO)} results block updated")
@@ -250,12 +442,26 @@ def register(subparsers) -> None:
     p.add_argument("--restarts", type=int, default=1, help="real runs: train seeds SEED..SEED+N-1 and keep the "
                    "lowest validation loss (TrainConfig.restarts; default: %(default)s)")
     p.add_argument("--guard-prior", type=float, help="real runs: TrainConfig.guard_prior of every run, the weight "
-                   f"of the mean squared guard logit (default: each run's own: {REAL_GUARD_PRIOR:g} for the last two, 0 "
-                   "for the others)")
+                   f"of the mean squared guard logit (default: each run's own: {REAL_GUARD_PRIOR:g} for the runs with "
+                   "'prior' in their name, 0 for the others)")
     p.add_argument("--tau", type=int, help="real runs: TrainConfig.tau of every run, the rows of history the "
-                   f"network reads (default: each run's own: {REAL_TAU} for the last, 1 for the others)")
+                   f"network reads (default: each run's own: {REAL_TAU} for those with 'tau' in it, 1 for the others)")
     p.add_argument("--method", choices=("euler", "rk4"), default="euler", help="real runs: the model's physics "
                    "step (TrainConfig.method; default: %(default)s, as in the papers)")
-    p.add_argument("--only", nargs="+", metavar="RUN", help="real runs to train, by name (default: all): "
-                   + ", ".join(r[0] for r in REAL_RUNS))
+    p.add_argument("--only", nargs="+", metavar="RUN", help="real runs to train, by name (default: "
+                   + ", ".join(REAL_DEFAULT_RUNS) + "; by name only: "
+                   + ", ".join(r[0] for r in REAL_RUNS if r[0] not in REAL_DEFAULT_RUNS) + ")")
+    p.add_argument("--seeds", nargs="+", type=int, metavar="SEED", help="real runs: train each run once per seed "
+                   "(in place of --seed; one folder per seed) and summarise mean and spread over them")
+    p.add_argument("--holdout", choices=HOLDOUTS, default="time", help="real runs: what the test part is: time "
+                   "(the last 20 %% of the rows, default), laps (whole laps found from x, y: --holdout-laps), speed "
+                   "(the rows at or above --holdout-speed); laps and speed also report in-sample figures")
+    p.add_argument("--holdout-laps", nargs="+", type=int, metavar="LAP", help="--holdout laps: the laps (0 = the "
+                   f"log's first) that test (default: {' '.join(map(str, HOLDOUT_LAPS))})")
+    p.add_argument("--holdout-speed", type=float, metavar="M_S", help="--holdout speed: rows with vx at or above "
+                   f"this test (default: {HOLDOUT_SPEED:g} m/s)")
+    p.add_argument("--epochs", type=int, help="real runs: Adam epochs (TrainConfig.epochs; default: its default, "
+                   "5 with --quick)")
+    p.add_argument("--lbfgs-iterations", type=int, help="real runs: L-BFGS iterations after Adam "
+                   "(TrainConfig.lbfgs_iterations; default: its default, 40 with --quick)")
     p.set_defaults(func=_run)
