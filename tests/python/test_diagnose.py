@@ -322,6 +322,16 @@ def test_a_find_below_its_detection_limit_is_reported_not_selected(delay_log, tm
         assert d["below_limit"]["params"]["delay"] == pytest.approx(0.03, rel=0.1)
         assert d["verdict"].startswith("none: steer_delay pays on the held-out data") and "not claimed" in d["verdict"]
         assert d["greedy"][0]["below_limit"] and d["greedy"][0]["added"] is None
+        # the log's stated limit is never below what a claim needs: a 30 ms delay under a 40 ms limit would not
+        # be claimed, so "a steering delay below X would not be found" states at least 40 ms (none: not claimable)
+        stated = d["limits"]["steer_delay"]
+        level = limits.get("steer_delay", limits.get("*"))
+        if level is None:
+            assert stated["limit"] is None and stated["bound_by"] == "not claimable"
+        else:
+            assert stated["limit"] >= level and stated["bound_by"] == "decision level"
+    free = _diagnose(delay_log, detection_limits=None, **kw)["limits"]["steer_delay"]
+    assert free["bound_by"] == "evidence" and free["limit"] < 0.04
     # limits in a config file: validated, unknown effects refused with the key named
     f = tmp_path / "limits.json"
     f.write_text('{"detection_limits": {"steer_delay": 0.04, "downforce": null, "*": null}}')
@@ -455,3 +465,24 @@ def test_endpoint_evidence(shared_data):
     assert s["delta_loglik"] == pytest.approx(dll) and s["delta_bic"] == pytest.approx(-2 * dll + np.log(nw))
     d0 = _diagnose(_sim(None, seed=23), evidence="endpoint:10", **kw)
     assert d0["selected"] == [] and all(c["delta_bic"] > 0 for c in d0["candidates"])
+
+
+def test_a_profile_limit_counts_only_the_held_out_rows_the_fit_part_covered():
+    """A bank or grade that varies along the lap is learned only where the fit part drove: profile_coverage
+    keeps the held-out rows next to a knot the fit rows inform (periodic: the last interval wraps to the first
+    knot), and none when a plausible channel carries the family to every row or the family has no profile."""
+    from types import SimpleNamespace
+
+    from ddyn.gap import candidates as C, limits as L
+
+    lay = C.Layout(position=np.array([10.0, 25.0, 125.0, 175.0, 260.0]), length=200.0,
+                   knots=np.array([0.0, 50.0, 100.0, 150.0]), free=[0, 1], source="test", roll=None)
+    prob = SimpleNamespace(layout=lay, rows_held=np.array([1, 2, 3, 4]))
+    # 25: knots 0-1 (free); 125: knots 2-3 (neither free); 175: knots 3-0 (0 free); 260 = 60: knots 1-2 (1 free)
+    assert L.profile_coverage(prob, "grade").tolist() == [True, False, True, True]
+    assert L.profile_coverage(prob, "steer_delay") is None
+    lay.free = []
+    assert not L.profile_coverage(prob, "bank_angle").any()
+    prob.layout = None
+    assert L.profile_coverage(prob, "bank_angle") is None
+

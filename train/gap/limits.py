@@ -23,8 +23,15 @@ more cost than a few one-step evaluations:
                       -margin: "a steering delay below 31 ms would not be found on this log". Linear in the
                       effect (t^2 g): exact for small effects, a bound's order of magnitude for large ones.
 
-The profile and channel candidates of a family take the family's limit (its constant form: a bank of one
-angle everywhere, a grade likewise).
+The profile and channel candidates of a family take the family's limit in the form the log can show: a bank or
+grade that varies along the lap (as every closed circuit's must) can only be learned where the fit part of the
+log drove, so unless a plausible roll (pitch) channel carries it to every row, the limit is the larger of its
+constant form (a bank of one angle everywhere) and its profile form (the same angle only on the held-out rows
+whose track position the fit part's knots cover: none covered, none found).
+
+A limit is also never below what a claim needs: with a decision level (a calibration's share of the size that
+matters, or an absolute detection limit) an estimate under it is reported, not claimed, so the stated limit is
+at least that level; a family the calibration never claims has no limit ("no ... of any size would be found").
 """
 from __future__ import annotations
 
@@ -97,9 +104,30 @@ def _projected_gain(prob, base_rho, dr: np.ndarray, held: bool, var: np.ndarray)
     return np.sum(dr ** 2, axis=0) / (n * var)
 
 
-def gains(prob, base_rho, families) -> dict:
-    """{family: (size that matters, g per channel (3,))} on the held-out rows of prob (refit factors base_rho).
-    g: the normalised gain an effect of the size that matters would give (module docstring)."""
+def profile_coverage(prob, family: str, candidates=()) -> np.ndarray | None:
+    """Which held-out rows a profile of `family` (bank_angle, grade) could be learned on: those whose track
+    position lies next to a knot the fit rows inform (ddyn.gap.candidates.Layout.free). None: no restriction (not
+    a profiled family, no layout, or a plausible channel candidate of the family carries it to every row)."""
+    lay = getattr(prob, "layout", None)
+    if lay is None or family not in C.PROFILE_OF.values():
+        return None
+    if any(C.FAMILY[c] == family and c in C.ROLL_OF and C.available(c, lay) for c in candidates):
+        return None
+    s = np.asarray(lay.position, float)[prob.rows_held]
+    knots = np.asarray(lay.knots, float)
+    if lay.length is not None:
+        s = np.mod(s, lay.length)
+    i = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(knots) - 1)   # the knot at or before s
+    j = (i + 1) % len(knots) if lay.length is not None else np.minimum(i + 1, len(knots) - 1)
+    free = np.zeros(len(knots), bool)
+    free[list(lay.free)] = True
+    return free[i] | free[j]
+
+
+def gains(prob, base_rho, families, candidates=()) -> dict:
+    """{family: (size that matters, g per channel (3,), g of its profile form or None)} on the held-out rows of
+    prob (refit factors base_rho). g: the normalised gain an effect of the size that matters would give (module
+    docstring); the profile form's: the same effect on the rows profile_coverage leaves, zero elsewhere."""
     rows = prob.rows_held
     r0 = prob.residuals({}, base_rho, rows)
     var = np.maximum(np.mean(r0 ** 2, axis=0), 1e-12)
@@ -116,7 +144,9 @@ def gains(prob, base_rho, families) -> dict:
         if not np.all(np.isfinite(dr)):
             continue
         held = C.holds_refit((fam,), prob.bank_family_held)
-        out[fam] = (size, _projected_gain(prob, base_rho, dr, held, var))
+        cover = profile_coverage(prob, fam, candidates)
+        g_profile = None if cover is None else _projected_gain(prob, base_rho, dr * cover[:, None], held, var)
+        out[fam] = (size, _projected_gain(prob, base_rho, dr, held, var), g_profile)
     return out
 
 
@@ -137,17 +167,36 @@ def limit(size: float, g, n: int, margin: float, dk: int = 1, m: int = 1) -> flo
     return hi * size
 
 
-def log_limits(prob, base_rho, families, margins: dict, m: int) -> dict:
-    """{family: {size_that_matters, limit (None: not found at any size), gain (3,), unit, sentence}} for this log
-    at each family's claim margin (margins {family: dBIC}) with m candidates in the first round."""
+def log_limits(prob, base_rho, families, margins: dict, m: int, levels: dict | None = None,
+               candidates=()) -> dict:
+    """{family: {size_that_matters, limit (None: not found at any size), gain (3,), unit, sentence, bound_by}} for
+    this log at each family's claim margin (margins {family: dBIC}) with m candidates in the first round.
+    levels: {family: the smallest estimate claimed, or None: never claimed}; a family absent has no level.
+    candidates: the diagnosis's candidate names (whether a channel carries a bank or grade to every row)."""
     n = len(prob.rows_held)
+    levels = levels or {}
     out = {}
-    for fam, (size, g) in gains(prob, base_rho, families).items():
+    for fam, (size, g, g_profile) in gains(prob, base_rho, families, candidates).items():
         lim = limit(size, g, n, margins[fam], 1, m)
+        bound_by = "evidence"
+        if g_profile is not None and lim is not None:
+            lim_p = limit(size, g_profile, n, margins[fam], 1, m)
+            lim, bound_by = (None, "coverage") if lim_p is None else (max(lim, lim_p), "coverage" if lim_p > lim
+                                                                      else bound_by)
+        if fam in levels:
+            level = levels[fam]
+            if level is None:
+                lim, bound_by = None, "not claimable"
+            elif lim is not None and abs(level) > lim:
+                lim, bound_by = abs(level), "decision level"
         word = WORDS.get(fam, fam.replace("_", " "))
+        why = {"not claimable": " (the calibration never claims it)",
+               "coverage": " (the held-out part drives where the fit part did not: a profile cannot be learned)"}
         out[fam] = {"size_that_matters": size, "limit": lim, "gain_at_size": [float(x) for x in g],
                     "unit": C.UNITS.get(fam, ""), "limit_over_size": None if lim is None else lim / size,
-                    "sentence": (f"no {word} of any size in range would be found on this log" if lim is None else
+                    "bound_by": bound_by,
+                    "sentence": (f"no {word} of any size in range would be found on this log"
+                                 + why.get(bound_by, "") if lim is None else
                                  f"a {word} below {in_words(fam, lim)} would not be found on this log "
-                                 f"(size that matters: {in_words(fam, size)})")}
+                                 f"(size that matters: {in_words(fam, size)}; set by its {bound_by})")}
     return out

@@ -192,8 +192,6 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
         has, per_row = _limit_of(family, cfg.family_margins_per_row)
         return margin + (float(per_row or 0.0) * len(prob.rows_held) if has else 0.0)
 
-    log_limits = L.log_limits(prob, base_fit.rho, families, {f: claim_margin(f) for f in families}, len(candidates))
-
     def level_of(name: str) -> tuple[bool, float | None]:
         """(has a decision level, the level or None: never claimed) of a candidate on this log: the config's
         absolute detection_limits, else its decision_levels as a share of the family's size that matters."""
@@ -205,6 +203,11 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
             return False, None
         size = L.size_that_matters(C.FAMILY[name], prob.ctx)
         return True, None if share is None or size is None else share * size
+
+    # the stated limits: what the evidence could show, and never below what a claim needs (a decision level)
+    levels = {f: lv for f in families for has, lv in [level_of(f)] if has}
+    log_limits = L.log_limits(prob, base_fit.rho, families, {f: claim_margin(f) for f in families},
+                              len(candidates), levels=levels, candidates=candidates)
 
     # greedy: add the best while it pays for itself. An effect that pays but is not claimed (an estimate on an
     # edge of its range, below its decision level, or not told apart from a rival) is kept in the model as a
@@ -319,7 +322,7 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
                     f"without the gate: {', '.join(gate_info['selected_without_gate'])}" if gated else
                     _unexplained_verdict(unexplained) if not selected and unexplained else
                     "none: " + _below_limit_verdict(below_limit) if not selected and below_limit else
-                    "none: " + _not_told_apart_verdict(not_told_apart) if not_told_apart else
+                    "none: " + _not_told_apart_verdict(not_told_apart) if not selected and not_told_apart else
                     "none: no candidate effect pays for its parameters on the held-out data"
                     + (f" by the evidence margin (dBIC < -{margin:g})" if margin else "") if not selected else
                     "; ".join(f"{e['effect']} {next(iter(e['params']))} = {next(iter(e['params'].values())):.4g} "
@@ -330,7 +333,9 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
                        f"dBIC of the first effect's, < {AMBIGUITY_DBIC:g}: not told apart)" if rival else "")
                     + (f"; the rest is{_unexplained_verdict(unexplained)[5:]}"
                        if selected and unexplained else "")
-                    + (f"; then {_below_limit_verdict(below_limit)}" if selected and below_limit else "")),
+                    + (f"; then {_below_limit_verdict(below_limit)}" if selected and below_limit else "")
+                    # a tie that came first is not claimed, and the claims after it must not read as "none"
+                    + (f"; first {_not_told_apart_verdict(not_told_apart)}" if selected and not_told_apart else "")),
         "unexplained": unexplained,
         "below_limit": below_limit,
         # this log's detection limits per family at its margin (ddyn.gap.limits), and the sentences a report prints

@@ -179,7 +179,8 @@ def run_case(case: dict) -> dict:
         "runner_up_gap": (d.get("runner_up") or {}).get("evidence_difference"),
         "claimed": [C.FAMILY.get(s, s) for s in d["selected"]],
         "unclaimed": [e["effect"] for e in d["model"].get("unclaimed", [])],
-        "limits": {f: {"size": v["size_that_matters"], "limit": v["limit"], "gain": v["gain_at_size"]}
+        "limits": {f: {"size": v["size_that_matters"], "limit": v["limit"], "gain": v["gain_at_size"],
+                       "bound_by": v.get("bound_by")}
                    for f, v in d["limits"].items()},
         "margin": d["gate"]["min_evidence"], "verdict": d["verdict"],
         "seconds_simulation": sim_s, "seconds_diagnosis": time.perf_counter() - t0,
