@@ -125,3 +125,14 @@ def test_study_holdout_laps_quick_on_the_real_log(tmp_path, shared_data):
         ["study", "ddm", "real", "--quick", "--holdout-laps", "2", "--out", str(out)])
     with pytest.raises(DdynError, match="needs --holdout laps"):
         args.func(args)
+
+
+def test_saturation_figure_is_the_worst_coefficient_on_either_bound():
+    """results/ddm_real_putnam.json reads saturation_max_pct: the largest share (%) of samples one coefficient
+    spends on its lower plus upper bound, not the sum over coefficients; None without a guard."""
+    from ddyn.studies.ddm import _saturation_max_pct
+
+    coeffs = {"Iz": {"at_lower_bound": 0.001, "at_upper_bound": 0.006}, "Cm1": {"at_lower_bound": 0.0,
+                                                                                "at_upper_bound": 0.004}}
+    assert _saturation_max_pct(coeffs) == pytest.approx(0.7)
+    assert _saturation_max_pct({}) is None and _saturation_max_pct(None) is None

@@ -97,6 +97,13 @@ def _simulated_sets(out: Path, method: str, train_laps: int, test_laps: int) -> 
     return paths[0], paths[1]
 
 
+def _saturation_max_pct(coefficients: dict | None) -> float | None:
+    """The largest share (%) of samples any one coefficient spends on a guard bound (lower or upper)."""
+    shares = [100.0 * (float(c.get("at_lower_bound", 0.0)) + float(c.get("at_upper_bound", 0.0)))
+              for c in (coefficients or {}).values() if isinstance(c, dict)]
+    return max(shares) if shares else None
+
+
 def _run_model(name: str, train_path: Path, test_path: Path | None, test_ds, cfg: TrainConfig, out: Path,
                ranges_file: Path | None = None) -> dict:
     from ddyn.data.importers import load_any
@@ -110,7 +117,9 @@ def _run_model(name: str, train_path: Path, test_path: Path | None, test_ds, cfg
     plot_evaluation(m, ckpt, out / name)
     result = {"name": name, "kind": cfg.kind, "train_seconds": ckpt["training"]["seconds"],
               "validation_loss": ckpt["training"]["best_val_loss"], "seed_kept": ckpt["training"]["seed"],
-              "restarts": ckpt["training"]["restarts"], **public(m)}
+              "restarts": ckpt["training"]["restarts"], **public(m),
+              # the figure "no coefficient at a bound in over X % of the samples" (results/ddm_real_putnam.json)
+              "saturation_max_pct": _saturation_max_pct(public(m).get("coefficients"))}
     (out / name / "metrics.json").write_text(json.dumps(result, indent=2))
     return result
 
