@@ -166,6 +166,26 @@ def test_hold_estimate_is_bounded_and_recorded():
     assert info["dbw_period_from_steps"]["samples"] == 1
 
 
+def test_hold_from_steps_is_half_the_logged_command_period():
+    """hold="steps": half a sample for a unit at the log rate or faster, m/2 samples for one holding each command
+    for m samples; the delay a steering-delay candidate then reports is what comes on top of it."""
+    slow = CP.make_log("putnam", CP.PlantEffects(), 10, _settings(6.0, dbw_period=0.08))
+    fast = CP.make_log("putnam", CP.PlantEffects(), 10, _settings(6.0, dbw_period=0.02))
+    assert hold_estimate.from_steps(slow)["hold"] == pytest.approx(slow.sample_time)
+    assert hold_estimate.from_steps(fast)["hold"] == pytest.approx(0.5 * fast.sample_time)
+    ds = CP.make_log("putnam", CP.PlantEffects(steer_delay=0.06), 11, CP.LogSettings(duration=30.0))
+    nominal = P.nominal_from_vehicle(load_vehicle(CP.NOMINAL_VEHICLE), ds)
+    d = SEL.diagnose(ds, nominal, candidates=("steer_delay",), max_effects=1, max_starts=30, gate=None, hold="steps")
+    assert d["nominal"]["command_hold_delay"] == pytest.approx(0.5 * ds.sample_time)
+    assert d["nominal"]["hold_estimate"]["rule"] == "half the logged command period"
+    # the 60 ms delay of a unit at the log rate: closer with the step hold (0.082 on this 30 s log) than with none
+    # (0.101, the half sample of staircase lag read as delay)
+    steps = d["candidates"][0]["params"]["delay"]
+    d0 = SEL.diagnose(ds, nominal, candidates=("steer_delay",), max_effects=1, max_starts=30, gate=None, hold=False)
+    assert abs(steps - 0.06) < abs(d0["candidates"][0]["params"]["delay"] - 0.06) - 0.01
+    assert steps == pytest.approx(0.06, abs=0.025)
+
+
 def test_mb_case_plan_covers_the_new_effects():
     cases = gap_mb.plan(12, 3)
     effects = [c["effect"] for c in cases]
@@ -178,7 +198,7 @@ def test_mb_case_plan_covers_the_new_effects():
 def test_config_hold_takes_estimate(tmp_path):
     """hold: false (default), true, or "estimate" (the hold delay fitted); anything else is refused naming the key."""
     assert CFG.DiagnosisConfig().hold is False
-    for text, want in (("true", True), ('"estimate"', "estimate")):
+    for text, want in (("true", True), ('"estimate"', "estimate"), ('"steps"', "steps")):
         f = tmp_path / "c.toml"
         f.write_text(f"hold = {text}\n")
         assert CFG.DiagnosisConfig.from_file(f).hold == want

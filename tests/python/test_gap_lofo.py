@@ -105,11 +105,19 @@ def _rec(family, effect, truth, est, dbic, rows=1000, size=0.04, duration=120.0,
             "limits": {f: {"size": size, "limit": limit, "gain": [0, 0, 0]} for f in lofo.EFFECTS}, "claimed": []}
 
 
-def test_decision_levels_need_enough_logs_and_take_the_low_tail():
-    recs = [_rec("a", "steer_delay", 0.05, 0.05 * r, -50) for r in np.linspace(0.7, 1.2, 20)]
-    levels = lofo.decision_levels(recs)
-    assert levels["steer_delay"] == pytest.approx(np.quantile(np.linspace(0.7, 1.2, 20), 0.05))
+def test_decision_levels_need_enough_logs_and_weigh_hits_against_false_claims():
+    # 20 logs holding a steering delay at its size (0.04), estimated 0.75-1.2 times it, and 10 effect-free logs
+    # where a steering delay of 0.55 times the size pays: a level of 0.6 or 0.7 keeps every hit and no false claim
+    # (the higher is taken), 0.5 adds the ten false ones, 0.8 and above lose hits; the low tail alone said 0.77
+    hits = [_rec("a", "steer_delay", 0.04, 0.04 * r, -50) for r in np.linspace(0.75, 1.2, 20)]
+    alarms = [_rec("a", "none", 0.0, 0.04 * 0.55, -50, top="steer_delay") for _ in range(10)]
+    levels = lofo.decision_levels(hits + alarms)
+    assert levels["steer_delay"] == pytest.approx(0.7)
     assert levels["steer_lag"] is None      # no logs of it: never claimed
+    # false claims that outnumber the hits at every level, with more evidence than the hits (no margin parts
+    # them): the family is not claimed at all
+    many = [_rec("a", "none", 0.0, 0.04 * 1.5, -80 - k, top="steer_delay") for k in range(30)]
+    assert lofo.decision_levels(hits + many)["steer_delay"] is None
 
 
 def test_family_margins_leave_at_most_five_percent_of_alarm_logs_claimed():

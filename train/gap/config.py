@@ -94,7 +94,10 @@ class DiagnosisConfig:
     # Rollout start points for the multi-step (ADE/FDE) figures; a cap on the cost, not a statistic.
     max_starts: int = 400
     # The log's commands were held between samples (a drive-by-wire unit) while the model ramps them: every
-    # hypothesis gets half a sample of delay on both commands (true), or the hold delay fitted ("estimate").
+    # hypothesis gets half a sample of delay on both commands (true), half the command period the log's own step
+    # structure shows ("steps": a unit slower than the log holds m samples, m/2 of lag), or the hold delay fitted
+    # on the nominal ("estimate"; on the plant families it read 0 or its bound, nothing between, and a
+    # delay's estimate took the difference: steps is what the family calibration uses).
     hold: bool | str = False
     # What the fit compares (FIT_MODES): one-step predictions, from smoothed states (errors in variables),
     # output-error rollouts, or "mixed[:EFFECTS]" (output error, those effects' values fitted one-step).
@@ -215,8 +218,8 @@ def _validate(c: DiagnosisConfig) -> None:
     _number("max_effects", c.max_effects, 1, 10, integer=True)
     _number("max_starts", c.max_starts, 1, 10 ** 6, integer=True)
     _number("max_unclaimed", c.max_unclaimed, 0, 10, integer=True)
-    if c.hold not in (True, False, "estimate"):
-        raise DdynError(f"hold: expected true, false or \"estimate\", got {c.hold!r}")
+    if c.hold not in (True, False, "estimate", "steps"):
+        raise DdynError(f"hold: expected true, false, \"steps\" or \"estimate\", got {c.hold!r}")
     parse_fit_spec(c.fit) if isinstance(c.fit, str) else _bad("fit", c.fit, "a string")
     parse_evidence_spec(c.evidence) if isinstance(c.evidence, str) else _bad("evidence", c.evidence, "a string")
     if not isinstance(c.mass_inertia, bool):

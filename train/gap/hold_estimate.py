@@ -15,6 +15,13 @@ is taken from the delay estimates (or read as a lead the delay candidates cannot
                    on top (which the grid would otherwise absorb, a hold and a delay look alike) is left to the
                    delay candidates, which then estimate it on top of the bound, as with `--hold`.
 
+`hold = "steps"`: half the command period the step structure shows (a unit at the log's rate: half a sample; one
+holding each command for m samples: m/2). What the family calibration uses: on its plants the fitted hold read
+either 0 or its bound (the nominal's cost hardly moves over [0, Ts/2], and a real delay in the log does not move it
+to the bound), and a delay's estimate took the difference (+0.02-0.03 s on 40 ms delays at 25 Hz). Its limit: a unit
+faster than the log, fed smooth commands, lags by less than half a sample, which the log cannot show; its delays
+then read up to half a sample long.
+
 The estimate also takes up what acts like a short delay in the plant (a fast steering servo's lag); it is the
 delay the log's commands show, reported in diagnosis.json (`nominal.hold_estimate`).
 """
@@ -41,6 +48,14 @@ def detect_period(ds, min_change: float = 1e-9) -> dict:
     m = int(np.median(r))
     return {"samples": m, "period_s": m * float(ds.sample_time),
             "share_of_runs_at_median": float(np.mean(r == m))}
+
+
+def from_steps(ds) -> dict:
+    """The hold of `hold = "steps"`: {hold (s), rule, dbw_period_from_steps}."""
+    period = detect_period(ds)
+    m = period["samples"] or 1
+    return {"hold": 0.5 * m * float(ds.sample_time), "rule": "half the logged command period",
+            "dbw_period_from_steps": period}
 
 
 def estimate(make_problem, fit, sample_time: float, steps: int = GRID_STEPS) -> dict:

@@ -128,6 +128,9 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
                                            lambda pr: fit(pr, ()), ds.sample_time)
         hold_info["dbw_period_from_steps"] = hold_estimate.detect_period(ds)
         hold = hold_info["hold"]
+    elif hold == "steps":       # half the command period the log's step structure shows (ddyn.gap.hold_estimate)
+        hold_info = hold_estimate.from_steps(ds)
+        hold = hold_info["hold"]
     prob = Problem(ds, nominal, fit_fraction, refit, hold=hold, fit_mode=cfg.fit, mass_inertia=cfg.mass_inertia,
                    steer_servo=cfg.steer_servo, nominal_effects=cfg.nominal_effects)
     prob.layout = C.layout(ds, track, prob.rows_fit)
