@@ -22,14 +22,22 @@
  *                  before the genuine authenticator, the previous genuine pair replayed
  *   op % 16 == 9   a raw authenticator frame (any bytes, CRC fixed or not) to that endpoint
  *   op % 16 == 10  that endpoint's enable and a control period
- *   op % 16 == 11  a raw authenticator decode with any identifier and length
- *   (12-15 as 4-7 on the first endpoint)
+ *   op % 16 == 11  a raw authenticator decode with any identifier and length; then the same bytes signed
+ *                  both ways a sender can (one-shot from the key, the prepared per-frame state), which agree
+ * and, with op % 16 >= 12, the degraded-bus link (the frame dating and fault counts of the controller side,
+ * ddyn_dbw_link_*):
+ *   op % 16 == 12  a good frame of a stream (kind byte) with a counter (byte % 16) to the link
+ *   op % 16 == 13  a control period's tick, after a bad frame when the flag byte says so
+ *   op % 16 == 14  a stream's sending cycle (2 bytes x 200 us: 0 = the DBC's, up to 13 s, above 10 s refused)
+ *   op % 16 == 15  the fault counts taken, and the names of a failure, frame and state (any byte)
  * Invariants checked after every step (a violation traps, which libFuzzer reports as a crash):
  * the command frame always decodes back with a valid checksum and in-range values; anything but
  * ACTIVE sends the safe command; the last good values are always finite; an unknown identifier
  * never changes the link's state; on the authenticating endpoint, no forged, replayed or stale
  * frame is ever applied, and none of them changes the link's state (only the genuine frame, once
- * its authenticator verifies, may).
+ * its authenticator verifies, may); on the degraded-bus link, a new frame's age is finite and >= 0 and
+ * its lost count at most 8 (a step of 1..8), the bus clock never moves back, a cycle is what was set,
+ * taking the faults returns their sum and clears them, and every name is a string.
  * Built and run by scripts/fuzz_can.sh (clang -fsanitize=fuzzer,address,undefined).
  */
 #include <math.h>
@@ -207,9 +215,73 @@ static void authenticated_frame(ddyn_dbw *da, ddyn_dbw *ua, cursor *c, uint64_t 
     }
 }
 
+/* ops 12-15: the degraded-bus link (see the top) */
+static void link_step(ddyn_dbw_link *link, uint8_t op, cursor *c)
+{
+    uint8_t a = 0, b = 0;
+    (void)take(c, &a, 1);
+    (void)take(c, &b, 1);
+    switch (op % 16u) {
+    case 12: {
+        const ddyn_dbw_frame f = (ddyn_dbw_frame)(a % (DDYN_DBW_FRAME_COUNT + 1u)); /* COUNT: not a stream */
+        const double clock_before = link->now_s;
+        unsigned lost = 99u;
+        double age = -1.0;
+        const ddyn_dbw_link_result r = ddyn_dbw_link_on_frame(link, f, (uint8_t)(b % 16u), &lost, &age);
+        CHECK(r == DDYN_DBW_LINK_NEW || r == DDYN_DBW_LINK_REPEATED || r == DDYN_DBW_LINK_LATE);
+        if (f == DDYN_DBW_FRAME_COUNT) {
+            CHECK(r == DDYN_DBW_LINK_REPEATED);
+        }
+        if (r == DDYN_DBW_LINK_NEW) {
+            CHECK(isfinite(age) && age >= 0.0 && lost <= 8u);
+            CHECK(ddyn_dbw_link_age(link, f) >= 0.0);
+        }
+        CHECK(link->now_s >= clock_before);
+        break;
+    }
+    case 13:
+        if (a & 1u) {
+            ddyn_dbw_link_on_bad_frame(link);
+        }
+        ddyn_dbw_link_tick(link);
+        break;
+    case 14: {
+        const ddyn_dbw_frame f = (ddyn_dbw_frame)(a % (DDYN_DBW_FRAME_COUNT + 1u));
+        const uint32_t cycle_us = (uint32_t)b * (uint32_t)(a >> 4) * 200u * 16u; /* 0 .. 13 s */
+        ddyn_status st;
+        if ((unsigned)f < DDYN_DBW_FRAME_COUNT && link->seen[f]) {
+            break; /* the contract: a stream's cycle is set before its first frame */
+        }
+        st = ddyn_dbw_link_set_cycle(link, f, cycle_us);
+        if (f == DDYN_DBW_FRAME_COUNT || cycle_us > 10000000u) {
+            CHECK(st != DDYN_OK);
+        }
+        if (st == DDYN_OK && cycle_us > 0u) {
+            CHECK(fabs(ddyn_dbw_link_cycle(link, f) - 1e-6 * (double)cycle_us) <= 1e-12);
+        }
+        if (st == DDYN_OK) {
+            CHECK(ddyn_dbw_link_cycle(link, f) > 0.0);
+        }
+        break;
+    }
+    default: {
+        const uint64_t sum = (uint64_t)link->lost + link->late + link->repeated + link->bad;
+        const uint32_t faults = ddyn_dbw_link_take_faults(link);
+        CHECK(faults == (sum > UINT32_MAX ? UINT32_MAX : (uint32_t)sum));
+        CHECK(link->lost == 0u && link->late == 0u && link->repeated == 0u && link->bad == 0u);
+        CHECK(ddyn_dbw_link_take_faults(link) == 0u);
+        CHECK(ddyn_dbw_failure_name((ddyn_dbw_failure)a) != NULL);
+        CHECK(ddyn_dbw_frame_name((ddyn_dbw_frame)b) != NULL);
+        CHECK(ddyn_dbw_state_name((ddyn_dbw_state)(a ^ b)) != NULL);
+        break;
+    }
+    }
+}
+
 int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
 {
     ddyn_dbw d, unit, da, ua;
+    ddyn_dbw_link link;
     ddyn_dbw_config cfg;
     cursor c = {input, size};
     uint64_t now = 1000000u;
@@ -227,6 +299,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
     CHECK(ddyn_dbw_init(&ua, &cfg) == 0);
     CHECK(ddyn_dbw_auth_enable(&ua, DDYN_DBW_TEST_KEY, 0u) == 0);
     memset(replay, 0, sizeof replay);
+    ddyn_dbw_link_init(&link);
     for (steps = 0; steps < 4096u && c.n > 0; ++steps) {
         uint8_t op = 0;
         (void)take(&c, &op, 1);
@@ -274,11 +347,31 @@ int LLVMFuzzerTestOneInput(const uint8_t *input, size_t size)
                 CHECK(len == DDYN_DBW_FRAME_LEN && (unsigned)f < DDYN_DBW_FRAME_COUNT && low < (1u << 22) &&
                       mac < (1u << 24) && counter < 16u);
             }
+            { /* a sender's two ways to sign (one-shot from the key, the prepared per-frame state) agree */
+                const ddyn_dbw_frame sf = (ddyn_dbw_frame)(id % (DDYN_DBW_FRAME_COUNT + 1u));
+                uint64_t fresh = 0u;
+                uint8_t one[DDYN_DBW_FRAME_LEN], prepared[DDYN_DBW_FRAME_LEN];
+                ddyn_status s1, s2;
+                memcpy(&fresh, &raw[8], sizeof fresh);
+                s1 = ddyn_dbw_auth_encode(DDYN_DBW_TEST_KEY, sf, raw, fresh, raw[0], one);
+                s2 = ddyn_dbw_auth_sign(&ua.auth, sf, raw, fresh, raw[0], prepared);
+                CHECK(s1 == s2);
+                CHECK(s1 == (sf == DDYN_DBW_FRAME_COUNT ? DDYN_ERR_ARGUMENT : DDYN_OK));
+                if (s1 == DDYN_OK) {
+                    CHECK(memcmp(one, prepared, sizeof one) == 0);
+                }
+                CHECK(ddyn_dbw_auth_sign(&unit.auth, DDYN_DBW_FRAME_STEERING, raw, fresh, 0u, prepared) ==
+                      DDYN_ERR_NOT_READY); /* a sender without a key signs nothing */
+            }
             break;
         }
+        case 12:
+        case 13:
+        case 14:
+        case 15: link_step(&link, op, &c); break;
         default: break;
         }
-        switch (op % 16u >= 8u && op % 16u < 12u ? 255u : op % 8u) {
+        switch (op % 16u >= 8u ? 255u : op % 8u) {
         case 255: break;
         case 0:
         case 1: {
