@@ -96,6 +96,83 @@ static int coefficients_usable(const double c[NC])
     return ddyn_all_finite(c, NC) && c[CM1] > 0.0 && c[NC - 1] > 0.0;
 }
 
+/* ---- actuation delays (ddyn_ctrl_delay_config) ---- */
+
+#define DELAY_RING (DDYN_CTRL_MAX_DELAY_STEPS + 1)
+
+void ddyn_ctrl_delay_line_reset(ddyn_ctrl_delay_line *d, double u0)
+{
+    int i;
+    for (i = 0; i < DELAY_RING; ++i) {
+        d->u[i] = u0;
+    }
+    d->newest = 0;
+}
+
+void ddyn_ctrl_delay_line_push(ddyn_ctrl_delay_line *d, double u)
+{
+    d->newest = d->newest + 1 < DELAY_RING ? d->newest + 1 : 0;
+    d->u[d->newest] = u;
+}
+
+void ddyn_ctrl_delay_line_set_newest(ddyn_ctrl_delay_line *d, double u)
+{
+    d->u[d->newest] = u;
+}
+
+double ddyn_ctrl_delay_line_ago(const ddyn_ctrl_delay_line *d, int n)
+{
+    int i;
+    if (n < 0 || n > DDYN_CTRL_MAX_DELAY_STEPS || d->newest < 0 || d->newest >= DELAY_RING) {
+        return NAN;
+    }
+    i = d->newest - n;
+    return d->u[i < 0 ? i + DELAY_RING : i];
+}
+
+/* one delay in whole periods of dt; -1 when refused */
+static int delay_periods(double delay, double dt)
+{
+    double n;
+    if (!(delay >= 0.0) || !isfinite(delay) || !(dt > 0.0)) {
+        return -1;
+    }
+    n = delay / dt;
+    if (n > (double)DDYN_CTRL_MAX_DELAY_STEPS + 1e-6) {
+        return -1; /* above the compiled maximum */
+    }
+    n = floor(n + 1e-6);
+    return n > (double)DDYN_CTRL_MAX_DELAY_STEPS ? DDYN_CTRL_MAX_DELAY_STEPS : (int)n;
+}
+
+ddyn_status ddyn_ctrl_delay_steps(const ddyn_ctrl_delay_config *cfg, double dt, int steps[DDYN_NU])
+{
+    int t, s;
+    if (cfg == NULL || steps == NULL) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    t = delay_periods(cfg->throttle, dt);
+    s = delay_periods(cfg->steering, dt);
+    if (t < 0 || s < 0) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    steps[DDYN_CTRL_CH_THROTTLE] = t;
+    steps[DDYN_CTRL_CH_STEERING] = s;
+    return DDYN_OK;
+}
+
+/* u_prev is the newest command sent (a caller may have replaced it: ddyn_ctrl_command_applied, _not_sent)
+ * and the command acting on the car over the coming period is the one sent `delay` periods before it */
+static void sync_delay_lines(ddyn_ctrl *ctl)
+{
+    int c;
+    for (c = 0; c < NU; ++c) {
+        ddyn_ctrl_delay_line_set_newest(&ctl->sent[c], ctl->u_prev[c]);
+        ctl->u_acting[c] = ctl->delay_steps[c] == 0 ? ctl->u_prev[c]
+                                                     : ddyn_ctrl_delay_line_ago(&ctl->sent[c], ctl->delay_steps[c]);
+    }
+}
+
 static int degraded_config_ok(const ddyn_ctrl_degraded_config *d, double dt)
 {
     return d->age_tolerance >= 0.0 && isfinite(d->age_tolerance) && d->max_age >= 0.0 &&
@@ -107,9 +184,9 @@ static int degraded_config_ok(const ddyn_ctrl_degraded_config *d, double dt)
 static int config_ok(const ddyn_ctrl_config *cfg, double dt)
 {
     const ddyn_ctrl_pid_config *g = &cfg->pid;
-    int i, k;
-    if (!degraded_config_ok(&cfg->degraded, dt)) {
-        return 0;
+    int i, k, steps[NU];
+    if (!degraded_config_ok(&cfg->degraded, dt) || ddyn_ctrl_delay_steps(&cfg->delay, dt, steps) != DDYN_OK) {
+        return 0; /* a delay above the compiled maximum is refused, not cut */
     }
     if ((unsigned)cfg->coeff_source >= (unsigned)DDYN_CTRL_SOURCE_COUNT ||
         (unsigned)cfg->throttle_mode >= (unsigned)DDYN_CTRL_THROTTLE_MODE_COUNT ||
@@ -174,6 +251,9 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     }
     ctl->cfg = *cfg;
     ctl->model = model;
+    (void)ddyn_ctrl_delay_steps(&cfg->delay, model->sample_time, ctl->delay_steps); /* checked by config_ok */
+    ddyn_ctrl_delay_line_reset(&ctl->sent[0], 0.0); /* the actuators held since forever */
+    ddyn_ctrl_delay_line_reset(&ctl->sent[1], 0.0);
     memcpy(ctl->coeffs, cfg->coeff_source == DDYN_CTRL_SOURCE_FIXED ? cfg->c_fixed : cfg->c_nominal,
            sizeof ctl->coeffs);
     ctl->last_good_age = -1;
@@ -224,7 +304,7 @@ static void push_history_row(ddyn_ctrl *ctl)
         ctl->history[TAU - 1][f] = ctl->x_prev[FIRST_FEATURE_STATE + f];
     }
     for (f = 0; f < NU; ++f) {
-        ctl->history[TAU - 1][NFEAT - NU + f] = ctl->u_prev[f];
+        ctl->history[TAU - 1][NFEAT - NU + f] = ctl->u_acting[f]; /* the input that acted (u_prev without delay) */
     }
     if (ctl->history_rows < TAU) {
         ctl->history_rows += 1;
@@ -489,12 +569,12 @@ static int age_reading(ddyn_ctrl *ctl, int k, const double *z, double age, doubl
  * state when this period's command takes effect. The actuators are held over it (u = 0): they reached
  * the previous set-point within its period (the SIL's in-process delayed-bus runs: with the previous
  * rates continued, the steering overshoots its set-point in the prediction and the lap had violations). */
-static void predict_latency(ddyn_ctrl *ctl, double latency, double x[NX])
+static void predict_latency(ddyn_ctrl *ctl, const double x_start[NX], double latency, double x[NX])
 {
     const double dt = ctl->model->sample_time;
     double xdot[NX], h;
     int n, j, i;
-    memcpy(x, ctl->ekf.x, NX * sizeof *x);
+    memcpy(x, x_start, NX * sizeof *x);
     if (!(latency > 0.0) || !ctl->started) {
         return;
     }
@@ -513,7 +593,7 @@ static void predict_latency(ddyn_ctrl *ctl, double latency, double x[NX])
         static const double u_hold[NU] = {0.0, 0.0};
         if (ddyn_model_derivatives(ctl->model, x, u_hold, ctl->coeffs, xdot, &ctl->ekf.work) != DDYN_OK ||
             !ddyn_all_finite(xdot, NX)) {
-            memcpy(x, ctl->ekf.x, NX * sizeof *x); /* the model failed: the estimate as it is */
+            memcpy(x, x_start, NX * sizeof *x); /* the model failed: the start as it is */
             return;
         }
         for (i = 0; i < NX; ++i) {
@@ -593,7 +673,7 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
     const double r_var_scale = ctl->degraded ? ctl->cfg.degraded.r_scale * ctl->cfg.degraded.r_scale : 1.0;
     int k, i, fused = 0, diverged = 0, restart;
     unsigned reacquire = 0u; /* sensors whose repeated restart this is (bit k) */
-    if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_prev, ctl->coeffs) != DDYN_OK) {
+    if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_acting, ctl->coeffs) != DDYN_OK) {
         diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
     }
     if (ctl->started && ctl->blind_steps >= ctl->cfg.max_sensor_faults && reanchor(ctl, in)) {
@@ -714,6 +794,37 @@ static ddyn_ctrl_status throttle_pid(ddyn_ctrl *ctl, double v_ref, ddyn_ctrl_out
     return st;
 }
 
+ddyn_status ddyn_ctrl_predict_pipe(ddyn_ctrl *ctl, const double x[DDYN_NX], double x_out[DDYN_NX])
+{
+    double xa[NX], xb[NX], u[NU];
+    int n, i, c;
+    ddyn_status s;
+    if (ctl == NULL || x == NULL || x_out == NULL || !ctl->initialised) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    memcpy(xa, x, sizeof xa);
+    n = ctl->delay_steps[DDYN_CTRL_CH_STEERING]; /* the MPC plans from when its steering acts (ddyn/controller.h) */
+    for (i = 0; i < n; ++i) { /* n <= DDYN_CTRL_MAX_DELAY_STEPS */
+        for (c = 0; c < NU; ++c) {
+            const int d = ctl->delay_steps[c];
+            /* a channel with a shorter delay: its commands not sent yet are held (see the function's
+             * comment in ddyn/controller.h for why not the last plan's) */
+            u[c] = i < d ? ddyn_ctrl_delay_line_ago(&ctl->sent[c], d - 1 - i) : 0.0;
+        }
+        s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, xa, u, ctl->coeffs, xb, &ctl->ekf.work);
+        if (s == DDYN_OK && !ddyn_all_finite(xb, NX)) {
+            s = DDYN_ERR_NONFINITE_OUTPUT;
+        }
+        if (s != DDYN_OK) {
+            memcpy(x_out, x, NX * sizeof *x_out);
+            return s;
+        }
+        memcpy(xa, xb, sizeof xa);
+    }
+    memcpy(x_out, xa, sizeof xa);
+    return DDYN_OK;
+}
+
 /* Coefficients the prepared QP may keep: each within PREPARED_COEFF_TOL of the new value, measured on
  * the guard's range of that coefficient (on the value itself without a guard). The network's estimates
  * drift by far less from one period to the next; a fallback to other coefficients moves them by more. */
@@ -735,7 +846,7 @@ static int coefficients_close(const ddyn_ctrl *ctl, const double a[NC], const do
 static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctrl_output *out, int *safe_cause)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
-    double u[NU], dthrottle = 0.0, v_ref = 0.0, x0[NX];
+    double u[NU], dthrottle = 0.0, v_ref = 0.0, x0[NX], x_pipe[NX];
     const int pid = ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID;
     ddyn_status s;
     if (ctl->mpc.prepared && !coefficients_close(ctl, ctl->mpc.c, ctl->coeffs)) {
@@ -744,8 +855,12 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
         ctl->mpc.prepared = 0;
     }
     s = ddyn_mpc_set_coefficients(&ctl->mpc, ctl->coeffs);
-    /* the plan starts where the car will be when this command takes effect (the input's latency) */
-    predict_latency(ctl, in->latency, x0);
+    /* the plan starts where the car will be when this command takes effect: through the commands still
+     * in the pipe (the actuation delays; on a model failure the estimate as it is), then over the input's
+     * latency */
+    (void)ddyn_ctrl_predict_pipe(ctl, ctl->ekf.x, x_pipe);
+    predict_latency(ctl, x_pipe, in->latency, x0);
+    memcpy(out->x_mpc0, x0, sizeof x0);
     if (s == DDYN_OK && pid) {
         s = ddyn_mpc_reference_speed(&ctl->mpc, x0, ctl->cfg.pid.preview * fabs(x0[VX]), &v_ref);
         if (s == DDYN_OK) {
@@ -753,6 +868,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
             s = ddyn_mpc_solve_held_throttle(&ctl->mpc, x0, dthrottle, u, &out->mpc_info);
         }
     } else if (s == DDYN_OK && ctl->mpc.prepared) {
+
         /* prepared after the last command (ddyn_ctrl_prepare): only the feedback phase remains */
         s = ddyn_mpc_feedback(&ctl->mpc, x0, u, &out->mpc_info);
     } else if (s == DDYN_OK) {
@@ -795,6 +911,7 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
         return out->status;
     }
     if (ctl->started) {
+        sync_delay_lines(ctl); /* the command acting over the period just ended */
         push_history_row(ctl);
     }
     st = choose_coefficients(ctl);
@@ -832,6 +949,8 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
     memcpy(out->coeffs, ctl->coeffs, sizeof out->coeffs);
     memcpy(ctl->x_prev, ctl->ekf.x, sizeof ctl->x_prev);
     memcpy(ctl->u_prev, out->u, sizeof ctl->u_prev);
+    ddyn_ctrl_delay_line_push(&ctl->sent[0], out->u[0]); /* sent now (ddyn_ctrl_command_applied may */
+    ddyn_ctrl_delay_line_push(&ctl->sent[1], out->u[1]); /* still replace it: sync_delay_lines) */
     /* the estimates that date aged readings: newest first, bounded */
     memmove(ctl->x_hist[1], ctl->x_hist[0], (DDYN_CTRL_AGE_PERIODS - 1) * sizeof ctl->x_hist[0]);
     memcpy(ctl->x_hist[0], ctl->ekf.x, sizeof ctl->x_hist[0]);
@@ -866,7 +985,7 @@ int ddyn_ctrl_stale_limit(const ddyn_ctrl *ctl, int base)
 
 ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl)
 {
-    double x_next[NX];
+    double x_next[NX], x_pred[NX];
     ddyn_status s;
     if (ctl == NULL || !ctl->initialised || !ctl->started) {
         return DDYN_ERR_ARGUMENT;
@@ -875,13 +994,16 @@ ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl)
     if (ctl->safe_mode || ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID) {
         return DDYN_ERR_NOT_READY;
     }
-    /* the filter's own prediction model, with this period's coefficients and the command just sent
-     * (the EKF's work memory is scratch between its calls) */
-    s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, ctl->ekf.x, ctl->u_prev, ctl->coeffs, x_next, &ctl->ekf.work);
+    /* the filter's own prediction model, with this period's coefficients and the command that acts over
+     * the coming period (the one just sent without a delay; the EKF's work memory is scratch between its
+     * calls), then on through the commands still in the pipe: the next step's MPC start */
+    sync_delay_lines(ctl);
+    s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, ctl->ekf.x, ctl->u_acting, ctl->coeffs, x_next, &ctl->ekf.work);
     if (s != DDYN_OK) {
         return s;
     }
-    return ddyn_mpc_prepare(&ctl->mpc, x_next);
+    (void)ddyn_ctrl_predict_pipe(ctl, x_next, x_pred);
+    return ddyn_mpc_prepare(&ctl->mpc, x_pred);
 }
 
 const char *ddyn_ctrl_status_name(ddyn_ctrl_status bit)

@@ -1134,6 +1134,213 @@ static void test_a_command_not_sent_is_predicted_held(void **state)
     }
 }
 
+/* ---- actuation delays (ddyn_ctrl_delay_config, ddyn_ctrl_delay_line) ---- */
+
+static void test_delay_line_returns_the_command_sent_n_periods_ago_and_wraps(void **state)
+{
+    ddyn_ctrl_delay_line d;
+    const int ring = DDYN_CTRL_MAX_DELAY_STEPS + 1;
+    int pushed, n;
+    (void)state;
+    ddyn_ctrl_delay_line_reset(&d, -7.0);
+    for (n = 0; n <= DDYN_CTRL_MAX_DELAY_STEPS; ++n) {
+        assert_true(ddyn_ctrl_delay_line_ago(&d, n) == -7.0); /* "since forever" */
+    }
+    /* three times round the ring: value p is the p-th command sent */
+    for (pushed = 1; pushed <= 3 * ring + 1; ++pushed) {
+        ddyn_ctrl_delay_line_push(&d, (double)pushed);
+        for (n = 0; n <= DDYN_CTRL_MAX_DELAY_STEPS; ++n) {
+            const double want = pushed - n >= 1 ? (double)(pushed - n) : -7.0;
+            assert_true(ddyn_ctrl_delay_line_ago(&d, n) == want);
+        }
+    }
+    /* outside 0..max: NaN, never another entry */
+    assert_true(isnan(ddyn_ctrl_delay_line_ago(&d, -1)));
+    assert_true(isnan(ddyn_ctrl_delay_line_ago(&d, DDYN_CTRL_MAX_DELAY_STEPS + 1)));
+    /* the caller sent another command: only the newest changes */
+    ddyn_ctrl_delay_line_set_newest(&d, 0.5);
+    assert_true(ddyn_ctrl_delay_line_ago(&d, 0) == 0.5);
+    assert_true(ddyn_ctrl_delay_line_ago(&d, 1) == (double)(3 * ring));
+}
+
+static void test_delay_above_the_compiled_maximum_is_refused_at_init(void **state)
+{
+    const double dt = model->sample_time, max_s = DDYN_CTRL_MAX_DELAY_STEPS * dt;
+    ddyn_ctrl_delay_config d = {0.0, 0.0};
+    int steps[DDYN_NU] = {-1, -1};
+    (void)state;
+    /* seconds to whole periods, floor (to 1e-6 of a period) */
+    d.steering = 0.04;
+    d.throttle = 0.1;
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, 0.02, steps), DDYN_OK);
+    assert_int_equal(steps[DDYN_CTRL_CH_STEERING], 2);
+    assert_int_equal(steps[DDYN_CTRL_CH_THROTTLE], 5);
+    d.steering = 0.05; /* 2.5 periods: the set-point of 2 periods ago holds at each period's end */
+    d.throttle = 0.0;
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, 0.02, steps), DDYN_OK);
+    assert_int_equal(steps[DDYN_CTRL_CH_STEERING], 2);
+    assert_int_equal(steps[DDYN_CTRL_CH_THROTTLE], 0);
+    d.steering = max_s;
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_OK);
+    assert_int_equal(steps[DDYN_CTRL_CH_STEERING], DDYN_CTRL_MAX_DELAY_STEPS);
+    /* above the maximum, negative, not finite: refused, steps untouched */
+    steps[0] = steps[1] = -1;
+    d.steering = max_s + 0.1 * dt;
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_ERR_ARGUMENT);
+    d.steering = -1e-9;
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_ERR_ARGUMENT);
+    d.steering = NAN;
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_ERR_ARGUMENT);
+    d.steering = 0.0;
+    d.throttle = INFINITY;
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_ERR_ARGUMENT);
+    assert_true(steps[0] == -1 && steps[1] == -1);
+    /* at init: the controller refuses it (no silent cut to the maximum) */
+    cfg.delay.steering = (DDYN_CTRL_MAX_DELAY_STEPS + 1) * dt;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.delay.steering = 0.0;
+    cfg.delay.throttle = (DDYN_CTRL_MAX_DELAY_STEPS + 1) * dt;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.delay.throttle = max_s;
+    cfg.delay.steering = max_s;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
+    assert_int_equal(ctl.delay_steps[DDYN_CTRL_CH_STEERING], DDYN_CTRL_MAX_DELAY_STEPS);
+}
+
+/* the delayed plant: the command sent `ds` (steering) and `dt_` (throttle) periods ago acts over the
+ * period; sent[j] is the command of period j */
+#define DELAY_PERIODS 60
+static double sent_log[DELAY_PERIODS][DDYN_NU];
+
+static void run_delayed_plant(int period, int ds, int dthr, const ddyn_ctrl_output *out)
+{
+    double u[DDYN_NU], next[DDYN_NX];
+    memcpy(sent_log[period], out->u, sizeof sent_log[period]);
+    u[0] = period - dthr >= 0 ? sent_log[period - dthr][0] : 0.0;
+    u[1] = period - ds >= 0 ? sent_log[period - ds][1] : 0.0;
+    assert_int_equal(ddyn_model_step(model, DDYN_DISC_RK4, plant, u, plant_c, next, &plant_work), DDYN_OK);
+    memcpy(plant, next, sizeof next);
+}
+
+static void test_the_filter_predicts_with_the_command_sent_delay_ago(void **state)
+{
+    /* steering 3 periods, throttle 1: drive the delayed plant with readings, then two periods without
+     * any (the estimate is the prediction alone): the throttle and steering states move by the rates
+     * sent 1 and 3 periods before, not by the last ones */
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double before[DDYN_NX];
+    const double dt = model->sample_time;
+    int k;
+    (void)state;
+    cfg.delay.steering = 3.0 * dt;
+    cfg.delay.throttle = 1.0 * dt;
+    start_on_circle(oracle_tables());
+    for (k = 0; k < 30; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MEAS_REJECTED | DDYN_CTRL_EKF_DIVERGED));
+        run_delayed_plant(k, 3, 1, &out);
+    }
+    /* the filter follows the delayed actuators (a filter predicting with the last command would be
+     * ~3 periods of steering rate off and fight the steering sensor) */
+    assert_true(fabs(out.x_est[7] - plant[7]) < 2e-3);
+    memset(&in, 0, sizeof in);
+    for (k = 30; k < 32; ++k) {
+        memcpy(before, out.x_est, sizeof before);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_true(fabs(out.x_est[7] - (before[7] + dt * sent_log[k - 1 - 3][1])) < 1e-12);
+        assert_true(fabs(out.x_est[6] - (before[6] + dt * sent_log[k - 1 - 1][0])) < 1e-12);
+        assert_true(ctl.u_acting[1] == sent_log[k - 1 - 3][1] && ctl.u_acting[0] == sent_log[k - 1 - 1][0]);
+        assert_true(sent_log[k - 1 - 3][1] != sent_log[k - 1][1]); /* the test can tell them apart */
+        run_delayed_plant(k, 3, 1, &out);
+    }
+    /* the history row of the guard network holds the input that acted */
+    assert_true(ctl.history[DDYN_NET_TAU - 1][DDYN_NET_NFEAT - 1] == sent_log[30 - 3][1]);
+}
+
+static void test_the_mpc_plans_from_the_state_after_the_pipe(void **state)
+{
+    /* steering 3 periods, throttle 1: the MPC's start is the estimate stepped by the filter's model with
+     * the commands still in the pipe (steering sent 3, 2, 1 periods before this period's, throttle 1
+     * period before, then held), and ddyn_ctrl_predict_pipe between periods is the same stepping */
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double x[DDYN_NX], xn[DDYN_NX], x_api[DDYN_NX];
+    const double dt = model->sample_time;
+    int k, i;
+    (void)state;
+    cfg.delay.steering = 3.0 * dt;
+    cfg.delay.throttle = 1.0 * dt;
+    start_on_circle(oracle_tables());
+    for (k = 0; k < 25; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        run_delayed_plant(k, 3, 1, &out);
+    }
+    readings(&in, 25);
+    ddyn_ctrl_step(&ctl, &in, &out);
+    memcpy(x, out.x_est, sizeof x);
+    for (i = 0; i < 3; ++i) {
+        /* this period's command is sent_log-to-be: the pipe is the commands of periods 22 .. 24 */
+        double u[DDYN_NU];
+        u[1] = sent_log[22 + i][1];
+        u[0] = i < 1 ? sent_log[24][0] : 0.0;
+        assert_int_equal(ddyn_model_step(model, cfg.ekf_disc, x, u, ctl.coeffs, xn, &plant_work), DDYN_OK);
+        memcpy(x, xn, sizeof x);
+    }
+    assert_memory_equal(out.x_mpc0, x, sizeof x);
+    assert_true(fabs(out.x_mpc0[0] - out.x_est[0]) + fabs(out.x_mpc0[1] - out.x_est[1]) > 0.03); /* 3 periods ahead */
+    /* between periods: the pipe is now the commands of periods 23 .. 25 */
+    assert_int_equal(ddyn_ctrl_predict_pipe(&ctl, out.x_est, x_api), DDYN_OK);
+    memcpy(x, out.x_est, sizeof x);
+    for (i = 0; i < 3; ++i) {
+        double u[DDYN_NU];
+        u[1] = i == 2 ? out.u[1] : sent_log[23 + i][1];
+        u[0] = i < 1 ? out.u[0] : 0.0;
+        assert_int_equal(ddyn_model_step(model, cfg.ekf_disc, x, u, ctl.coeffs, xn, &plant_work), DDYN_OK);
+        memcpy(x, xn, sizeof x);
+    }
+    assert_memory_equal(x_api, x, sizeof x);
+    /* without a steering delay nothing is predicted: the MPC starts at the estimate */
+    cfg.delay.steering = 0.0;
+    cfg.delay.throttle = 0.0;
+    start_on_circle(oracle_tables());
+    drive_healthy(5);
+    readings(&in, 5);
+    ddyn_ctrl_step(&ctl, &in, &out);
+    assert_memory_equal(out.x_mpc0, out.x_est, sizeof out.x_est);
+    assert_int_equal(ddyn_ctrl_predict_pipe(&ctl, out.x_est, x_api), DDYN_OK);
+    assert_memory_equal(x_api, out.x_est, sizeof x_api);
+}
+
+static void test_the_preparation_plans_from_the_same_delayed_state(void **state)
+{
+    /* with a steering delay the preparation predicts the next period's MPC start (the filter's step with
+     * the command acting, then the pipe): with no reading in between, the next step starts exactly there */
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double prepared_at[DDYN_NX];
+    const double dt = model->sample_time;
+    int k;
+    (void)state;
+    cfg.delay.steering = 2.0 * dt;
+    cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED; /* coefficients that do not move between the two */
+    memcpy(cfg.c_fixed, C_TRUE, sizeof C_TRUE);
+    start_on_circle(oracle_tables());
+    for (k = 0; k < 20; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        run_delayed_plant(k, 2, 0, &out);
+    }
+    assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK);
+    memcpy(prepared_at, ctl.mpc.prep_x0, sizeof prepared_at);
+    memset(&in, 0, sizeof in);
+    ddyn_ctrl_step(&ctl, &in, &out);
+    assert_memory_equal(out.x_mpc0, prepared_at, sizeof prepared_at);
+    assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MPC_FAILED));
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -1168,6 +1375,11 @@ int main(void)
         cmocka_unit_test_setup(test_aged_readings_are_moved_to_the_period_time, setup),
         cmocka_unit_test_setup(test_the_plan_starts_after_the_latency, setup),
         cmocka_unit_test_setup(test_a_command_not_sent_is_predicted_held, setup),
+        cmocka_unit_test_setup(test_delay_line_returns_the_command_sent_n_periods_ago_and_wraps, setup),
+        cmocka_unit_test_setup(test_delay_above_the_compiled_maximum_is_refused_at_init, setup),
+        cmocka_unit_test_setup(test_the_filter_predicts_with_the_command_sent_delay_ago, setup),
+        cmocka_unit_test_setup(test_the_mpc_plans_from_the_state_after_the_pipe, setup),
+        cmocka_unit_test_setup(test_the_preparation_plans_from_the_same_delayed_state, setup),
     };
     return cmocka_run_group_tests_name("controller", tests, NULL, NULL);
 }

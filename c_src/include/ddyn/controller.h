@@ -144,6 +144,68 @@ typedef struct {
 /* estimates kept to date aged readings (periods) */
 #define DDYN_CTRL_AGE_PERIODS 4
 
+/* Known actuation delays (docs/sil.md "Actuation delays"). A set-point sent now acts on the car `delay`
+ * seconds later (the steering and the throttle each with its own delay, as the SIL plant's steer_delay,
+ * throttle_delay). The controller keeps the commands it has sent (one delay line per input channel,
+ * ddyn_ctrl_delay_line) and
+ *   - predicts the filter over each period with the command that acts on the car in it, the one sent
+ *     delay ago (also the history row of the guard network: the input that acted);
+ *   - before the MPC, predicts the estimate through the commands still in the pipe (sent, not yet acting)
+ *     with the filter's model step (ddyn_ctrl_predict_pipe), so that the MPC plans from the state at
+ *     which its new command takes effect.
+ * A delay counts in whole control periods, n = floor(delay / sample_time) (to 1e-6 of a period): with a
+ * fast actuator, at the end of a period the car holds the set-point sent n periods before. Both delays
+ * 0 (the default) is the controller without this: bit-identical.
+ * The MPC plans from the state at which its STEERING command takes effect (n = the steering delay: the
+ * steering keeps the car within the track bounds). Over that prediction the throttle runs its commands
+ * still in the pipe; with a shorter throttle delay it is then held (u = 0: its commands of the coming
+ * periods are not known yet), so its first planned commands act (n_steer - n_throttle) periods before
+ * the MPC thinks they do; with a longer one, its commands still in the pipe beyond that point are not
+ * in the MPC's plan (the QP cannot fix stages of an input), and its planned ones act later than it
+ * thinks. (Measured in the SIL on ETHZMobil, docs/sil.md "Actuation delays": continuing a shorter
+ * channel with the last plan's commands instead of holding it failed 3 of 4 noise seeds of the 40 ms
+ * steering delay; planning from the later channel's time (n = max) put the throttle-delay-only laps off
+ * the track in 4 of 4. A throttle delay is compensated in the filter and the pipe only: with a
+ * throttle delay alone the compensated laps are no better than the uncompensated ones.)
+ * The compiled maximum (override with -DDDYN_CTRL_MAX_DELAY_STEPS=...): 5 periods = 100 ms at the 1:43
+ * car's 50 Hz, 200 ms at the AV-21's 25 Hz. A delay above sample_time * DDYN_CTRL_MAX_DELAY_STEPS is
+ * refused at init (DDYN_ERR_ARGUMENT), never cut. */
+#ifndef DDYN_CTRL_MAX_DELAY_STEPS
+#define DDYN_CTRL_MAX_DELAY_STEPS 5
+#endif
+#if DDYN_CTRL_MAX_DELAY_STEPS < 1
+#error "DDYN_CTRL_MAX_DELAY_STEPS must be at least 1"
+#endif
+/* input channels of the delay lines: the order of u (ddyn/model.h) */
+#define DDYN_CTRL_CH_THROTTLE 0
+#define DDYN_CTRL_CH_STEERING 1
+
+typedef struct {
+    double steering; /* s (>= 0): the steering set-point acts this long after it was sent (default 0) */
+    double throttle; /* s (>= 0): the same for the throttle (default 0) */
+} ddyn_ctrl_delay_config;
+
+/* The commands of one channel sent in the last DDYN_CTRL_MAX_DELAY_STEPS + 1 periods: a ring, newest
+ * at `newest`. Fixed size, no allocation. */
+typedef struct {
+    double u[DDYN_CTRL_MAX_DELAY_STEPS + 1];
+    int newest; /* 0 .. DDYN_CTRL_MAX_DELAY_STEPS */
+} ddyn_ctrl_delay_line;
+
+/* Every entry u0 (commands "since forever"), newest at 0. */
+void ddyn_ctrl_delay_line_reset(ddyn_ctrl_delay_line *d, double u0);
+/* A command sent now: it becomes the newest, the oldest drops out. */
+void ddyn_ctrl_delay_line_push(ddyn_ctrl_delay_line *d, double u);
+/* Replace the newest command (the caller sent another one than the controller's). */
+void ddyn_ctrl_delay_line_set_newest(ddyn_ctrl_delay_line *d, double u);
+/* The command sent n periods before the newest (n = 0: the newest), 0 <= n <= DDYN_CTRL_MAX_DELAY_STEPS;
+ * NaN for any other n (never another entry). */
+double ddyn_ctrl_delay_line_ago(const ddyn_ctrl_delay_line *d, int n);
+/* The delays of cfg in whole periods of dt (steps[DDYN_CTRL_CH_THROTTLE], steps[DDYN_CTRL_CH_STEERING]):
+ * DDYN_OK, or DDYN_ERR_ARGUMENT (steps untouched) for a negative, non-finite one or one above
+ * dt * DDYN_CTRL_MAX_DELAY_STEPS. */
+ddyn_status ddyn_ctrl_delay_steps(const ddyn_ctrl_delay_config *cfg, double dt, int steps[DDYN_NU]);
+
 typedef struct {
     ddyn_discretisation ekf_disc; /* the filter's prediction model (default Euler, as the network trains) */
     /* EKF: initial covariance (also used when the filter is reset), process noise per period,
@@ -175,6 +237,7 @@ typedef struct {
                                (0 .. horizon - 1) */
     int recovery_steps;     /* consecutive healthy periods that end safe mode (>= 1) */
     ddyn_ctrl_degraded_config degraded; /* degraded-bus mode (above) */
+    ddyn_ctrl_delay_config delay; /* known actuation delays (above; default 0: none) */
     ddyn_mpc_config mpc;    /* the MPC's configuration (its bounds also define the safe command) */
 } ddyn_ctrl_config;
 
@@ -205,6 +268,9 @@ typedef struct {
     /* throttle PID (0 in MPC mode): reference speed v_ref, the PID's throttle target T* (clamped), its
      * integral term I after this period */
     double pid_ref_speed, pid_throttle, pid_integral;
+    /* the state the MPC planned from: the estimate predicted through the commands in the pipe (the
+     * actuation delays) and over the input's latency; x_est without either */
+    double x_mpc0[DDYN_NX];
 } ddyn_ctrl_output;
 
 /* The caller-owned controller context (large: it holds the MPC; ~155 kB with the defaults). */
@@ -239,6 +305,12 @@ typedef struct {
     uint32_t degraded_periods;                    /* periods in degraded mode since init (saturating) */
     double x_hist[DDYN_CTRL_AGE_PERIODS][DDYN_NX]; /* estimates at the end of the last periods, newest first */
     int x_hist_n;                                 /* valid rows of x_hist */
+    /* actuation delays: the commands sent, per channel (newest = u_prev, synchronised from it at each
+     * step and preparation, so that a caller's ddyn_ctrl_command_applied reaches them), the delays in
+     * periods, and the command acting on the car over the period just predicted */
+    ddyn_ctrl_delay_line sent[DDYN_NU];
+    int delay_steps[DDYN_NU];
+    double u_acting[DDYN_NU];
     int initialised;
 } ddyn_ctrl;
 
@@ -272,6 +344,15 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
  * output of the next period), DDYN_ERR_ARGUMENT before the first step; the next step then does
  * the whole iteration. */
 ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl);
+
+/* The state x of the car when the next command goes out (one period after the newest command sent:
+ * ddyn_ctrl_step's estimate before its MPC, ddyn_ctrl_prepare's predicted state) predicted on through
+ * the commands still in the pipe (sent, not yet acting: the actuation delays), max(delay steps) model
+ * steps (n = the steering delay, above) of the filter's discretisation (cfg.ekf_disc) with the current
+ * coefficients; step i runs each channel's command sent delay - 1 - i periods before the newest
+ * (ddyn_ctrl_delay_line_ago), a channel whose delay is shorter than i + 1 held (0). No steering delay:
+ * x_out = x. On a model failure returns its error with x_out = x. */
+ddyn_status ddyn_ctrl_predict_pipe(ddyn_ctrl *ctl, const double x[DDYN_NX], double x_out[DDYN_NX]);
 
 /* The last command of ddyn_ctrl_step never reached the actuators (e.g. a period run late to catch up
  * with lost trigger frames, whose command is not sent): the filter's next prediction holds throttle and
