@@ -59,6 +59,9 @@
 #ifndef M7_CAP_STEPS
 #define M7_CAP_STEPS 300
 #endif
+#ifndef M7_DELAY_STEPS
+#define M7_DELAY_STEPS 300 /* pass 6 (cold path with both delays at the maximum) replays this many */
+#endif
 #ifndef M7_COLD_STEPS
 #define M7_COLD_STEPS 5000 /* pass 4 replays min(this, the segment's periods) */
 #endif
@@ -207,7 +210,8 @@ static uint32_t median_of(const uint32_t *v, int n)
     return n % 2 ? sorted[n / 2] : (sorted[n / 2 - 1] + sorted[n / 2]) / 2u;
 }
 
-static int controller_init(double qp_tolerance)
+/* max_delay: both actuation delays at the compiled maximum (DDYN_CTRL_MAX_DELAY_STEPS periods), pass 6 */
+static int controller_init(double qp_tolerance, int max_delay)
 {
     const ddyn_vehicle_model *model = ddyn_model_find(m7_seg_vehicle);
     ddyn_ctrl_config cfg;
@@ -225,6 +229,10 @@ static int controller_init(double qp_tolerance)
     }
     if (qp_tolerance > 0.0) {
         cfg.mpc.qp_tolerance = qp_tolerance;
+    }
+    if (max_delay) {
+        cfg.delay.steering = DDYN_CTRL_MAX_DELAY_STEPS * model->sample_time;
+        cfg.delay.throttle = DDYN_CTRL_MAX_DELAY_STEPS * model->sample_time;
     }
 #ifdef M7_QP_CAP /* exploring other caps (docs/m7.md); pass 1 then no longer matches the recording */
     cfg.mpc.qp_max_iterations = M7_QP_CAP;
@@ -388,9 +396,10 @@ int main(void)
     const int steps = m7_seg_steps < M7_MAX_STEPS ? m7_seg_steps : M7_MAX_STEPS;
     const int cap_steps = M7_CAP_STEPS < steps ? M7_CAP_STEPS : steps;
     const int cold_steps = M7_COLD_STEPS < steps ? M7_COLD_STEPS : steps;
+    const int delay_steps = M7_DELAY_STEPS < steps ? M7_DELAY_STEPS : steps;
     uint32_t c1, c4, worst = 0, worst_cap = 0, worst_cold = 0, worst_capped_pass1 = 0, *p;
     uint32_t worst_auth = 0, worst_with_auth = 0, worst_cap_with_auth = 0, worst_cold_with_auth = 0;
-    uint32_t worst_auth_injected = 0;
+    uint32_t worst_auth_injected = 0, worst_delay = 0, worst_delay_with_auth = 0;
     int auth_bad = 0;
     uintptr_t sp_main;
     int i, k, fail = 0, mismatch = 0, loose = 0, status_diff = 0, iter_diff = 0, capped_pass1 = 0, worst_step = 0;
@@ -419,7 +428,7 @@ int main(void)
     kv("sizeof_ddyn_mpc_qp_bytes", (unsigned long)sizeof(ddyn_mpc_qp));
     kv("sizeof_ddyn_ekf_bytes", (unsigned long)sizeof(ddyn_ekf));
     kv("sizeof_ddyn_guard_net_bytes", (unsigned long)sizeof(ddyn_guard_net));
-    if (!controller_init(0.0)) {
+    if (!controller_init(0.0, 0)) {
         m7_puts("m7: FAIL: controller refused the recorded set-up\n");
         return 1;
     }
@@ -546,7 +555,7 @@ int main(void)
     kv("periods_qp_iterations_differ", (unsigned long)iter_diff);
 
     /* pass 2: every QP to the iteration cap */
-    if (!controller_init(1e-300)) {
+    if (!controller_init(1e-300, 0)) {
         m7_puts("m7: FAIL: controller refused the set-up of pass 2\n");
         return 1;
     }
@@ -590,7 +599,7 @@ int main(void)
      * point with its own cap (qp_cold_max_iterations), forced to that cap by the tolerance 1e-300, then
      * DAQP's working set seeded from its solution. The host's applied command is fed back (as in pass 1)
      * so that the filter follows the recording. */
-    if (!controller_init(1e-300)) {
+    if (!controller_init(1e-300, 0)) {
         m7_puts("m7: FAIL: controller refused the set-up of pass 4\n");
         return 1;
     }
@@ -639,8 +648,49 @@ int main(void)
     return 0;
 #endif
 
+    /* pass 6: pass 4's cold path with both actuation delays at the compiled maximum
+     * (DDYN_CTRL_MAX_DELAY_STEPS periods, ddyn/controller.h): the filter predicts with the command sent
+     * that long ago and the MPC's start is the estimate stepped through the whole pipe (the most model
+     * steps a step can take); the host's commands fed back fill the delay lines */
+    if (!controller_init(1e-300, 1)) {
+        m7_puts("m7: FAIL: controller refused the set-up of pass 6 (delays at the maximum)\n");
+        return 1;
+    }
+    {
+        int cold = 0;
+        auth_reset();
+        for (i = 0; i < delay_steps; ++i) {
+            ddyn_ctrl_input in;
+            ddyn_ctrl_output out;
+            uint32_t t0;
+            input_of(&m7_seg_periods[i], &in);
+            ddyn_mpc_reset(&ctl.mpc);
+            t0 = SYST_CVR;
+            ddyn_ctrl_step(&ctl, &in, &out);
+            insn[i] = ticks_since(t0) * INSN_PER_TICK;
+            cold += out.mpc_info.qp_cold_start;
+            worst_delay = insn[i] > worst_delay ? insn[i] : worst_delay;
+            auth_insn[i] = auth_period(i, 0, m7_seg_periods[i].u, &auth_bad);
+            with_auth[i] = insn[i] + auth_insn[i];
+            memcpy(ctl.u_prev, m7_seg_periods[i].u, sizeof ctl.u_prev);
+        }
+        kv("delay_pass_periods", (unsigned long)delay_steps);
+        kv("delay_pass_delay_steps", (unsigned long)ctl.delay_steps[DDYN_CTRL_CH_STEERING]);
+        kv("delay_pass_periods_cold_start", (unsigned long)cold);
+        kv("delay_pass_insn_per_step_median", (unsigned long)median_of(insn, delay_steps));
+        kv("delay_pass_insn_per_step_max", (unsigned long)worst_delay);
+        worst_delay_with_auth = max_of(with_auth, delay_steps);
+        worst_auth = max_of(auth_insn, delay_steps) > worst_auth ? max_of(auth_insn, delay_steps) : worst_auth;
+        kv("delay_pass_insn_per_step_with_auth_median", (unsigned long)median_of(with_auth, delay_steps));
+        kv("delay_pass_insn_per_step_with_auth_max", (unsigned long)worst_delay_with_auth);
+        if (ctl.delay_steps[DDYN_CTRL_CH_STEERING] != DDYN_CTRL_MAX_DELAY_STEPS || cold == 0) {
+            m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum\n");
+            fail = 1;
+        }
+    }
+
     /* pass 3: the real-time iteration split, feedback and preparation counted apart */
-    if (!controller_init(0.0)) {
+    if (!controller_init(0.0, 0)) {
         m7_puts("m7: FAIL: controller refused the set-up of pass 3\n");
         return 1;
     }
@@ -716,17 +766,19 @@ int main(void)
          * beside every genuine one (reported; the bound below is on the step plus each period's own work) */
         uint32_t w = worst > worst_cap ? worst : worst_cap;
         w = worst_cold > w ? worst_cold : w;
+        w = worst_delay > w ? worst_delay : w;
         kv("worst_step_plus_auth_injected_max", (unsigned long)(w + worst_auth_injected));
     }
     kv("target_met", worst_with_auth <= M7_MAX_INSN && worst_cap_with_auth <= M7_MAX_INSN &&
-                             worst_cold_with_auth <= M7_MAX_INSN ? 1ul : 0ul);
+                             worst_cold_with_auth <= M7_MAX_INSN && worst_delay_with_auth <= M7_MAX_INSN ? 1ul : 0ul);
     kv("enforced_bound_insn", M7_BOUND_INSN);
     if (mismatch || status_diff || (long)loose * 100 > (long)(100 - M7_TIGHT_PERCENT) * steps) {
         m7_puts("m7: FAIL: commands or status differ from the host build's beyond the tolerance\n");
         fail = 1;
     }
     /* the step with its period's frame authentication (>= the step alone) */
-    if (worst_with_auth > M7_BOUND_INSN || worst_cap_with_auth > M7_BOUND_INSN || worst_cold_with_auth > M7_BOUND_INSN) {
+    if (worst_with_auth > M7_BOUND_INSN || worst_cap_with_auth > M7_BOUND_INSN || worst_cold_with_auth > M7_BOUND_INSN ||
+        worst_delay_with_auth > M7_BOUND_INSN) {
         m7_puts("m7: FAIL: worst case (step + frame authentication) above the enforced bound (the 3M-instruction target)\n");
         fail = 1;
     }
