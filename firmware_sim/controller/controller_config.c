@@ -29,6 +29,7 @@ static const char *const SOURCE_NAMES[] = {"network", "fixed", NULL};
 static const char *const THROTTLE_NAMES[] = {"mpc", "pid", NULL};
 static const char *const PACING_NAMES[] = {"frame", "timer", NULL};
 static const char *const PID_NAMES[4] = {"kp", "ki", "kd", "preview"};
+static const char *const DELAY_NAMES[2] = {"steering", "throttle"};
 
 /* ---------------------------------------------------------------------------------------- the table */
 
@@ -99,6 +100,10 @@ static const key_spec KEYS[] = {
      "mpc (default: the MPC plans throttle and steering) or pid (a PID on the speed error sets the throttle)"},
     {"control.pid", K_NAMED, OFF(pid), 0, 4, 0.0, 1e6, 0, PID_NAMES,
      OFF(have_pid), "throttle PID gains and preview time (s), each >= 0 (default: the controller's)"},
+    {"control.delay", K_NAMED, OFF(delay), 0, 2, 0.0, 1.0, 0, DELAY_NAMES, NONE,
+     "known actuation delays, s: a set-point acts this long after it is sent; the filter predicts with the "
+     "command acting, the MPC plans from the state its command acts in (default 0 0; at most the build's "
+     "DDYN_CTRL_MAX_DELAY_STEPS periods)"},
     {"control.prepare", K_BOOL, OFF(prepare), 0, 0, 0, 0, 0, NULL, NONE,
      "true (default): the MPC's preparation runs after each command (RTI split, docs/controller.md)"},
     {"control.max_steps", K_LONG, OFF(max_steps), 0, 0, 0, 1e12, 0, NULL, NONE,
@@ -670,6 +675,19 @@ ddyn_status ddyn_app_node_init(ddyn_sil_node *node, const ddyn_app_config *c, co
     ddyn_ctrl_default_config(model, &cfg);
     memcpy(cfg.c_nominal, c->nominal, sizeof cfg.c_nominal);
     cfg.mpc = c->mpc;
+    cfg.delay.steering = c->delay[0];
+    cfg.delay.throttle = c->delay[1];
+    {
+        int steps[DDYN_NU];
+        if (ddyn_ctrl_delay_steps(&cfg.delay, model->sample_time, steps) != DDYN_OK) {
+            fprintf(stderr,
+                    "ddyn_controller: control.delay: steering %g s, throttle %g s: above this build's maximum of %d "
+                    "periods (%g s at %g s; DDYN_CTRL_MAX_DELAY_STEPS)\n",
+                    c->delay[0], c->delay[1], DDYN_CTRL_MAX_DELAY_STEPS,
+                    DDYN_CTRL_MAX_DELAY_STEPS * model->sample_time, model->sample_time);
+            return DDYN_ERR_ARGUMENT;
+        }
+    }
     if (c->fixed) {
         cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED; /* the network is never run */
         memcpy(cfg.c_fixed, c->coeffs, sizeof cfg.c_fixed);

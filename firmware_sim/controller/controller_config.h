@@ -44,6 +44,7 @@ typedef struct {
     int throttle_pid;                   /* control.throttle: "mpc" 0 / "pid" 1 */
     double pid[4];                      /* control.pid.{kp,ki,kd,preview} */
     int have_pid[4];
+    double delay[2];                    /* control.delay.{steering,throttle}, s (0 = none) */
     int prepare;                        /* control.prepare: RTI split (ddyn_ctrl_prepare after each command) */
     long max_steps;                     /* control.max_steps */
     /* filter */

@@ -74,6 +74,8 @@ FILTER_ACCEL_STD = 1.0
 # that the filter follows the steering sensor when a command frame is lost on the bus and the
 # actuator lags its commanded rate by a period (with 1e-10 it refuses the sensor instead)
 FILTER_PROCESS_NOISE = (1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-2, 1e-5, 1e-5)
+# the controller's known actuation delays (controller.json control.delay, s; ddyn/controller.h)
+CONTROLLER_DELAY_KEYS = ("steer", "throttle")
 FAULT_KEYS = ("drop", "delay", "corrupt", "silent", "silent_at", "kill_controller", "restart_plant")
 SENSOR_OF_FRAME = {"imu": ("yaw_rate", "acceleration"), "gnss": ("gnss_position", "heading"),
                    "gnss_position": ("gnss_position",), "gnss_heading": ("heading",),
@@ -108,6 +110,15 @@ def parse_effects(text: str | None) -> dict[str, float]:
         if not isinstance(v, float):
             raise DdynError(f"--effects: {k} needs a number, got {v!r}")
     return fx
+
+
+def parse_controller_delays(text: str | None) -> dict[str, float]:
+    """`steer=0.04,throttle=0.1` (seconds >= 0) for --controller-delays."""
+    d = parse_kv(text, CONTROLLER_DELAY_KEYS, "--controller-delays")
+    for k, v in d.items():
+        if not isinstance(v, float) or not math.isfinite(v) or v < 0.0:
+            raise DdynError(f"--controller-delays: {k} needs a number of seconds >= 0, got {v!r}")
+    return d
 
 
 def parse_faults(text: str | None) -> dict:
@@ -204,6 +215,8 @@ class SilSpec:
                                                # build's fixed TEST key (plant.json auth.key_file, can.key_file)
     forged_steering: tuple | None = None       # (t0, t1) s: an attacker's forged steering commands in that
                                                # window of simulated time (ddyn_sil_inprocess only)
+    controller_delays: dict = field(default_factory=dict)  # the actuation delays the controller compensates,
+                                               # s: {"steer": .., "throttle": ..} (control.delay; none: {})
 
     @classmethod
     def true_car(cls, vehicle: Vehicle, track: Track, **settings) -> "SilSpec":
@@ -362,6 +375,13 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     control: dict = {"period": float(v.sample_time), "throttle": spec.throttle, "prepare": spec.prepare}
     if spec.throttle == "pid" and spec.pid_gains is not None:
         control["pid"] = dict(zip(("kp", "ki", "kd", "preview"), (float(g) for g in spec.pid_gains)))
+    unknown = set(spec.controller_delays) - set(CONTROLLER_DELAY_KEYS)
+    if unknown:
+        raise DdynError(f"controller delays: unknown {', '.join(sorted(unknown))}; expected steer, throttle")
+    if any(float(d) != 0.0 for d in spec.controller_delays.values()):
+        # written only when asked for: without it the file is the one of before
+        control["delay"] = {"steering": float(spec.controller_delays.get("steer", 0.0)),
+                            "throttle": float(spec.controller_delays.get("throttle", 0.0))}
     dims = {"gnss_position": 2, "heading": 1, "yaw_rate": 1, "acceleration": 2, "wheel_speed": 2, "steering": 1}
     can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS), "cycle_ms": frame_cycles_ms(v)}
     if key_file:
@@ -894,7 +914,7 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "time_outside": pm["time_outside"], "worst_clearance": pm["worst_clearance"],
         "end_reason": pm["end_reason"], "tracking_error": tracking_error(traj, table),
         "controller": None, "plant": pm, "run": run,
-        "effects": spec.effects, "faults": spec.faults,
+        "effects": spec.effects, "faults": spec.faults, "controller_delays": spec.controller_delays,
         "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
         "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
         # frame authentication: the plant's DBW unit's counts (commands accepted; forged, replayed, stale
@@ -1145,7 +1165,8 @@ def _run(args: argparse.Namespace) -> int:
                    noise_scale=args.noise, speed_scale=args.speed_scale, margin=args.margin, line=args.line,
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
-                   forged_steering=args.inject_forged_steering)
+                   forged_steering=args.inject_forged_steering,
+                   controller_delays=parse_controller_delays(args.controller_delays))
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
     ctl = m["controller"] or {}
@@ -1198,6 +1219,11 @@ def register(subparsers) -> None:
                      help="fixed coefficients instead of a network: true, reference_dataset or a JSON file")
     p.add_argument("--laps", type=int, default=1)
     p.add_argument("--effects", help=f"plant effects, key=value ({', '.join(PLANT_EFFECTS)})")
+    p.add_argument("--controller-delays", metavar="steer=S,throttle=S",
+                   help="actuation delays the controller compensates, seconds (controller.json control.delay): its "
+                        "filter predicts with the command acting on the car, its MPC plans from the state its new "
+                        "command acts in; e.g. with --effects steer_delay=0.04 give steer=0.04 (default: none; at "
+                        "most 5 control periods, DDYN_CTRL_MAX_DELAY_STEPS)")
     p.add_argument("--faults", help="faults, key=value: drop=FRACTION delay=SECONDS corrupt=FRACTION "
                                     "silent=imu|gnss|gnss_position|gnss_heading|wheel_speeds|steering silent_at=S "
                                     "kill_controller=S restart_plant=S")
