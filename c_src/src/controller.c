@@ -868,7 +868,6 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
             s = ddyn_mpc_solve_held_throttle(&ctl->mpc, x0, dthrottle, u, &out->mpc_info);
         }
     } else if (s == DDYN_OK && ctl->mpc.prepared) {
-
         /* prepared after the last command (ddyn_ctrl_prepare): only the feedback phase remains */
         s = ddyn_mpc_feedback(&ctl->mpc, x0, u, &out->mpc_info);
     } else if (s == DDYN_OK) {
