@@ -104,6 +104,15 @@ static const key_spec KEYS[] = {
      "known actuation delays, s: a set-point acts this long after it is sent; the filter predicts with the "
      "command acting, the MPC plans from the state its command acts in (default 0 0; at most the build's "
      "DDYN_CTRL_MAX_DELAY_STEPS periods)"},
+    {"effects", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE,
+     "the diagnosis the actuation delays come from (`ddyn sil effects`, docs/sil.md); a file whose control.delay "
+     "differs from effects.delay is refused"},
+    {"effects.diagnosis", K_STRING, OFF(effects_diagnosis), FSZ(effects_diagnosis), 0, 0, 0, 0, NULL, NONE,
+     "the diagnosis.json the effects were taken from (recorded, not read; default none)"},
+    {"effects.diagnosis_sha256", K_HASH, OFF(effects_sha256), FSZ(effects_sha256), 0, 0, 0, 0, NULL, NONE,
+     "sha256 of that diagnosis.json; when given, control.delay must equal effects.delay (default: not checked)"},
+    {"effects.delay", K_NAMED, OFF(effects_delay), 0, 2, 0.0, 1.0, 0, DELAY_NAMES, NONE,
+     "the delays (s) the diagnosis gave the controller: steering, throttle (default 0 0)"},
     {"control.prepare", K_BOOL, OFF(prepare), 0, 0, 0, 0, 0, NULL, NONE,
      "true (default): the MPC's preparation runs after each command (RTI split, docs/controller.md)"},
     {"control.max_steps", K_LONG, OFF(max_steps), 0, 0, 0, 1e12, 0, NULL, NONE,
@@ -583,6 +592,15 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
                 break;
             }
         }
+    }
+    if (ok && c->effects_sha256[0] != '\0' &&
+        (fabs(c->effects_delay[0] - c->delay[0]) > 1e-12 || fabs(c->effects_delay[1] - c->delay[1]) > 1e-12)) {
+        /* like coefficients.checkpoint_hash: a file edited after it was made from a diagnosis is refused */
+        ok = fail(&p, "effects.delay",
+                  "steering %g s, throttle %g s from diagnosis %s (sha256 %.12s...), but control.delay is steering "
+                  "%g s, throttle %g s: remake the file (`ddyn sil effects --from DIR`) instead of editing it",
+                  c->effects_delay[0], c->effects_delay[1], c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
+                  c->effects_sha256, c->delay[0], c->delay[1]);
     }
     if (ok) {
         /* a position frame starts each period: dated at another cycle than the one it comes at, every
