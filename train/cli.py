@@ -39,7 +39,7 @@ COMMANDS: tuple[Command, ...] = (
             "C code of the vehicle model, EKF Jacobians and MPC pieces (CasADi), and its check against Python"),
     Command("mpc", ("ddyn.control.raceline", "ddyn.control.mpc_lap", "ddyn.control.mpc_tracks"),
             "racing lines (CasADi + IPOPT) and closed-loop laps of the C MPC on the host"),
-    Command("sil", ("ddyn.sil.run", "ddyn.sil.table", "ddyn.sil.tracks"),
+    Command("sil", ("ddyn.sil.run", "ddyn.sil.table", "ddyn.sil.tracks", "ddyn.sil.effects", "ddyn.sil.loop"),
             "software in the loop: plant and controller as processes over virtual CAN"),
     Command("gap", ("ddyn.gap.cli",),
             "the sim-to-real gap diagnosis: diagnose a log, calibrate, benchmark, rescore (docs/gap.md)"),

@@ -217,6 +217,8 @@ class SilSpec:
                                                # window of simulated time (ddyn_sil_inprocess only)
     controller_delays: dict = field(default_factory=dict)  # the actuation delays the controller compensates,
                                                # s: {"steer": .., "throttle": ..} (control.delay; none: {})
+    effects_from: dict | None = None           # the diagnosis the delays came from (ddyn.sil.effects
+                                               # ControllerEffects.summary()): controller.json `effects`
 
     @classmethod
     def true_car(cls, vehicle: Vehicle, track: Track, **settings) -> "SilSpec":
@@ -382,6 +384,11 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         # written only when asked for: without it the file is the one of before
         control["delay"] = {"steering": float(spec.controller_delays.get("steer", 0.0)),
                             "throttle": float(spec.controller_delays.get("throttle", 0.0))}
+    if spec.effects_from is not None:
+        # recorded from the diagnosis (ddyn.sil.effects): the controller refuses the file if control.delay differs
+        fx = spec.effects_from
+        control["delay"] = {"steering": float(spec.controller_delays.get("steer", 0.0)),
+                            "throttle": float(spec.controller_delays.get("throttle", 0.0))}
     dims = {"gnss_position": 2, "heading": 1, "yaw_rate": 1, "acceleration": 2, "wheel_speed": 2, "steering": 1}
     can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS), "cycle_ms": frame_cycles_ms(v)}
     if key_file:
@@ -413,6 +420,9 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
                      "idle_exit": 60.0},
         "sil": {"die_at_step": die},
     }
+    if spec.effects_from is not None:
+        cfg["effects"] = {"diagnosis": fx["diagnosis"], "diagnosis_sha256": fx["diagnosis_sha256"],
+                          "delay": dict(control["delay"])}
     mpc = mpc_section(v.name)
     if mpc:
         cfg["mpc"] = mpc
@@ -915,6 +925,7 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "end_reason": pm["end_reason"], "tracking_error": tracking_error(traj, table),
         "controller": None, "plant": pm, "run": run,
         "effects": spec.effects, "faults": spec.faults, "controller_delays": spec.controller_delays,
+        "controller_effects": spec.effects_from,
         "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
         "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
         # frame authentication: the plant's DBW unit's counts (commands accepted; forged, replayed, stale
@@ -1159,6 +1170,15 @@ def _run(args: argparse.Namespace) -> int:
         checkpoint_hash = checkpoint.file_sha256(Path(args.model))  # the controller refuses another network
     else:
         fixed = coefficients_from(args.coeffs, vehicle)
+    delays, effects_from = parse_controller_delays(args.controller_delays), None
+    if args.effects_from:
+        from ddyn.sil.effects import controller_effects
+        if delays:
+            raise DdynError("--effects-from and --controller-delays: give one (the diagnosis sets the delays)")
+        fx = controller_effects(args.effects_from)
+        delays, effects_from = dict(fx.delays), fx.summary()
+        for line in fx.lines() or ["nothing to apply"]:
+            print(f"sil: effects from {args.effects_from}: {line}")
     spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
                    nominal=vehicle.true_vector(), laps=args.laps, vx0=args.vx0,
                    effects=parse_effects(args.effects), faults=parse_faults(args.faults),
@@ -1166,7 +1186,7 @@ def _run(args: argparse.Namespace) -> int:
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
                    forged_steering=args.inject_forged_steering,
-                   controller_delays=parse_controller_delays(args.controller_delays))
+                   controller_delays=delays, effects_from=effects_from)
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
     ctl = m["controller"] or {}
@@ -1224,6 +1244,10 @@ def register(subparsers) -> None:
                         "filter predicts with the command acting on the car, its MPC plans from the state its new "
                         "command acts in; e.g. with --effects steer_delay=0.04 give steer=0.04 (default: none; at "
                         "most 5 control periods, DDYN_CTRL_MAX_DELAY_STEPS)")
+    p.add_argument("--effects-from", metavar="D", default=None,
+                   help="the controller's actuation delays from a diagnosis (`ddyn gap diagnose --out D`: the folder "
+                        "or its diagnosis.json): steer_delay -> control.delay.steering, every other effect named "
+                        "and not applied (`ddyn sil effects`); recorded in controller.json and sil_metrics.json")
     p.add_argument("--faults", help="faults, key=value: drop=FRACTION delay=SECONDS corrupt=FRACTION "
                                     "silent=imu|gnss|gnss_position|gnss_heading|wheel_speeds|steering silent_at=S "
                                     "kill_controller=S restart_plant=S")

@@ -1,0 +1,120 @@
+"""From a diagnosis to the controller's configuration (issue 34 item 2; ddyn.sil.effects, `ddyn sil effects`,
+`ddyn sil run --effects-from D`): steer_delay becomes control.delay.steering, every other claimed effect is named
+and not applied, bad input is one line naming the file and the key, and the controller refuses a configuration
+whose control.delay was edited after it was made from the diagnosis (controller.json `effects`)."""
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+
+import pytest
+
+from ddyn.cli import main
+from ddyn.errors import DdynError
+from ddyn.model.tracks import load_track
+from ddyn.model.vehicle import load as load_vehicle
+from ddyn.sil import run as sil
+from ddyn.sil.effects import apply_to_config, controller_effects
+
+
+def _diagnosis(folder, selected, values=None):
+    """A minimal diagnosis.json as `ddyn gap diagnose` writes it (the keys the mapping reads)."""
+    from ddyn.model.effects import MAIN_PARAM
+
+    values = values or {}
+    folder.mkdir(parents=True, exist_ok=True)
+    d = {"schema": 1, "selected": selected, "verdict": "synthetic",
+         "model": {"effects": [{"effect": e, "params": {MAIN_PARAM[e]: values.get(e, 0.04)}} for e in selected]},
+         "candidates": []}
+    (folder / "diagnosis.json").write_text(json.dumps(d))
+    return folder
+
+
+def test_a_steering_delay_becomes_control_delay_steering(tmp_path):
+    d = _diagnosis(tmp_path / "D", ["steer_delay"], {"steer_delay": 0.041})
+    fx = controller_effects(d)
+    assert fx.delays == {"steer": 0.041} and fx.applied == ["steer_delay"] and fx.not_applied == []
+    assert fx.sha256 == hashlib.sha256((d / "diagnosis.json").read_bytes()).hexdigest()
+    cfg = apply_to_config({"vehicle": "orca_1_43", "control": {"period": 0.02}}, fx)
+    assert cfg["control"] == {"period": 0.02, "delay": {"steering": 0.041, "throttle": 0.0}}
+    assert cfg["effects"] == {"diagnosis": str((d / "diagnosis.json").resolve()), "diagnosis_sha256": fx.sha256,
+                              "delay": {"steering": 0.041, "throttle": 0.0}}
+    # the file itself works as well as its folder
+    assert controller_effects(d / "diagnosis.json").delays == {"steer": 0.041}
+
+
+def test_unsupported_effects_are_named_not_applied(tmp_path):
+    d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "bank_angle"],
+                   {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "bank_angle": 0.1})
+    fx = controller_effects(d)
+    assert fx.delays == {"steer": 0.02} and fx.applied == ["steer_delay"]
+    assert fx.not_applied[0] == "steer_lag: not in the runtime (issue 34)"
+    assert fx.not_applied[1].startswith("throttle_delay: found 0.1, not applied")
+    assert fx.not_applied[2] == "bank_angle: not in the runtime (issue 34)"
+    nothing = controller_effects(_diagnosis(tmp_path / "E", []))
+    assert nothing.delays == {} and nothing.applied == [] and nothing.not_applied == []
+
+
+@pytest.mark.parametrize("content, says", [
+    (None, "no such file"),
+    ("not json", "not a diagnosis: not JSON"),
+    ("[1, 2]", "not an object"),
+    (json.dumps({"model": {"effects": []}}), "no key 'selected'"),
+    (json.dumps({"selected": ["steer_delay"], "model": {"effects": []}}),
+     "model.effects: no estimate of the selected effect 'steer_delay'"),
+    (json.dumps({"selected": ["warp_drive"], "model": {"effects": []}}), "selected[0]: unknown effect 'warp_drive'"),
+    (json.dumps({"selected": ["steer_delay"], "model": {"effects": [{"effect": "steer_delay",
+                                                                     "params": {"delay": "soon"}}]}}),
+     "model.effects[0].params.delay: expected a finite number"),
+    (json.dumps({"selected": ["steer_delay"], "model": {"effects": [{"effect": "steer_delay",
+                                                                     "params": {"delay": 3.0}}]}}),
+     "outside control.delay's 0..1 s"),
+])
+def test_bad_input_is_one_line_naming_the_file_and_key(tmp_path, content, says):
+    d = tmp_path / "D"
+    d.mkdir()
+    if content is not None:
+        (d / "diagnosis.json").write_text(content)
+    with pytest.raises(DdynError) as e:
+        controller_effects(d)
+    msg = str(e.value)
+    assert "\n" not in msg and says in msg and "diagnosis.json" in msg
+
+
+def test_the_command_writes_the_configuration_and_names_what_it_cannot_apply(tmp_path, capsys):
+    d = _diagnosis(tmp_path / "D", ["steer_delay", "steer_lag"], {"steer_delay": 0.04, "steer_lag": 0.05})
+    src = tmp_path / "car.json"
+    src.write_text(json.dumps({"vehicle": "orca_1_43", "control": {"period": 0.02, "throttle": "mpc"}}))
+    assert main(["sil", "effects", "--from", str(d), "--config", str(src), "--out", str(tmp_path / "new.json")]) == 0
+    out = capsys.readouterr().out
+    assert "steer_lag: not in the runtime (issue 34)" in out
+    cfg = json.loads((tmp_path / "new.json").read_text())
+    assert cfg["control"]["delay"]["steering"] == 0.04 and cfg["control"]["throttle"] == "mpc"
+    # a missing configuration: one line, exit 2
+    assert main(["sil", "effects", "--from", str(d), "--config", str(tmp_path / "nope.json"), "--out",
+                 str(tmp_path / "x.json")]) == 2
+    assert "nope.json: no such file" in capsys.readouterr().err
+
+
+def test_the_controller_refuses_a_configuration_edited_after_it_was_made(tmp_path):
+    """The SIL's controller.json made from a diagnosis passes the controller's check; its control.delay edited,
+    the same file is refused naming effects.delay."""
+    bins = sil.build_binaries(None)
+    orca = load_vehicle("orca_1_43")
+    d = _diagnosis(tmp_path / "D", ["steer_delay"], {"steer_delay": 0.04})
+    fx = controller_effects(d)
+    spec = sil.SilSpec.true_car(orca, load_track("ethzMobil"), controller_delays=fx.delays,
+                                effects_from=fx.summary())
+    table = sil.raceline_table(spec.track, orca)
+    path = sil.write_controller_files(spec, table, tmp_path, str(tmp_path))
+    cfg = json.loads(path.read_text())
+    assert cfg["control"]["delay"] == {"steering": 0.04, "throttle": 0.0}
+    assert cfg["effects"]["diagnosis_sha256"] == fx.sha256
+    ok = subprocess.run([str(bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    cfg["control"]["delay"]["steering"] = 0.06
+    path.write_text(json.dumps(cfg))
+    bad = subprocess.run([str(bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
+    assert bad.returncode == 2
+    assert "effects.delay" in bad.stderr and fx.sha256[:12] in bad.stderr and len(bad.stderr.strip().splitlines()) == 1

@@ -1,0 +1,192 @@
+"""From a diagnosis to the controller's configuration (issue 34, item 2): `ddyn sil effects --from D`.
+
+`ddyn gap diagnose ... --out D` writes D/diagnosis.json; its `selected` effects (`model.effects`: each with its
+`params`) are what the diagnosis claims. The controller's runtime supports actuation delays only
+(controller.json `control.delay`, ddyn/controller.h), so:
+
+    steer_delay     -> control.delay.steering (its `delay`, s)
+    throttle_delay  -> not applied: telling the controller a throttle delay made the laps worse (docs/sil.md)
+    anything else   -> not applied, named: "steer_lag: not in the runtime (issue 34)"
+
+The configuration records where its delays came from (`effects`: the diagnosis's path, the sha256 of its
+diagnosis.json, the delays it gave); the controller refuses a file whose control.delay differs from the
+recorded `effects.delay` (firmware_sim/controller/controller_config.c), as it refuses a network built for another
+checkpoint. Bad input (no such folder or file, not a diagnosis, a selected effect the diagnosis does not know) is
+one DdynError line naming the file and the key.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ddyn.errors import DdynError
+from ddyn.model.effects import EFFECT_NAMES, MAIN_PARAM
+
+DIAGNOSIS_FILE = "diagnosis.json"
+# what the runtime applies: effect -> (controller delay key of ddyn.sil.run, the parameter)
+APPLIED = {"steer_delay": ("steer", "delay")}
+# what it could apply but does not, and why (one line each)
+NOT_APPLIED_WHY = {
+    "throttle_delay": "the controller's throttle-delay compensation made the laps worse (docs/sil.md), so it is "
+                      "not told",
+}
+DELAY_MAX_S = 1.0   # the configuration's range of control.delay (controller_config.c)
+
+
+@dataclass
+class ControllerEffects:
+    """What a diagnosis gives the controller: the delays (ddyn.sil.run's controller_delays: steer, throttle),
+    the effects applied, one line per effect not applied, and where it came from."""
+    delays: dict[str, float] = field(default_factory=dict)
+    applied: list[str] = field(default_factory=list)
+    not_applied: list[str] = field(default_factory=list)
+    diagnosis: str = ""
+    sha256: str = ""
+    selected: list[str] = field(default_factory=list)
+    estimates: dict[str, float] = field(default_factory=dict)   # each selected effect's main parameter
+
+    def record(self) -> dict:
+        """controller.json's `effects` section (the controller checks control.delay against `delay`)."""
+        return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256,
+                "delay": {"steering": float(self.delays.get("steer", 0.0)),
+                          "throttle": float(self.delays.get("throttle", 0.0))}}
+
+    def summary(self) -> dict:
+        """For sil_metrics.json and the study."""
+        return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256, "selected": self.selected,
+                "estimates": self.estimates, "applied": self.applied, "not_applied": self.not_applied,
+                "controller_delays": dict(self.delays)}
+
+    def lines(self) -> list[str]:
+        out = [f"{e}: applied as control.delay.steering = {self.delays['steer']:.4g} s" for e in self.applied]
+        return out + self.not_applied
+
+
+def diagnosis_path(where: str | Path) -> Path:
+    """D/diagnosis.json for a folder D, or the file itself."""
+    p = Path(where)
+    if p.is_dir():
+        p = p / DIAGNOSIS_FILE
+    if not p.is_file():
+        raise DdynError(f"{p}: no such file (expected the folder of `ddyn gap diagnose --out D` or its "
+                        f"{DIAGNOSIS_FILE})")
+    return p
+
+
+def read_diagnosis(path: Path) -> dict:
+    try:
+        raw = path.read_bytes()
+        d = json.loads(raw)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DdynError(f"{path}: not a diagnosis: not JSON ({e})") from None
+    if not isinstance(d, dict):
+        raise DdynError(f"{path}: not a diagnosis: a JSON {type(d).__name__}, not an object")
+    for key in ("selected", "model"):
+        if key not in d:
+            raise DdynError(f"{path}: not a diagnosis: no key {key!r} (written by `ddyn gap diagnose --out D`)")
+    if not isinstance(d["selected"], list) or not all(isinstance(e, str) for e in d["selected"]):
+        raise DdynError(f"{path}: selected: expected a list of effect names, got {d['selected']!r}")
+    if not isinstance(d["model"], dict) or not isinstance(d["model"].get("effects"), list):
+        raise DdynError(f"{path}: model.effects: expected the list of the selected effects' estimates")
+    return d
+
+
+def _estimate(path: Path, d: dict, effect: str) -> float:
+    """The selected effect's main parameter from model.effects (the joint fit of the selected ones)."""
+    param = MAIN_PARAM[effect]
+    for i, e in enumerate(d["model"]["effects"]):
+        if isinstance(e, dict) and e.get("effect") == effect:
+            v = (e.get("params") or {}).get(param)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                raise DdynError(f"{path}: model.effects[{i}].params.{param}: expected a finite number for "
+                                f"{effect}, got {v!r}")
+            return float(v)
+    raise DdynError(f"{path}: model.effects: no estimate of the selected effect {effect!r}")
+
+
+def controller_effects(where: str | Path) -> ControllerEffects:
+    """The controller's effects from a diagnosis (a folder D or D/diagnosis.json)."""
+    path = diagnosis_path(where)
+    d = read_diagnosis(path)
+    fx = ControllerEffects(diagnosis=str(path.resolve()), sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+                           selected=list(d["selected"]))
+    for i, name in enumerate(d["selected"]):
+        if name not in EFFECT_NAMES:
+            raise DdynError(f"{path}: selected[{i}]: unknown effect {name!r}; expected one of "
+                            f"{', '.join(EFFECT_NAMES)}")
+        value = _estimate(path, d, name)
+        fx.estimates[name] = value
+        if name in APPLIED:
+            key, _ = APPLIED[name]
+            if not 0.0 <= value <= DELAY_MAX_S:
+                raise DdynError(f"{path}: model.effects: {name} {MAIN_PARAM[name]} = {value:g} s is outside "
+                                f"control.delay's 0..{DELAY_MAX_S:g} s")
+            fx.delays[key] = value
+            fx.applied.append(name)
+        elif name in NOT_APPLIED_WHY:
+            fx.not_applied.append(f"{name}: found {value:.4g}, not applied: {NOT_APPLIED_WHY[name]}")
+        else:
+            fx.not_applied.append(f"{name}: not in the runtime (issue 34)")
+    return fx
+
+
+def apply_to_config(cfg: dict, fx: ControllerEffects) -> dict:
+    """A controller configuration (docs/deploy.md) with fx's delays in control.delay and the record in
+    `effects`; every other key as it was."""
+    out = json.loads(json.dumps(cfg))
+    control = out.setdefault("control", {})
+    if not isinstance(control, dict):
+        raise DdynError("control: expected an object")
+    rec = fx.record()
+    control["delay"] = dict(rec["delay"])
+    out["effects"] = rec
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- CLI
+
+def _run(args: argparse.Namespace) -> int:
+    fx = controller_effects(args.source)
+    src = Path(args.config)
+    try:
+        cfg = json.loads(src.read_text())
+    except FileNotFoundError:
+        raise DdynError(f"{src}: no such file (a controller configuration, docs/deploy.md)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise DdynError(f"{src}: not a controller configuration: {e}") from None
+    if not isinstance(cfg, dict):
+        raise DdynError(f"{src}: not a controller configuration: not a JSON object")
+    out = Path(args.out)
+    if out.resolve() == src.resolve() and not args.in_place:
+        raise DdynError(f"{out}: is the configuration read; give --in-place to overwrite it")
+    text = json.dumps(apply_to_config(cfg, fx), indent=1) + "\n"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    print(f"effects from {fx.diagnosis} (sha256 {fx.sha256[:12]}...): selected "
+          f"{', '.join(fx.selected) or 'none'}")
+    for line in fx.lines() or ["nothing to apply"]:
+        print(f"  {line}")
+    print(f"wrote {out} (control.delay steering {fx.delays.get('steer', 0.0):.4g} s, throttle "
+          f"{fx.delays.get('throttle', 0.0):.4g} s; the controller refuses it if control.delay is edited)")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "effects", help="a controller configuration with a diagnosis's effects (control.delay from `ddyn gap "
+                        "diagnose --out D`)",
+        description="Write a controller configuration (docs/deploy.md) with the effects of a diagnosis that the "
+                    "runtime supports: steer_delay -> control.delay.steering; every other selected effect is "
+                    "named, one line each, and not applied. The file records the diagnosis (path, sha256) under "
+                    "`effects`; the controller refuses it if control.delay no longer matches. `ddyn sil run "
+                    "--effects-from D` drives with the same.")
+    p.add_argument("--from", dest="source", required=True, metavar="D",
+                   help="the diagnosis: the folder of `ddyn gap diagnose --out D` or its diagnosis.json")
+    p.add_argument("--config", required=True, help="the controller configuration to start from (e.g. the car's)")
+    p.add_argument("--out", required=True, help="the configuration to write")
+    p.add_argument("--in-place", action="store_true", help="allow --out to be --config")
+    p.set_defaults(func=_run)
