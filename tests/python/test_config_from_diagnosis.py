@@ -118,3 +118,25 @@ def test_the_controller_refuses_a_configuration_edited_after_it_was_made(tmp_pat
     bad = subprocess.run([str(bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
     assert bad.returncode == 2
     assert "effects.delay" in bad.stderr and fx.sha256[:12] in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_the_delay_is_the_one_fitted_alone_to_the_nearest_period(tmp_path):
+    """With steer_lag claimed beside it the joint fit splits the delay (the runtime carries only the delay): the
+    value written is the steering delay fitted alone, rounded to whole control periods when the period is known
+    (the runtime floors it: 57 ms would act as 2 periods of 20 ms)."""
+    d = _diagnosis(tmp_path / "D", ["steer_delay", "steer_lag"], {"steer_delay": 0.0286, "steer_lag": 0.02})
+    raw = json.loads((d / "diagnosis.json").read_text())
+    raw["candidates"] = [{"effect": "steer_delay", "params": {"delay": 0.057}},
+                         {"effect": "steer_lag", "params": {"tau": 0.05}}]
+    (d / "diagnosis.json").write_text(json.dumps(raw))
+    assert controller_effects(d).delays == {"steer": 0.057}
+    fx = controller_effects(d, period=0.02)
+    assert fx.delays["steer"] == pytest.approx(0.06)
+    assert fx.applied_estimates["steer_delay"] == {"alone": 0.057, "joint": 0.0286, "written": fx.delays["steer"],
+                                                   "period": 0.02}
+    assert fx.estimates == {"steer_delay": 0.0286, "steer_lag": 0.02}
+    assert "fitted alone 0.057 s, joint 0.0286 s" in fx.lines()[0]
+    raw["candidates"][0]["params"]["delay"] = None
+    (d / "diagnosis.json").write_text(json.dumps(raw))
+    with pytest.raises(DdynError, match=r"candidates\[0\]\.params\.delay: expected a finite number"):
+        controller_effects(d)

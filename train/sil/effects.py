@@ -4,14 +4,23 @@
 `params`) are what the diagnosis claims. The controller's runtime supports actuation delays only
 (controller.json `control.delay`, ddyn/controller.h), so:
 
-    steer_delay     -> control.delay.steering (its `delay`, s)
+    steer_delay     -> control.delay.steering: its `delay` fitted alone (the diagnosis's candidate of that name),
+                       to the nearest whole control period when the period is known
     throttle_delay  -> not applied: telling the controller a throttle delay made the laps worse (docs/sil.md)
     anything else   -> not applied, named: "steer_lag: not in the runtime (issue 34)"
 
 The configuration records where its delays came from (`effects`: the diagnosis's path, the sha256 of its
 diagnosis.json, the delays it gave); the controller refuses a file whose control.delay differs from the
 recorded `effects.delay` (firmware_sim/controller/controller_config.c), as it refuses a network built for another
-checkpoint. Bad input (no such folder or file, not a diagnosis, a selected effect the diagnosis does not know) is
+checkpoint.
+
+Which of the diagnosis's numbers: the selected effects' joint fit (`model.effects`) shares the response among
+them, e.g. a 60 ms steering delay as steer_delay 29 ms + steer_lag; the runtime carries only the delay, so the
+value applied is the delay fitted alone (`candidates`, each effect alone against the refitted nominal: the model
+the runtime can carry), and the joint value when no candidate holds it. The runtime counts a delay in whole
+periods, rounding down (`floor(delay / period)`, ddyn/controller.h): an estimate 5 % short of three periods would
+be two, so with the period known the value written is the nearest whole number of periods. Both the estimate
+and the value written are recorded. Bad input (no such folder or file, not a diagnosis, a selected effect the diagnosis does not know) is
 one DdynError line naming the file and the key.
 """
 from __future__ import annotations
@@ -47,7 +56,8 @@ class ControllerEffects:
     diagnosis: str = ""
     sha256: str = ""
     selected: list[str] = field(default_factory=list)
-    estimates: dict[str, float] = field(default_factory=dict)   # each selected effect's main parameter
+    estimates: dict[str, float] = field(default_factory=dict)   # each selected effect's main parameter (joint fit)
+    applied_estimates: dict[str, dict] = field(default_factory=dict)  # per applied effect: alone, joint, written
 
     def record(self) -> dict:
         """controller.json's `effects` section (the controller checks control.delay against `delay`)."""
@@ -58,11 +68,17 @@ class ControllerEffects:
     def summary(self) -> dict:
         """For sil_metrics.json and the study."""
         return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256, "selected": self.selected,
-                "estimates": self.estimates, "applied": self.applied, "not_applied": self.not_applied,
+                "estimates": self.estimates, "applied_estimates": self.applied_estimates, "applied": self.applied, "not_applied": self.not_applied,
                 "controller_delays": dict(self.delays)}
 
     def lines(self) -> list[str]:
-        out = [f"{e}: applied as control.delay.steering = {self.delays['steer']:.4g} s" for e in self.applied]
+        def how(e):
+            a = self.applied_estimates.get(e, {})
+            src = (f"fitted alone {a['alone']:.4g} s" if a.get("alone") is not None else "joint fit") + \
+                (f", joint {a['joint']:.4g} s" if a.get("alone") is not None else "")
+            per = f", to whole periods of {a['period']:g} s" if a.get("period") else ""
+            return f" ({src}{per})"
+        out = [f"{e}: applied as control.delay.steering = {self.delays['steer']:.4g} s{how(e)}" for e in self.applied]
         return out + self.not_applied
 
 
@@ -108,8 +124,26 @@ def _estimate(path: Path, d: dict, effect: str) -> float:
     raise DdynError(f"{path}: model.effects: no estimate of the selected effect {effect!r}")
 
 
-def controller_effects(where: str | Path) -> ControllerEffects:
-    """The controller's effects from a diagnosis (a folder D or D/diagnosis.json)."""
+def _alone(path: Path, d: dict, effect: str) -> float | None:
+    """The effect's main parameter fitted alone (its entry in `candidates`), None if the diagnosis has none."""
+    cands = d.get("candidates")
+    if not isinstance(cands, list):
+        return None
+    for i, c in enumerate(cands):
+        if isinstance(c, dict) and c.get("effect") == effect:
+            v = (c.get("params") or {}).get(MAIN_PARAM[effect])
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                raise DdynError(f"{path}: candidates[{i}].params.{MAIN_PARAM[effect]}: expected a finite number "
+                                f"for {effect}, got {v!r}")
+            return float(v)
+    return None
+
+
+def controller_effects(where: str | Path, period: float | None = None) -> ControllerEffects:
+    """The controller's effects from a diagnosis (a folder D or D/diagnosis.json); period: the control period
+    (s), to write each delay as the nearest whole number of periods (None: as estimated)."""
+    if period is not None and not (isinstance(period, (int, float)) and math.isfinite(period) and period > 0):
+        raise DdynError(f"control.period: expected a number of seconds > 0, got {period!r}")
     path = diagnosis_path(where)
     d = read_diagnosis(path)
     fx = ControllerEffects(diagnosis=str(path.resolve()), sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
@@ -122,6 +156,11 @@ def controller_effects(where: str | Path) -> ControllerEffects:
         fx.estimates[name] = value
         if name in APPLIED:
             key, _ = APPLIED[name]
+            alone = _alone(path, d, name)
+            est = alone if alone is not None else value
+            value = est if period is None else round(est / period) * period
+            fx.applied_estimates[name] = {"alone": alone, "joint": fx.estimates[name], "written": value,
+                                          "period": period}
             if not 0.0 <= value <= DELAY_MAX_S:
                 raise DdynError(f"{path}: model.effects: {name} {MAIN_PARAM[name]} = {value:g} s is outside "
                                 f"control.delay's 0..{DELAY_MAX_S:g} s")
@@ -150,7 +189,6 @@ def apply_to_config(cfg: dict, fx: ControllerEffects) -> dict:
 # ---------------------------------------------------------------------------------------------- CLI
 
 def _run(args: argparse.Namespace) -> int:
-    fx = controller_effects(args.source)
     src = Path(args.config)
     try:
         cfg = json.loads(src.read_text())
@@ -160,6 +198,13 @@ def _run(args: argparse.Namespace) -> int:
         raise DdynError(f"{src}: not a controller configuration: {e}") from None
     if not isinstance(cfg, dict):
         raise DdynError(f"{src}: not a controller configuration: not a JSON object")
+    period = (cfg.get("control") or {}).get("period") if isinstance(cfg.get("control"), dict) else None
+    try:
+        fx = controller_effects(args.source, period)
+    except DdynError as e:
+        if period is not None and str(e).startswith("control.period"):
+            raise DdynError(f"{src}: {e}") from None
+        raise
     out = Path(args.out)
     if out.resolve() == src.resolve() and not args.in_place:
         raise DdynError(f"{out}: is the configuration read; give --in-place to overwrite it")

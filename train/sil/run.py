@@ -1175,7 +1175,7 @@ def _run(args: argparse.Namespace) -> int:
         from ddyn.sil.effects import controller_effects
         if delays:
             raise DdynError("--effects-from and --controller-delays: give one (the diagnosis sets the delays)")
-        fx = controller_effects(args.effects_from)
+        fx = controller_effects(args.effects_from, vehicle.sample_time)
         delays, effects_from = dict(fx.delays), fx.summary()
         for line in fx.lines() or ["nothing to apply"]:
             print(f"sil: effects from {args.effects_from}: {line}")
