@@ -105,7 +105,8 @@ static const key_spec KEYS[] = {
      "command acting, the MPC plans from the state its command acts in (default 0 0; at most the build's "
      "DDYN_CTRL_MAX_DELAY_STEPS periods)"},
     {"effects", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE,
-     "the diagnosis the actuation delays come from (`ddyn sil effects`, docs/sil.md); a file whose control.delay "
+     "the diagnosis the actuation delays come from (`ddyn sil run --effects-from D`, docs/sil.md); a file whose "
+     "control.delay "
      "differs from effects.delay is refused"},
     {"effects.diagnosis", K_STRING, OFF(effects_diagnosis), FSZ(effects_diagnosis), 0, 0, 0, 0, NULL, NONE,
      "the diagnosis.json the effects were taken from (recorded, not read; default none)"},
@@ -598,7 +599,7 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
         /* like coefficients.checkpoint_hash: a file edited after it was made from a diagnosis is refused */
         ok = fail(&p, "effects.delay",
                   "steering %g s, throttle %g s from diagnosis %s (sha256 %.12s...), but control.delay is steering "
-                  "%g s, throttle %g s: remake the file (`ddyn sil effects --from DIR`) instead of editing it",
+                  "%g s, throttle %g s: remake the file (`ddyn sil run --effects-from D --config-only`) instead of editing it",
                   c->effects_delay[0], c->effects_delay[1], c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
                   c->effects_sha256, c->delay[0], c->delay[1]);
     }

@@ -1,5 +1,5 @@
-"""From a diagnosis to the controller's configuration (issue 34 item 2; ddyn.sil.effects, `ddyn sil effects`,
-`ddyn sil run --effects-from D`): steer_delay becomes control.delay.steering, every other claimed effect is named
+"""From a diagnosis to the controller's configuration (issue 34 item 2; ddyn.sil.effects,
+`ddyn sil run --effects-from D [--config-only]`): steer_delay becomes control.delay.steering, every other claimed effect is named
 and not applied, bad input is one line naming the file and the key, and the controller refuses a configuration
 whose control.delay was edited after it was made from the diagnosis (controller.json `effects`)."""
 from __future__ import annotations
@@ -83,18 +83,21 @@ def test_bad_input_is_one_line_naming_the_file_and_key(tmp_path, content, says):
 
 
 def test_the_command_writes_the_configuration_and_names_what_it_cannot_apply(tmp_path, capsys):
-    d = _diagnosis(tmp_path / "D", ["steer_delay", "steer_lag"], {"steer_delay": 0.04, "steer_lag": 0.05})
-    src = tmp_path / "car.json"
-    src.write_text(json.dumps({"vehicle": "orca_1_43", "control": {"period": 0.02, "throttle": "mpc"}}))
-    assert main(["sil", "effects", "--from", str(d), "--config", str(src), "--out", str(tmp_path / "new.json")]) == 0
-    out = capsys.readouterr().out
-    assert "steer_lag: not in the runtime (issue 34)" in out
-    cfg = json.loads((tmp_path / "new.json").read_text())
-    assert cfg["control"]["delay"]["steering"] == 0.04 and cfg["control"]["throttle"] == "mpc"
-    # a missing configuration: one line, exit 2
-    assert main(["sil", "effects", "--from", str(d), "--config", str(tmp_path / "nope.json"), "--out",
-                 str(tmp_path / "x.json")]) == 2
-    assert "nope.json: no such file" in capsys.readouterr().err
+    d = _diagnosis(tmp_path / "D", ["steer_delay", "steer_lag"], {"steer_delay": 0.041, "steer_lag": 0.05})
+    out = tmp_path / "cfg"
+    assert main(["sil", "run", "--effects-from", str(d), "--config-only", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "steer_lag: not in the runtime (issue 34)" in printed and "not driven" in printed
+    cfg = json.loads((out / "controller.json").read_text())
+    assert cfg["control"]["delay"] == {"steering": 0.04, "throttle": 0.0}   # 41 ms: two periods of 20 ms
+    assert cfg["effects"]["diagnosis_sha256"] == hashlib.sha256((d / "diagnosis.json").read_bytes()).hexdigest()
+    assert (out / "raceline.csv").is_file() and not (out / "sil_metrics.json").exists()
+    # bad input: one line, exit 2
+    assert main(["sil", "run", "--effects-from", str(tmp_path / "nope"), "--config-only", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "nope: no such file" in err and len(err.splitlines()) == 1
+    assert main(["sil", "run", "--effects-from", str(d), "--controller-delays", "steer=0.02", "--config-only",
+                 "--out", str(out)]) == 2
 
 
 def test_the_controller_refuses_a_configuration_edited_after_it_was_made(tmp_path):

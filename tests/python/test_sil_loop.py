@@ -1,4 +1,4 @@
-"""`ddyn sil loop` (issue 34 item 3; ddyn.sil.loop): the controller's own log as a user's log, diagnosed, the
+"""`ddyn study sil-loop` (issue 34 item 3; ddyn.sil.loop): the controller's own log as a user's log, diagnosed, the
 controller rebuilt from the diagnosis, against the oracle. In process (ddyn_sil_inprocess, emulated time) on
 ETHZMobil; a short log drive (20 s, not the study's 60 s) so that it runs in well under two minutes. What is
 asserted is the loop's plumbing and what the study's figures rest on, not the diagnosis's quality."""
@@ -56,7 +56,13 @@ def test_the_loop_drives_diagnoses_rebuilds_and_scores(case):
     assert metrics["controller_effects"]["diagnosis_sha256"] == fx["diagnosis_sha256"]
     assert (out / "case" / "before" / "lap.png").is_file() and (out / "case" / "rebuilt" / "lap.png").is_file()
     assert set(c["rebuilt"]["targets"]) == {"clean_within_2pct_of_reference", "diagnosis_first_within_15pct",
-                                            "within_1pct_of_oracle"}
+                                            "diagnosis_first_within_15pct_alone", "within_1pct_of_oracle"}
+    # the delay written is the diagnosis's steering delay fitted alone, to whole periods (or nothing, named)
+    written = fx["controller_delays"].get("steer")
+    if written is not None:
+        assert written == pytest.approx(round(dg["steer_delay_candidate_s"] / 0.02) * 0.02)
+    else:
+        assert fx["not_applied"] and "steer_delay" not in fx["applied"]
     assert "| ethzMobil | steer_delay 0.04 |" in loop.markdown([c])
 
 

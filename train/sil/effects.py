@@ -1,4 +1,4 @@
-"""From a diagnosis to the controller's configuration (issue 34, item 2): `ddyn sil effects --from D`.
+"""From a diagnosis to the controller's configuration (issue 34, item 2): `ddyn sil run --effects-from D`.
 
 `ddyn gap diagnose ... --out D` writes D/diagnosis.json; its `selected` effects (`model.effects`: each with its
 `params`) are what the diagnosis claims. The controller's runtime supports actuation delays only
@@ -12,7 +12,8 @@
 The configuration records where its delays came from (`effects`: the diagnosis's path, the sha256 of its
 diagnosis.json, the delays it gave); the controller refuses a file whose control.delay differs from the
 recorded `effects.delay` (firmware_sim/controller/controller_config.c), as it refuses a network built for another
-checkpoint.
+checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
+`apply_to_config` puts the same two sections into another configuration (a car's).
 
 Which of the diagnosis's numbers: the selected effects' joint fit (`model.effects`) shares the response among
 them, e.g. a 60 ms steering delay as steer_delay 29 ms + steer_lag; the runtime carries only the delay, so the
@@ -25,7 +26,6 @@ one DdynError line naming the file and the key.
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import math
@@ -184,54 +184,3 @@ def apply_to_config(cfg: dict, fx: ControllerEffects) -> dict:
     control["delay"] = dict(rec["delay"])
     out["effects"] = rec
     return out
-
-
-# ---------------------------------------------------------------------------------------------- CLI
-
-def _run(args: argparse.Namespace) -> int:
-    src = Path(args.config)
-    try:
-        cfg = json.loads(src.read_text())
-    except FileNotFoundError:
-        raise DdynError(f"{src}: no such file (a controller configuration, docs/deploy.md)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise DdynError(f"{src}: not a controller configuration: {e}") from None
-    if not isinstance(cfg, dict):
-        raise DdynError(f"{src}: not a controller configuration: not a JSON object")
-    period = (cfg.get("control") or {}).get("period") if isinstance(cfg.get("control"), dict) else None
-    try:
-        fx = controller_effects(args.source, period)
-    except DdynError as e:
-        if period is not None and str(e).startswith("control.period"):
-            raise DdynError(f"{src}: {e}") from None
-        raise
-    out = Path(args.out)
-    if out.resolve() == src.resolve() and not args.in_place:
-        raise DdynError(f"{out}: is the configuration read; give --in-place to overwrite it")
-    text = json.dumps(apply_to_config(cfg, fx), indent=1) + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    print(f"effects from {fx.diagnosis} (sha256 {fx.sha256[:12]}...): selected "
-          f"{', '.join(fx.selected) or 'none'}")
-    for line in fx.lines() or ["nothing to apply"]:
-        print(f"  {line}")
-    print(f"wrote {out} (control.delay steering {fx.delays.get('steer', 0.0):.4g} s, throttle "
-          f"{fx.delays.get('throttle', 0.0):.4g} s; the controller refuses it if control.delay is edited)")
-    return 0
-
-
-def register(subparsers) -> None:
-    p = subparsers.add_parser(
-        "effects", help="a controller configuration with a diagnosis's effects (control.delay from `ddyn gap "
-                        "diagnose --out D`)",
-        description="Write a controller configuration (docs/deploy.md) with the effects of a diagnosis that the "
-                    "runtime supports: steer_delay -> control.delay.steering; every other selected effect is "
-                    "named, one line each, and not applied. The file records the diagnosis (path, sha256) under "
-                    "`effects`; the controller refuses it if control.delay no longer matches. `ddyn sil run "
-                    "--effects-from D` drives with the same.")
-    p.add_argument("--from", dest="source", required=True, metavar="D",
-                   help="the diagnosis: the folder of `ddyn gap diagnose --out D` or its diagnosis.json")
-    p.add_argument("--config", required=True, help="the controller configuration to start from (e.g. the car's)")
-    p.add_argument("--out", required=True, help="the configuration to write")
-    p.add_argument("--in-place", action="store_true", help="allow --out to be --config")
-    p.set_defaults(func=_run)

@@ -1,4 +1,4 @@
-"""`ddyn sil loop`: closed-loop "how far it shrinks" (issue 34, item 3), in process on emulated time.
+"""`ddyn study sil-loop`: closed-loop "how far it shrinks" (issue 34, item 3), in process on emulated time.
 
 Per case (an effect and its size in the SIL plant, on a track):
 
@@ -79,7 +79,7 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
             inputs[i] = inputs[i - 1]
     ds = Dataset(time=step * sample_time, segment=segment, states=states[keep], inputs=inputs,
                  sample_time=sample_time, vehicle=vehicle_name, source=f"{controller_log.parent.name}/controller_log.csv")
-    ds.metadata = {"import_format": "ddyn sil loop user_log (the controller's own log)",
+    ds.metadata = {"import_format": "ddyn study sil-loop user_log (the controller's own log)",
                    "input_mapping": "throttle, steering = the set-points commanded the period before; "
                                     "dthrottle, dsteering = their steps per period / sample time",
                    "rows": f"{len(keep)} of {len(c['step'])} periods kept (vx >= {min_vx} m/s, no safe command) "
@@ -307,10 +307,10 @@ def _run(args: argparse.Namespace) -> int:
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "loop", help="closed loop: effect in the plant, the controller's own log diagnosed, the controller rebuilt "
+        "sil-loop", help="closed loop: effect in the plant, the controller's own log diagnosed, the controller rebuilt "
                      "from the diagnosis, against the oracle (issue 34)",
         description=__doc__.splitlines()[0])
-    p.add_argument("--vehicle", default="orca_1_43")
+    p.add_argument("--vehicle", default="orca_1_43", help="vehicle file name (default: %(default)s)")
     p.add_argument("--tracks", default="ethzMobil", help="comma-separated tracks (e.g. ethzMobil,random:301)")
     p.add_argument("--cases", default="steer_delay=0.04,steer_delay=0.08",
                    help="plant effects and sizes, effect=SIZE,...; none=0: no effect (what the diagnosis claims on "
@@ -320,5 +320,6 @@ def register(subparsers) -> None:
     p.add_argument("--log-seconds", type=float, default=LOG_SECONDS,
                    help="driving time of the log drive, s (default: %(default)s)")
     p.add_argument("--seed", type=int, default=1, help="sensor noise seed")
-    p.add_argument("--out", default="out/sil_loop")
+    p.add_argument("--out", default="out/sil_loop",
+                   help="output folder: loop.json, loop.md, a folder per track and case (default: %(default)s)")
     p.set_defaults(func=_run)

@@ -1187,6 +1187,14 @@ def _run(args: argparse.Namespace) -> int:
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
                    forged_steering=args.inject_forged_steering,
                    controller_delays=delays, effects_from=effects_from)
+    if args.config_only:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin, line=spec.line)
+        path = write_controller_files(spec, table, out, str(out.resolve()))
+        print(f"sil: wrote {path} and {out / RACELINE_CSV} (control.delay "
+              f"{json.loads(path.read_text())['control'].get('delay', 'none')}); not driven (--config-only)")
+        return 0
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
     ctl = m["controller"] or {}
@@ -1247,7 +1255,11 @@ def register(subparsers) -> None:
     p.add_argument("--effects-from", metavar="D", default=None,
                    help="the controller's actuation delays from a diagnosis (`ddyn gap diagnose --out D`: the folder "
                         "or its diagnosis.json): steer_delay -> control.delay.steering, every other effect named "
-                        "and not applied (`ddyn sil effects`); recorded in controller.json and sil_metrics.json")
+                        "and not applied; recorded in controller.json (effects: path, sha256; the controller refuses "
+                        "the file if control.delay is edited) and sil_metrics.json")
+    p.add_argument("--config-only", action="store_true",
+                   help="write controller.json and raceline.csv into --out and stop (no drive): e.g. the "
+                        "configuration made from --effects-from D")
     p.add_argument("--faults", help="faults, key=value: drop=FRACTION delay=SECONDS corrupt=FRACTION "
                                     "silent=imu|gnss|gnss_position|gnss_heading|wheel_speeds|steering silent_at=S "
                                     "kill_controller=S restart_plant=S")
