@@ -199,3 +199,17 @@ def test_a_travelling_calibration_covers_any_length_and_goes_stale_with_the_code
     path.write_text(json.dumps(raw))
     with pytest.raises(DdynError, match="durations"):
         CAL.load(path)
+
+
+def test_a_cached_log_is_named_by_what_makes_it():
+    """Two campaign sizes shuffle the same seeds onto other cases: a cache named by the seed alone handed one case
+    the other's log. Named by every field that makes the log, the same case finds its file and another does not."""
+    a = lofo.plan("commonroad-std", 24, 3)
+    b = lofo.plan("commonroad-std", 30, 3)
+    names_a = {lofo.cache_name(c) for c in a}
+    assert len(names_a) == len(a)
+    assert [lofo.cache_name(c) for c in a] == [lofo.cache_name(c) for c in lofo.plan("commonroad-std", 24, 3)]
+    same_seed_other_case = [(x, y) for x in a for y in b if x["seed"] == y["seed"] and
+                            any(x[k] != y[k] for k in lofo.LOG_FIELDS)]
+    assert same_seed_other_case, "the two sizes should differ somewhere (else the test shows nothing)"
+    assert all(lofo.cache_name(x) != lofo.cache_name(y) for x, y in same_seed_other_case)

@@ -28,6 +28,8 @@ worst family is the headline, not the mean.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
 import pickle
 import statistics
@@ -130,8 +132,19 @@ def make_case_log(case: dict):
     return F.make_log(case["family"], track, CP.PlantEffects(**effects), case["seed"], settings, case["params"])
 
 
+# what makes a case's log: its cache file is named by them, so a campaign of another size (another shuffle of
+# the same seeds) never reads a log made for another case
+LOG_FIELDS = ("family", "effect", "track", "magnitude", "params", "seed", "duration", "dbw_period", "noise_scale",
+              "noise_color", "target_speed", "roll_channel")
+
+
+def cache_name(case: dict) -> str:
+    key = hashlib.sha256(json.dumps([case[k] for k in LOG_FIELDS]).encode()).hexdigest()[:12]
+    return f"{case['family']}-{case['seed']}-{key}.pkl"
+
+
 def _cached_log(case: dict, cache: Path | None):
-    path = None if cache is None else cache / f"{case['family']}-{case['seed']}.pkl"
+    path = None if cache is None else cache / cache_name(case)
     if path is not None and path.is_file():
         return pickle.loads(path.read_bytes()), 0.0
     t0 = time.perf_counter()
