@@ -28,8 +28,9 @@ OVAL = dict(straight=120.0, radius=50.0)
 
 @pytest.fixture(scope="module")
 def oval():
+    # a 4-degree grade: above the 3 degrees that matter, below which a channel says flat (roll_check.FLAT)
     t = oval_track(**OVAL)
-    ds = CP.make_log(t, CP.PlantEffects(grade=0.04, grade_phase=1.0), 1,
+    ds = CP.make_log(t, CP.PlantEffects(grade=0.07, grade_phase=1.0), 1,
                      CP.LogSettings(duration=60.0, roll_channel=True, pitch_channel=True))
     return t, ds
 
@@ -201,7 +202,7 @@ def test_the_pitch_channel_the_same_way(oval, putnam):
     lay = _layout(ds)
     v = lay.pitch
     assert v["rule"] == "laps" and v["verdict"] == "plausible", v["reason"]
-    assert v["profile_max_rad"] == pytest.approx(0.04, abs=0.005)
+    assert v["profile_max_rad"] == pytest.approx(0.07, abs=0.005)
     assert abs(v["body_pitch_per_g_rad"]) < RC.MAX_BODY_PER_G and C.available("grade_from_pitch", lay)
     tp, short = putnam
     lay = _layout(short, tp)
@@ -223,3 +224,20 @@ def test_under_two_laps_of_cover_the_check_falls_back_to_bounds(oval):
     assert "roll_per_lateral_g_rad" in v and "drift_rad" in v
     walk = roll + 0.4 * np.linspace(0.0, 1.0, len(rows))           # a drift is still caught
     assert "drift" in RC.check(walk, ds.time[rows], ay, position=s, lap=lap, lap_length=L)["failed"]
+
+
+def test_flat_means_no_bank_that_matters():
+    """A channel says flat when, body roll taken off, its bank stays below the bank's size that matters (the
+    issue's 3 degrees, ddyn.gap.limits) nearly everywhere: not below a smaller figure of its own."""
+    from ddyn.data import roll_check
+    from ddyn.gap import limits
+
+    assert roll_check.FLAT == limits.SIZES["bank_angle"] == limits.SIZES["grade"]
+    t = np.arange(0.0, 60.0, 0.04)
+    ay = 6.0 * np.sin(0.3 * t)
+    body = -0.08 * ay / 9.81
+    # 2 degrees of wander that is neither body roll nor noise: under the size, flat; 5 degrees: a bank to read
+    for amplitude, flat in ((2.0, True), (5.0, False)):
+        roll = body + math.radians(amplitude) * np.sign(np.sin(0.05 * t))
+        v = roll_check.check(roll, t, ay)
+        assert v["plausible"] and v["flat"] is flat, (amplitude, v["reason"])
