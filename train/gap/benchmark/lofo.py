@@ -234,6 +234,18 @@ def _tail_levels(records: list[dict]) -> dict:
     return out
 
 
+def _reaches_level(r: dict, fam: str, levels: dict) -> bool:
+    """A pass-1 record's estimate of `fam` could be claimed under `levels`: the family has a level, its estimate
+    is off its range edge and at least that share of its size that matters."""
+    share, size, f = levels.get(fam), _size(r, fam), r["families"].get(fam)
+    return not (share is None or size is None or f is None or f["at_bound"] or abs(f["size"]) < share * size)
+
+
+def _tied(r: dict) -> bool:
+    """Round one's first and its runner-up of another family are not told apart (AMBIGUITY_DBIC)."""
+    return r["runner_up_gap"] is not None and r["runner_up_gap"] < AMBIGUITY_DBIC
+
+
 def first_claim(r: dict, levels: dict, margins: dict, rounds: int = 3) -> str | None:
     """The family a pass-1 record's log would be claimed for first under `levels` and `margins`: its families
     best evidence first, as the diagnosis's rounds go (one that pays but is not claimed is a nuisance, and the
@@ -243,12 +255,9 @@ def first_claim(r: dict, levels: dict, margins: dict, rounds: int = 3) -> str | 
     for i, (fam, f) in enumerate(ranked[:rounds]):
         if f["delta_bic"] >= 0:
             return None
-        share, size = levels.get(fam), _size(r, fam)
-        if share is None or size is None or f["at_bound"] or abs(f["size"]) < share * size:
+        if not _reaches_level(r, fam, levels) or -f["delta_bic"] / r["heldout_rows"] <= margins.get(fam, 0.0):
             continue
-        if -f["delta_bic"] / r["heldout_rows"] <= margins.get(fam, 0.0):
-            continue
-        if i == 0 and r["runner_up_gap"] is not None and r["runner_up_gap"] < AMBIGUITY_DBIC:
+        if i == 0 and _tied(r):
             continue
         return fam
     return None
@@ -285,15 +294,7 @@ def decision_levels(records: list[dict]) -> dict:
 def _would_claim_first(r: dict, levels: dict) -> float | None:
     """The margin per held-out row below which the log's first candidate would be claimed (None: never, by its
     size, its range edge or a tie)."""
-    fam = r["top"]
-    share = levels.get(fam)
-    size = _size(r, fam)
-    f = r["families"].get(fam)
-    if share is None or size is None or f is None or f["at_bound"]:
-        return None
-    if abs(f["size"]) < share * size:
-        return None
-    if r["runner_up_gap"] is not None and r["runner_up_gap"] < AMBIGUITY_DBIC:
+    if not _reaches_level(r, r["top"], levels) or _tied(r):
         return None
     return max(0.0, -r["delta_bic_top"] / r["heldout_rows"])
 
