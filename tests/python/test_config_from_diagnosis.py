@@ -20,7 +20,7 @@ from ddyn.sil.effects import apply_to_config, controller_effects
 
 def _diagnosis(folder, selected, values=None):
     """A minimal diagnosis.json as `ddyn gap diagnose` writes it (the keys the mapping reads)."""
-    from ddyn.model.effects import MAIN_PARAM
+    from ddyn.gap.candidates import MAIN_PARAM
 
     values = values or {}
     folder.mkdir(parents=True, exist_ok=True)
@@ -52,6 +52,10 @@ def test_unsupported_effects_are_named_not_applied(tmp_path):
     assert fx.not_applied[0] == "steer_lag: not in the runtime (issue 34)"
     assert fx.not_applied[1].startswith("throttle_delay: found 0.1, not applied")
     assert fx.not_applied[2] == "bank_angle: not in the runtime (issue 34)"
+    # a bank read along the track or from the roll channel is a claim as valid as any: named, not refused
+    profiles = controller_effects(_diagnosis(tmp_path / "P", ["bank_profile", "bank_from_roll"]))
+    assert profiles.not_applied == ["bank_profile: not in the runtime (issue 34)",
+                                    "bank_from_roll: not in the runtime (issue 34)"]
     nothing = controller_effects(_diagnosis(tmp_path / "E", []))
     assert nothing.delays == {} and nothing.applied == [] and nothing.not_applied == []
 

@@ -33,7 +33,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ddyn.errors import DdynError
-from ddyn.model.effects import EFFECT_NAMES, MAIN_PARAM
+# every name a diagnosis may select: the effects and the profile and channel candidates (bank_profile,
+# bank_from_roll, ...), each with its main parameter
+from ddyn.gap.candidates import ALL as EFFECT_NAMES
+from ddyn.gap.candidates import MAIN_PARAM
 
 DIAGNOSIS_FILE = "diagnosis.json"
 # what the runtime applies: effect -> (controller delay key of ddyn.sil.run, the parameter)
