@@ -138,10 +138,10 @@ static int delay_periods(double delay, double dt)
         return -1;
     }
     n = delay / dt;
-    if (n > (double)DDYN_CTRL_MAX_DELAY_STEPS + 1e-6) {
-        return -1; /* above the compiled maximum */
+    if (!(n < (double)DDYN_CTRL_MAX_DELAY_STEPS + 0.5 - 1e-6)) {
+        return -1; /* rounds to more than the compiled maximum */
     }
-    n = floor(n + 1e-6);
+    n = floor(n + 0.5 + 1e-6); /* the nearest whole period; a half (to 1e-6 of a period) rounds up */
     return n > (double)DDYN_CTRL_MAX_DELAY_STEPS ? DDYN_CTRL_MAX_DELAY_STEPS : (int)n;
 }
 

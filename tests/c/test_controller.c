@@ -1169,23 +1169,36 @@ static void test_delay_above_the_compiled_maximum_is_refused_at_init(void **stat
     ddyn_ctrl_delay_config d = {0.0, 0.0};
     int steps[DDYN_NU] = {-1, -1};
     (void)state;
-    /* seconds to whole periods, floor (to 1e-6 of a period) */
+    /* seconds to the NEAREST whole period (a half rounds up, to 1e-6 of a period; issue 34: it was floor) */
     d.steering = 0.04;
     d.throttle = 0.1;
     assert_int_equal(ddyn_ctrl_delay_steps(&d, 0.02, steps), DDYN_OK);
     assert_int_equal(steps[DDYN_CTRL_CH_STEERING], 2);
     assert_int_equal(steps[DDYN_CTRL_CH_THROTTLE], 5);
-    d.steering = 0.05; /* 2.5 periods: the set-point of 2 periods ago holds at each period's end */
-    d.throttle = 0.0;
+    d.steering = 0.057; /* 2.85 periods: 3 (floor gave 2) */
+    d.throttle = 0.029; /* 1.45 periods: 1 */
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, 0.02, steps), DDYN_OK);
+    assert_int_equal(steps[DDYN_CTRL_CH_STEERING], 3);
+    assert_int_equal(steps[DDYN_CTRL_CH_THROTTLE], 1);
+    d.steering = 0.03; /* 1.5 periods (0.03 / 0.02 = 1.4999999999999998 in doubles): 2 */
+    d.throttle = 0.009; /* 0.45 periods: none */
     assert_int_equal(ddyn_ctrl_delay_steps(&d, 0.02, steps), DDYN_OK);
     assert_int_equal(steps[DDYN_CTRL_CH_STEERING], 2);
+    assert_int_equal(steps[DDYN_CTRL_CH_THROTTLE], 0);
+    d.steering = 0.05; /* 2.5 periods: 3 */
+    d.throttle = 0.0;
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, 0.02, steps), DDYN_OK);
+    assert_int_equal(steps[DDYN_CTRL_CH_STEERING], 3);
     assert_int_equal(steps[DDYN_CTRL_CH_THROTTLE], 0);
     d.steering = max_s;
     assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_OK);
     assert_int_equal(steps[DDYN_CTRL_CH_STEERING], DDYN_CTRL_MAX_DELAY_STEPS);
-    /* above the maximum, negative, not finite: refused, steps untouched */
+    d.steering = max_s + 0.4 * dt; /* rounds to the maximum */
+    assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_OK);
+    assert_int_equal(steps[DDYN_CTRL_CH_STEERING], DDYN_CTRL_MAX_DELAY_STEPS);
+    /* rounding above the maximum, negative, not finite: refused, steps untouched */
     steps[0] = steps[1] = -1;
-    d.steering = max_s + 0.1 * dt;
+    d.steering = max_s + 0.5 * dt;
     assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_ERR_ARGUMENT);
     d.steering = -1e-9;
     assert_int_equal(ddyn_ctrl_delay_steps(&d, dt, steps), DDYN_ERR_ARGUMENT);

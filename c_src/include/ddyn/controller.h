@@ -153,8 +153,11 @@ typedef struct {
  *   - before the MPC, predicts the estimate through the commands still in the pipe (sent, not yet acting)
  *     with the filter's model step (ddyn_ctrl_predict_pipe), so that the MPC plans from the state at
  *     which its new command takes effect.
- * A delay counts in whole control periods, n = floor(delay / sample_time) (to 1e-6 of a period): with a
- * fast actuator, at the end of a period the car holds the set-point sent n periods before. Both delays
+ * A delay counts in whole control periods, to the NEAREST: n = floor(delay / sample_time + 1/2) (a half
+ * period and 1e-6 of one rounds up: 30 ms at 20 ms periods is 2): with a fast actuator, at the end of a
+ * period the car holds the set-point sent n periods before, and a delay between n - 1/2 and n + 1/2
+ * periods is closest to that (until issue 34 the count was floor(delay / sample_time): 39 ms acted as 1
+ * period, and a diagnosis's estimate a few per cent short of a whole period lost one). Both delays
  * 0 (the default) is the controller without this: bit-identical.
  * The MPC plans from the state at which its STEERING command takes effect (n = the steering delay: the
  * steering keeps the car within the track bounds). Over that prediction the throttle runs its commands
@@ -168,8 +171,8 @@ typedef struct {
  * the track in 4 of 4. A throttle delay is compensated in the filter and the pipe only: with a
  * throttle delay alone the compensated laps are no better than the uncompensated ones.)
  * The compiled maximum (override with -DDDYN_CTRL_MAX_DELAY_STEPS=...): 5 periods = 100 ms at the 1:43
- * car's 50 Hz, 200 ms at the AV-21's 25 Hz. A delay above sample_time * DDYN_CTRL_MAX_DELAY_STEPS is
- * refused at init (DDYN_ERR_ARGUMENT), never cut. */
+ * car's 50 Hz, 200 ms at the AV-21's 25 Hz. A delay that rounds to more than DDYN_CTRL_MAX_DELAY_STEPS
+ * periods is refused at init (DDYN_ERR_ARGUMENT), never cut. */
 #ifndef DDYN_CTRL_MAX_DELAY_STEPS
 #define DDYN_CTRL_MAX_DELAY_STEPS 5
 #endif
@@ -201,9 +204,9 @@ void ddyn_ctrl_delay_line_set_newest(ddyn_ctrl_delay_line *d, double u);
 /* The command sent n periods before the newest (n = 0: the newest), 0 <= n <= DDYN_CTRL_MAX_DELAY_STEPS;
  * NaN for any other n (never another entry). */
 double ddyn_ctrl_delay_line_ago(const ddyn_ctrl_delay_line *d, int n);
-/* The delays of cfg in whole periods of dt (steps[DDYN_CTRL_CH_THROTTLE], steps[DDYN_CTRL_CH_STEERING]):
- * DDYN_OK, or DDYN_ERR_ARGUMENT (steps untouched) for a negative, non-finite one or one above
- * dt * DDYN_CTRL_MAX_DELAY_STEPS. */
+/* The delays of cfg in whole periods of dt, rounded to the nearest (steps[DDYN_CTRL_CH_THROTTLE],
+ * steps[DDYN_CTRL_CH_STEERING]): DDYN_OK, or DDYN_ERR_ARGUMENT (steps untouched) for a negative, non-finite
+ * one or one that rounds to more than DDYN_CTRL_MAX_DELAY_STEPS periods. */
 ddyn_status ddyn_ctrl_delay_steps(const ddyn_ctrl_delay_config *cfg, double dt, int steps[DDYN_NU]);
 
 typedef struct {
