@@ -16,6 +16,7 @@
 #define FIRST_FEATURE_STATE 3
 #define VX 3
 #define THROTTLE 6
+#define STEERING 7
 #define CM1 12
 #define CR0 14
 /* the model's coefficient order (ddyn/model.h, train/model/single_track.py COEFF_NAMES) */
@@ -161,8 +162,39 @@ ddyn_status ddyn_ctrl_delay_steps(const ddyn_ctrl_delay_config *cfg, double dt, 
     return DDYN_OK;
 }
 
+/* ---- steering lag (ddyn_ctrl_lag_config) ---- */
+
+double ddyn_ctrl_lag_decay(double tau, double dt)
+{
+    if (!(tau >= 0.0) || !isfinite(tau) || !(dt > 0.0) || !isfinite(dt)) {
+        return NAN;
+    }
+    return tau > 0.0 ? exp(-dt / tau) : 0.0;
+}
+
+double ddyn_ctrl_lag_step(double delta, double cmd, double decay)
+{
+    return cmd + (delta - cmd) * decay;
+}
+
+double ddyn_ctrl_lag_invert(double delta, double target, double decay)
+{
+    return delta + (target - delta) / (1.0 - decay);
+}
+
+/* One period of the lag from (cmd, act) at its start with the steering rate u acting on the set-point:
+ * the set-point and acting angle at its end, and the acting rate over it (returned). */
+static double lag_period(const ddyn_ctrl *ctl, double cmd, double act, double u, double *cmd_next, double *act_next)
+{
+    const double dt = ctl->model->sample_time;
+    *cmd_next = clamp(cmd + dt * u, ctl->cfg.mpc.state_lo[1], ctl->cfg.mpc.state_hi[1]);
+    *act_next = ddyn_ctrl_lag_step(act, *cmd_next, ctl->lag_decay);
+    return (*act_next - act) / dt;
+}
+
 /* u_prev is the newest command sent (a caller may have replaced it: ddyn_ctrl_command_applied, _not_sent)
- * and the command acting on the car over the coming period is the one sent `delay` periods before it */
+ * and the command acting on the car over the coming period is the one sent `delay` periods before it;
+ * with a steering lag, its steering acts through the lag (from the start of the period, lag_cmd/lag_act) */
 static void sync_delay_lines(ddyn_ctrl *ctl)
 {
     int c;
@@ -170,6 +202,10 @@ static void sync_delay_lines(ddyn_ctrl *ctl)
         ddyn_ctrl_delay_line_set_newest(&ctl->sent[c], ctl->u_prev[c]);
         ctl->u_acting[c] = ctl->delay_steps[c] == 0 ? ctl->u_prev[c]
                                                      : ddyn_ctrl_delay_line_ago(&ctl->sent[c], ctl->delay_steps[c]);
+    }
+    if (ctl->lag_decay > 0.0) {
+        ctl->u_acting[1] = lag_period(ctl, ctl->lag_cmd, ctl->lag_act, ctl->u_acting[1], &ctl->lag_cmd_next,
+                                      &ctl->lag_act_next);
     }
 }
 
@@ -185,8 +221,9 @@ static int config_ok(const ddyn_ctrl_config *cfg, double dt)
 {
     const ddyn_ctrl_pid_config *g = &cfg->pid;
     int i, k, steps[NU];
-    if (!degraded_config_ok(&cfg->degraded, dt) || ddyn_ctrl_delay_steps(&cfg->delay, dt, steps) != DDYN_OK) {
-        return 0; /* a delay above the compiled maximum is refused, not cut */
+    if (!degraded_config_ok(&cfg->degraded, dt) || ddyn_ctrl_delay_steps(&cfg->delay, dt, steps) != DDYN_OK ||
+        isnan(ddyn_ctrl_lag_decay(cfg->lag.steering, dt))) {
+        return 0; /* a delay above the compiled maximum is refused, not cut; a negative or non-finite lag */
     }
     if ((unsigned)cfg->coeff_source >= (unsigned)DDYN_CTRL_SOURCE_COUNT ||
         (unsigned)cfg->throttle_mode >= (unsigned)DDYN_CTRL_THROTTLE_MODE_COUNT ||
@@ -254,6 +291,9 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     (void)ddyn_ctrl_delay_steps(&cfg->delay, model->sample_time, ctl->delay_steps); /* checked by config_ok */
     ddyn_ctrl_delay_line_reset(&ctl->sent[0], 0.0); /* the actuators held since forever */
     ddyn_ctrl_delay_line_reset(&ctl->sent[1], 0.0);
+    /* the steering lag: at rest at the start's steering (the drive-by-wire node's first set-point) */
+    ctl->lag_decay = ddyn_ctrl_lag_decay(cfg->lag.steering, model->sample_time);
+    ctl->lag_cmd = ctl->lag_act = ctl->lag_cmd_next = ctl->lag_act_next = x0[STEERING];
     memcpy(ctl->coeffs, cfg->coeff_source == DDYN_CTRL_SOURCE_FIXED ? cfg->c_fixed : cfg->c_nominal,
            sizeof ctl->coeffs);
     ctl->last_good_age = -1;
@@ -794,14 +834,13 @@ static ddyn_ctrl_status throttle_pid(ddyn_ctrl *ctl, double v_ref, ddyn_ctrl_out
     return st;
 }
 
-ddyn_status ddyn_ctrl_predict_pipe(ddyn_ctrl *ctl, const double x[DDYN_NX], double x_out[DDYN_NX])
+/* ddyn_ctrl_predict_pipe from the lag's state (set-point, acting angle) lag[0], lag[1] at x's time: lag
+ * holds the state after the pipe on return (as given when the model fails). */
+static ddyn_status predict_pipe_lag(ddyn_ctrl *ctl, const double x[NX], double x_out[NX], double lag[2])
 {
-    double xa[NX], xb[NX], u[NU];
+    double xa[NX], xb[NX], u[NU], cmd = lag[0], act = lag[1];
     int n, i, c;
     ddyn_status s;
-    if (ctl == NULL || x == NULL || x_out == NULL || !ctl->initialised) {
-        return DDYN_ERR_ARGUMENT;
-    }
     memcpy(xa, x, sizeof xa);
     n = ctl->delay_steps[DDYN_CTRL_CH_STEERING]; /* the MPC plans from when its steering acts (ddyn/controller.h) */
     for (i = 0; i < n; ++i) { /* n <= DDYN_CTRL_MAX_DELAY_STEPS */
@@ -810,6 +849,9 @@ ddyn_status ddyn_ctrl_predict_pipe(ddyn_ctrl *ctl, const double x[DDYN_NX], doub
             /* a channel with a shorter delay: its commands not sent yet are held (see the function's
              * comment in ddyn/controller.h for why not the last plan's) */
             u[c] = i < d ? ddyn_ctrl_delay_line_ago(&ctl->sent[c], d - 1 - i) : 0.0;
+        }
+        if (ctl->lag_decay > 0.0) {
+            u[1] = lag_period(ctl, cmd, act, u[1], &cmd, &act); /* the steering acts through the lag */
         }
         s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, xa, u, ctl->coeffs, xb, &ctl->ekf.work);
         if (s == DDYN_OK && !ddyn_all_finite(xb, NX)) {
@@ -822,7 +864,35 @@ ddyn_status ddyn_ctrl_predict_pipe(ddyn_ctrl *ctl, const double x[DDYN_NX], doub
         memcpy(xa, xb, sizeof xa);
     }
     memcpy(x_out, xa, sizeof xa);
+    lag[0] = cmd;
+    lag[1] = act;
     return DDYN_OK;
+}
+
+ddyn_status ddyn_ctrl_predict_pipe(ddyn_ctrl *ctl, const double x[DDYN_NX], double x_out[DDYN_NX])
+{
+    double lag[2];
+    if (ctl == NULL || x == NULL || x_out == NULL || !ctl->initialised) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    lag[0] = ctl->lag_cmd;
+    lag[1] = ctl->lag_act;
+    return predict_pipe_lag(ctl, x, x_out, lag);
+}
+
+/* With a steering lag: the MPC's steering rate u_mpc (its acting angle's, from the acting angle act at the
+ * time the command acts) into the rate to send, so that the acting angle reaches act + dt u_mpc at the end
+ * of that period; cmd is the newest set-point then (ddyn/controller.h "steering lag"). Without: u_mpc. */
+static double invert_lag(const ddyn_ctrl *ctl, double u_mpc, const double lag[2])
+{
+    const ddyn_mpc_config *m = &ctl->cfg.mpc;
+    const double dt = ctl->model->sample_time;
+    double want;
+    if (!(ctl->lag_decay > 0.0)) {
+        return u_mpc;
+    }
+    want = clamp(ddyn_ctrl_lag_invert(lag[1], lag[1] + dt * u_mpc, ctl->lag_decay), m->state_lo[1], m->state_hi[1]);
+    return clamp((want - lag[0]) / dt, m->rate_lo[1], m->rate_hi[1]);
 }
 
 /* Coefficients the prepared QP may keep: each within PREPARED_COEFF_TOL of the new value, measured on
@@ -846,7 +916,7 @@ static int coefficients_close(const ddyn_ctrl *ctl, const double a[NC], const do
 static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctrl_output *out, int *safe_cause)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
-    double u[NU], dthrottle = 0.0, v_ref = 0.0, x0[NX], x_pipe[NX];
+    double u[NU], dthrottle = 0.0, v_ref = 0.0, x0[NX], x_pipe[NX], lag[2];
     const int pid = ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID;
     ddyn_status s;
     if (ctl->mpc.prepared && !coefficients_close(ctl, ctl->mpc.c, ctl->coeffs)) {
@@ -858,7 +928,9 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
     /* the plan starts where the car will be when this command takes effect: through the commands still
      * in the pipe (the actuation delays; on a model failure the estimate as it is), then over the input's
      * latency */
-    (void)ddyn_ctrl_predict_pipe(ctl, ctl->ekf.x, x_pipe);
+    lag[0] = ctl->lag_cmd;
+    lag[1] = ctl->lag_act;
+    (void)predict_pipe_lag(ctl, ctl->ekf.x, x_pipe, lag);
     predict_latency(ctl, x_pipe, in->latency, x0);
     memcpy(out->x_mpc0, x0, sizeof x0);
     if (s == DDYN_OK && pid) {
@@ -882,6 +954,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
         ctl->plan_horizon = h > 0 && h <= DDYN_MPC_MAX_HORIZON ? h : 0;
         ctl->plan_age = 0;
         memcpy(out->u, u, sizeof u);
+        out->u[1] = invert_lag(ctl, u[1], lag);
         return st;
     }
     st |= s == DDYN_ERR_QP_NOT_CONVERGED ? DDYN_CTRL_MPC_NOT_CONVERGED : DDYN_CTRL_MPC_FAILED;
@@ -889,7 +962,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
         ctl->plan_age <= ctl->cfg.max_plan_shift && ctl->plan_age < ctl->plan_horizon) {
         /* the plan computed plan_age periods ago, at the stage that is now */
         out->u[0] = pid ? dthrottle : ctl->plan_u[ctl->plan_age * NU + 0]; /* PID: its throttle, always */
-        out->u[1] = ctl->plan_u[ctl->plan_age * NU + 1];
+        out->u[1] = invert_lag(ctl, ctl->plan_u[ctl->plan_age * NU + 1], lag);
         st |= DDYN_CTRL_PLAN_SHIFTED;
     } else {
         *safe_cause = 1;
@@ -911,6 +984,8 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
     }
     if (ctl->started) {
         sync_delay_lines(ctl); /* the command acting over the period just ended */
+        ctl->lag_cmd = ctl->lag_cmd_next; /* the lag at this period's start (unused without a lag) */
+        ctl->lag_act = ctl->lag_act_next;
         push_history_row(ctl);
     }
     st = choose_coefficients(ctl);
@@ -984,7 +1059,7 @@ int ddyn_ctrl_stale_limit(const ddyn_ctrl *ctl, int base)
 
 ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl)
 {
-    double x_next[NX], x_pred[NX];
+    double x_next[NX], x_pred[NX], lag[2];
     ddyn_status s;
     if (ctl == NULL || !ctl->initialised || !ctl->started) {
         return DDYN_ERR_ARGUMENT;
@@ -1001,7 +1076,9 @@ ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl)
     if (s != DDYN_OK) {
         return s;
     }
-    (void)ddyn_ctrl_predict_pipe(ctl, x_next, x_pred);
+    lag[0] = ctl->lag_cmd_next; /* the lag at the next period's start */
+    lag[1] = ctl->lag_act_next;
+    (void)predict_pipe_lag(ctl, x_next, x_pred, lag);
     return ddyn_mpc_prepare(&ctl->mpc, x_pred);
 }
 

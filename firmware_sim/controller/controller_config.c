@@ -30,6 +30,7 @@ static const char *const THROTTLE_NAMES[] = {"mpc", "pid", NULL};
 static const char *const PACING_NAMES[] = {"frame", "timer", NULL};
 static const char *const PID_NAMES[4] = {"kp", "ki", "kd", "preview"};
 static const char *const DELAY_NAMES[2] = {"steering", "throttle"};
+static const char *const LAG_NAMES[1] = {"steering"};
 
 /* ---------------------------------------------------------------------------------------- the table */
 
@@ -104,16 +105,22 @@ static const key_spec KEYS[] = {
      "known actuation delays, s: a set-point acts this long after it is sent; the filter predicts with the "
      "command acting, the MPC plans from the state its command acts in (default 0 0; at most the build's "
      "DDYN_CTRL_MAX_DELAY_STEPS periods)"},
+    {"control.lag", K_NAMED, OFF(lag), 0, 1, 0.0, 1.0, 0, LAG_NAMES, NONE,
+     "known steering lag, s: the time constant tau of the acting steering's first-order lag behind its set-point; "
+     "the filter predicts with the acting steering, the MPC plans from it and its first command inverts the "
+     "lag (default 0: none; ddyn/controller.h)"},
     {"effects", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE,
-     "the diagnosis the actuation delays come from (`ddyn sil run --effects-from D`, docs/sil.md); a file whose "
-     "control.delay "
-     "differs from effects.delay is refused"},
+     "the diagnosis the actuation delays and the steering lag come from (`ddyn sil run --effects-from D`, "
+     "docs/sil.md); a file whose control.delay differs from effects.delay, or control.lag from effects.lag, is "
+     "refused"},
     {"effects.diagnosis", K_STRING, OFF(effects_diagnosis), FSZ(effects_diagnosis), 0, 0, 0, 0, NULL, NONE,
      "the diagnosis.json the effects were taken from (recorded, not read; default none)"},
     {"effects.diagnosis_sha256", K_HASH, OFF(effects_sha256), FSZ(effects_sha256), 0, 0, 0, 0, NULL, NONE,
      "sha256 of that diagnosis.json; when given, control.delay must equal effects.delay (default: not checked)"},
     {"effects.delay", K_NAMED, OFF(effects_delay), 0, 2, 0.0, 1.0, 0, DELAY_NAMES, NONE,
      "the delays (s) the diagnosis gave the controller: steering, throttle (default 0 0)"},
+    {"effects.lag", K_NAMED, OFF(effects_lag), 0, 1, 0.0, 1.0, 0, LAG_NAMES, NONE,
+     "the steering lag (s) the diagnosis gave the controller (default 0)"},
     {"control.prepare", K_BOOL, OFF(prepare), 0, 0, 0, 0, 0, NULL, NONE,
      "true (default): the MPC's preparation runs after each command (RTI split, docs/controller.md)"},
     {"control.max_steps", K_LONG, OFF(max_steps), 0, 0, 0, 1e12, 0, NULL, NONE,
@@ -603,6 +610,13 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
                   c->effects_delay[0], c->effects_delay[1], c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
                   c->effects_sha256, c->delay[0], c->delay[1]);
     }
+    if (ok && c->effects_sha256[0] != '\0' && fabs(c->effects_lag[0] - c->lag[0]) > 1e-12) {
+        ok = fail(&p, "effects.lag",
+                  "steering %g s from diagnosis %s (sha256 %.12s...), but control.lag is steering %g s: remake the "
+                  "file (`ddyn sil run --effects-from D --config-only`) instead of editing it",
+                  c->effects_lag[0], c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)", c->effects_sha256,
+                  c->lag[0]);
+    }
     if (ok) {
         /* a position frame starts each period: dated at another cycle than the one it comes at, every
          * clean period reads as late (issue 34: the AV-21's 40 ms periods against the DBC's 20 ms) */
@@ -696,6 +710,7 @@ ddyn_status ddyn_app_node_init(ddyn_sil_node *node, const ddyn_app_config *c, co
     cfg.mpc = c->mpc;
     cfg.delay.steering = c->delay[0];
     cfg.delay.throttle = c->delay[1];
+    cfg.lag.steering = c->lag[0];
     {
         int steps[DDYN_NU];
         if (ddyn_ctrl_delay_steps(&cfg.delay, model->sample_time, steps) != DDYN_OK) {

@@ -45,10 +45,12 @@ typedef struct {
     double pid[4];                      /* control.pid.{kp,ki,kd,preview} */
     int have_pid[4];
     double delay[2];                    /* control.delay.{steering,throttle}, s (0 = none) */
+    double lag[1];                      /* control.lag.steering: the steering lag's time constant, s (0 = none) */
     /* effects: what the configuration was made from (`ddyn sil effects`, issue 34); "" = not recorded */
     char effects_diagnosis[DDYN_APP_PATH_LEN]; /* effects.diagnosis: the diagnosis.json (recorded, not read) */
     char effects_sha256[65];            /* effects.diagnosis_sha256: its sha256 */
     double effects_delay[2];            /* effects.delay.{steering,throttle}: the delays it gave, s */
+    double effects_lag[1];              /* effects.lag.steering: the steering lag it gave, s */
     int prepare;                        /* control.prepare: RTI split (ddyn_ctrl_prepare after each command) */
     long max_steps;                     /* control.max_steps */
     /* filter */

@@ -1354,6 +1354,201 @@ static void test_the_preparation_plans_from_the_same_delayed_state(void **state)
     assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MPC_FAILED));
 }
 
+/* ---- steering lag (ddyn_ctrl_lag_config) ---- */
+
+static void test_the_lag_step_is_the_exact_discretisation(void **state)
+{
+    /* a set-point held over a period: the closed form of d(delta)/dt = (cmd - delta) / tau is
+     * delta(t) = cmd + (delta0 - cmd) e^{-t/tau}; ddyn_ctrl_lag_step over n periods of dt equals it at
+     * t = n dt (no Euler error), and ddyn_ctrl_lag_invert is its inverse in cmd */
+    const double dt = 0.02, taus[3] = {0.05, 0.1, 0.013};
+    int i, n;
+    (void)state;
+    for (i = 0; i < 3; ++i) {
+        const double tau = taus[i], decay = ddyn_ctrl_lag_decay(tau, dt);
+        double delta = -0.2, cmd = 0.3;
+        assert_true(fabs(decay - exp(-dt / tau)) <= 1e-15);
+        for (n = 1; n <= 40; ++n) {
+            const double closed = cmd + (-0.2 - cmd) * exp(-(double)n * dt / tau);
+            delta = ddyn_ctrl_lag_step(delta, cmd, decay);
+            assert_true(fabs(delta - closed) <= 1e-14);
+        }
+        /* piecewise constant set-points: the closed form period by period (a staircase) */
+        delta = 0.1;
+        for (n = 0; n < 10; ++n) {
+            const double c = 0.03 * (double)n - 0.1;
+            const double closed = c + (delta - c) * exp(-dt / tau);
+            delta = ddyn_ctrl_lag_step(delta, c, decay);
+            assert_true(fabs(delta - closed) <= 1e-15);
+        }
+        /* the inversion: the set-point that takes delta to target in one period */
+        for (n = 0; n < 5; ++n) {
+            const double d0 = -0.1 + 0.05 * (double)n, target = 0.12 - 0.07 * (double)n;
+            const double c = ddyn_ctrl_lag_invert(d0, target, decay);
+            assert_true(fabs(ddyn_ctrl_lag_step(d0, c, decay) - target) <= 1e-14);
+        }
+    }
+    /* tau = 0: no lag (the set-point acts at once); bad tau or dt: NaN */
+    assert_true(ddyn_ctrl_lag_decay(0.0, dt) == 0.0);
+    assert_true(ddyn_ctrl_lag_step(0.4, -0.1, 0.0) == -0.1);
+    assert_true(fabs(ddyn_ctrl_lag_invert(0.4, -0.1, 0.0) + 0.1) <= 1e-15);
+    assert_true(isnan(ddyn_ctrl_lag_decay(-1e-9, dt)));
+    assert_true(isnan(ddyn_ctrl_lag_decay(NAN, dt)));
+    assert_true(isnan(ddyn_ctrl_lag_decay(INFINITY, dt)));
+    assert_true(isnan(ddyn_ctrl_lag_decay(0.05, 0.0)));
+}
+
+static void test_a_bad_lag_is_refused_at_init(void **state)
+{
+    (void)state;
+    cfg.lag.steering = -0.01;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.lag.steering = NAN;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.lag.steering = INFINITY;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.lag.steering = 0.1;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
+    assert_true(fabs(ctl.lag_decay - exp(-model->sample_time / 0.1)) <= 1e-15);
+    assert_true(ctl.lag_act == plant[7] && ctl.lag_cmd == plant[7]);
+}
+
+/* the lagged (and delayed) plant: the set-point integrates the rates sent (within the steering bounds), the
+ * acting angle follows the set-point sent `ds` periods ago through the exact lag; the model runs the
+ * acting rate */
+static double lag_setpoint[DELAY_PERIODS + 1], lag_acting;
+
+static void run_lagged_plant(int period, int ds, double decay, const ddyn_ctrl_output *out)
+{
+    const double dt = model->sample_time, lo = cfg.mpc.state_lo[1], hi = cfg.mpc.state_hi[1];
+    double u[DDYN_NU], next[DDYN_NX], cmd, a_next;
+    memcpy(sent_log[period], out->u, sizeof sent_log[period]);
+    lag_setpoint[period + 1] = lag_setpoint[period] + dt * out->u[1];
+    lag_setpoint[period + 1] = lag_setpoint[period + 1] < lo ? lo : (lag_setpoint[period + 1] > hi ? hi : lag_setpoint[period + 1]);
+    cmd = lag_setpoint[period + 1 - ds >= 0 ? period + 1 - ds : 0];
+    a_next = cmd + (lag_acting - cmd) * decay;
+    u[0] = sent_log[period][0];
+    u[1] = (a_next - lag_acting) / dt;
+    lag_acting = a_next;
+    assert_int_equal(ddyn_model_step(model, DDYN_DISC_RK4, plant, u, plant_c, next, &plant_work), DDYN_OK);
+    memcpy(plant, next, sizeof next);
+}
+
+static void test_the_filter_and_history_use_the_acting_steering_of_the_lag(void **state)
+{
+    /* lag 60 ms and a steering delay of 2 periods: the controller's acting angle is the lagged plant's,
+     * exactly; the filter predicts with its rate (no readings: the estimate moves by it) and the
+     * history row holds it */
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double before[DDYN_NX], a_prev;
+    const double dt = model->sample_time, tau = 0.06, decay = exp(-dt / tau);
+    int k;
+    (void)state;
+    cfg.lag.steering = tau;
+    cfg.delay.steering = 2.0 * dt;
+    start_on_circle(oracle_tables());
+    lag_setpoint[0] = lag_acting = plant[7];
+    for (k = 0; k < 30; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_EKF_DIVERGED));
+        run_lagged_plant(k, 2, decay, &out);
+    }
+    assert_true(fabs(out.x_est[7] - plant[7]) < 2e-3);
+    memset(&in, 0, sizeof in);
+    for (k = 30; k < 33; ++k) {
+        memcpy(before, out.x_est, sizeof before);
+        a_prev = ctl.lag_act;
+        ddyn_ctrl_step(&ctl, &in, &out);
+        /* the lag estimate is the plant's acting angle at this period's start */
+        assert_true(fabs(ctl.lag_act - lag_acting) <= 1e-14);
+        assert_true(fabs(ctl.u_acting[1] - (ctl.lag_act - a_prev) / dt) <= 1e-12);
+        assert_true(fabs(out.x_est[7] - (before[7] + dt * ctl.u_acting[1])) < 1e-12);
+        assert_true(fabs(ctl.u_acting[1] - sent_log[k - 1 - 2][1]) > 1e-6); /* not the rate sent */
+        assert_true(ctl.history[DDYN_NET_TAU - 1][DDYN_NET_NFEAT - 1] == ctl.u_acting[1]);
+        run_lagged_plant(k, 2, decay, &out);
+    }
+}
+
+static void test_the_first_command_inverts_the_lag(void **state)
+{
+    /* no delay, lag 100 ms: the MPC plans the acting angle; the rate sent is the one whose set-point takes
+     * the acting angle (after this period) to the MPC's first planned angle, within the bounds; the
+     * preparation and the step plan from the same lagged state */
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    const double dt = model->sample_time, tau = 0.1, decay = exp(-dt / tau);
+    double u_mpc[DDYN_MPC_NV], prepared_at[DDYN_NX];
+    int k, inverted = 0, clipped = 0;
+    (void)state;
+    cfg.lag.steering = tau;
+    cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED;
+    memcpy(cfg.c_fixed, C_TRUE, sizeof C_TRUE);
+    start_on_circle(oracle_tables());
+    lag_setpoint[0] = lag_acting = plant[7];
+    for (k = 0; k < 40; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MPC_FAILED | DDYN_CTRL_PLAN_SHIFTED));
+        /* the controller's acting angle is the lagged plant's (the same discretisation) */
+        assert_true(fabs(ctl.lag_act - lag_acting) <= 1e-14 && fabs(ctl.lag_cmd - lag_setpoint[k]) <= 1e-14);
+        assert_int_equal(ddyn_mpc_plan_inputs(&ctl.mpc, u_mpc), cfg.mpc.horizon);
+        {
+            const double want = ctl.lag_act + dt * u_mpc[1];
+            const double set = ctl.lag_cmd + dt * out.u[1];
+            const double reached = ddyn_ctrl_lag_step(ctl.lag_act, set, decay);
+            const double lo = cfg.mpc.rate_lo[1], hi = cfg.mpc.rate_hi[1];
+            if (out.u[1] > lo + 1e-12 && out.u[1] < hi - 1e-12 && set > cfg.mpc.state_lo[1] + 1e-12 &&
+                set < cfg.mpc.state_hi[1] - 1e-12) {
+                assert_true(fabs(reached - want) <= 1e-12); /* exact where not clipped */
+                inverted += fabs(out.u[1] - u_mpc[1]) > 1e-6;
+            } else {
+                clipped += 1;
+            }
+        }
+        run_lagged_plant(k, 0, decay, &out);
+        if (k == 20) {
+            /* the preparation's start: the filter's step with the acting rate, the lag's next state; with
+             * no reading in between, the next step starts exactly there */
+            assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK);
+            memcpy(prepared_at, ctl.mpc.prep_x0, sizeof prepared_at);
+            memset(&in, 0, sizeof in);
+            ddyn_ctrl_step(&ctl, &in, &out);
+            assert_memory_equal(out.x_mpc0, prepared_at, sizeof prepared_at);
+            assert_true(fabs(ctl.lag_act - lag_acting) <= 1e-14);
+            k += 1;
+            run_lagged_plant(k, 0, decay, &out);
+        }
+    }
+    assert_true(inverted > 10);
+    /* the lagged car stays on its circle (the plant's steering is the lag's) */
+    assert_true(fabs(plant[7] - lag_acting) < 1e-9);
+    (void)clipped;
+}
+
+static void test_no_lag_is_the_controller_of_before(void **state)
+{
+    /* lag 0 (the default): the rate acting is the rate sent and the lag's state never moves (the commands
+     * are bit-identical to before: the Cortex-M7 pass 1 compares them with the host's recording) */
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double sent = 0.0;
+    int k;
+    (void)state;
+    assert_true(cfg.lag.steering == 0.0);
+    assert_true(ctl.lag_decay == 0.0);
+    for (k = 0; k < 20; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_true(ctl.u_acting[1] == sent || k == 0); /* the rate sent the period before */
+        sent = out.u[1];
+        assert_true(ctl.lag_act == plant[7] || k > 0);
+        run_delayed_plant(k, 0, 0, &out);
+    }
+    assert_true(ctl.lag_act_next == ctl.lag_act);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -1391,6 +1586,11 @@ int main(void)
         cmocka_unit_test_setup(test_delay_line_returns_the_command_sent_n_periods_ago_and_wraps, setup),
         cmocka_unit_test_setup(test_delay_above_the_compiled_maximum_is_refused_at_init, setup),
         cmocka_unit_test_setup(test_the_filter_predicts_with_the_command_sent_delay_ago, setup),
+        cmocka_unit_test_setup(test_the_lag_step_is_the_exact_discretisation, setup),
+        cmocka_unit_test_setup(test_a_bad_lag_is_refused_at_init, setup),
+        cmocka_unit_test_setup(test_the_filter_and_history_use_the_acting_steering_of_the_lag, setup),
+        cmocka_unit_test_setup(test_the_first_command_inverts_the_lag, setup),
+        cmocka_unit_test_setup(test_no_lag_is_the_controller_of_before, setup),
         cmocka_unit_test_setup(test_the_mpc_plans_from_the_state_after_the_pipe, setup),
         cmocka_unit_test_setup(test_the_preparation_plans_from_the_same_delayed_state, setup),
     };

@@ -61,6 +61,8 @@
 #endif
 #ifndef M7_DELAY_STEPS
 #define M7_DELAY_STEPS 300 /* pass 6 (cold path with both delays at the maximum) replays this many */
+#define M7_LAG_S 0.1       /* pass 6's steering lag (s): the lag runs in the filter's period, through the whole
+                              pipe and inverts the first command (ddyn/controller.h "steering lag") */
 #endif
 #ifndef M7_COLD_STEPS
 #define M7_COLD_STEPS 5000 /* pass 4 replays min(this, the segment's periods) */
@@ -210,7 +212,8 @@ static uint32_t median_of(const uint32_t *v, int n)
     return n % 2 ? sorted[n / 2] : (sorted[n / 2 - 1] + sorted[n / 2]) / 2u;
 }
 
-/* max_delay: both actuation delays at the compiled maximum (DDYN_CTRL_MAX_DELAY_STEPS periods), pass 6 */
+/* max_delay: both actuation delays at the compiled maximum (DDYN_CTRL_MAX_DELAY_STEPS periods) and the
+ * steering lag (M7_LAG_S), pass 6 */
 static int controller_init(double qp_tolerance, int max_delay)
 {
     const ddyn_vehicle_model *model = ddyn_model_find(m7_seg_vehicle);
@@ -233,6 +236,7 @@ static int controller_init(double qp_tolerance, int max_delay)
     if (max_delay) {
         cfg.delay.steering = DDYN_CTRL_MAX_DELAY_STEPS * model->sample_time;
         cfg.delay.throttle = DDYN_CTRL_MAX_DELAY_STEPS * model->sample_time;
+        cfg.lag.steering = M7_LAG_S;
     }
 #ifdef M7_QP_CAP /* exploring other caps (docs/m7.md); pass 1 then no longer matches the recording */
     cfg.mpc.qp_max_iterations = M7_QP_CAP;
@@ -649,9 +653,10 @@ int main(void)
 #endif
 
     /* pass 6: pass 4's cold path with both actuation delays at the compiled maximum
-     * (DDYN_CTRL_MAX_DELAY_STEPS periods, ddyn/controller.h): the filter predicts with the command sent
-     * that long ago and the MPC's start is the estimate stepped through the whole pipe (the most model
-     * steps a step can take); the host's commands fed back fill the delay lines */
+     * (DDYN_CTRL_MAX_DELAY_STEPS periods, ddyn/controller.h) and a steering lag (M7_LAG_S): the filter
+     * predicts with the command sent that long ago through the lag and the MPC's start is the estimate
+     * stepped through the whole pipe (the most model steps a step can take), its first command inverted
+     * through the lag; the host's commands fed back fill the delay lines */
     if (!controller_init(1e-300, 1)) {
         m7_puts("m7: FAIL: controller refused the set-up of pass 6 (delays at the maximum)\n");
         return 1;
@@ -676,6 +681,7 @@ int main(void)
         }
         kv("delay_pass_periods", (unsigned long)delay_steps);
         kv("delay_pass_delay_steps", (unsigned long)ctl.delay_steps[DDYN_CTRL_CH_STEERING]);
+        kv("delay_pass_steer_lag_ms", (unsigned long)(1000.0 * M7_LAG_S + 0.5));
         kv("delay_pass_periods_cold_start", (unsigned long)cold);
         kv("delay_pass_insn_per_step_median", (unsigned long)median_of(insn, delay_steps));
         kv("delay_pass_insn_per_step_max", (unsigned long)worst_delay);
@@ -683,8 +689,8 @@ int main(void)
         worst_auth = max_of(auth_insn, delay_steps) > worst_auth ? max_of(auth_insn, delay_steps) : worst_auth;
         kv("delay_pass_insn_per_step_with_auth_median", (unsigned long)median_of(with_auth, delay_steps));
         kv("delay_pass_insn_per_step_with_auth_max", (unsigned long)worst_delay_with_auth);
-        if (ctl.delay_steps[DDYN_CTRL_CH_STEERING] != DDYN_CTRL_MAX_DELAY_STEPS || cold == 0) {
-            m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum\n");
+        if (ctl.delay_steps[DDYN_CTRL_CH_STEERING] != DDYN_CTRL_MAX_DELAY_STEPS || cold == 0 || !(ctl.lag_decay > 0.0)) {
+            m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum and the lag\n");
             fail = 1;
         }
     }

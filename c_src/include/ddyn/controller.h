@@ -209,6 +209,40 @@ double ddyn_ctrl_delay_line_ago(const ddyn_ctrl_delay_line *d, int n);
  * one or one that rounds to more than DDYN_CTRL_MAX_DELAY_STEPS periods. */
 ddyn_status ddyn_ctrl_delay_steps(const ddyn_ctrl_delay_config *cfg, double dt, int steps[DDYN_NU]);
 
+/* A known first-order STEERING LAG (docs/sil.md "Steering lag"; the SIL plant's steer_lag): the steering
+ * angle acting on the car follows the set-point acting (the one sent, after the steering delay) as
+ *   d(delta)/dt = (delta_cmd - delta) / tau,
+ * the set-point held over each period (the drive-by-wire node integrates the rates: the set-point of a
+ * period is the one before plus period * the steering rate, within the steering state's bounds
+ * cfg.mpc.state_lo/hi). The controller keeps its own estimate of the acting angle, the lag integrated
+ * exactly over each period (a zero-order hold, ddyn_ctrl_lag_step):
+ *   delta_{k+1} = cmd_{k+1} + (delta_k - cmd_{k+1}) e^{-dt / tau}
+ * from the set-points of the commands it sent (after any delay; a caller's ddyn_ctrl_command_applied and
+ * _not_sent reach it), and
+ *   - the filter predicts each period, and the guard network's history row holds, the ACTING steering
+ *     rate (delta_{k+1} - delta_k) / dt instead of the rate sent;
+ *   - the prediction through the pipe (ddyn_ctrl_predict_pipe) runs the same lag, so that the MPC plans
+ *     from the state its new command acts in;
+ *   - the MPC's first steering rate u (its planned acting angle delta + dt u at the end of the period in
+ *     which the new command acts, delta the estimate then) is inverted through the discretised lag: the
+ *     set-point that reaches it is cmd = delta + dt u / (1 - e^{-dt / tau}) (ddyn_ctrl_lag_invert),
+ *     clipped to the steering state's bounds, and the rate sent is (cmd - the newest set-point) / dt,
+ *     clipped to the steering rate bounds. The MPC's later stages are planned without the lag (its
+ *     model has no actuator state; it replans every period from the lagged state).
+ * tau = 0 (the default): no lag, the controller as before, bit-identical. The safe command holds the
+ * set-point (u = 0), not inverted. */
+typedef struct {
+    double steering; /* s (>= 0, finite): the lag's time constant tau (default 0: none) */
+} ddyn_ctrl_lag_config;
+
+/* e^{-dt / tau} for tau > 0, 0 for tau = 0 (no lag); NaN for a negative or non-finite tau or dt <= 0. */
+double ddyn_ctrl_lag_decay(double tau, double dt);
+/* The acting angle one period on: cmd + (delta - cmd) * decay (decay = ddyn_ctrl_lag_decay). */
+double ddyn_ctrl_lag_step(double delta, double cmd, double decay);
+/* The set-point that takes the acting angle from delta to target in one period: the inverse of
+ * ddyn_ctrl_lag_step in cmd, delta + (target - delta) / (1 - decay) (unclipped; decay in [0, 1)). */
+double ddyn_ctrl_lag_invert(double delta, double target, double decay);
+
 typedef struct {
     ddyn_discretisation ekf_disc; /* the filter's prediction model (default Euler, as the network trains) */
     /* EKF: initial covariance (also used when the filter is reset), process noise per period,
@@ -241,6 +275,7 @@ typedef struct {
     int recovery_steps;     /* consecutive healthy periods that end safe mode (>= 1) */
     ddyn_ctrl_degraded_config degraded; /* degraded-bus mode (above) */
     ddyn_ctrl_delay_config delay; /* known actuation delays (above; default 0: none) */
+    ddyn_ctrl_lag_config lag;     /* known steering lag (above; default 0: none) */
     ddyn_mpc_config mpc;    /* the MPC's configuration (its bounds also define the safe command) */
 } ddyn_ctrl_config;
 
@@ -314,6 +349,11 @@ typedef struct {
     ddyn_ctrl_delay_line sent[DDYN_NU];
     int delay_steps[DDYN_NU];
     double u_acting[DDYN_NU];
+    /* steering lag: e^{-dt/tau} (0: none); the set-point acting and the acting angle at the start of the
+     * period being run (lag_cmd, lag_act: committed at each step) and at its end (lag_cmd_next,
+     * lag_act_next: from the command acting over it, recomputed at each synchronisation) */
+    double lag_decay;
+    double lag_cmd, lag_act, lag_cmd_next, lag_act_next;
     int initialised;
 } ddyn_ctrl;
 
@@ -350,11 +390,12 @@ ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl);
 
 /* The state x of the car when the next command goes out (one period after the newest command sent:
  * ddyn_ctrl_step's estimate before its MPC, ddyn_ctrl_prepare's predicted state) predicted on through
- * the commands still in the pipe (sent, not yet acting: the actuation delays), max(delay steps) model
+ * the commands still in the pipe (sent, not yet acting: the actuation delays), n model
  * steps (n = the steering delay, above) of the filter's discretisation (cfg.ekf_disc) with the current
  * coefficients; step i runs each channel's command sent delay - 1 - i periods before the newest
- * (ddyn_ctrl_delay_line_ago), a channel whose delay is shorter than i + 1 held (0). No steering delay:
- * x_out = x. On a model failure returns its error with x_out = x. */
+ * (ddyn_ctrl_delay_line_ago), a channel whose delay is shorter than i + 1 held (0); with a steering
+ * lag the steering runs the acting rate of the lag from the acting angle of the last step (lag_act).
+ * No steering delay: x_out = x. On a model failure returns its error with x_out = x. */
 ddyn_status ddyn_ctrl_predict_pipe(ddyn_ctrl *ctl, const double x[DDYN_NX], double x_out[DDYN_NX]);
 
 /* The last command of ddyn_ctrl_step never reached the actuators (e.g. a period run late to catch up
