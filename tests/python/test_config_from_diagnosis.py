@@ -1,7 +1,8 @@
 """From a diagnosis to the controller's configuration (issue 34 item 2; ddyn.sil.effects,
-`ddyn sil run --effects-from D [--config-only]`): steer_delay becomes control.delay.steering, every other claimed effect is named
-and not applied, bad input is one line naming the file and the key, and the controller refuses a configuration
-whose control.delay was edited after it was made from the diagnosis (controller.json `effects`)."""
+`ddyn sil run --effects-from D [--config-only]`): steer_delay becomes control.delay.steering, steer_lag
+control.lag.steering (issue 34 item 1), every other claimed effect is named and not applied, bad input is one line
+naming the file and the key, and the controller refuses a configuration whose control.delay or control.lag was
+edited after it was made from the diagnosis (controller.json `effects`)."""
 from __future__ import annotations
 
 import hashlib
@@ -37,19 +38,45 @@ def test_a_steering_delay_becomes_control_delay_steering(tmp_path):
     assert fx.delays == {"steer": 0.041} and fx.applied == ["steer_delay"] and fx.not_applied == []
     assert fx.sha256 == hashlib.sha256((d / "diagnosis.json").read_bytes()).hexdigest()
     cfg = apply_to_config({"vehicle": "orca_1_43", "control": {"period": 0.02}}, fx)
-    assert cfg["control"] == {"period": 0.02, "delay": {"steering": 0.041, "throttle": 0.0}}
+    assert cfg["control"] == {"period": 0.02, "delay": {"steering": 0.041, "throttle": 0.0},
+                              "lag": {"steering": 0.0}}
     assert cfg["effects"] == {"diagnosis": str((d / "diagnosis.json").resolve()), "diagnosis_sha256": fx.sha256,
-                              "delay": {"steering": 0.041, "throttle": 0.0}}
+                              "delay": {"steering": 0.041, "throttle": 0.0}, "lag": {"steering": 0.0}}
     # the file itself works as well as its folder
     assert controller_effects(d / "diagnosis.json").delays == {"steer": 0.041}
+
+
+def test_a_steering_lag_becomes_control_lag_steering(tmp_path):
+    """A claimed steer_lag (without steer_delay) is the controller's control.lag.steering: its tau fitted alone
+    when the diagnosis has it (not rounded to periods: a time constant), else the joint one."""
+    d = _diagnosis(tmp_path / "D", ["steer_lag", "mass_offset"], {"steer_lag": 0.0365, "mass_offset": 0.08})
+    fx = controller_effects(d, period=0.02)
+    assert fx.lag == {"steer": 0.0365} and fx.delays == {} and fx.applied == ["steer_lag"]
+    assert fx.not_applied == ["mass_offset: not in the runtime (issue 34)"]
+    assert fx.lines()[0].startswith("steer_lag: applied as control.lag.steering = 0.0365 s (joint fit)")
+    raw = json.loads((d / "diagnosis.json").read_text())
+    raw["candidates"] = [{"effect": "steer_lag", "params": {"tau": 0.051}}]
+    (d / "diagnosis.json").write_text(json.dumps(raw))
+    fx = controller_effects(d, period=0.02)
+    assert fx.lag == {"steer": 0.051}
+    assert fx.applied_estimates["steer_lag"] == {"alone": 0.051, "joint": 0.0365, "written": 0.051, "period": 0.02}
+    cfg = apply_to_config({"vehicle": "orca_1_43", "control": {"period": 0.02}}, fx)
+    assert cfg["control"]["lag"] == {"steering": 0.051} and cfg["effects"]["lag"] == {"steering": 0.051}
+    assert cfg["control"]["delay"] == {"steering": 0.0, "throttle": 0.0}
+    assert fx.summary()["controller_lag"] == {"steer": 0.051}
+    raw["candidates"] = [{"effect": "steer_lag", "params": {"tau": 1.5}}]
+    (d / "diagnosis.json").write_text(json.dumps(raw))
+    with pytest.raises(DdynError, match="outside control.lag's 0..1 s"):
+        controller_effects(d)
 
 
 def test_unsupported_effects_are_named_not_applied(tmp_path):
     d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "bank_angle"],
                    {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "bank_angle": 0.1})
     fx = controller_effects(d)
-    assert fx.delays == {"steer": 0.02} and fx.applied == ["steer_delay"]
-    assert fx.not_applied[0] == "steer_lag: not in the runtime (issue 34)"
+    assert fx.delays == {"steer": 0.02} and fx.applied == ["steer_delay"] and fx.lag == {}
+    # selected beside steer_delay the lag is not applied (the delay fitted alone carries the response)
+    assert fx.not_applied[0].startswith("steer_lag: found 0.06, not applied: selected with steer_delay")
     assert fx.not_applied[1].startswith("throttle_delay: found 0.1, not applied")
     assert fx.not_applied[2] == "bank_angle: not in the runtime (issue 34)"
     # a bank read along the track or from the roll channel is a claim as valid as any: named, not refused
@@ -91,7 +118,7 @@ def test_the_command_writes_the_configuration_and_names_what_it_cannot_apply(tmp
     out = tmp_path / "cfg"
     assert main(["sil", "run", "--effects-from", str(d), "--config-only", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "steer_lag: not in the runtime (issue 34)" in printed and "not driven" in printed
+    assert "steer_lag: found 0.05, not applied: selected with steer_delay" in printed and "not driven" in printed
     cfg = json.loads((out / "controller.json").read_text())
     assert cfg["control"]["delay"] == {"steering": 0.04, "throttle": 0.0}   # 41 ms: two periods of 20 ms
     assert cfg["effects"]["diagnosis_sha256"] == hashlib.sha256((d / "diagnosis.json").read_bytes()).hexdigest()
@@ -101,6 +128,8 @@ def test_the_command_writes_the_configuration_and_names_what_it_cannot_apply(tmp
     err = capsys.readouterr().err.strip()
     assert "nope: no such file" in err and len(err.splitlines()) == 1
     assert main(["sil", "run", "--effects-from", str(d), "--controller-delays", "steer=0.02", "--config-only",
+                 "--out", str(out)]) == 2
+    assert main(["sil", "run", "--effects-from", str(d), "--controller-lag", "steer=0.02", "--config-only",
                  "--out", str(out)]) == 2
 
 
@@ -127,10 +156,41 @@ def test_the_controller_refuses_a_configuration_edited_after_it_was_made(tmp_pat
     assert "effects.delay" in bad.stderr and fx.sha256[:12] in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
 
 
+def test_the_controller_refuses_an_edited_lag_and_a_bad_one(tmp_path):
+    """A configuration made from a diagnosis claiming steer_lag passes the controller's check; control.lag edited,
+    it is refused naming effects.lag; a control.lag outside 0..1 s or not a number is one line naming the key."""
+    bins = sil.build_binaries(None)
+    orca = load_vehicle("orca_1_43")
+    fx = controller_effects(_diagnosis(tmp_path / "D", ["steer_lag"], {"steer_lag": 0.05}))
+    spec = sil.SilSpec.true_car(orca, load_track("ethzMobil"), controller_delays=fx.delays, controller_lag=fx.lag,
+                                effects_from=fx.summary())
+    path = sil.write_controller_files(spec, sil.raceline_table(spec.track, orca), tmp_path, str(tmp_path))
+    cfg = json.loads(path.read_text())
+    assert cfg["control"]["lag"] == {"steering": 0.05} and cfg["effects"]["lag"] == {"steering": 0.05}
+
+    def check(c):
+        path.write_text(json.dumps(c))
+        return subprocess.run([str(bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
+
+    ok = check(cfg)
+    assert ok.returncode == 0, ok.stderr
+    assert json.loads(ok.stdout)["control"]["lag"]["steering"] == 0.05
+    cfg["control"]["lag"]["steering"] = 0.1
+    bad = check(cfg)
+    assert bad.returncode == 2
+    assert "effects.lag" in bad.stderr and fx.sha256[:12] in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    del cfg["effects"]
+    for value in (-0.01, 1.5, "fast"):
+        cfg["control"]["lag"]["steering"] = value
+        bad = check(cfg)
+        assert bad.returncode == 2, value
+        assert "control.lag" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+
+
 def test_the_delay_is_the_one_fitted_alone_to_the_nearest_period(tmp_path):
     """With steer_lag claimed beside it the joint fit splits the delay (the runtime carries only the delay): the
-    value written is the steering delay fitted alone, rounded to whole control periods when the period is known
-    (the runtime floors it: 57 ms would act as 2 periods of 20 ms)."""
+    value written is the steering delay fitted alone, rounded to the nearest whole control period when the period
+    is known (what the runtime does with it: 57 ms acts as 3 periods of 20 ms)."""
     d = _diagnosis(tmp_path / "D", ["steer_delay", "steer_lag"], {"steer_delay": 0.0286, "steer_lag": 0.02})
     raw = json.loads((d / "diagnosis.json").read_text())
     raw["candidates"] = [{"effect": "steer_delay", "params": {"delay": 0.057}},

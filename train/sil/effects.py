@@ -1,27 +1,30 @@
 """From a diagnosis to the controller's configuration (issue 34, item 2): `ddyn sil run --effects-from D`.
 
 `ddyn gap diagnose ... --out D` writes D/diagnosis.json; its `selected` effects (`model.effects`: each with its
-`params`) are what the diagnosis claims. The controller's runtime supports actuation delays only
-(controller.json `control.delay`, ddyn/controller.h), so:
+`params`) are what the diagnosis claims. The controller's runtime carries actuation delays and a steering lag
+(controller.json `control.delay`, `control.lag`; ddyn/controller.h), so:
 
     steer_delay     -> control.delay.steering: its `delay` fitted alone (the diagnosis's candidate of that name),
                        to the nearest whole control period when the period is known
+    steer_lag       -> control.lag.steering: its `tau` fitted alone (likewise; a time constant, not rounded),
+                       unless steer_delay is selected too: then not applied (the two split one response and
+                       the delay fitted alone carries it: the laps of docs/sil.md's closed loop)
     throttle_delay  -> not applied: telling the controller a throttle delay made the laps worse (docs/sil.md)
-    anything else   -> not applied, named: "steer_lag: not in the runtime (issue 34)"
+    anything else   -> not applied, named: "bank_angle: not in the runtime (issue 34)"
 
-The configuration records where its delays came from (`effects`: the diagnosis's path, the sha256 of its
-diagnosis.json, the delays it gave); the controller refuses a file whose control.delay differs from the
-recorded `effects.delay` (firmware_sim/controller/controller_config.c), as it refuses a network built for another
-checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
+The configuration records where its delays and lag came from (`effects`: the diagnosis's path, the sha256 of its
+diagnosis.json, the delays and the lag it gave); the controller refuses a file whose control.delay differs from
+the recorded `effects.delay`, or control.lag from `effects.lag` (firmware_sim/controller/controller_config.c), as
+it refuses a network built for another checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
 `apply_to_config` puts the same two sections into another configuration (a car's).
 
 Which of the diagnosis's numbers: the selected effects' joint fit (`model.effects`) shares the response among
 them, e.g. a 60 ms steering delay as steer_delay 29 ms + steer_lag; the runtime carries only the delay, so the
 value applied is the delay fitted alone (`candidates`, each effect alone against the refitted nominal: the model
 the runtime can carry), and the joint value when no candidate holds it. The runtime counts a delay in whole
-periods, rounding down (`floor(delay / period)`, ddyn/controller.h): an estimate 5 % short of three periods would
-be two, so with the period known the value written is the nearest whole number of periods. Both the estimate
-and the value written are recorded. Bad input (no such folder or file, not a diagnosis, a selected effect the diagnosis does not know) is
+periods, to the nearest (`floor(delay / period + 1/2)`, ddyn/controller.h; until issue 34 it rounded down, and an
+estimate 5 % short of three periods acted as two); with the period known the value written is that nearest whole
+number of periods, so the file says what acts. Both the estimate and the value written are recorded. Bad input (no such folder or file, not a diagnosis, a selected effect the diagnosis does not know) is
 one DdynError line naming the file and the key.
 """
 from __future__ import annotations
@@ -39,21 +42,27 @@ from ddyn.gap.candidates import ALL as EFFECT_NAMES
 from ddyn.gap.candidates import MAIN_PARAM
 
 DIAGNOSIS_FILE = "diagnosis.json"
-# what the runtime applies: effect -> (controller delay key of ddyn.sil.run, the parameter)
-APPLIED = {"steer_delay": ("steer", "delay")}
+# what the runtime applies: effect -> (ControllerEffects field: delays or lag, its key of ddyn.sil.run, the config
+# key it becomes)
+APPLIED = {"steer_delay": ("delays", "steer", "control.delay.steering"),
+           "steer_lag": ("lag", "steer", "control.lag.steering")}
+# an applied effect left out when another is selected beside it (the joint fit splits one response between them)
+NOT_WITH = {"steer_lag": "steer_delay"}
 # what it could apply but does not, and why (one line each)
 NOT_APPLIED_WHY = {
     "throttle_delay": "the controller's throttle-delay compensation made the laps worse (docs/sil.md), so it is "
                       "not told",
 }
-DELAY_MAX_S = 1.0   # the configuration's range of control.delay (controller_config.c)
+DELAY_MAX_S = 1.0   # the configuration's range of control.delay and control.lag (controller_config.c)
 
 
 @dataclass
 class ControllerEffects:
     """What a diagnosis gives the controller: the delays (ddyn.sil.run's controller_delays: steer, throttle),
-    the effects applied, one line per effect not applied, and where it came from."""
+    the steering lag (controller_lag: steer), the effects applied, one line per effect not applied, and where it
+    came from."""
     delays: dict[str, float] = field(default_factory=dict)
+    lag: dict[str, float] = field(default_factory=dict)
     applied: list[str] = field(default_factory=list)
     not_applied: list[str] = field(default_factory=list)
     diagnosis: str = ""
@@ -63,25 +72,28 @@ class ControllerEffects:
     applied_estimates: dict[str, dict] = field(default_factory=dict)  # per applied effect: alone, joint, written
 
     def record(self) -> dict:
-        """controller.json's `effects` section (the controller checks control.delay against `delay`)."""
+        """controller.json's `effects` section (the controller checks control.delay against `delay`, control.lag
+        against `lag`)."""
         return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256,
                 "delay": {"steering": float(self.delays.get("steer", 0.0)),
-                          "throttle": float(self.delays.get("throttle", 0.0))}}
+                          "throttle": float(self.delays.get("throttle", 0.0))},
+                "lag": {"steering": float(self.lag.get("steer", 0.0))}}
 
     def summary(self) -> dict:
         """For sil_metrics.json and the study."""
         return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256, "selected": self.selected,
                 "estimates": self.estimates, "applied_estimates": self.applied_estimates, "applied": self.applied, "not_applied": self.not_applied,
-                "controller_delays": dict(self.delays)}
+                "controller_delays": dict(self.delays), "controller_lag": dict(self.lag)}
 
     def lines(self) -> list[str]:
         def how(e):
             a = self.applied_estimates.get(e, {})
             src = (f"fitted alone {a['alone']:.4g} s" if a.get("alone") is not None else "joint fit") + \
                 (f", joint {a['joint']:.4g} s" if a.get("alone") is not None else "")
-            per = f", to whole periods of {a['period']:g} s" if a.get("period") else ""
+            per = f", to whole periods of {a['period']:g} s" if a.get("period") and e == "steer_delay" else ""
             return f" ({src}{per})"
-        out = [f"{e}: applied as control.delay.steering = {self.delays['steer']:.4g} s{how(e)}" for e in self.applied]
+        out = [f"{e}: applied as {APPLIED[e][2]} = {getattr(self, APPLIED[e][0])[APPLIED[e][1]]:.4g} s{how(e)}"
+               for e in self.applied]
         return out + self.not_applied
 
 
@@ -157,17 +169,21 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
                             f"{', '.join(EFFECT_NAMES)}")
         value = _estimate(path, d, name)
         fx.estimates[name] = value
-        if name in APPLIED:
-            key, _ = APPLIED[name]
+        if name in APPLIED and NOT_WITH.get(name) in d["selected"]:
+            fx.not_applied.append(f"{name}: found {value:.4g}, not applied: selected with {NOT_WITH[name]}, whose "
+                                  f"fit alone carries the response the two split")
+        elif name in APPLIED:
+            what, key, config_key = APPLIED[name]
             alone = _alone(path, d, name)
             est = alone if alone is not None else value
-            value = est if period is None else round(est / period) * period
+            # a delay acts in whole periods (the nearest); a lag's time constant is used as it is
+            value = est if period is None or what != "delays" else round(est / period) * period
             fx.applied_estimates[name] = {"alone": alone, "joint": fx.estimates[name], "written": value,
                                           "period": period}
             if not 0.0 <= value <= DELAY_MAX_S:
                 raise DdynError(f"{path}: model.effects: {name} {MAIN_PARAM[name]} = {value:g} s is outside "
-                                f"control.delay's 0..{DELAY_MAX_S:g} s")
-            fx.delays[key] = value
+                                f"{config_key.rsplit('.', 1)[0]}'s 0..{DELAY_MAX_S:g} s")
+            getattr(fx, what)[key] = value
             fx.applied.append(name)
         elif name in NOT_APPLIED_WHY:
             fx.not_applied.append(f"{name}: found {value:.4g}, not applied: {NOT_APPLIED_WHY[name]}")
@@ -177,13 +193,14 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
 
 
 def apply_to_config(cfg: dict, fx: ControllerEffects) -> dict:
-    """A controller configuration (docs/deploy.md) with fx's delays in control.delay and the record in
-    `effects`; every other key as it was."""
+    """A controller configuration (docs/deploy.md) with fx's delays in control.delay, its lag in control.lag and
+    the record in `effects`; every other key as it was."""
     out = json.loads(json.dumps(cfg))
     control = out.setdefault("control", {})
     if not isinstance(control, dict):
         raise DdynError("control: expected an object")
     rec = fx.record()
     control["delay"] = dict(rec["delay"])
+    control["lag"] = dict(rec["lag"])
     out["effects"] = rec
     return out

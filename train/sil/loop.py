@@ -35,8 +35,8 @@ from ddyn.sil.effects import controller_effects
 LOG_SPEEDS = (0.6, 0.5, 0.4, 0.3, 0.2)
 LOG_SECONDS = 60.0
 MIN_VX = 0.3        # m/s: rows slower than this (the standing start) are left out of the user's log
-# the plant effect -> the controller delay key that is its oracle
-ORACLE = {"steer_delay": "steer", "throttle_delay": "throttle"}
+# the plant effect -> (the controller's compensation: delays or lag, its key) that is its oracle
+ORACLE = {"steer_delay": ("delays", "steer"), "throttle_delay": ("delays", "throttle"), "steer_lag": ("lag", "steer")}
 
 
 # ---------------------------------------------------------------------------------------------- the user's log
@@ -95,12 +95,13 @@ def write_user_log(controller_log: Path, out: Path, vehicle_name: str, sample_ti
 
 # ---------------------------------------------------------------------------------------------- runs
 
-def _drive(vehicle, track, out: Path, *, effects: dict, delays: dict | None = None, effects_from: dict | None = None,
-           speed_scale: float | None = None, laps: int = 1, seed: int = 1) -> dict:
+def _drive(vehicle, track, out: Path, *, effects: dict, delays: dict | None = None, lag: dict | None = None,
+           effects_from: dict | None = None, speed_scale: float | None = None, laps: int = 1, seed: int = 1) -> dict:
     from ddyn.sil.run import SilSpec, run_sil
 
     spec = SilSpec.true_car(vehicle, track, laps=laps, effects=dict(effects), speed_scale=speed_scale, seed=seed,
-                            controller_delays=dict(delays or {}), effects_from=effects_from)
+                            controller_delays=dict(delays or {}), controller_lag=dict(lag or {}),
+                            effects_from=effects_from)
     with contextlib.redirect_stdout(io.StringIO()):
         m = run_sil(spec, out, None, where="inprocess")
     return m
@@ -189,10 +190,13 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
             100.0 * (case["diagnosis"]["steer_delay_candidate_s"] - size) / size
     cfx = controller_effects(out / "diagnosis", vehicle.sample_time)
     case["rebuilt_effects"] = cfx.summary()
-    m = _drive(vehicle, track, out / "rebuilt", effects=fx, delays=cfx.delays, effects_from=cfx.summary(), seed=seed)
+    m = _drive(vehicle, track, out / "rebuilt", effects=fx, delays=cfx.delays, lag=cfx.lag, effects_from=cfx.summary(),
+               seed=seed)
     case["rebuilt"] = _row(m, out / "rebuilt")
     if effect in ORACLE:
-        m = _drive(vehicle, track, out / "oracle", effects=fx, delays={ORACLE[effect]: size}, seed=seed)
+        what, key = ORACLE[effect]
+        m = _drive(vehicle, track, out / "oracle", effects=fx, seed=seed,
+                   **({"delays": {key: size}} if what == "delays" else {"lag": {key: size}}))
         case["oracle"] = _row(m, out / "oracle")
     sd = case["diagnosis"]["steer_delay_candidate_s"]
     if effect == "steer_delay" and "steer_delay" not in cfx.applied and sd is not None and 0.0 <= sd <= 0.1:
@@ -251,7 +255,7 @@ def _fmt_run(r: dict | None) -> str:
 
 def markdown(cases: list[dict]) -> str:
     lines = ["| track | plant effect | log drive (speed scale, s) | diagnosis: selected first (joint estimate) | "
-             "steer_delay fitted alone (rank) | control.delay written | before | rebuilt | oracle | "
+             "steer_delay fitted alone (rank) | control.delay / lag written | before | rebuilt | oracle | "
              "reference (no effect) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
@@ -260,7 +264,8 @@ def markdown(cases: list[dict]) -> str:
         sd = f"{dg['steer_delay_candidate_s']:.4g} s (rank {dg['steer_delay_candidate_rank']})" \
             if dg["steer_delay_candidate_s"] is not None else "-"
         ld = c["log_drive"]["chosen"]
-        written = ", ".join(f"{k} {v:.4g} s" for k, v in c["rebuilt_effects"]["controller_delays"].items())
+        written = ", ".join([f"{k} {v:.4g} s" for k, v in c["rebuilt_effects"]["controller_delays"].items()] +
+                            [f"lag {k} {v:.4g} s" for k, v in c["rebuilt_effects"].get("controller_lag", {}).items()])
         applied = written or ("nothing (" + "; ".join(c["rebuilt_effects"]["not_applied"]) + ")"
                               if c["rebuilt_effects"]["not_applied"] else "nothing")
         lines.append(f"| {c['track']} | {c['effect']} {c['size']:g} | {ld['speed_scale']:g}, {ld['driven_s']:.1f} s, "

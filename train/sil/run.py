@@ -76,6 +76,8 @@ FILTER_ACCEL_STD = 1.0
 FILTER_PROCESS_NOISE = (1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-2, 1e-5, 1e-5)
 # the controller's known actuation delays (controller.json control.delay, s; ddyn/controller.h)
 CONTROLLER_DELAY_KEYS = ("steer", "throttle")
+# the controller's known steering lag (controller.json control.lag, s: the time constant; ddyn/controller.h)
+CONTROLLER_LAG_KEYS = ("steer",)
 FAULT_KEYS = ("drop", "delay", "corrupt", "silent", "silent_at", "kill_controller", "restart_plant")
 SENSOR_OF_FRAME = {"imu": ("yaw_rate", "acceleration"), "gnss": ("gnss_position", "heading"),
                    "gnss_position": ("gnss_position",), "gnss_heading": ("heading",),
@@ -118,6 +120,15 @@ def parse_controller_delays(text: str | None) -> dict[str, float]:
     for k, v in d.items():
         if not isinstance(v, float) or not math.isfinite(v) or v < 0.0:
             raise DdynError(f"--controller-delays: {k} needs a number of seconds >= 0, got {v!r}")
+    return d
+
+
+def parse_controller_lag(text: str | None) -> dict[str, float]:
+    """`steer=0.05` (seconds >= 0, the time constant) for --controller-lag."""
+    d = parse_kv(text, CONTROLLER_LAG_KEYS, "--controller-lag")
+    for k, v in d.items():
+        if not isinstance(v, float) or not math.isfinite(v) or v < 0.0:
+            raise DdynError(f"--controller-lag: {k} needs a number of seconds >= 0, got {v!r}")
     return d
 
 
@@ -217,6 +228,8 @@ class SilSpec:
                                                # window of simulated time (ddyn_sil_inprocess only)
     controller_delays: dict = field(default_factory=dict)  # the actuation delays the controller compensates,
                                                # s: {"steer": .., "throttle": ..} (control.delay; none: {})
+    controller_lag: dict = field(default_factory=dict)  # the steering lag the controller compensates, s (the
+                                               # time constant): {"steer": ..} (control.lag; none: {})
     effects_from: dict | None = None           # the diagnosis the delays came from (ddyn.sil.effects
                                                # ControllerEffects.summary()): controller.json `effects`
 
@@ -384,11 +397,18 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         # written only when asked for: without it the file is the one of before
         control["delay"] = {"steering": float(spec.controller_delays.get("steer", 0.0)),
                             "throttle": float(spec.controller_delays.get("throttle", 0.0))}
+    unknown = set(spec.controller_lag) - set(CONTROLLER_LAG_KEYS)
+    if unknown:
+        raise DdynError(f"controller lag: unknown {', '.join(sorted(unknown))}; expected steer")
+    if any(float(d) != 0.0 for d in spec.controller_lag.values()):
+        control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
     if spec.effects_from is not None:
-        # recorded from the diagnosis (ddyn.sil.effects): the controller refuses the file if control.delay differs
+        # recorded from the diagnosis (ddyn.sil.effects): the controller refuses the file if control.delay or
+        # control.lag differs
         fx = spec.effects_from
         control["delay"] = {"steering": float(spec.controller_delays.get("steer", 0.0)),
                             "throttle": float(spec.controller_delays.get("throttle", 0.0))}
+        control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
     dims = {"gnss_position": 2, "heading": 1, "yaw_rate": 1, "acceleration": 2, "wheel_speed": 2, "steering": 1}
     can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS), "cycle_ms": frame_cycles_ms(v)}
     if key_file:
@@ -422,7 +442,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     }
     if spec.effects_from is not None:
         cfg["effects"] = {"diagnosis": fx["diagnosis"], "diagnosis_sha256": fx["diagnosis_sha256"],
-                          "delay": dict(control["delay"])}
+                          "delay": dict(control["delay"]), "lag": dict(control["lag"])}
     mpc = mpc_section(v.name)
     if mpc:
         cfg["mpc"] = mpc
@@ -925,7 +945,7 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "end_reason": pm["end_reason"], "tracking_error": tracking_error(traj, table),
         "controller": None, "plant": pm, "run": run,
         "effects": spec.effects, "faults": spec.faults, "controller_delays": spec.controller_delays,
-        "controller_effects": spec.effects_from,
+        "controller_lag": spec.controller_lag, "controller_effects": spec.effects_from,
         "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
         "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
         # frame authentication: the plant's DBW unit's counts (commands accepted; forged, replayed, stale
@@ -1171,12 +1191,14 @@ def _run(args: argparse.Namespace) -> int:
     else:
         fixed = coefficients_from(args.coeffs, vehicle)
     delays, effects_from = parse_controller_delays(args.controller_delays), None
+    lag = parse_controller_lag(args.controller_lag)
     if args.effects_from:
         from ddyn.sil.effects import controller_effects
-        if delays:
-            raise DdynError("--effects-from and --controller-delays: give one (the diagnosis sets the delays)")
+        if delays or lag:
+            raise DdynError("--effects-from and --controller-delays/--controller-lag: give one (the diagnosis sets "
+                            "the delays and the lag)")
         fx = controller_effects(args.effects_from, vehicle.sample_time)
-        delays, effects_from = dict(fx.delays), fx.summary()
+        delays, lag, effects_from = dict(fx.delays), dict(fx.lag), fx.summary()
         for line in fx.lines() or ["nothing to apply"]:
             print(f"sil: effects from {args.effects_from}: {line}")
     spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
@@ -1186,14 +1208,15 @@ def _run(args: argparse.Namespace) -> int:
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
                    forged_steering=args.inject_forged_steering,
-                   controller_delays=delays, effects_from=effects_from)
+                   controller_delays=delays, controller_lag=lag, effects_from=effects_from)
     if args.config_only:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         table = raceline_table(spec.track, spec.vehicle, spec.speed_scale, margin=spec.margin, line=spec.line)
         path = write_controller_files(spec, table, out, str(out.resolve()))
-        print(f"sil: wrote {path} and {out / RACELINE_CSV} (control.delay "
-              f"{json.loads(path.read_text())['control'].get('delay', 'none')}); not driven (--config-only)")
+        control = json.loads(path.read_text())["control"]
+        print(f"sil: wrote {path} and {out / RACELINE_CSV} (control.delay {control.get('delay', 'none')}, "
+              f"control.lag {control.get('lag', 'none')}); not driven (--config-only)")
         return 0
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
@@ -1252,11 +1275,17 @@ def register(subparsers) -> None:
                         "filter predicts with the command acting on the car, its MPC plans from the state its new "
                         "command acts in; e.g. with --effects steer_delay=0.04 give steer=0.04 (default: none; at "
                         "most 5 control periods, DDYN_CTRL_MAX_DELAY_STEPS)")
+    p.add_argument("--controller-lag", metavar="steer=S",
+                   help="the steering lag the controller compensates, seconds: the time constant of the acting "
+                        "steering's first-order lag behind its set-point (controller.json control.lag): its filter "
+                        "predicts with the acting steering, its MPC plans from it and its first command inverts the "
+                        "lag; e.g. with --effects steer_lag=0.05 give steer=0.05 (default: none)")
     p.add_argument("--effects-from", metavar="D", default=None,
-                   help="the controller's actuation delays from a diagnosis (`ddyn gap diagnose --out D`: the folder "
-                        "or its diagnosis.json): steer_delay -> control.delay.steering, every other effect named "
-                        "and not applied; recorded in controller.json (effects: path, sha256; the controller refuses "
-                        "the file if control.delay is edited) and sil_metrics.json")
+                   help="the controller's actuation delays and steering lag from a diagnosis (`ddyn gap diagnose "
+                        "--out D`: the folder or its diagnosis.json): steer_delay -> control.delay.steering, "
+                        "steer_lag -> control.lag.steering, every other effect named and not applied; recorded in "
+                        "controller.json (effects: path, sha256; the controller refuses the file if control.delay "
+                        "or control.lag is edited) and sil_metrics.json")
     p.add_argument("--config-only", action="store_true",
                    help="write controller.json and raceline.csv into --out and stop (no drive): e.g. the "
                         "configuration made from --effects-from D")
