@@ -222,8 +222,9 @@ static int config_ok(const ddyn_ctrl_config *cfg, double dt)
     const ddyn_ctrl_pid_config *g = &cfg->pid;
     int i, k, steps[NU];
     if (!degraded_config_ok(&cfg->degraded, dt) || ddyn_ctrl_delay_steps(&cfg->delay, dt, steps) != DDYN_OK ||
-        isnan(ddyn_ctrl_lag_decay(cfg->lag.steering, dt))) {
-        return 0; /* a delay above the compiled maximum is refused, not cut; a negative or non-finite lag */
+        !(ddyn_ctrl_lag_decay(cfg->lag.steering, dt) < 1.0)) {
+        return 0; /* a delay above the compiled maximum is refused, not cut; a negative, non-finite lag, or
+                     one so long that it does not decay in a period (its inversion would divide by 0) */
     }
     if ((unsigned)cfg->coeff_source >= (unsigned)DDYN_CTRL_SOURCE_COUNT ||
         (unsigned)cfg->throttle_mode >= (unsigned)DDYN_CTRL_THROTTLE_MODE_COUNT ||

@@ -1407,6 +1407,8 @@ static void test_a_bad_lag_is_refused_at_init(void **state)
     assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
     cfg.lag.steering = INFINITY;
     assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.lag.steering = 1e300; /* e^{-dt/tau} == 1 in doubles: the inversion would divide by 0 */
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
     cfg.lag.steering = 0.1;
     assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
     assert_true(fabs(ctl.lag_decay - exp(-model->sample_time / 0.1)) <= 1e-15);

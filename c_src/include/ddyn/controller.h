@@ -232,7 +232,8 @@ ddyn_status ddyn_ctrl_delay_steps(const ddyn_ctrl_delay_config *cfg, double dt, 
  * tau = 0 (the default): no lag, the controller as before, bit-identical. The safe command holds the
  * set-point (u = 0), not inverted. */
 typedef struct {
-    double steering; /* s (>= 0, finite): the lag's time constant tau (default 0: none) */
+    double steering; /* s (>= 0, finite, e^{-dt/tau} < 1 in doubles): the lag's time constant tau (default 0:
+                        none); refused at init otherwise (DDYN_ERR_ARGUMENT) */
 } ddyn_ctrl_lag_config;
 
 /* e^{-dt / tau} for tau > 0, 0 for tau = 0 (no lag); NaN for a negative or non-finite tau or dt <= 0. */
