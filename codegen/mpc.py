@@ -1,7 +1,10 @@
 """`ddyn codegen model`, MPC part: the MPC's prediction step and each vehicle's input limits.
 
-c_src/generated/ddyn_mpc_model.c/.h  ddyn_<vehicle>_mpc_step(x, u, c) -> x_next, A, B: one RK4 step
+c_src/generated/ddyn_mpc_model.c/.h  ddyn_<vehicle>_mpc_step(x, u, c, bank) -> x_next, A, B: one RK4 step
     over the whole sample time (a single sub-step) with its Jacobians wrt x and u, in one function.
+    bank (rad, held over the step): the road's bank at the stage's track position, its lateral gravity
+    g sin(bank) on dvy (+ to the left) from ddyn.model.effects.derivatives (Aux.bank, no other effect),
+    the term the Python model carries; 0 is the flat road's step (issue 34: a bank-aware controller).
     Why: the plant's RK4 Jacobian function (4 sub-steps, and dx/dc, which the MPC does not need)
     costs ~9 us per call, 20 of them per MPC step; the single-step one is 4x cheaper and stays
     within ~0.5 mm of the 4-sub-step RK4 over 10 steps at the 1:43 car's racing speeds (Euler at the
@@ -18,18 +21,33 @@ from pathlib import Path
 import casadi as ca
 
 from ddyn.codegen.c_text import c_double
-from ddyn.model import backends
+from ddyn.model import backends, effects, integrators, mathns
+from ddyn.model.single_track import N_COEFF, N_INPUT, N_STATE
 from ddyn.model.vehicle import Vehicle
 
 MPC_RK4_SUBSTEPS = 1
 
 
+def mpc_step_expr(x, u, c, bank, v: Vehicle):
+    """The MPC's step: RK4 of the model with the road's bank (ddyn.model.effects, no other effect)."""
+    ns = mathns.get("casadi")
+    uu, cc = tuple(u[i] for i in range(N_INPUT)), tuple(c[i] for i in range(N_COEFF))
+    fx, aux = effects.EffectSet(), effects.Aux(bank=bank)
+
+    def f(s):
+        return effects.derivatives(ns, s, uu, cc, v.known, fx, aux)
+
+    return ca.vertcat(*integrators.step(f, tuple(x[i] for i in range(N_STATE)), v.sample_time, "rk4",
+                                        MPC_RK4_SUBSTEPS))
+
+
 def mpc_step_function(v: Vehicle) -> ca.Function:
     x, u, c = backends.casadi_symbols()
-    nxt = backends.casadi_step_expr(x, u, c, v.known, v.sample_time, "rk4", MPC_RK4_SUBSTEPS)
-    return ca.Function(f"ddyn_{v.name}_mpc_step", [x, u, c],
+    bank = ca.SX.sym("bank")
+    nxt = mpc_step_expr(x, u, c, bank, v)
+    return ca.Function(f"ddyn_{v.name}_mpc_step", [x, u, c, bank],
                        [nxt, ca.densify(ca.jacobian(nxt, x)), ca.densify(ca.jacobian(nxt, u))],
-                       ["x", "u", "c"], ["x_next", "A", "B"])
+                       ["x", "u", "c", "bank"], ["x_next", "A", "B"])
 
 
 def generate_step(vehicles: list[Vehicle], out: Path, banner, options: dict) -> tuple[list[Path], list[ca.Function]]:

@@ -40,7 +40,7 @@ const casadi_int* ddyn_av21_mpc_step_sparsity_in(casadi_int i);
 const casadi_int* ddyn_av21_mpc_step_sparsity_out(casadi_int i);
 int ddyn_av21_mpc_step_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
 int ddyn_av21_mpc_step_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define ddyn_av21_mpc_step_SZ_ARG 3
+#define ddyn_av21_mpc_step_SZ_ARG 4
 #define ddyn_av21_mpc_step_SZ_RES 3
 #define ddyn_av21_mpc_step_SZ_IW 0
 #define ddyn_av21_mpc_step_SZ_W 0
@@ -58,7 +58,7 @@ const casadi_int* ddyn_av21_powertrain_mpc_step_sparsity_in(casadi_int i);
 const casadi_int* ddyn_av21_powertrain_mpc_step_sparsity_out(casadi_int i);
 int ddyn_av21_powertrain_mpc_step_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
 int ddyn_av21_powertrain_mpc_step_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define ddyn_av21_powertrain_mpc_step_SZ_ARG 3
+#define ddyn_av21_powertrain_mpc_step_SZ_ARG 4
 #define ddyn_av21_powertrain_mpc_step_SZ_RES 3
 #define ddyn_av21_powertrain_mpc_step_SZ_IW 0
 #define ddyn_av21_powertrain_mpc_step_SZ_W 0
@@ -76,7 +76,7 @@ const casadi_int* ddyn_orca_1_43_mpc_step_sparsity_in(casadi_int i);
 const casadi_int* ddyn_orca_1_43_mpc_step_sparsity_out(casadi_int i);
 int ddyn_orca_1_43_mpc_step_work(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
 int ddyn_orca_1_43_mpc_step_work_bytes(casadi_int *sz_arg, casadi_int* sz_res, casadi_int *sz_iw, casadi_int *sz_w);
-#define ddyn_orca_1_43_mpc_step_SZ_ARG 3
+#define ddyn_orca_1_43_mpc_step_SZ_ARG 4
 #define ddyn_orca_1_43_mpc_step_SZ_RES 3
 #define ddyn_orca_1_43_mpc_step_SZ_IW 0
 #define ddyn_orca_1_43_mpc_step_SZ_W 0

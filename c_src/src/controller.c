@@ -298,6 +298,7 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     memcpy(ctl->coeffs, cfg->coeff_source == DDYN_CTRL_SOURCE_FIXED ? cfg->c_fixed : cfg->c_nominal,
            sizeof ctl->coeffs);
     ctl->last_good_age = -1;
+    ctl->bank_hint = -1;
     memcpy(ctl->x_prev, x0, sizeof ctl->x_prev);
     ctl->initialised = 1;
     return DDYN_OK;
@@ -309,7 +310,33 @@ ddyn_status ddyn_ctrl_set_track(ddyn_ctrl *ctl, int n, const double *x, const do
     if (ctl == NULL || !ctl->initialised) {
         return DDYN_ERR_ARGUMENT;
     }
+    ctl->bank_hint = -1;
     return ddyn_mpc_set_track(&ctl->mpc, n, x, y, speed, width_left, width_right);
+}
+
+ddyn_status ddyn_ctrl_set_bank(ddyn_ctrl *ctl, const double *bank)
+{
+    if (ctl == NULL || !ctl->initialised) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    ctl->bank_hint = -1;
+    return ddyn_mpc_set_bank(&ctl->mpc, bank);
+}
+
+/* The road's bank at x's position (0 without a profile): the raceline's bank table at its projection */
+static double bank_at(ddyn_ctrl *ctl, const double x[NX])
+{
+    return ctl->mpc.track.have_bank ? ddyn_mpc_bank_at(&ctl->mpc, x[0], x[1], &ctl->bank_hint) : 0.0;
+}
+
+/* The filter's model step (cfg.ekf_disc) with the road's bank at x's position (ddyn_model_add_bank) */
+static ddyn_status model_step(ddyn_ctrl *ctl, const double x[NX], const double u[NU], double x_next[NX])
+{
+    ddyn_status s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, x, u, ctl->coeffs, x_next, &ctl->ekf.work);
+    if (s == DDYN_OK && ctl->mpc.track.have_bank) {
+        ddyn_model_add_bank(bank_at(ctl, x), ctl->model->sample_time, x, x_next);
+    }
+    return s;
 }
 
 void ddyn_ctrl_safe_command(const ddyn_ctrl *ctl, const double x[DDYN_NX], double u[DDYN_NU])
@@ -714,6 +741,7 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
     const double r_var_scale = ctl->degraded ? ctl->cfg.degraded.r_scale * ctl->cfg.degraded.r_scale : 1.0;
     int k, i, fused = 0, diverged = 0, restart;
     unsigned reacquire = 0u; /* sensors whose repeated restart this is (bit k) */
+    ctl->ekf.bank = bank_at(ctl, ctl->ekf.x); /* the road's bank where the predicted period starts */
     if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_acting, ctl->coeffs) != DDYN_OK) {
         diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
     }
@@ -854,7 +882,7 @@ static ddyn_status predict_pipe_lag(ddyn_ctrl *ctl, const double x[NX], double x
         if (ctl->lag_decay > 0.0) {
             u[1] = lag_period(ctl, cmd, act, u[1], &cmd, &act); /* the steering acts through the lag */
         }
-        s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, xa, u, ctl->coeffs, xb, &ctl->ekf.work);
+        s = model_step(ctl, xa, u, xb);
         if (s == DDYN_OK && !ddyn_all_finite(xb, NX)) {
             s = DDYN_ERR_NONFINITE_OUTPUT;
         }
@@ -1073,7 +1101,7 @@ ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl)
      * the coming period (the one just sent without a delay; the EKF's work memory is scratch between its
      * calls), then on through the commands still in the pipe: the next step's MPC start */
     sync_delay_lines(ctl);
-    s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, ctl->ekf.x, ctl->u_acting, ctl->coeffs, x_next, &ctl->ekf.work);
+    s = model_step(ctl, ctl->ekf.x, ctl->u_acting, x_next);
     if (s != DDYN_OK) {
         return s;
     }

@@ -164,3 +164,18 @@ ddyn_status ddyn_model_measure(const ddyn_vehicle_model *model, ddyn_meas_kind k
     len[2] = 0;
     return evaluate(model->meas[kind], x, c, NULL, out, len, work);
 }
+
+double ddyn_model_bank_accel(double bank) { return DDYN_GRAVITY * sin(bank); }
+
+void ddyn_model_add_bank(double bank, double dt, const double x[DDYN_NX], double x_next[DDYN_NX])
+{
+    double a, h;
+    if (x == NULL || x_next == NULL || bank == 0.0) {
+        return;
+    }
+    a = ddyn_model_bank_accel(bank);
+    h = 0.5 * a * dt * dt;
+    x_next[0] -= h * sin(x[2]); /* the left normal of yaw: (-sin, cos) */
+    x_next[1] += h * cos(x[2]);
+    x_next[4] += a * dt;
+}

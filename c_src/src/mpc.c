@@ -151,6 +151,38 @@ ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const doub
     t->length = s;
     t->n = n;
     t->speed_scale = 1.0;
+    t->have_bank = 0;
+    memset(t->bank, 0, sizeof t->bank);
+    ddyn_mpc_reset(mpc);
+    return DDYN_OK;
+}
+
+ddyn_status ddyn_mpc_set_bank(ddyn_mpc *mpc, const double *bank)
+{
+    ddyn_mpc_track *t;
+    int i;
+    if (mpc == NULL || mpc->cfg.prediction != DDYN_MPC_PRED_RK4_SINGLE) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    t = &mpc->track;
+    if (t->n < 4) {
+        return DDYN_ERR_NOT_READY;
+    }
+    if (bank != NULL) {
+        if (!ddyn_all_finite(bank, t->n)) {
+            return DDYN_ERR_NONFINITE_INPUT;
+        }
+        for (i = 0; i < t->n; ++i) {
+            if (!(fabs(bank[i]) < DDYN_MPC_MAX_BANK)) {
+                return DDYN_ERR_ARGUMENT;
+            }
+        }
+        memcpy(t->bank, bank, (size_t)t->n * sizeof *bank);
+        t->have_bank = 1;
+    } else {
+        memset(t->bank, 0, sizeof t->bank);
+        t->have_bank = 0;
+    }
     ddyn_mpc_reset(mpc);
     return DDYN_OK;
 }
@@ -249,21 +281,54 @@ static void advance(const ddyn_mpc_track *t, int *i, double *u, double ds)
     }
 }
 
+double ddyn_mpc_track_bank(const ddyn_mpc_track *t, int i, double u)
+{
+    int j;
+    if (t == NULL || !t->have_bank || i < 0 || i >= t->n || !(u >= 0.0 && u <= 1.0)) {
+        return 0.0;
+    }
+    j = i + 1 < t->n ? i + 1 : 0;
+    return t->bank[i] + u * (t->bank[j] - t->bank[i]);
+}
+
+/* the bank at the projection of (px, py), searched +-window segments around *hint (all when < 0) */
+static double bank_lookup(const ddyn_mpc *mpc, double px, double py, int *hint, int window)
+{
+    int i, h;
+    double u;
+    if (mpc == NULL || !mpc->track.have_bank || mpc->track.n < 4 || !isfinite(px) || !isfinite(py)) {
+        return 0.0;
+    }
+    h = hint != NULL && *hint >= 0 && *hint < mpc->track.n ? *hint : -1;
+    i = project(&mpc->track, px, py, h, window, &u);
+    if (hint != NULL) {
+        *hint = i;
+    }
+    return ddyn_mpc_track_bank(&mpc->track, i, u);
+}
+
+double ddyn_mpc_bank_at(const ddyn_mpc *mpc, double px, double py, int *hint)
+{
+    return bank_lookup(mpc, px, py, hint, DDYN_MPC_BANK_WINDOW);
+}
+
 /* ---- one real-time iteration --------------------------------------------------------------- */
 
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
 /* One prediction step x_next = f(x, u) and, when A is not NULL, its Jacobians A, B. */
-static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, double *x_next, double *A, double *B)
+static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, double bank, double *x_next, double *A,
+                           double *B)
 {
     ddyn_status st;
     if (mpc->cfg.prediction == DDYN_MPC_PRED_RK4_SINGLE) {
         double out[DDYN_NX * (1 + DDYN_NX + DDYN_NU)];
         double *res[3];
-        const double *arg[3];
+        const double *arg[4];
         arg[0] = x;
         arg[1] = u;
         arg[2] = mpc->c;
+        arg[3] = &bank; /* the road's bank over this step (0: flat) */
         res[0] = out;
         res[1] = out + DDYN_NX;
         res[2] = out + DDYN_NX * (1 + DDYN_NX);
@@ -296,7 +361,7 @@ static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, doub
 static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, double dthrottle0)
 {
     const int h = mpc->cfg.horizon;
-    int k, j;
+    int k, j, hint;
     ddyn_status st;
     for (k = 0; k < h; ++k) {
         int src = mpc->have_warm_start ? (k + 1 < h ? k + 1 : h - 1) : -1;
@@ -309,8 +374,14 @@ static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, 
         }
     }
     memcpy(mpc->x_lin, x0, DDYN_NX * sizeof(double));
+    hint = mpc->last_index;
     for (k = 0; k < h; ++k) {
-        st = predict(mpc, mpc->x_lin + k * DDYN_NX, mpc->u_lin + k * DDYN_NU, mpc->x_lin + (k + 1) * DDYN_NX,
+        /* the bank at this stage's own track position: its predicted position projected on the raceline */
+        const double *xk = mpc->x_lin + k * DDYN_NX;
+        mpc->stage_bank[k] = mpc->track.have_bank
+                                 ? bank_lookup(mpc, xk[0], xk[1], &hint, k == 0 ? LOCAL_WINDOW : STAGE_WINDOW)
+                                 : 0.0;
+        st = predict(mpc, xk, mpc->u_lin + k * DDYN_NU, mpc->stage_bank[k], mpc->x_lin + (k + 1) * DDYN_NX,
                      mpc->A + k * DDYN_NX * DDYN_NX, mpc->B + k * DDYN_NX * DDYN_NU);
         if (st != DDYN_OK) {
             return st;
@@ -795,8 +866,8 @@ int ddyn_mpc_plan(ddyn_mpc *mpc, double *x_plan, double *u_plan)
     }
     h = mpc->cfg.horizon;
     for (k = 0; k < h; ++k) {
-        if (predict(mpc, mpc->x_plan + k * DDYN_NX, mpc->u_plan + k * DDYN_NU, mpc->x_plan + (k + 1) * DDYN_NX, NULL,
-                    NULL) != DDYN_OK) {
+        if (predict(mpc, mpc->x_plan + k * DDYN_NX, mpc->u_plan + k * DDYN_NU, mpc->stage_bank[k],
+                    mpc->x_plan + (k + 1) * DDYN_NX, NULL, NULL) != DDYN_OK) {
             return 0;
         }
     }

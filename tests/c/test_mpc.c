@@ -771,8 +771,8 @@ static void test_generated_prediction_step_jacobians_and_integrators(void **stat
     double x[DDYN_NX] = {0.3, -0.2, 0.4, 1.7, 0.1, 1.2, 0.4, 0.1}, u[DDYN_NU] = {0.5, -0.8};
     double out[DDYN_NX * 11], xp[DDYN_NX], xm[DDYN_NX], scratch[DDYN_NX * 10];
     static ddyn_model_work work;
-    const double *arg[3];
-    double *res[3];
+    const double *arg[4];
+    double *res[3], flat = 0.0;
     int i, j;
     (void)state;
     while (row < DDYN_MPC_LIMITS_COUNT - 1 && strcmp(ddyn_mpc_limits[row].name, "orca_1_43") != 0) ++row;
@@ -781,6 +781,7 @@ static void test_generated_prediction_step_jacobians_and_integrators(void **stat
     arg[0] = x;
     arg[1] = u;
     arg[2] = C;
+    arg[3] = &flat; /* the road's bank: a flat road */
     res[0] = out;
     res[1] = out + DDYN_NX;
     res[2] = out + DDYN_NX * 9;
@@ -814,6 +815,113 @@ static void test_generated_prediction_step_jacobians_and_integrators(void **stat
             assert_true(fabs(out[DDYN_NX * 9 + i + j * DDYN_NX] - (i - 6 == j ? 0.02 : 0.0)) < 1e-15);
         }
     }
+}
+
+/* orca_1_43's MPC step at x = {0.3, -0.2, 0.4, 1.7, 0.1, 1.2, 0.4, 0.1}, u = {0.5, -0.8}, the true coefficients,
+ * from the Python model: ddyn.model.effects.derivatives (Aux.bank, no other effect) under
+ * ddyn.model.integrators' single-step RK4 over the sample time, numpy float64 */
+static const double BANK_CASES[3] = {0.0, 0.3, -0.2};
+static const double BANK_PY_NEXT[3][DDYN_NX] = {
+    {0.3306361169343469, -0.184866531731419, 0.4348376789836934, 1.7140018385223148, 0.04474829274604333,
+     2.035014928766496, 0.41000000000000003, 0.084},
+    {0.33045488489517694, -0.1844335327445091, 0.43493488799579993, 1.7156753687396273, 0.08631985502760987,
+     2.0506102334613545, 0.41000000000000003, 0.084},
+    {0.33075800631713176, -0.1851577000517705, 0.4347322556570303, 1.7128853631706895, 0.01680847870756068,
+     2.0205646601087768, 0.41000000000000003, 0.084}};
+/* effects.G * sin(bank) */
+static const double BANK_PY_ACCEL[3] = {0.0, 2.899053227347741, -1.9489461350995507};
+
+static void test_bank_gravity_term_matches_the_python_model(void **state)
+{
+    /* the generated step's bank input and the runtime's gravity term, against the Python model to 1e-12 */
+    int row = 0, k, i;
+    double x[DDYN_NX] = {0.3, -0.2, 0.4, 1.7, 0.1, 1.2, 0.4, 0.1}, u[DDYN_NU] = {0.5, -0.8};
+    double out[DDYN_NX * 11];
+    static ddyn_model_work work;
+    const double *arg[4];
+    double *res[3];
+    (void)state;
+    while (row < DDYN_MPC_LIMITS_COUNT - 1 && strcmp(ddyn_mpc_limits[row].name, "orca_1_43") != 0) ++row;
+    for (k = 0; k < 3; ++k) {
+        arg[0] = x;
+        arg[1] = u;
+        arg[2] = C;
+        arg[3] = &BANK_CASES[k];
+        res[0] = out;
+        res[1] = out + DDYN_NX;
+        res[2] = out + DDYN_NX * 9;
+        assert_int_equal(ddyn_mpc_limits[row].step(arg, res, work.iw, work.w, 0), 0);
+        for (i = 0; i < DDYN_NX; ++i) {
+            assert_true(fabs(out[i] - BANK_PY_NEXT[k][i]) < 1e-12);
+        }
+        assert_true(fabs(ddyn_model_bank_accel(BANK_CASES[k]) - BANK_PY_ACCEL[k]) < 1e-12);
+    }
+    {
+        /* the filter's term: a constant lateral acceleration over dt, along the left normal at x's yaw */
+        double xn[DDYN_NX] = {0}, a = ddyn_model_bank_accel(0.3), dt = 0.02;
+        ddyn_model_add_bank(0.3, dt, x, xn);
+        assert_true(fabs(xn[4] - a * dt) < 1e-15);
+        assert_true(fabs(xn[0] + 0.5 * a * dt * dt * sin(x[2])) < 1e-15);
+        assert_true(fabs(xn[1] - 0.5 * a * dt * dt * cos(x[2])) < 1e-15);
+        assert_true(xn[2] == 0.0 && xn[3] == 0.0 && xn[5] == 0.0 && xn[6] == 0.0 && xn[7] == 0.0);
+        memset(xn, 0, sizeof xn);
+        ddyn_model_add_bank(0.0, dt, x, xn); /* a flat road: untouched */
+        for (i = 0; i < DDYN_NX; ++i) assert_true(xn[i] == 0.0);
+    }
+}
+
+static void test_bank_table_lookup_and_refusals(void **state)
+{
+    /* the ring with a bank growing with the angle: the table reads linearly between its points, at the
+     * projection of a position; each stage predicts with the bank at its own position; bad profiles refused */
+    static double bank[RING];
+    double x0[DDYN_NX], u[DDYN_NU];
+    ddyn_mpc_info info;
+    int i, hint = -1;
+    ddyn_mpc_config cfg;
+    static ddyn_mpc other;
+    (void)state;
+    for (i = 0; i < RING; ++i) bank[i] = 0.3 * i / RING;
+    ring_mpc(30);
+    assert_false(mpc.track.have_bank);
+    assert_true(ddyn_mpc_bank_at(&mpc, RADIUS, 0.0, NULL) == 0.0); /* no profile: flat */
+    assert_int_equal(ddyn_mpc_set_bank(&mpc, bank), DDYN_OK);
+    assert_true(mpc.track.have_bank);
+    assert_true(fabs(ddyn_mpc_track_bank(&mpc.track, 10, 0.25) - (0.3 * 10.25 / RING)) < 1e-15);
+    assert_true(fabs(ddyn_mpc_track_bank(&mpc.track, RING - 1, 0.5) - 0.5 * 0.3 * (RING - 1) / RING) < 1e-15);
+    assert_true(ddyn_mpc_track_bank(&mpc.track, RING, 0.0) == 0.0 && ddyn_mpc_track_bank(&mpc.track, 3, 1.5) == 0.0);
+    {
+        /* a point half-way along segment 50, 5 cm outside the ring: the bank there */
+        double a0 = 2.0 * PI * 50 / RING, a1 = 2.0 * PI * 51 / RING;
+        double px = 0.5 * (cos(a0) + cos(a1)) * 1.05, py = 0.5 * (sin(a0) + sin(a1)) * 1.05;
+        assert_true(fabs(ddyn_mpc_bank_at(&mpc, px, py, &hint) - 0.3 * 50.5 / RING) < 1e-12);
+        assert_int_equal(hint, 50);
+        assert_true(fabs(ddyn_mpc_bank_at(&mpc, px, py, NULL) - 0.3 * 50.5 / RING) < 1e-12);
+        assert_true(ddyn_mpc_bank_at(&mpc, NAN, py, &hint) == 0.0);
+    }
+    /* a solve: each stage's bank is the table's at its predicted position */
+    ring_start(x0);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_OK);
+    for (i = 0; i < mpc.cfg.horizon; ++i) {
+        const double *xk = mpc.x_lin + i * DDYN_NX;
+        assert_true(fabs(mpc.stage_bank[i] - ddyn_mpc_bank_at(&mpc, xk[0], xk[1], NULL)) < 1e-12);
+    }
+    assert_true(mpc.stage_bank[mpc.cfg.horizon - 1] > mpc.stage_bank[0]); /* counter-clockwise: growing */
+    /* refusals leave the profile */
+    bank[7] = 0.7854;
+    assert_int_equal(ddyn_mpc_set_bank(&mpc, bank), DDYN_ERR_ARGUMENT);
+    bank[7] = NAN;
+    assert_int_equal(ddyn_mpc_set_bank(&mpc, bank), DDYN_ERR_NONFINITE_INPUT);
+    assert_true(mpc.track.have_bank && fabs(mpc.track.bank[7] - 0.3 * 7 / RING) < 1e-15);
+    assert_int_equal(ddyn_mpc_set_bank(&mpc, NULL), DDYN_OK); /* back to flat */
+    assert_false(mpc.track.have_bank);
+    assert_int_equal(ddyn_mpc_set_bank(NULL, bank), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_default_config(&ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    assert_int_equal(ddyn_mpc_init(&other, &ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    assert_int_equal(ddyn_mpc_set_bank(&other, bank), DDYN_ERR_NOT_READY); /* no track yet */
+    cfg.prediction = DDYN_MPC_PRED_EULER; /* its step carries no bank */
+    assert_int_equal(ddyn_mpc_init(&other, &ddyn_model_orca_1_43, &cfg), DDYN_OK);
+    assert_int_equal(ddyn_mpc_set_bank(&other, bank), DDYN_ERR_ARGUMENT);
 }
 
 static void test_closed_loop_stays_on_the_ring(void **state)
@@ -923,6 +1031,8 @@ int main(void)
         cmocka_unit_test(test_daqp_warm_start_shifts_and_the_cap_is_defined),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
+        cmocka_unit_test(test_bank_gravity_term_matches_the_python_model),
+        cmocka_unit_test(test_bank_table_lookup_and_refusals),
         cmocka_unit_test(test_plan_inputs_need_no_simulation),
         cmocka_unit_test(test_prepare_then_feedback_is_the_real_time_iteration),
     };

@@ -355,6 +355,7 @@ typedef struct {
      * lag_act_next: from the command acting over it, recomputed at each synchronisation) */
     double lag_decay;
     double lag_cmd, lag_act, lag_cmd_next, lag_act_next;
+    int bank_hint; /* the road's bank: the raceline segment of its last lookup (-1: search every one) */
     int initialised;
 } ddyn_ctrl;
 
@@ -373,6 +374,15 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
 /* The raceline the MPC tracks (ddyn_mpc_set_track). */
 ddyn_status ddyn_ctrl_set_track(ddyn_ctrl *ctl, int n, const double *x, const double *y, const double *speed,
                                 const double *width_left, const double *width_right);
+
+/* The road's bank along the raceline (issue 34; controller.json control.bank): bank[i] (rad, + tilting the
+ * road so that gravity pulls to the left) at each point of the track set last, in the MPC's fixed-size
+ * table (ddyn_mpc_set_bank: |bank| < DDYN_MPC_MAX_BANK, single-step RK4 prediction). With it the MPC
+ * predicts each stage with the bank at that stage's track position (the generated step's bank input),
+ * and the filter's prediction, the preparation's and the pipe's steps add the bank's lateral gravity
+ * at the state's position (ddyn_model_add_bank; the position projected on the raceline). NULL: a flat
+ * road (the default: the controller as before, bit-identical). Call after ddyn_ctrl_set_track. */
+ddyn_status ddyn_ctrl_set_bank(ddyn_ctrl *ctl, const double *bank);
 
 /* One control period: readings in, command out. Returns out->status (also when out is NULL:
  * DDYN_CTRL_ERR_ARGUMENT). in may hold no valid reading at all. */

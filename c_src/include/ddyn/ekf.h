@@ -25,6 +25,8 @@ typedef struct {
     double x[DDYN_NX];
     double P[DDYN_NX * DDYN_NX]; /* column-major, symmetric */
     double q[DDYN_NX];           /* process noise variance per step */
+    double bank;                 /* rad: the road's bank over the next prediction (ddyn_model_add_bank;
+                                    0 after init: flat); the caller sets it before ddyn_ekf_predict */
     ddyn_model_work work;
 } ddyn_ekf;
 

@@ -65,6 +65,16 @@ ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_disc
                                       double B[DDYN_NX * DDYN_NU], double P[DDYN_NX * DDYN_NC],
                                       ddyn_model_work *work);
 
+/* The road's bank (issue 34): its lateral gravity g sin(bank) (m/s^2, + to the left: dvy), the term of
+ * train/model/effects.py (bank_angle, G = DDYN_GRAVITY). The MPC's generated step carries it as an input
+ * (ddyn_mpc_set_bank); the vehicle's own steps (the filter's, the controller's pipe) have none, and
+ * ddyn_model_add_bank adds the term held over a step of dt to their x_next: dvy = a dt, the position
+ * a dt^2 / 2 along the car's left normal at x's yaw (a constant acceleration integrated exactly; its
+ * coupling through the tyres' slip within the step is left to the filter's updates). */
+#define DDYN_GRAVITY 9.81
+double ddyn_model_bank_accel(double bank);
+void ddyn_model_add_bank(double bank, double dt, const double x[DDYN_NX], double x_next[DDYN_NX]);
+
 /* Continuous-time derivative xdot = f(x, u, c). */
 /* 1 when v[0..n) holds no NaN or inf: the NaN/inf guard every runtime module uses on its inputs.
  * Under -ffast-math (-ffinite-math-only) the compiler may assume no NaN or inf exists and fold

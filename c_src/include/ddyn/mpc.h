@@ -106,6 +106,10 @@ typedef struct {
     double width_right[DDYN_MPC_MAX_TRACK_POINTS]; /* usable room along the right normal (m) */
     double speed_scale;  /* the reference speed is speed * speed_scale: 1 after ddyn_mpc_set_track; a
                             caller may lower it at run time (the controller's degraded-bus mode), (0, 1] */
+    /* the road's bank profile (issue 34, ddyn_mpc_set_bank): the bank (rad, + tilting the road so that
+     * gravity pulls to the left of the direction of travel) at each point; have_bank 0: a flat road */
+    double bank[DDYN_MPC_MAX_TRACK_POINTS];
+    int have_bank;
 } ddyn_mpc_track;
 
 /* What one solve did. */
@@ -147,6 +151,7 @@ typedef struct {
      * at, d(x, y)_k / dx0 (stage k-1: row x then row y, 8 columns each), the held-throttle flag */
     double prep_x0[DDYN_NX];
     double ref_tangent[(DDYN_MPC_MAX_HORIZON + 1) * 2]; /* raceline tangent at each stage's cost point */
+    double stage_bank[DDYN_MPC_MAX_HORIZON]; /* the bank each stage's prediction used (0 without a profile) */
     double phi[2 * DDYN_MPC_MAX_HORIZON * DDYN_NX];
     int prepared;               /* 1 between a preparation and its feedback */
     int prep_hold;
@@ -177,6 +182,26 @@ ddyn_status ddyn_mpc_set_coefficients(ddyn_mpc *mpc, const double c[DDYN_NC]);
  * be negative where the raceline itself is too close). Clears the warm start. */
 ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const double *y, const double *speed,
                                const double *width_left, const double *width_right);
+
+/* The road's bank along the raceline (issue 34): bank[i] (rad, |bank| < DDYN_MPC_MAX_BANK, finite) at each
+ * point of the track set last (n values, as ddyn_mpc_set_track's). Each prediction stage then steps the
+ * generated model with the lateral gravity g sin(bank) (ddyn_<vehicle>_mpc_step's bank input, the term of
+ * train/model/effects.py) at the bank of its own track position: the projection of the stage's
+ * predicted position on the raceline, linear between the points. bank NULL: back to a flat road. Only
+ * with the single-step RK4 prediction (the generated step carries the term), else DDYN_ERR_ARGUMENT;
+ * DDYN_ERR_NOT_READY without a track; a refused profile leaves the previous one. Clears the warm start. */
+#define DDYN_MPC_MAX_BANK 0.7853981633974483 /* 45 degrees */
+ddyn_status ddyn_mpc_set_bank(ddyn_mpc *mpc, const double *bank);
+
+/* The bank profile at segment i (0..n-1), parameter u in [0, 1] (linear between the points; 0 without a
+ * profile or out-of-range arguments). */
+double ddyn_mpc_track_bank(const ddyn_mpc_track *t, int i, double u);
+
+/* The bank at the projection of (px, py) on the raceline, searched +-DDYN_MPC_BANK_WINDOW segments around
+ * *hint (every segment when *hint < 0 or hint NULL), *hint updated to the segment found; 0 without a
+ * profile or for a non-finite position. Bounded: at most n segment distances. */
+#define DDYN_MPC_BANK_WINDOW 40
+double ddyn_mpc_bank_at(const ddyn_mpc *mpc, double px, double py, int *hint);
 
 /* One real-time iteration from the current state x0 (8 states).
  * Returns DDYN_OK: u (2 input rates) is the first input of the new plan.
