@@ -109,6 +109,10 @@ static const key_spec KEYS[] = {
      "known steering lag, s: the time constant tau of the acting steering's first-order lag behind its set-point; "
      "the filter predicts with the acting steering, the MPC plans from it and its first command inverts the "
      "lag (default 0: none; ddyn/controller.h)"},
+    {"control.bank", K_BOOL, OFF(bank), 0, 0, 0, 0, 0, NULL, NONE,
+     "false (default): a flat road; true: the raceline's 6th column is the road's bank (rad, + tilting the road "
+     "so that gravity pulls to the left; |bank| < 45 deg) at each point, and the filter and the MPC predict with "
+     "its lateral gravity g sin(bank) at their track positions (issue 34; ddyn/controller.h ddyn_ctrl_set_bank)"},
     {"effects", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE,
      "the diagnosis the actuation delays and the steering lag come from (`ddyn sil run --effects-from D`, "
      "docs/sil.md); a file whose control.delay differs from effects.delay, or control.lag from effects.lag, is "
@@ -144,7 +148,8 @@ static const key_spec KEYS[] = {
     {"filter.sensor_std.steering", K_NUMBERS, R_STD(DDYN_MEAS_STEERING), 0, 1, 0.0, 1e6, 0, NULL, NONE,
      "steering angle (rad)"},
     {"raceline", K_FILE, OFF(raceline), FSZ(raceline), 0, 0, 0, 1, NULL, NONE,
-     "CSV x,y,speed,width_left,width_right (header line optional), 4 .. 1024 rows, closed loop"},
+     "CSV x,y,speed,width_left,width_right[,bank] (header line optional), 4 .. 1024 rows, closed loop; the 6th "
+     "column (rad) with control.bank true only"},
     {"mpc", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE, "overrides of the MPC's defaults (docs/mpc.md)"},
     {"mpc.horizon", K_INT, MPC(horizon), 0, 0, 1, DDYN_MPC_MAX_HORIZON, 0, NULL, NONE, "stages"},
     {"mpc.q_pos", K_NUMBERS, MPC(q_pos), 0, 2, 0.0, 1e12, 0, NULL, NONE, "weights of the x and y error"},
@@ -462,50 +467,67 @@ static int walk(parse_ctx *p, const cJSON *obj, const char *prefix)
     return 1;
 }
 
-/* the raceline CSV: rows x, y, speed, width_left, width_right */
+/* the raceline CSV: rows x, y, speed, width_left, width_right and, with control.bank, the bank */
 static int read_raceline(parse_ctx *p)
 {
     ddyn_app_config *c = p->c;
     FILE *in = fopen(c->raceline, "r");
     char line[512];
     int lineno = 0, k;
+    const int cols = c->bank ? 6 : 5;
     if (in == NULL) {
         return fail(p, "raceline", "cannot read %s: %s", c->raceline, strerror(errno));
     }
     c->n_track = 0;
     while (fgets(line, sizeof line, in) != NULL) {
-        double row[5];
+        double row[6];
         char *s = line, *end;
         lineno += 1;
         while (*s == ' ' || *s == '\t') ++s;
         if (*s == '\n' || *s == '\0' || *s == '#' || (lineno == 1 && (*s == 'x' || *s == 'X'))) {
             continue; /* blank, comment, header */
         }
-        for (k = 0; k < 5; ++k) {
+        for (k = 0; k < cols; ++k) {
             row[k] = strtod(s, &end);
             if (end == s || !isfinite(row[k])) {
                 fclose(in);
+                if (k == 5) {
+                    return fail(p, "control.bank", "true, but %s line %d has no finite 6th column (the bank, rad)",
+                                c->raceline, lineno);
+                }
                 return fail(p, "raceline", "%s line %d: expected 5 numbers x,y,speed,width_left,width_right",
                             c->raceline, lineno);
             }
             s = end;
-            while (*s == ' ' || *s == '\t' || (k < 4 && *s == ',')) ++s;
+            while (*s == ' ' || *s == '\t' || (k < cols - 1 && *s == ',')) ++s;
         }
         if (*s != '\n' && *s != '\0' && *s != '\r') {
+            char *b = s + 1, *e = NULL;
             fclose(in);
-            return fail(p, "raceline", "%s line %d: more than 5 columns", c->raceline, lineno);
+            (void)strtod(b, &e); /* exactly one more number: a bank column */
+            while (e != NULL && e != b && (*e == ' ' || *e == '\t' || *e == '\r')) ++e;
+            if (!c->bank && *s == ',' && e != NULL && e != b && (*e == '\n' || *e == '\0')) {
+                return fail(p, "control.bank", "false, but %s line %d has a 6th column (a bank): set control.bank "
+                            "true or drop the column", c->raceline, lineno);
+            }
+            return fail(p, "raceline", "%s line %d: more than %d columns", c->raceline, lineno, cols);
         }
         if (!(row[2] > 0.0) || row[3] < 0.0 || row[4] < 0.0) {
             fclose(in);
             return fail(p, "raceline", "%s line %d: speed must be > 0 and the widths >= 0", c->raceline, lineno);
+        }
+        if (c->bank && !(fabs(row[5]) < DDYN_MPC_MAX_BANK)) {
+            fclose(in);
+            return fail(p, "control.bank", "%s line %d: bank %g rad, beyond +-%.4g rad (45 degrees)", c->raceline,
+                        lineno, row[5], DDYN_MPC_MAX_BANK);
         }
         if (c->n_track >= DDYN_MPC_MAX_TRACK_POINTS) {
             fclose(in);
             return fail(p, "raceline", "%s: more than %d points (the MPC's table)", c->raceline,
                         DDYN_MPC_MAX_TRACK_POINTS);
         }
-        for (k = 0; k < 5; ++k) {
-            c->track[k][c->n_track] = row[k];
+        for (k = 0; k < 6; ++k) {
+            c->track[k][c->n_track] = k < cols ? row[k] : 0.0;
         }
         c->n_track += 1;
     }
@@ -756,6 +778,9 @@ ddyn_status ddyn_app_node_init(ddyn_sil_node *node, const ddyn_app_config *c, co
     if (st == DDYN_OK) {
         st = ddyn_ctrl_set_track(&node->ctl, c->n_track, c->track[0], c->track[1], c->track[2], c->track[3],
                                  c->track[4]);
+    }
+    if (st == DDYN_OK && c->bank) {
+        st = ddyn_ctrl_set_bank(&node->ctl, c->track[5]); /* the road's bank along the raceline */
     }
     if (st == DDYN_OK) {
         /* frame authentication: can.key_file, else $DDYN_DBW_KEY_FILE, else off */

@@ -46,6 +46,7 @@ typedef struct {
     int have_pid[4];
     double delay[2];                    /* control.delay.{steering,throttle}, s (0 = none) */
     double lag[1];                      /* control.lag.steering: the steering lag's time constant, s (0 = none) */
+    int bank;                           /* control.bank: the raceline's 6th column is the road's bank (rad) */
     /* effects: what the configuration was made from (`ddyn sil effects`, issue 34); "" = not recorded */
     char effects_diagnosis[DDYN_APP_PATH_LEN]; /* effects.diagnosis: the diagnosis.json (recorded, not read) */
     char effects_sha256[65];            /* effects.diagnosis_sha256: its sha256 */
@@ -58,9 +59,9 @@ typedef struct {
     double q[DDYN_NX];                  /* filter.process_noise (0 = the controller's default) */
     double r_std[DDYN_MEAS_COUNT][DDYN_MEAS_MAX_DIM]; /* filter.sensor_std.<sensor> (0 = default) */
     /* track */
-    char raceline[DDYN_APP_PATH_LEN];   /* raceline: CSV file x,y,speed,width_left,width_right */
+    char raceline[DDYN_APP_PATH_LEN];   /* raceline: CSV file x,y,speed,width_left,width_right[,bank] */
     int n_track;
-    double track[5][DDYN_MPC_MAX_TRACK_POINTS];
+    double track[6][DDYN_MPC_MAX_TRACK_POINTS]; /* the columns; track[5]: the bank (0 without control.bank) */
     /* MPC overrides (unset: ddyn_ctrl_default_config's) */
     ddyn_mpc_config mpc;                /* mpc.* */
     /* telemetry and outputs */

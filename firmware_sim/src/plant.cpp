@@ -8,6 +8,10 @@
 
 namespace fsim {
 
+namespace {
+constexpr double kGravity = 9.81;  // m/s^2, train/model/effects.py G
+}  // namespace
+
 Plant::Plant(const ddyn_vehicle_model* model, const Coeffs& coeffs, const ActuatorLimits& limits,
              const PlantEffects& effects, double substep)
     : model_(model), c_(coeffs), limits_(limits), fx_(effects), h_(substep) {
@@ -63,6 +67,8 @@ State Plant::derivative(const State& x, const Eigen::Vector2d& u) {
     xd[kVx] = (xd[kVx] - vy_om) * k + vy_om;
     xd[kVy] = (xd[kVy] + vx_om) * k - vx_om;
   }
+  // the road's bank: lateral gravity (train/model/effects.py G, + to the left)
+  if (road_bank_ != 0.0) xd[kVy] += kGravity * std::sin(road_bank_);
   return xd;
 }
 

@@ -87,6 +87,12 @@ PlantAppConfig PlantAppConfig::from_json(const nlohmann::json& j) {
   get_if(j, "substep", c.substep);
   c.track_dir = j.at("track_dir").get<std::string>();
   get_if(j, "track", c.track);
+  if (j.contains("road_bank")) {
+    c.road_bank = j.at("road_bank").get<std::vector<double>>();
+    for (double b : c.road_bank)
+      if (!std::isfinite(b) || std::fabs(b) >= 1.5707963267948966)
+        throw std::runtime_error("config: road_bank must hold finite angles within +-pi/2 rad");
+  }
   if (j.contains("footprint")) {
     c.footprint.length = j.at("footprint").at("length").get<double>();
     c.footprint.width = j.at("footprint").at("width").get<double>();
@@ -148,6 +154,9 @@ PlantApp::PlantApp(const PlantAppConfig& cfg, Bus& bus)
       monitor_(track_, cfg.footprint),
       auth_(FrameAuth::from_key_file(cfg.auth_key_file, DDYN_DBW_MONITOR_DBW_UNIT)),
       fault_rng_(cfg.seed * 7919u + 17u) {
+  if (!cfg.road_bank.empty() && static_cast<int>(cfg.road_bank.size()) != track_.center().size())
+    throw std::runtime_error("config: road_bank has " + std::to_string(cfg.road_bank.size()) +
+                             " values, the track's centre line " + std::to_string(track_.center().size()) + " points");
   plant_.reset(cfg.start, 0.0);
   if (!cfg.resume.empty()) restore(cfg.resume);
   monitor_.update(plant_.time(), plant_.state()[kX], plant_.state()[kY], plant_.state()[kYaw]);
@@ -323,7 +332,8 @@ bool PlantApp::step() {
   const DbwOutput out = dbw_.update(t, plant_.state()[kVx]);
   plant_.set_command(out.throttle, out.steering);
   plant_.set_hold(out.hold);
-  // 3. physics
+  // 3. physics (the road's bank at the car's track position, held over the sub-step)
+  if (!cfg_.road_bank.empty()) plant_.set_road_bank(track_.interpolate(cfg_.road_bank, monitor_.s()));
   plant_.advance(cfg_.substep);
   const double t1 = plant_.time();
   const State& x = plant_.state();
@@ -455,6 +465,7 @@ nlohmann::json PlantApp::metrics() const {
   j["effects"] = {{"steer_delay", cfg_.effects.steer_delay}, {"throttle_delay", cfg_.effects.throttle_delay},
                   {"steer_lag", cfg_.effects.steer_lag}, {"mass_offset", cfg_.effects.mass_offset},
                   {"yaw_rate_bias", cfg_.effects.yaw_rate_bias}};
+  j["road_bank"] = !cfg_.road_bank.empty();
   j["footprint"] = {{"length", cfg_.footprint.length}, {"width", cfg_.footprint.width}};
   return j;
 }

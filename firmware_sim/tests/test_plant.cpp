@@ -126,6 +126,23 @@ TEST(Plant, MassOffsetScalesTheForcesOnly) {
   EXPECT_DOUBLE_EQ(db[fsim::kX], da[fsim::kX]);
 }
 
+// The road's bank adds g sin(bank) to dvy and nothing else (train/model/effects.py bank_angle, + to the left)
+TEST(Plant, RoadBankAddsLateralGravity) {
+  Plant p = orca();
+  State x = moving(1.5);
+  x[fsim::kVy] = 0.05;
+  x[fsim::kOmega] = 0.8;
+  x[fsim::kSteer] = 0.1;
+  const Eigen::Vector2d u(0.2, -0.3);
+  const State flat = p.derivative(x, u);
+  p.set_road_bank(0.3);
+  EXPECT_EQ(p.road_bank(), 0.3);
+  const State banked = p.derivative(x, u);
+  for (int i = 0; i < DDYN_NX; ++i) {
+    EXPECT_NEAR(banked[i] - flat[i], i == fsim::kVy ? 9.81 * std::sin(0.3) : 0.0, 1e-12) << i;
+  }
+}
+
 TEST(Plant, RejectsBadConfiguration) {
   EXPECT_THROW(Plant(nullptr, fsim_test::orca_true(), {}, {}, 1e-3), std::invalid_argument);
   EXPECT_THROW(Plant(&ddyn_model_orca_1_43, fsim_test::orca_true(), {}, {}, 0.0), std::invalid_argument);

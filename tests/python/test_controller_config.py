@@ -126,6 +126,8 @@ BAD = [
     ("raceline", "no_such_raceline.csv", "raceline: cannot read"),
     ("control.throttle", "fast", "control.throttle: 'fast' is not one of mpc, pid"),
     ("control.prepare", 1, "control.prepare: expected true or false, got a number"),
+    ("control.bank", 1, "control.bank: expected true or false, got a number"),
+    ("control.bank", True, "control.bank: true, but "),
     ("filter.x0", [0.0] * 7, "filter.x0: expected an array of 8 numbers"),
     ("filter.sensor_std.heading", [-1.0], "filter.sensor_std.heading[0]: -1 is out of range"),
     ("filter.sensor_std.lidar", [1.0], "filter.sensor_std.lidar: unknown key"),
@@ -160,6 +162,11 @@ def test_malformed_documents_and_rasterlines_are_refused(bins, good, tmp_path):
     assert r.returncode == 2 and "vehicle: given twice" in r.stderr
     lines = (tmp_path / "raceline.csv").read_text().splitlines()
     lines[3] = lines[3] + ",7"
+    (tmp_path / "raceline.csv").write_text("\n".join(lines) + "\n")
+    r = check(bins, good, tmp_path)
+    # a 6th column is the road's bank, read with control.bank only (issue 34)
+    assert r.returncode == 2 and "control.bank: false, but " in r.stderr and "line 4 has a 6th column" in r.stderr
+    lines[3] = lines[3] + ",8"
     (tmp_path / "raceline.csv").write_text("\n".join(lines) + "\n")
     r = check(bins, good, tmp_path)
     assert r.returncode == 2 and "raceline: " in r.stderr and "line 4: more than 5 columns" in r.stderr
@@ -233,3 +240,24 @@ def test_a_missing_can_interface_is_named_after_the_config_passed(bins, good, tm
     # "no CAN interface 'no_such_can0'" where the kernel has CAN; on a host without it socket() itself fails
     assert r.returncode == 2 and "ddyn_controller: can.interface: " in r.stderr, r.stderr
     assert "no CAN interface 'no_such_can0'" in r.stderr or "socket()" in r.stderr
+
+
+def test_the_bank_column_is_read_with_control_bank_and_refused_beyond_45_degrees(bins, good, tmp_path):
+    """control.bank (issue 34): true reads the raceline's 6th column (rad) as the road's bank; each refusal is one
+    line naming the key"""
+    lines = (tmp_path / "raceline.csv").read_text().splitlines()
+    rows = [ln + f",{0.1 + 0.001 * i!r}" for i, ln in enumerate(lines[1:])]
+    (tmp_path / "raceline.csv").write_text("\n".join([lines[0] + ",bank"] + rows) + "\n")
+    cfg = _set(good, "control.bank", True)
+    r = check(bins, cfg, tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["control"]["bank"] is True
+    rows[2] = rows[2].rsplit(",", 1)[0] + ",0.8"       # 45.8 degrees
+    (tmp_path / "raceline.csv").write_text("\n".join([lines[0]] + rows) + "\n")
+    r = check(bins, cfg, tmp_path)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert "controller.json: control.bank: " in r.stderr and "line 4: bank 0.8 rad, beyond" in r.stderr
+    rows[2] = rows[2].rsplit(",", 1)[0] + ",nan"
+    (tmp_path / "raceline.csv").write_text("\n".join([lines[0]] + rows) + "\n")
+    r = check(bins, cfg, tmp_path)
+    assert r.returncode == 2 and "controller.json: control.bank: true, but " in r.stderr and "line 4 has no finite 6th" in r.stderr

@@ -232,6 +232,10 @@ class SilSpec:
                                                # time constant): {"steer": ..} (control.lag; none: {})
     effects_from: dict | None = None           # the diagnosis the delays came from (ddyn.sil.effects
                                                # ControllerEffects.summary()): controller.json `effects`
+    road_bank: bool = True                     # a track with its own banking (Track.bank: the oval) banks the
+                                               # plant's road (plant.json road_bank); False: driven flat
+    controller_bank: bool = False              # the controller knows the road's bank (control.bank: the track's
+                                               # own profile along the raceline, raceline.csv's 6th column)
 
     @classmethod
     def true_car(cls, vehicle: Vehicle, track: Track, **settings) -> "SilSpec":
@@ -302,6 +306,9 @@ def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray 
         "faults": {"drop": f.get("drop", 0.0), "delay_max": f.get("delay", 0.0), "corrupt": f.get("corrupt", 0.0)},
         "out_dir": out_dir, "log_period": 0.01, "snapshot_period": 0.05,
     }
+    bank = getattr(spec.track, "bank", None)
+    if spec.road_bank and bank is not None:  # the world's banking, per centre-line point (the plant's track files)
+        cfg["road_bank"] = [float(b) for b in bank]
     if "restart_plant" in f:
         cfg["crash_at"] = float(f["restart_plant"])
     if key_file:  # frame authentication: the plant signs its frames and applies only verified commands
@@ -345,10 +352,26 @@ CONTROLLER_CONFIG = "controller.json"
 RACELINE_CSV = "raceline.csv"
 
 
-def raceline_csv(table: np.ndarray) -> str:
-    """The raceline file ddyn_controller reads (`raceline` key): x, y, speed, width_left, width_right."""
-    rows = ["x,y,speed,width_left,width_right"] + [",".join(repr(float(c)) for c in row) for row in table]
+def raceline_csv(table: np.ndarray, bank: np.ndarray | None = None) -> str:
+    """The raceline file ddyn_controller reads (`raceline` key): x, y, speed, width_left, width_right, and with
+    a bank (control.bank) the road's bank (rad) at each row as a 6th column."""
+    if bank is None:
+        rows = ["x,y,speed,width_left,width_right"] + [",".join(repr(float(c)) for c in row) for row in table]
+    else:
+        rows = ["x,y,speed,width_left,width_right,bank"] + [
+            ",".join(repr(float(c)) for c in (*row, b)) for row, b in zip(table, bank)]
     return "\n".join(rows) + "\n"
+
+
+def raceline_bank(track: Track, table: np.ndarray) -> np.ndarray:
+    """The track's own bank (rad, ddyn.model.track_oval.bank_at) at each raceline row: at the row's projection on
+    the centre line. A track without a bank profile is refused (control.bank would be a flat table)."""
+    from ddyn.model.track_oval import bank_at
+    if getattr(track, "bank", None) is None:
+        raise DdynError(f"the controller's bank (control.bank): track {track.name!r} has no bank profile "
+                        "(Track.bank; the banked oval: --track oval)")
+    s, _ = track.project(table[:, 0], table[:, 1])
+    return np.asarray(bank_at(track, s), float)
 
 
 def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: str = "",
@@ -402,6 +425,8 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         raise DdynError(f"controller lag: unknown {', '.join(sorted(unknown))}; expected steer")
     if any(float(d) != 0.0 for d in spec.controller_lag.values()):
         control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
+    if spec.controller_bank:  # the road's bank along the raceline (raceline.csv's 6th column)
+        control["bank"] = True
     if spec.effects_from is not None:
         # recorded from the diagnosis (ddyn.sil.effects): the controller refuses the file if control.delay or
         # control.lag differs
@@ -452,7 +477,8 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
 def write_controller_files(spec: SilSpec, table: np.ndarray, work: Path, out_dir: str, lcm_url: str = "",
                            key_file: str | None = None) -> Path:
     """controller.json and raceline.csv into the run's folder; the configuration's path."""
-    (work / RACELINE_CSV).write_text(raceline_csv(table))
+    bank = raceline_bank(spec.track, table) if spec.controller_bank else None
+    (work / RACELINE_CSV).write_text(raceline_csv(table, bank))
     path = work / CONTROLLER_CONFIG
     path.write_text(json.dumps(controller_config(spec, out_dir, lcm_url=lcm_url, table=table, key_file=key_file),
                                indent=1) + "\n")
@@ -946,6 +972,7 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "controller": None, "plant": pm, "run": run,
         "effects": spec.effects, "faults": spec.faults, "controller_delays": spec.controller_delays,
         "controller_lag": spec.controller_lag, "controller_effects": spec.effects_from,
+        "road_bank": bool(pm.get("road_bank", False)), "controller_bank": spec.controller_bank,
         "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
         "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
         # frame authentication: the plant's DBW unit's counts (commands accepted; forged, replayed, stale
@@ -1208,7 +1235,8 @@ def _run(args: argparse.Namespace) -> int:
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
                    forged_steering=args.inject_forged_steering,
-                   controller_delays=delays, controller_lag=lag, effects_from=effects_from)
+                   controller_delays=delays, controller_lag=lag, effects_from=effects_from,
+                   road_bank=not args.flat_road, controller_bank=args.controller_bank)
     if args.config_only:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -1286,6 +1314,14 @@ def register(subparsers) -> None:
                         "steer_lag -> control.lag.steering, every other effect named and not applied; recorded in "
                         "controller.json (effects: path, sha256; the controller refuses the file if control.delay "
                         "or control.lag is edited) and sil_metrics.json")
+    p.add_argument("--controller-bank", action="store_true",
+                   help="the controller knows the road's bank (controller.json control.bank): the track's own bank "
+                        "profile (--track oval) at each raceline point, raceline.csv's 6th column; its filter and "
+                        "MPC predict with the lateral gravity g sin(bank) at their track positions (default: off, "
+                        "a flat road)")
+    p.add_argument("--flat-road", action="store_true",
+                   help="drive a banked track (--track oval) flat: the plant without the track's own bank (default: "
+                        "a track with a bank profile banks the plant's road, plant.json road_bank)")
     p.add_argument("--config-only", action="store_true",
                    help="write controller.json and raceline.csv into --out and stop (no drive): e.g. the "
                         "configuration made from --effects-from D")

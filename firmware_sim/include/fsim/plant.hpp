@@ -12,7 +12,10 @@
 //   mass_offset                  the true mass is m (1 + fraction): the generated accelerations' force
 //                                part is scaled by 1 / (1 + fraction) (Iz, lf, lr unchanged)
 //   yaw_rate_bias                the gyro reads omega + bias (sensor side: see sensors.hpp)
-// The others of train/model/effects.py (bank, grade, downforce, combined slip, tyre relaxation and wear)
+// The road's bank (set_road_bank, the world's, not an effect: the track's own banking at the car's
+// track position, PlantApp's road_bank) adds the lateral gravity g sin(bank) to dvy (+ to the left), as
+// train/model/effects.py's bank_angle and ddyn.plants.commonroad_st define it.
+// The others of train/model/effects.py (grade, downforce, combined slip, tyre relaxation and wear)
 // change the tyre or gravity terms inside the model and would need generated C; not offered.
 #pragma once
 
@@ -56,6 +59,9 @@ class Plant {
   // standstill brake: while held the car does not move (velocities zero); actuators still move
   void set_hold(bool hold) { held_ = hold; }
   bool held() const { return held_; }
+  // the road's bank (rad, + tilting the road so that gravity pulls to the left) from now on
+  void set_road_bank(double bank) { road_bank_ = bank; }
+  double road_bank() const { return road_bank_; }
 
   const State& state() const { return x_; }
   double time() const { return t_; }
@@ -63,7 +69,7 @@ class Plant {
   const Coeffs& coeffs() const { return c_; }
   const ActuatorLimits& limits() const { return limits_; }
   const PlantEffects& effects() const { return fx_; }
-  // continuous-time derivative of the true plant (the generated model plus the mass offset)
+  // continuous-time derivative of the true plant (the generated model plus the mass offset and the bank)
   State derivative(const State& x, const Eigen::Vector2d& u);
   // set-points the actuators currently chase (after delay and lag)
   double throttle_target() const { return throttle_target_; }
@@ -86,6 +92,7 @@ class Plant {
   std::deque<Setpoint> history_;  // set-points, oldest first (kept as long as the delays need)
   double throttle_target_ = 0.0, steer_lagged_ = 0.0;
   bool held_ = false;
+  double road_bank_ = 0.0;
   ddyn_model_work work_{};
 };
 

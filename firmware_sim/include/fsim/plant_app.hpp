@@ -34,6 +34,9 @@ struct PlantAppConfig {
   PlantEffects effects;
   double substep = 1e-3;      // s: RK4 sub-step and the plant's loop period
   std::string track_dir, track = "ethzMobil";
+  // the road's bank per centre-line point of the track (rad, + to the left; "road_bank"): the plant
+  // drives with g sin(bank) at the car's track position; empty: a flat road
+  std::vector<double> road_bank;
   Footprint footprint;
   State start = State::Zero();
   int laps = 1;

@@ -75,10 +75,11 @@ class Track {
   Projection project(const Vec2& q, double s_hint, double window) const;
   Vec2 position(double s) const;
   double heading_at(double s) const;
+  // a value given per centre-line point (as many as the centre line has), linear between them, at s
+  double interpolate(const std::vector<double>& values, double s) const;
 
  private:
   Projection finish(const Vec2& q, const Polyline::Nearest& n) const;
-  double interpolate(const std::vector<double>& values, double s) const;
 
   std::string name_;
   Polyline center_, left_, right_;
