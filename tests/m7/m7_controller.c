@@ -63,6 +63,9 @@
 #define M7_DELAY_STEPS 300 /* pass 6 (cold path with both delays at the maximum) replays this many */
 #define M7_LAG_S 0.1       /* pass 6's steering lag (s): the lag runs in the filter's period, through the whole
                               pipe and inverts the first command (ddyn/controller.h "steering lag") */
+#define M7_BANK_RAD 0.35   /* pass 6's road bank (issue 34): a profile along the raceline swinging +-0.35 rad (20
+                              degrees, the banked oval's turns) twice a lap; the MPC looks up each stage's bank, the
+                              filter and every step through the pipe theirs (ddyn_ctrl_set_bank) */
 #endif
 #ifndef M7_COLD_STEPS
 #define M7_COLD_STEPS 5000 /* pass 4 replays min(this, the segment's periods) */
@@ -78,7 +81,7 @@ extern uint32_t __stack_bottom, __stack_top;
 
 static ddyn_ctrl ctl;
 static uint32_t insn[5000], sorted[5000];
-static double track_col[5][DDYN_MPC_MAX_TRACK_POINTS];
+static double track_col[6][DDYN_MPC_MAX_TRACK_POINTS]; /* the columns and the bank (pass 6) */
 
 /* ---- console output without stdio (semihosting SYS_WRITE0) ---- */
 static char line[160];
@@ -212,8 +215,8 @@ static uint32_t median_of(const uint32_t *v, int n)
     return n % 2 ? sorted[n / 2] : (sorted[n / 2 - 1] + sorted[n / 2]) / 2u;
 }
 
-/* max_delay: both actuation delays at the compiled maximum (DDYN_CTRL_MAX_DELAY_STEPS periods) and the
- * steering lag (M7_LAG_S), pass 6 */
+/* max_delay: both actuation delays at the compiled maximum (DDYN_CTRL_MAX_DELAY_STEPS periods), the
+ * steering lag (M7_LAG_S) and the road's bank (M7_BANK_RAD), pass 6 */
 static int controller_init(double qp_tolerance, int max_delay)
 {
     const ddyn_vehicle_model *model = ddyn_model_find(m7_seg_vehicle);
@@ -246,9 +249,13 @@ static int controller_init(double qp_tolerance, int max_delay)
             track_col[k][i] = m7_seg_track[i][k];
         }
     }
+    for (i = 0; i < m7_seg_track_n; ++i) {
+        track_col[5][i] = M7_BANK_RAD * sin(4.0 * 3.14159265358979323846 * i / m7_seg_track_n);
+    }
     return ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, m7_seg_x0) == DDYN_OK &&
            ddyn_ctrl_set_track(&ctl, m7_seg_track_n, track_col[0], track_col[1], track_col[2], track_col[3],
-                               track_col[4]) == DDYN_OK;
+                               track_col[4]) == DDYN_OK &&
+           (!max_delay || ddyn_ctrl_set_bank(&ctl, track_col[5]) == DDYN_OK);
 }
 
 static void input_of(const m7_seg_period *p, ddyn_ctrl_input *in)
@@ -682,6 +689,7 @@ int main(void)
         kv("delay_pass_periods", (unsigned long)delay_steps);
         kv("delay_pass_delay_steps", (unsigned long)ctl.delay_steps[DDYN_CTRL_CH_STEERING]);
         kv("delay_pass_steer_lag_ms", (unsigned long)(1000.0 * M7_LAG_S + 0.5));
+        kv("delay_pass_bank_mrad", (unsigned long)(1000.0 * M7_BANK_RAD + 0.5));
         kv("delay_pass_periods_cold_start", (unsigned long)cold);
         kv("delay_pass_insn_per_step_median", (unsigned long)median_of(insn, delay_steps));
         kv("delay_pass_insn_per_step_max", (unsigned long)worst_delay);
@@ -689,8 +697,9 @@ int main(void)
         worst_auth = max_of(auth_insn, delay_steps) > worst_auth ? max_of(auth_insn, delay_steps) : worst_auth;
         kv("delay_pass_insn_per_step_with_auth_median", (unsigned long)median_of(with_auth, delay_steps));
         kv("delay_pass_insn_per_step_with_auth_max", (unsigned long)worst_delay_with_auth);
-        if (ctl.delay_steps[DDYN_CTRL_CH_STEERING] != DDYN_CTRL_MAX_DELAY_STEPS || cold == 0 || !(ctl.lag_decay > 0.0)) {
-            m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum and the lag\n");
+        if (ctl.delay_steps[DDYN_CTRL_CH_STEERING] != DDYN_CTRL_MAX_DELAY_STEPS || cold == 0 || !(ctl.lag_decay > 0.0) ||
+            !ctl.mpc.track.have_bank) {
+            m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum, the lag and the bank\n");
             fail = 1;
         }
     }
