@@ -1551,6 +1551,44 @@ static void test_no_lag_is_the_controller_of_before(void **state)
     assert_true(ctl.lag_act_next == ctl.lag_act);
 }
 
+static void test_the_filter_and_the_preparation_predict_with_the_bank(void **state)
+{
+    /* control.bank (issue 34): with a profile the filter predicts with the bank at its position and the
+     * preparation's step adds the same lateral gravity (ddyn_model_add_bank); NULL: a flat road again */
+    static double bank[TRACK_N];
+    static ddyn_ctrl other;
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double expect[DDYN_NX];
+    int k, i;
+    (void)state;
+    for (i = 0; i < TRACK_N; ++i) bank[i] = 0.2;
+    memset(&other, 0, sizeof other);
+    assert_int_equal(ddyn_ctrl_set_bank(&other, bank), DDYN_ERR_ARGUMENT); /* not initialised */
+    assert_int_equal(ddyn_ctrl_set_bank(&ctl, bank), DDYN_OK);
+    for (k = 0; k < 5; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_true(ctl.ekf.bank == 0.2); /* the table's bank where the predicted period starts */
+        assert_false(out.status & DDYN_CTRL_SAFE_COMMAND);
+        assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK);
+        assert_int_equal(ddyn_model_step(model, cfg.ekf_disc, ctl.ekf.x, ctl.u_acting, ctl.coeffs, expect, &plant_work),
+                         DDYN_OK);
+        ddyn_model_add_bank(0.2, model->sample_time, ctl.ekf.x, expect);
+        for (i = 0; i < DDYN_NX; ++i) {
+            assert_true(fabs(ctl.mpc.prep_x0[i] - expect[i]) < 1e-14 * (1.0 + fabs(expect[i])));
+        }
+        for (i = 0; i < ctl.mpc.cfg.horizon; ++i) {
+            assert_true(fabs(ctl.mpc.stage_bank[i] - 0.2) < 1e-15); /* every stage predicts on the bank */
+        }
+        run(&in, &out);
+    }
+    assert_int_equal(ddyn_ctrl_set_bank(&ctl, NULL), DDYN_OK);
+    readings(&in, 5);
+    ddyn_ctrl_step(&ctl, &in, &out);
+    assert_true(ctl.ekf.bank == 0.0);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -1595,6 +1633,7 @@ int main(void)
         cmocka_unit_test_setup(test_no_lag_is_the_controller_of_before, setup),
         cmocka_unit_test_setup(test_the_mpc_plans_from_the_state_after_the_pipe, setup),
         cmocka_unit_test_setup(test_the_preparation_plans_from_the_same_delayed_state, setup),
+        cmocka_unit_test_setup(test_the_filter_and_the_preparation_predict_with_the_bank, setup),
     };
     return cmocka_run_group_tests_name("controller", tests, NULL, NULL);
 }
