@@ -61,8 +61,9 @@ def generate_step(vehicles: list[Vehicle], out: Path, banner, options: dict) -> 
         for ext in (".c", ".h"):
             text = (Path(tmp) / f"ddyn_mpc_model{ext}").read_text()
             target = Path(out) / f"ddyn_mpc_model{ext}"
-            target.write_text(banner("The MPC's prediction step: single-step RK4 and its Jacobians wrt x, u.",
-                                     vehicles) + text)
+            what = ("The MPC's prediction step: single-step RK4, the road's bank an input (ddyn.model.effects), "
+                    "Jacobians wrt x, u.")
+            target.write_text(banner(what, vehicles) + text)
             written.append(target)
     return written, funcs
 
