@@ -213,3 +213,48 @@ def test_a_cached_log_is_named_by_what_makes_it():
                             any(x[k] != y[k] for k in lofo.LOG_FIELDS)]
     assert same_seed_other_case, "the two sizes should differ somewhere (else the test shows nothing)"
     assert all(lofo.cache_name(x) != lofo.cache_name(y) for x, y in same_seed_other_case)
+
+
+# ----------------------------------------------------------------------------------------------- a new campaign
+
+def _recorded_study(tmp_path, levels):
+    """A recorded study's results.json with fold calibrations for commonroad-st and commonroad-std."""
+    cal = {"decision_levels": {e: levels for e in lofo.EFFECTS},
+           "family_margins_per_row": {e: 0.0 for e in lofo.EFFECTS}, "families": [], "logs": 0}
+    doc = {"settings": {"seed": 1, "logs_per_family": 4}, "all_families_calibration": cal,
+           "folds": {"commonroad-st": {"calibration": cal}, "commonroad-std": {"calibration": cal}}}
+    path = tmp_path / "recorded.json"
+    path.write_text(json.dumps(doc))
+    return path, doc
+
+
+def test_recorded_folds_refuse_the_same_seed_a_missing_family_and_a_non_study(tmp_path):
+    path, doc = _recorded_study(tmp_path, 1.0)
+    assert lofo.recorded_folds(doc, path, ["commonroad-st"], 2)["commonroad-st"] == doc["folds"]["commonroad-st"][
+        "calibration"]
+    with pytest.raises(DdynError, match="seed 1: the recorded study's own campaign"):
+        lofo.recorded_folds(doc, path, ["commonroad-st"], 1)
+    with pytest.raises(DdynError, match="no fold for mujoco"):
+        lofo.recorded_folds(doc, path, ["commonroad-st", "mujoco"], 2)
+    with pytest.raises(DdynError, match="recorded.json: not a leave-one-family-out study"):
+        lofo.recorded_folds({"folds": {}}, path, ["commonroad-st"], 2)
+
+
+def test_a_new_campaign_is_scored_under_the_recorded_folds_without_a_pass_one(tmp_path, capsys):
+    """`ddyn gap lofo --folds-from`: no pass 1, each family's new logs diagnosed under the recorded fold (here one
+    that never claims: no log gets a claim), the recorded calibrations in the results; --calibration-out refused."""
+    from ddyn.cli import main
+
+    path, doc = _recorded_study(tmp_path, None)
+    args = ["gap", "lofo", "--families", "commonroad-st,commonroad-std", "--logs", "4", "--seed", "2",
+            "--durations", "20", "--folds-from", str(path), "--out", str(tmp_path / "s"), "--no-progress"]
+    assert main(args + ["--calibration-out", str(tmp_path / "c.json")]) != 0
+    assert "makes none" in capsys.readouterr().err
+    assert main(args) == 0
+    res = json.loads((tmp_path / "s" / "results.json").read_text())
+    assert res["pass1"] == [] and res["settings"]["folds_from"]["seed"] == 1
+    assert {f: v["calibration"] for f, v in res["folds"].items()} == {f: v["calibration"]
+                                                                      for f, v in doc["folds"].items()}
+    ok = [r for r in res["pass2"] if r["status"] == "ok"]
+    assert len(ok) >= 6 and all(r["claimed"] == [] for r in ok)
+    assert "no log of this campaign chose anything" in (tmp_path / "s" / "results.md").read_text()

@@ -308,6 +308,8 @@ def _run_lofo(args) -> int:
     if args.from_results:        # a recorded study: its calibration again, nothing re-run
         if not args.calibration_out:
             raise DdynError("--from-results: give --calibration-out (what to make of the recorded study)")
+        if args.folds_from:
+            raise DdynError("--from-results re-reads the study in --out; --folds-from scores a new one: not both")
         path = out / "results.json"
         try:
             doc = json.loads(path.read_text())
@@ -323,6 +325,19 @@ def _run_lofo(args) -> int:
         _summarised(doc)
         _write_run(doc, out)
         return _write_travelling(args, doc)
+    folds_from = None
+    if args.folds_from:          # another campaign scored under a recorded study's fold calibrations
+        if args.calibration_out:
+            raise DdynError("--folds-from scores under a recorded study's calibrations; it makes none "
+                            "(drop --calibration-out)")
+        src = Path(args.folds_from)
+        try:
+            folds_from = {"doc": json.loads(src.read_text()), "path": src}
+        except FileNotFoundError:
+            raise DdynError(f"{src}: not found (a `ddyn gap lofo --out DIR` run writes DIR/results.json)") from None
+        except (OSError, json.JSONDecodeError) as e:
+            raise DdynError(f"{src}: not a leave-one-family-out study's results.json ({e})") from None
+        lofo.recorded_folds(folds_from["doc"], src, fams, args.seed)    # checked before the work, not after
     durations = lofo.DURATIONS
     if args.durations:
         try:
@@ -332,7 +347,7 @@ def _run_lofo(args) -> int:
         if not durations or any(not 10.0 <= d <= 900.0 for d, _ in durations):
             raise DdynError(f"--durations {args.durations!r}: each between 10 and 900 s")
     doc = _with_scheduler(args, lambda: lofo.run(fams, args.logs, args.seed, out, args.jobs, not args.no_progress,
-                                                 durations))
+                                                 durations, folds_from))
     _summarised(doc)
     _write_run(doc, out)
     return _write_travelling(args, doc) if args.calibration_out else 0
@@ -392,6 +407,10 @@ def _add_lofo(sub) -> None:
     p.add_argument("--name", default=None, help="that calibration's name (default the file's stem)")
     p.add_argument("--from-results", action="store_true",
                    help="make --calibration-out from the study already recorded in --out (nothing re-run)")
+    p.add_argument("--folds-from", default=None, metavar="RESULTS",
+                   help="no calibration of its own: score this campaign (use another --seed) with each family under "
+                        "the fold calibration of a recorded study (its results.json): logs that neither the "
+                        "calibrations nor the choices behind their rules saw")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_lofo)
 

@@ -73,7 +73,9 @@ DEFAULT_SEED = 8101
 
 def base_config() -> DiagnosisConfig:
     """The diagnosis the study calibrates: the hold from the log's command steps, every one-parameter effect and the
-    bank and grade profiles and channels (drivetrain shapes are not scored: no size that matters)."""
+    bank and grade profiles and channels (drivetrain shapes are not scored: no size that matters). The mass offset
+    keeps Iz (mass_inertia False): with Iz scaled, as every family's heavier car has it, the candidate is a
+    longitudinal gain alone, and in the study it took grades for a heavier car and claimed more no-claim logs."""
     return DiagnosisConfig(hold="steps", candidates=E.EFFECT_NAMES + C.EXTRA)
 
 
@@ -392,7 +394,10 @@ def _rate(a, b):
 def markdown(doc: dict) -> str:
     lines = [f"# Leave one plant family out ({doc['settings']['logs_per_family']} logs per family, seed "
              f"{doc['settings']['seed']})", "",
-             "Each family scored blind under the calibration of the others (ddyn.gap.benchmark.lofo).", "",
+             "Each family scored blind under the calibration of the others (ddyn.gap.benchmark.lofo)."
+             + (" The calibrations are those of the study in {results} (seed {seed}, {logs_per_family} logs per "
+                "family): no log of this campaign chose anything.".format(**doc["settings"]["folds_from"])
+                if doc["settings"].get("folds_from") else ""), "",
              "| left out | largest family margin/row | claimable | first effect right | effect-free claimed | below size claimed "
              "| delay vs lag | median param error | found above stated limit | limit <= size |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -426,9 +431,31 @@ def worst(folds: dict) -> dict | None:
             "why": f"first effect right on {100 * rate:.0f} % of its scored logs, the lowest"}
 
 
+def recorded_folds(doc: dict, path: Path, families: list[str], seed: int) -> dict:
+    """{family: its fold's calibration} of a recorded study (its results.json `doc`), for scoring another campaign
+    under them (run(folds_from=...)); one DdynError line naming the file and what is missing or wrong."""
+    try:
+        folds = {fam: doc["folds"][fam]["calibration"] for fam in doc["folds"]}
+        recorded_seed = doc["settings"]["seed"]
+        doc["all_families_calibration"]["decision_levels"]
+    except (KeyError, TypeError) as e:
+        raise DdynError(f"{path}: not a leave-one-family-out study's results.json (no {e})") from None
+    missing = [fam for fam in families if fam not in folds]
+    if missing:
+        raise DdynError(f"{path}: no fold for {', '.join(missing)} (it left out {', '.join(folds) or 'none'})")
+    if recorded_seed == seed:
+        raise DdynError(f"--seed {seed}: the recorded study's own campaign; score another seed (its logs are the "
+                        "ones its calibrations and their rules were chosen on)")
+    return folds
+
+
 def run(families: list[str], n: int, seed: int, out: Path, jobs: int = 1, progress: bool = True,
-        durations=DURATIONS) -> dict:
-    """The study: plan, pass 1, folds, pass 2; the results document (written by the caller)."""
+        durations=DURATIONS, folds_from: dict | None = None) -> dict:
+    """The study: plan, pass 1, folds, pass 2; the results document (written by the caller).
+    folds_from: {"doc": a recorded study's results.json, "path": where it was read}: no pass 1, each family's logs
+    of this campaign are scored under that study's fold calibration for it (made from the OTHER families' logs of
+    the recorded campaign): the check on logs that neither the calibrations nor the choices behind their rules
+    saw (another seed), still with each family left out."""
     from ddyn.gap.benchmark.parallel import run_cases
 
     t0 = time.perf_counter()
@@ -445,10 +472,13 @@ def run(families: list[str], n: int, seed: int, out: Path, jobs: int = 1, progre
     # pass 1 reads round one only (what the calibration reads): one effect, no nuisance rounds
     first_round = base_config().with_(max_effects=1, max_unclaimed=0).to_dict()
     cases = [c | {"config": first_round, "cache": str(cache)} for fam in use for c in plan(fam, n, seed, durations)]
-    pass1 = run_cases(run_case, cases, jobs, "pass 1 (uncalibrated)", progress)
+    recorded = None
+    if folds_from is not None:
+        recorded = recorded_folds(folds_from["doc"], folds_from["path"], use, seed)
+    pass1 = [] if recorded else run_cases(run_case, cases, jobs, "pass 1 (uncalibrated)", progress)
     folds, second = {}, []
     for fam in use:
-        cal = calibrate([r for r in pass1 if r["family"] != fam])
+        cal = recorded[fam] if recorded else calibrate([r for r in pass1 if r["family"] != fam])
         folds[fam] = {"calibration": cal}
         conf = applied_config(cal).to_dict()
         second += [c | {"config": conf, "cache": str(cache)} for c in cases if c["family"] == fam]
@@ -459,7 +489,12 @@ def run(families: list[str], n: int, seed: int, out: Path, jobs: int = 1, progre
                         "effects": list(EFFECTS), "durations": [list(d) for d in durations],
                         "dbw_periods": list(DBW_PERIODS), "noise_scales": list(NOISE_SCALES)},
            "skipped": skipped, "folds": folds, "worst": worst(folds),
-           "all_families_calibration": calibrate(pass1),
+           "all_families_calibration": (folds_from["doc"]["all_families_calibration"] if recorded
+                                        else calibrate(pass1)),
            "pass1": pass1, "pass2": pass2, "seconds": time.perf_counter() - t0}
+    if recorded:
+        rs = folds_from["doc"]["settings"]
+        doc["settings"]["folds_from"] = {"results": str(folds_from["path"]), "seed": rs["seed"],
+                                         "logs_per_family": rs["logs_per_family"]}
     doc["markdown"] = markdown(doc)
     return doc
