@@ -292,6 +292,10 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     (void)ddyn_ctrl_delay_steps(&cfg->delay, model->sample_time, ctl->delay_steps); /* checked by config_ok */
     ddyn_ctrl_delay_line_reset(&ctl->sent[0], 0.0); /* the actuators held since forever */
     ddyn_ctrl_delay_line_reset(&ctl->sent[1], 0.0);
+    /* a shorter throttle delay is held back to the steering's (ddyn/controller.h): the queue holds u = 0 */
+    ctl->thr_hold = ctl->delay_steps[DDYN_CTRL_CH_STEERING] > ctl->delay_steps[DDYN_CTRL_CH_THROTTLE]
+                        ? ctl->delay_steps[DDYN_CTRL_CH_STEERING] - ctl->delay_steps[DDYN_CTRL_CH_THROTTLE]
+                        : 0;
     /* the steering lag: at rest at the start's steering (the drive-by-wire node's first set-point) */
     ctl->lag_decay = ddyn_ctrl_lag_decay(cfg->lag.steering, model->sample_time);
     ctl->lag_cmd = ctl->lag_act = ctl->lag_cmd_next = ctl->lag_act_next = x0[STEERING];
@@ -875,9 +879,14 @@ static ddyn_status predict_pipe_lag(ddyn_ctrl *ctl, const double x[NX], double x
     for (i = 0; i < n; ++i) { /* n <= DDYN_CTRL_MAX_DELAY_STEPS */
         for (c = 0; c < NU; ++c) {
             const int d = ctl->delay_steps[c];
-            /* a channel with a shorter delay: its commands not sent yet are held (see the function's
-             * comment in ddyn/controller.h for why not the last plan's) */
-            u[c] = i < d ? ddyn_ctrl_delay_line_ago(&ctl->sent[c], d - 1 - i) : 0.0;
+            /* a channel with a shorter delay: its commands not sent yet; the throttle's are held back
+             * to the steering's delay and known (thr_queue, i - d < thr_hold), the steering is never
+             * shorter here (ddyn/controller.h) */
+            if (i < d) {
+                u[c] = ddyn_ctrl_delay_line_ago(&ctl->sent[c], d - 1 - i);
+            } else {
+                u[c] = c == DDYN_CTRL_CH_THROTTLE && i - d < ctl->thr_hold ? ctl->thr_queue[i - d] : 0.0;
+            }
         }
         if (ctl->lag_decay > 0.0) {
             u[1] = lag_period(ctl, cmd, act, u[1], &cmd, &act); /* the steering acts through the lag */
@@ -907,6 +916,27 @@ ddyn_status ddyn_ctrl_predict_pipe(ddyn_ctrl *ctl, const double x[DDYN_NX], doub
     lag[0] = ctl->lag_cmd;
     lag[1] = ctl->lag_act;
     return predict_pipe_lag(ctl, x, x_out, lag);
+}
+
+/* A throttle delay longer than the steering's: its commands still in the pipe act over the MPC's first
+ * n_throttle - n_steer stages, given to the MPC as known inputs (ddyn_mpc_fix_throttle); returns that
+ * count (0 otherwise, and with the PID throttle), the stage of the plan whose throttle goes out now */
+static int fix_pipe_throttle(ddyn_ctrl *ctl)
+{
+    const int ns = ctl->delay_steps[DDYN_CTRL_CH_STEERING], nt = ctl->delay_steps[DDYN_CTRL_CH_THROTTLE];
+    double u[DDYN_CTRL_MAX_DELAY_STEPS];
+    int n = nt - ns, k;
+    if (ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID || n <= 0) {
+        (void)ddyn_mpc_fix_throttle(&ctl->mpc, 0, NULL);
+        return 0;
+    }
+    if (n > ctl->cfg.mpc.horizon - 1) {
+        n = ctl->cfg.mpc.horizon - 1;
+    }
+    for (k = 0; k < n; ++k) { /* n <= DDYN_CTRL_MAX_DELAY_STEPS */
+        u[k] = ddyn_ctrl_delay_line_ago(&ctl->sent[DDYN_CTRL_CH_THROTTLE], nt - 1 - ns - k);
+    }
+    return ddyn_mpc_fix_throttle(&ctl->mpc, n, u) == DDYN_OK ? n : 0;
 }
 
 /* With a steering lag: the MPC's steering rate u_mpc (its acting angle's, from the acting angle act at the
@@ -947,6 +977,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
     ddyn_ctrl_status st = DDYN_CTRL_OK;
     double u[NU], dthrottle = 0.0, v_ref = 0.0, x0[NX], x_pipe[NX], lag[2];
     const int pid = ctl->cfg.throttle_mode == DDYN_CTRL_THROTTLE_PID;
+    int fix;
     ddyn_status s;
     if (ctl->mpc.prepared && !coefficients_close(ctl, ctl->mpc.c, ctl->coeffs)) {
         /* prepared with coefficients this period replaced (a fallback, a jump of the network's estimate):
@@ -962,6 +993,7 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
     (void)predict_pipe_lag(ctl, ctl->ekf.x, x_pipe, lag);
     predict_latency(ctl, x_pipe, in->latency, x0);
     memcpy(out->x_mpc0, x0, sizeof x0);
+    fix = fix_pipe_throttle(ctl); /* the throttle still in the pipe over the first stages (a longer delay) */
     if (s == DDYN_OK && pid) {
         s = ddyn_mpc_reference_speed(&ctl->mpc, x0, ctl->cfg.pid.preview * fabs(x0[VX]), &v_ref);
         if (s == DDYN_OK) {
@@ -983,6 +1015,9 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
         ctl->plan_horizon = h > 0 && h <= DDYN_MPC_MAX_HORIZON ? h : 0;
         ctl->plan_age = 0;
         memcpy(out->u, u, sizeof u);
+        if (fix > 0 && ctl->plan_horizon > fix) {
+            out->u[0] = ctl->plan_u[fix * NU + 0]; /* the stage at which the throttle sent now acts */
+        }
         out->u[1] = invert_lag(ctl, u[1], lag);
         return st;
     }
@@ -990,13 +1025,37 @@ static ddyn_ctrl_status plan(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctr
     if (s != DDYN_ERR_NOT_READY && s != DDYN_ERR_ARGUMENT && ctl->plan_horizon > 0 &&
         ctl->plan_age <= ctl->cfg.max_plan_shift && ctl->plan_age < ctl->plan_horizon) {
         /* the plan computed plan_age periods ago, at the stage that is now */
-        out->u[0] = pid ? dthrottle : ctl->plan_u[ctl->plan_age * NU + 0]; /* PID: its throttle, always */
+        const int ts = ctl->plan_age + fix < ctl->plan_horizon ? ctl->plan_age + fix : ctl->plan_horizon - 1;
+        out->u[0] = pid ? dthrottle : ctl->plan_u[ts * NU + 0]; /* PID: its throttle, always */
         out->u[1] = invert_lag(ctl, ctl->plan_u[ctl->plan_age * NU + 1], lag);
         st |= DDYN_CTRL_PLAN_SHIFTED;
     } else {
         *safe_cause = 1;
     }
     return st;
+}
+
+/* A throttle delay shorter than the steering's (thr_hold > 0): the throttle the MPC planned now joins
+ * the queue and the one planned thr_hold periods ago goes out (u[0]); the safe command goes out at once
+ * and the queue becomes holds (u = 0), what the pipe then assumes (ddyn/controller.h). */
+static void hold_back_throttle(ddyn_ctrl *ctl, int safe, double u[NU])
+{
+    const int h = ctl->thr_hold;
+    int i;
+    if (safe) {
+        for (i = 0; i < DDYN_CTRL_MAX_DELAY_STEPS; ++i) {
+            ctl->thr_queue[i] = 0.0;
+        }
+        return;
+    }
+    {
+        const double planned = u[0];
+        u[0] = ctl->thr_queue[0];
+        for (i = 0; i + 1 < h && i + 1 < DDYN_CTRL_MAX_DELAY_STEPS; ++i) {
+            ctl->thr_queue[i] = ctl->thr_queue[i + 1];
+        }
+        ctl->thr_queue[h - 1] = planned;
+    }
 }
 
 ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_ctrl_output *out)
@@ -1047,6 +1106,9 @@ ddyn_ctrl_status ddyn_ctrl_step(ddyn_ctrl *ctl, const ddyn_ctrl_input *in, ddyn_
     if (!ddyn_all_finite(out->u, NU)) { /* cannot happen by the checks above; never hand out garbage */
         ddyn_ctrl_safe_command(ctl, ctl->ekf.x, out->u);
         st |= DDYN_CTRL_SAFE_COMMAND;
+    }
+    if (ctl->thr_hold > 0) {
+        hold_back_throttle(ctl, (st & DDYN_CTRL_SAFE_COMMAND) != 0u, out->u);
     }
     memcpy(out->x_est, ctl->ekf.x, sizeof out->x_est);
     memcpy(out->coeffs, ctl->coeffs, sizeof out->coeffs);
@@ -1108,6 +1170,7 @@ ddyn_status ddyn_ctrl_prepare(ddyn_ctrl *ctl)
     lag[0] = ctl->lag_cmd_next; /* the lag at the next period's start */
     lag[1] = ctl->lag_act_next;
     (void)predict_pipe_lag(ctl, x_next, x_pred, lag);
+    (void)fix_pipe_throttle(ctl); /* as the next step will: its pipe is this line (newest: just sent) */
     return ddyn_mpc_prepare(&ctl->mpc, x_pred);
 }
 

@@ -187,6 +187,22 @@ ddyn_status ddyn_mpc_set_bank(ddyn_mpc *mpc, const double *bank)
     return DDYN_OK;
 }
 
+ddyn_status ddyn_mpc_fix_throttle(ddyn_mpc *mpc, int n, const double *dthrottle)
+{
+    int k;
+    if (mpc == NULL || n < 0 || n >= mpc->cfg.horizon || (n > 0 && dthrottle == NULL)) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    if (n > 0 && !ddyn_all_finite(dthrottle, n)) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    for (k = 0; k < n; ++k) { /* n < horizon <= DDYN_MPC_MAX_HORIZON */
+        mpc->fix_u[k] = dthrottle[k];
+    }
+    mpc->fix_n = n;
+    return DDYN_OK;
+}
+
 void ddyn_mpc_reset(ddyn_mpc *mpc)
 {
     if (mpc == NULL) {
@@ -369,6 +385,8 @@ static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, 
             double v = src >= 0 ? mpc->u_plan[src * DDYN_NU + j] : 0.0;
             if (hold && j == 0) {
                 v = k == 0 ? dthrottle0 : 0.0;
+            } else if (j == 0 && k < mpc->fix_n) {
+                v = mpc->fix_u[k]; /* known (ddyn_mpc_fix_throttle) */
             }
             mpc->u_lin[k * DDYN_NU + j] = clip(v, mpc->cfg.rate_lo[j], mpc->cfg.rate_hi[j]);
         }
@@ -481,6 +499,38 @@ static void hold_throttle_columns(ddyn_mpc *mpc)
     }
 }
 
+/* Known throttle rates of the first fix_n stages (ddyn_mpc_fix_throttle): their columns taken out as
+ * hold_throttle_columns does (no coupling, no gradient, not in the track rows; their box and the
+ * integrator rows of the stages they alone reach relaxed), with a weight that keeps them at 0 where a
+ * later stage's integrator row pulls on them; the plan uses the known rates, not z. */
+static void fix_throttle_columns(ddyn_mpc *mpc)
+{
+    const ddyn_mpc_config *cfg = &mpc->cfg;
+    const int h = cfg->horizon, n = 2 * h;
+    ddyn_mpc_qp *qp = &mpc->qp;
+    const double rate_w = cfg->rate_hi[0] - cfg->rate_lo[0], state_w = cfg->state_hi[0] - cfg->state_lo[0];
+    int i, k, q;
+    for (k = 0; k < mpc->fix_n && k < h; ++k) {
+        const int j = 2 * k;
+        for (i = 0; i < n; ++i) {
+            if (i > j) {
+                qp->hess[i + j * DDYN_QP_NV] = 0.0;
+            } else if (i < j) {
+                qp->hess[j + i * DDYN_QP_NV] = 0.0;
+            }
+        }
+        qp->hess[j + j * DDYN_QP_NV] = 2.0 * cfg->r_rate[0] * DDYN_MPC_FIX_WEIGHT;
+        qp->grad[j] = 0.0;
+        qp->lb[j] = -rate_w;
+        qp->ub[j] = rate_w;
+        qp->hard_lo[j] = -state_w * (double)(k + 1); /* row 2k: the throttle after stage k + 1, fixed */
+        qp->hard_hi[j] = state_w * (double)(k + 1);
+        for (q = 0; q < h; ++q) {
+            qp->soft_row[q * DDYN_QP_NV + j] = 0.0;
+        }
+    }
+}
+
 /* condensed QP in the deviations z = u - u_lin */
 static void build_qp(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold)
 {
@@ -537,6 +587,8 @@ static void build_qp(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold)
     }
     if (hold) {
         hold_throttle_columns(mpc);
+    } else if (mpc->fix_n > 0) {
+        fix_throttle_columns(mpc);
     }
     for (j = 0; j < n; ++j) { /* mirror the lower triangle */
         for (i = j + 1; i < n; ++i) {
@@ -679,6 +731,9 @@ static void shift_to(ddyn_mpc *mpc, const double x0[DDYN_NX])
             qp->grad[j] += qx * sx[j] * (ddx - ds * mpc->ref_tangent[2 * k]) +
                            qy * sy[j] * (ddy - ds * mpc->ref_tangent[2 * k + 1]);
         }
+        for (j = 0; j < 2 * mpc->fix_n && j < 2 * k; j += 2) {
+            qp->grad[j] = 0.0; /* known throttle rates: no gradient (fix_throttle_columns) */
+        }
         doff = r[4] * ddx + r[5] * ddy;
         qp->soft_hi[k - 1] -= doff;
         qp->soft_lo[k - 1] -= doff;
@@ -768,7 +823,8 @@ static ddyn_status feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[DD
     for (k = 0; k < h; ++k) {
         for (j = 0; j < DDYN_NU; ++j) {
             int idx = k * DDYN_NU + j;
-            double z = hold && j == 0 ? 0.0 : mpc->qp.z[idx]; /* held throttle: the fixed rates */
+            /* held throttle, known throttle rates: the fixed rates */
+            double z = (hold || (j == 0 && k < mpc->fix_n)) && j == 0 ? 0.0 : mpc->qp.z[idx];
             mpc->u_plan[idx] = clip(mpc->u_lin[idx] + z, mpc->cfg.rate_lo[j], mpc->cfg.rate_hi[j]);
         }
     }

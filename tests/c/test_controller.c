@@ -1279,7 +1279,7 @@ static void test_the_mpc_plans_from_the_state_after_the_pipe(void **state)
      * period before, then held), and ddyn_ctrl_predict_pipe between periods is the same stepping */
     ddyn_ctrl_output out;
     ddyn_ctrl_input in;
-    double x[DDYN_NX], xn[DDYN_NX], x_api[DDYN_NX];
+    double x[DDYN_NX], xn[DDYN_NX], x_api[DDYN_NX], q[DDYN_CTRL_MAX_DELAY_STEPS];
     const double dt = model->sample_time;
     int k, i;
     (void)state;
@@ -1292,13 +1292,16 @@ static void test_the_mpc_plans_from_the_state_after_the_pipe(void **state)
         run_delayed_plant(k, 3, 1, &out);
     }
     readings(&in, 25);
+    assert_int_equal(ctl.thr_hold, 2); /* the throttle held back to the steering's 3 periods */
+    memcpy(q, ctl.thr_queue, sizeof q);
     ddyn_ctrl_step(&ctl, &in, &out);
     memcpy(x, out.x_est, sizeof x);
     for (i = 0; i < 3; ++i) {
-        /* this period's command is sent_log-to-be: the pipe is the commands of periods 22 .. 24 */
+        /* this period's command is sent_log-to-be: the pipe is the commands of periods 22 .. 24, the
+         * throttle's after the one of period 24 the held-back ones (sent in periods 25, 26) */
         double u[DDYN_NU];
         u[1] = sent_log[22 + i][1];
-        u[0] = i < 1 ? sent_log[24][0] : 0.0;
+        u[0] = i < 1 ? sent_log[24][0] : q[i - 1];
         assert_int_equal(ddyn_model_step(model, cfg.ekf_disc, x, u, ctl.coeffs, xn, &plant_work), DDYN_OK);
         memcpy(x, xn, sizeof x);
     }
@@ -1310,7 +1313,7 @@ static void test_the_mpc_plans_from_the_state_after_the_pipe(void **state)
     for (i = 0; i < 3; ++i) {
         double u[DDYN_NU];
         u[1] = i == 2 ? out.u[1] : sent_log[23 + i][1];
-        u[0] = i < 1 ? out.u[0] : 0.0;
+        u[0] = i < 1 ? out.u[0] : ctl.thr_queue[i - 1];
         assert_int_equal(ddyn_model_step(model, cfg.ekf_disc, x, u, ctl.coeffs, xn, &plant_work), DDYN_OK);
         memcpy(x, xn, sizeof x);
     }
@@ -1352,6 +1355,106 @@ static void test_the_preparation_plans_from_the_same_delayed_state(void **state)
     ddyn_ctrl_step(&ctl, &in, &out);
     assert_memory_equal(out.x_mpc0, prepared_at, sizeof prepared_at);
     assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_MPC_FAILED));
+}
+
+/* a second controller for the side-by-side tests (large: static) */
+static ddyn_ctrl ctl_b;
+
+static void test_a_shorter_throttle_delay_is_held_back_to_the_steerings(void **state)
+{
+    /* issue 34 (80 ms steering delay left the track): steering 2 periods, throttle none. The controller
+     * holds its throttle back 2 periods, so that it is the controller told a throttle delay of 2 periods
+     * exactly: with the same readings, the same estimates and steering, and its throttle the other's
+     * two periods later (bit for bit). The safe command goes out at once and empties the queue. */
+    ddyn_ctrl_output out, out_b;
+    ddyn_ctrl_input in;
+    static double thr_b[DELAY_PERIODS];
+    const double dt = model->sample_time;
+    double u_safe[DDYN_NU];
+    int k, i;
+    (void)state;
+    cfg.delay.steering = 2.0 * dt;
+    cfg.delay.throttle = 2.0 * dt;
+    start_on_circle(oracle_tables());
+    memcpy(&ctl_b, &ctl, sizeof ctl_b);
+    assert_int_equal(ctl_b.thr_hold, 0);
+    cfg.delay.throttle = 0.0;
+    start_on_circle(oracle_tables());
+    assert_int_equal(ctl.thr_hold, 2);
+    for (k = 0; k < 40; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        ddyn_ctrl_step(&ctl_b, &in, &out_b);
+        assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_EKF_DIVERGED));
+        thr_b[k] = out_b.u[0];
+        assert_memory_equal(out.x_est, out_b.x_est, sizeof out.x_est);
+        assert_memory_equal(out.x_mpc0, out_b.x_mpc0, sizeof out.x_mpc0);
+        assert_true(out.u[1] == out_b.u[1]);
+        assert_true(out.u[0] == (k >= 2 ? thr_b[k - 2] : 0.0));
+        run_delayed_plant(k, 2, 0, &out); /* the plant: steering 2 periods, throttle at once */
+    }
+    assert_true(thr_b[37] != thr_b[39]); /* the test can tell them apart */
+    /* no readings until the safe command: it goes out at once, the queue becomes holds */
+    memset(&in, 0, sizeof in);
+    for (i = 0; i < 2 * cfg.max_blind_steps + 2 && !(out.status & DDYN_CTRL_SAFE_COMMAND); ++i) {
+        ddyn_ctrl_step(&ctl, &in, &out);
+    }
+    assert_true(out.status & DDYN_CTRL_SAFE_COMMAND);
+    ddyn_ctrl_safe_command(&ctl, out.x_est, u_safe);
+    assert_true(out.u[0] == u_safe[0]);
+    for (i = 0; i < DDYN_CTRL_MAX_DELAY_STEPS; ++i) {
+        assert_true(ctl.thr_queue[i] == 0.0);
+    }
+}
+
+static void test_a_longer_throttle_delay_is_known_in_the_first_stages(void **state)
+{
+    /* issue 34 (a told throttle delay made the laps worse): steering none, throttle 3 periods. The
+     * throttle still in the pipe (sent 3, 2, 1 periods ago) is the MPC's first 3 stages' throttle
+     * (ddyn_mpc_fix_throttle), and the throttle sent is the plan's stage 3, where it acts; the
+     * preparation fixes the same; the PID throttle fixes nothing. */
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double up[DDYN_MPC_NV];
+    const double dt = model->sample_time;
+    int k, j, checked = 0;
+    (void)state;
+    cfg.delay.steering = 0.0;
+    cfg.delay.throttle = 3.0 * dt;
+    start_on_circle(oracle_tables());
+    assert_int_equal(ctl.thr_hold, 0);
+    for (k = 0; k < 40; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_false(out.status & (DDYN_CTRL_SAFE_COMMAND | DDYN_CTRL_EKF_DIVERGED));
+        assert_int_equal(ctl.mpc.fix_n, 3);
+        if (!(out.status & (DDYN_CTRL_PLAN_SHIFTED | DDYN_CTRL_MPC_NOT_CONVERGED))) {
+            assert_int_equal(ddyn_mpc_plan_inputs(&ctl.mpc, up), cfg.mpc.horizon);
+            for (j = 0; j < 3; ++j) {
+                assert_true(up[2 * j] == (k - 3 + j >= 0 ? sent_log[k - 3 + j][0] : 0.0));
+            }
+            assert_true(out.u[0] == up[2 * 3]);
+            assert_true(out.u[1] == up[1]);
+            checked += 1;
+        }
+        run_delayed_plant(k, 0, 3, &out);
+    }
+    assert_true(checked > 30);
+    assert_true(fabs(out.x_est[3] - SPEED) < 0.1); /* it holds the speed */
+    /* the preparation: the same known stages for the next period (its pipe: periods 37 .. 39) */
+    assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK);
+    for (j = 0; j < 3; ++j) {
+        assert_true(ctl.mpc.fix_u[j] == sent_log[37 + j][0]);
+    }
+    /* the PID throttle: nothing fixed (its held-throttle QP plans the steering alone) */
+    cfg.throttle_mode = DDYN_CTRL_THROTTLE_PID;
+    start_on_circle(oracle_tables());
+    for (k = 0; k < 5; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        run_delayed_plant(k, 0, 3, &out);
+        assert_int_equal(ctl.mpc.fix_n, 0);
+    }
 }
 
 /* ---- steering lag (ddyn_ctrl_lag_config) ---- */
@@ -1594,6 +1697,8 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test_setup(test_unusable_network_coefficients_fall_back_to_nominal, setup),
         cmocka_unit_test_setup(test_prepared_iteration_drives_like_the_full_one, setup),
+        cmocka_unit_test_setup(test_a_shorter_throttle_delay_is_held_back_to_the_steerings, setup),
+        cmocka_unit_test_setup(test_a_longer_throttle_delay_is_known_in_the_first_stages, setup),
         cmocka_unit_test_setup(test_indefinite_covariance_restarts_the_filter, setup),
         cmocka_unit_test_setup(test_init_names_what_is_wrong_with_the_network, setup),
         cmocka_unit_test_setup(test_every_status_has_its_own_name, setup),

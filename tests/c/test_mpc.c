@@ -1009,6 +1009,80 @@ static void test_held_throttle_plans_the_steering_alone(void **state)
     }
 }
 
+static void test_known_throttle_rates_fix_the_first_stages(void **state)
+{
+    /* issue 34, a throttle delay of 3 periods (ddyn_mpc_fix_throttle): 2 s on the ring with the plant's
+     * throttle acting 3 periods after it is sent; each period the 3 rates still in the pipe are the
+     * plan's first 3 throttle rates exactly, their QP columns stay at 0, the throttle sent is the plan's
+     * stage 3, and the car stays on the ring. Also through prepare/feedback at a moved state, and the
+     * refusals (the setting kept). n = 0 is the MPC as before. */
+    static ddyn_model_work work;
+    static ddyn_mpc before;
+    static double sent[120];
+    const double dt = ddyn_model_orca_1_43.sample_time;
+    double x[DDYN_NX], u[DDYN_NU], u2[DDYN_NU], xn[DDYN_NX], xp[DDYN_NX], up[DDYN_MPC_NV], fixed[3];
+    double bad[3] = {0.0, NAN, 0.0}, zmax = 0.0;
+    ddyn_mpc_info info;
+    int k, j;
+    (void)state;
+    ring_mpc(30);
+    ring_start(x);
+    /* n = 0: as before, bit for bit */
+    before = mpc;
+    assert_int_equal(ddyn_mpc_fix_throttle(&mpc, 0, NULL), DDYN_OK);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x, u, NULL), DDYN_OK);
+    assert_int_equal(ddyn_mpc_solve(&before, x, u2, NULL), DDYN_OK);
+    assert_memory_equal(u, u2, sizeof u);
+    assert_memory_equal(mpc.u_plan, before.u_plan, sizeof mpc.u_plan);
+    /* refusals: the previous setting kept */
+    fixed[0] = fixed[1] = fixed[2] = 0.5;
+    assert_int_equal(ddyn_mpc_fix_throttle(&mpc, 3, fixed), DDYN_OK);
+    assert_int_equal(ddyn_mpc_fix_throttle(NULL, 1, fixed), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_fix_throttle(&mpc, -1, fixed), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_fix_throttle(&mpc, 20, fixed), DDYN_ERR_ARGUMENT); /* the whole horizon */
+    assert_int_equal(ddyn_mpc_fix_throttle(&mpc, 2, NULL), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_fix_throttle(&mpc, 3, bad), DDYN_ERR_ARGUMENT);
+    assert_int_equal(mpc.fix_n, 3);
+    assert_true(mpc.fix_u[1] == 0.5);
+    memset(sent, 0, sizeof sent);
+    for (k = 0; k < 100; ++k) {
+        double ua[DDYN_NU];
+        for (j = 0; j < 3; ++j) {
+            fixed[j] = k - 3 + j >= 0 ? sent[k - 3 + j] : 0.0; /* sent 3, 2, 1 periods ago */
+        }
+        assert_int_equal(ddyn_mpc_fix_throttle(&mpc, 3, fixed), DDYN_OK);
+        assert_int_equal(ddyn_mpc_solve(&mpc, x, u, &info), DDYN_OK);
+        assert_int_equal(ddyn_mpc_plan_inputs(&mpc, up), 20);
+        for (j = 0; j < 3; ++j) {
+            assert_true(up[2 * j] == fixed[j]);
+            if (fabs(mpc.qp.z[2 * j]) > zmax) zmax = fabs(mpc.qp.z[2 * j]);
+        }
+        sent[k] = up[2 * 3]; /* the throttle sent now acts at stage 3 */
+        assert_true(sent[k] >= -10.0 && sent[k] <= 10.0);
+        ua[0] = k - 3 >= 0 ? sent[k - 3] : 0.0; /* the plant: the throttle sent 3 periods ago */
+        ua[1] = u[1];
+        assert_int_equal(ddyn_model_step(&ddyn_model_orca_1_43, DDYN_DISC_RK4, x, ua, C, xn, &work), DDYN_OK);
+        memcpy(x, xn, sizeof x);
+        assert_true(fabs(hypot(x[0], x[1]) - RADIUS) < 0.15);
+    }
+    assert_true(atan2(x[1], x[0]) > 0.5 || atan2(x[1], x[0]) < -0.5); /* it drove on */
+    assert_true(fabs(x[3] - 1.2) < 0.15);                              /* near the reference speed */
+    print_message("known throttle columns: largest QP deviation %g (the rate bounds: +-10)\n", zmax);
+    assert_true(zmax < 1e-4); /* a throttle level 1e-4 * 3 dt off at most */
+    /* prepared at a prediction, fed back at a moved state: the known stages stay the given ones */
+    assert_int_equal(ddyn_model_step(&ddyn_model_orca_1_43, DDYN_DISC_RK4, x, u, C, xp, &work), DDYN_OK);
+    assert_int_equal(ddyn_mpc_prepare(&mpc, xp), DDYN_OK);
+    xp[0] += 0.003;
+    xp[5] += 0.05;
+    assert_int_equal(ddyn_mpc_feedback(&mpc, xp, u, &info), DDYN_OK);
+    assert_int_equal(ddyn_mpc_plan_inputs(&mpc, up), 20);
+    for (j = 0; j < 3; ++j) {
+        assert_true(up[2 * j] == fixed[j]);
+        assert_true(mpc.qp.grad[2 * j] == 0.0);
+    }
+    (void)dt;
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -1030,6 +1104,7 @@ int main(void)
         cmocka_unit_test(test_cold_start_beyond_daqp_cap_converges_in_its_period),
         cmocka_unit_test(test_daqp_warm_start_shifts_and_the_cap_is_defined),
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
+        cmocka_unit_test(test_known_throttle_rates_fix_the_first_stages),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
         cmocka_unit_test(test_bank_gravity_term_matches_the_python_model),
         cmocka_unit_test(test_bank_table_lookup_and_refusals),

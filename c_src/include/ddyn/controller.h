@@ -161,20 +161,28 @@ typedef struct {
  * 0 (the default) is the controller without this: bit-identical.
  * The MPC plans from the state at which its STEERING command takes effect (n = the steering delay: the
  * steering keeps the car within the track bounds). Over that prediction the throttle runs its commands
- * still in the pipe; with a shorter throttle delay it is then held (u = 0: its commands of the coming
- * periods are not known yet), so its first planned commands act (n_steer - n_throttle) periods before
- * the MPC thinks they do; with a longer one, its commands still in the pipe beyond that point are not
+ * still in the pipe (a shorter throttle delay: held back to the steering's, below); with a longer one,
+ * its commands still in the pipe beyond that point are not
  * in the MPC's plan (the QP cannot fix stages of an input), and its planned ones act later than it
  * thinks. (Measured in the SIL on ETHZMobil, docs/sil.md "Actuation delays": continuing a shorter
  * channel with the last plan's commands instead of holding it failed 3 of 4 noise seeds of the 40 ms
  * steering delay; planning from the later channel's time (n = max) put the throttle-delay-only laps off
  * the track in 4 of 4. A throttle delay is compensated in the filter and the pipe only: with a
  * throttle delay alone the compensated laps are no better than the uncompensated ones.)
- * The compiled maximum (override with -DDDYN_CTRL_MAX_DELAY_STEPS=...): 5 periods = 100 ms at the 1:43
- * car's 50 Hz, 200 ms at the AV-21's 25 Hz. A delay that rounds to more than DDYN_CTRL_MAX_DELAY_STEPS
+ * A THROTTLE DELAY SHORTER THAN THE STEERING'S (e.g. none, with a steering delay) is held back to the
+ * steering's (issue 34, docs/sil.md "Why 80 ms left the track"): the throttle command the MPC plans now
+ * goes out h = n_steer - n_throttle periods later (the ring ctl->thr_queue), so that it acts at the MPC's
+ * stage 0, as its steering does; the pipe runs the held-back commands (known: planned, not yet sent)
+ * instead of holding the throttle. The closed loop is then exactly that of a throttle delayed as much
+ * as the steering (the pipe's prediction has no unknown input). Without it the pipe's throttle was
+ * 0.29 (rms) off the plant's at 80 ms and the MPC's throttle acted 80 ms before it planned it to: with
+ * the 80 ms steering delay told, 3 of 4 seeds on ETHZMobil had violations (2 left the track). The safe command goes out at once
+ * (the queue is then emptied to holds, u = 0).
+ * The compiled maximum (override with -DDDYN_CTRL_MAX_DELAY_STEPS=...): 6 periods = 120 ms at the 1:43
+ * car's 50 Hz, 240 ms at the AV-21's 25 Hz (5 until issue 34's 120 ms throttle delay). A delay that rounds to more than DDYN_CTRL_MAX_DELAY_STEPS
  * periods is refused at init (DDYN_ERR_ARGUMENT), never cut. */
 #ifndef DDYN_CTRL_MAX_DELAY_STEPS
-#define DDYN_CTRL_MAX_DELAY_STEPS 5
+#define DDYN_CTRL_MAX_DELAY_STEPS 6
 #endif
 #if DDYN_CTRL_MAX_DELAY_STEPS < 1
 #error "DDYN_CTRL_MAX_DELAY_STEPS must be at least 1"
@@ -350,6 +358,10 @@ typedef struct {
     ddyn_ctrl_delay_line sent[DDYN_NU];
     int delay_steps[DDYN_NU];
     double u_acting[DDYN_NU];
+    /* a throttle delay shorter than the steering's: the throttle commands held back (thr_hold = the
+     * difference in periods, 0 otherwise), oldest first: thr_queue[0] goes out next period */
+    double thr_queue[DDYN_CTRL_MAX_DELAY_STEPS];
+    int thr_hold;
     /* steering lag: e^{-dt/tau} (0: none); the set-point acting and the acting angle at the start of the
      * period being run (lag_cmd, lag_act: committed at each step) and at its end (lag_cmd_next,
      * lag_act_next: from the command acting over it, recomputed at each synchronisation) */

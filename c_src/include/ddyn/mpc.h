@@ -159,6 +159,9 @@ typedef struct {
     int prep_index;
     int prep_cold;              /* DAQP: the prepared QP has no working set to start from */
     double prep_u0;
+    /* known throttle rates of the first stages (ddyn_mpc_fix_throttle): fix_n stages, fix_u[k] */
+    int fix_n;
+    double fix_u[DDYN_MPC_MAX_HORIZON];
     ddyn_mpc_qp qp;
     ddyn_mpc_qp_daqp daqp;      /* DAQP's workspace and warm start (qp_solver DDYN_MPC_QP_DAQP) */
     ddyn_model_work model_work;
@@ -239,6 +242,17 @@ ddyn_status ddyn_mpc_feedback(ddyn_mpc *mpc, const double x0[DDYN_NX], double u[
 ddyn_status ddyn_mpc_solve_held_throttle(ddyn_mpc *mpc, const double x0[DDYN_NX], double dthrottle0,
                                          double u[DDYN_NU], ddyn_mpc_info *info);
 
+/* Known throttle rates of the first n stages (issue 34: a throttle delay longer than the steering's, whose
+ * commands still in the pipe act over the MPC's first stages; ddyn/controller.h): from the next
+ * preparation or solve on, stage k < n of the plan runs dthrottle[k] (clipped to the rate bounds), its
+ * QP column taken out (decoupled from the cost and the track rows, its own rows relaxed, and a weight
+ * DDYN_MPC_FIX_WEIGHT times the throttle-rate weight that keeps it at 0 where a later stage's
+ * throttle bound pulls on it), and the plan's inputs there are the known ones: the planned throttle
+ * the caller sends now is the plan's stage n. n = 0: none (the default; the MPC as before). Kept until
+ * the next call; ddyn_mpc_solve_held_throttle ignores it. DDYN_ERR_ARGUMENT for n outside
+ * 0..horizon - 1 or a non-finite rate (the previous setting kept). */
+#define DDYN_MPC_FIX_WEIGHT 1e6
+ddyn_status ddyn_mpc_fix_throttle(ddyn_mpc *mpc, int n, const double *dthrottle);
 /* The raceline table's reference speed (speed_scale already in the table) at the projection of
  * x0's position: searched around the last solve's projection, as the next solve will (the whole
  * raceline before the first solve). DDYN_ERR_NOT_READY without a track, DDYN_ERR_NONFINITE_INPUT
