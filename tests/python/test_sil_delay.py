@@ -5,8 +5,8 @@ The plant holds a 40 ms steering delay (`--effects steer_delay=0.04`); the contr
 (`--controller-delays steer=0.04`, controller.json control.delay) or not. ETHZMobil, orca_1_43, true
 coefficients, noise seed 1, in process (ddyn_sil_inprocess: emulated time, frames through memory).
 Everything asserted is counted in simulated time (laps, violations, metres); no wall-clock bound.
-Measured (seeds 1-4): without a delay 5.461-5.469 s; with the delay compensated 5.513-5.547 s (+0.8 to
-+1.5 %), 0 violations in all four; uncompensated none completes cleanly (three leave the track, one
+Measured (seeds 1-4): without a delay 5.461-5.469 s; with the delay compensated 5.521-5.575 s (+1.0 to
++1.9 %; the throttle held back to the steering's delay since issue 34: 5.513-5.547 s before), 0 violations in all four; uncompensated none completes cleanly (three leave the track, one
 completes in 29 s with 4 violations).
 """
 from __future__ import annotations
@@ -61,7 +61,7 @@ def test_the_compensated_controller_laps_a_40ms_steering_delay_cleanly(laps):
     assert ref["lap_completed"] and ref["violations"] == 0, (ref["end_reason"], ref["violations"])
     assert comp["lap_completed"], (comp["end_reason"], comp["violations"])
     assert comp["violations"] == 0
-    # within 2 % of the car without the delay (measured +0.9 %, seed 1)
+    # within 2 % of the car without the delay (measured +1.0 %, seed 1)
     assert comp["lap_times"][0] <= 1.02 * ref["lap_times"][0], (comp["lap_times"], ref["lap_times"])
     assert comp["controller"]["safe_periods"] == 0
     assert comp["controller_delays"] == {"steer": STEER_DELAY}
@@ -90,12 +90,12 @@ def test_the_config_carries_the_delays_only_when_given(orca, mobil):
 
 
 def test_a_delay_above_the_compiled_maximum_is_refused(orca, mobil, sil_bins, tmp_path):
-    """6 periods of the 1:43 car (120 ms) against the build's 5 (DDYN_CTRL_MAX_DELAY_STEPS): the controller
-    refuses its configuration by name, it does not cut the delay."""
-    spec = sil.SilSpec.true_car(orca, mobil, controller_delays={"steer": 0.12})
+    """7 periods of the 1:43 car (140 ms) against the build's 6 (DDYN_CTRL_MAX_DELAY_STEPS; 5 until issue 34's
+    120 ms throttle delay): the controller refuses its configuration by name, it does not cut the delay."""
+    spec = sil.SilSpec.true_car(orca, mobil, controller_delays={"steer": 0.14})
     path = sil.write_controller_files(spec, sil.raceline_table(mobil, orca), tmp_path, str(tmp_path))
     r = subprocess.run([str(sil_bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr  # the file itself is well-formed (0 .. 1 s) ...
-    assert json.loads(r.stdout)["control"]["delay"]["steering"] == 0.12
+    assert json.loads(r.stdout)["control"]["delay"]["steering"] == 0.14
     with pytest.raises(DdynError, match="control.delay"):  # ... the controller refuses it at init
         sil.run_sil(spec, tmp_path / "run", None, where="inprocess")

@@ -1302,7 +1302,7 @@ def register(subparsers) -> None:
                    help="actuation delays the controller compensates, seconds (controller.json control.delay): its "
                         "filter predicts with the command acting on the car, its MPC plans from the state its new "
                         "command acts in; e.g. with --effects steer_delay=0.04 give steer=0.04 (default: none; at "
-                        "most 5 control periods, DDYN_CTRL_MAX_DELAY_STEPS)")
+                        "most 6 control periods, DDYN_CTRL_MAX_DELAY_STEPS)")
     p.add_argument("--controller-lag", metavar="steer=S",
                    help="the steering lag the controller compensates, seconds: the time constant of the acting "
                         "steering's first-order lag behind its set-point (controller.json control.lag): its filter "
