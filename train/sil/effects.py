@@ -9,7 +9,8 @@
     steer_lag       -> control.lag.steering: its `tau` fitted alone (likewise; a time constant, not rounded),
                        unless steer_delay is selected too: then not applied (the two split one response and
                        the delay fitted alone carries it: the laps of docs/sil.md's closed loop)
-    throttle_delay  -> not applied: telling the controller a throttle delay made the laps worse (docs/sil.md)
+    throttle_delay  -> not applied: the compensation helps since the channels' delays were aligned (docs/sil.md),
+                       a diagnosed estimate applied is not measured in the loop yet
     anything else   -> not applied, named: "bank_angle: not in the runtime (issue 34)"
 
 The configuration records where its delays and lag came from (`effects`: the diagnosis's path, the sha256 of its
@@ -50,8 +51,9 @@ APPLIED = {"steer_delay": ("delays", "steer", "control.delay.steering"),
 NOT_WITH = {"steer_lag": "steer_delay"}
 # what it could apply but does not, and why (one line each)
 NOT_APPLIED_WHY = {
-    "throttle_delay": "the controller's throttle-delay compensation made the laps worse (docs/sil.md), so it is "
-                      "not told",
+    "throttle_delay": "not told: the controller's throttle-delay compensation, which once made the laps worse, "
+                      "helps since issue 34's channel alignment (docs/sil.md), but a diagnosed estimate applied has "
+                      "not been measured in the loop",
 }
 DELAY_MAX_S = 1.0   # the configuration's range of control.delay and control.lag (controller_config.c)
 
