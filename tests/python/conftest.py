@@ -35,3 +35,26 @@ def multicast_route() -> str:
             pytest.fail(f"no route for LCM's multicast group {LCM_GROUP} and none could be added "
                         f"({r.stderr.strip()}): run `ip route add {LCM_GROUP}/32 dev lo` as root")
     return LCM_GROUP
+
+
+# The SIL tests' car, track and executables (one set for the session: the binaries are built once)
+@pytest.fixture(scope="session")
+def orca():
+    from ddyn.model.vehicle import load as load_vehicle
+
+    return load_vehicle("orca_1_43")
+
+
+@pytest.fixture(scope="session")
+def mobil(shared_data):
+    from ddyn.model.tracks import load_track
+
+    return load_track("ethzMobil", shared_data)
+
+
+@pytest.fixture(scope="session")
+def sil_bins():
+    """The SIL executables, built for the fixture network (with the build's test key)."""
+    from ddyn.sil import run as sil
+
+    return sil.build_binaries(None)

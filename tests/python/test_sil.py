@@ -22,16 +22,6 @@ from ddyn.model.vehicle import load as load_vehicle
 from ddyn.sil import run as sil
 
 
-@pytest.fixture(scope="module")
-def orca():
-    return load_vehicle("orca_1_43")
-
-
-@pytest.fixture(scope="module")
-def mobil(shared_data):
-    return load_track("ethzMobil", shared_data)
-
-
 def test_effects_and_faults_parse_and_refuse():
     assert sil.parse_effects("steer_delay=0.04,mass_offset=0.1") == {"steer_delay": 0.04, "mass_offset": 0.1}
     with pytest.raises(DdynError, match="not_an_effect"):
@@ -115,12 +105,6 @@ def test_sil_command_line_throttle_flags():
     for bad in (["sil", "run", "--throttle", "pi"], ["sil", "run", "--pid-gains", "1,2"], ["sil", "run", "--pid-gains", "1,-2,0"]):
         with pytest.raises(SystemExit):
             parser.parse_args(bad)
-
-
-@pytest.fixture(scope="module")
-def sil_bins():
-    """The two SIL executables, built for the fixture network."""
-    return sil.build_binaries(None)
 
 
 def test_the_processes_refuse_a_malformed_config(sil_bins, tmp_path):

@@ -15,27 +15,9 @@ import subprocess
 import pytest
 
 from ddyn.errors import DdynError
-from ddyn.model.tracks import load_track
-from ddyn.model.vehicle import load as load_vehicle
 from ddyn.sil import run as sil
 
 ATTACK = (1.0, 4.0)
-
-
-@pytest.fixture(scope="module")
-def orca():
-    return load_vehicle("orca_1_43")
-
-
-@pytest.fixture(scope="module")
-def mobil(shared_data):
-    return load_track("ethzMobil", shared_data)
-
-
-@pytest.fixture(scope="module")
-def sil_bins():
-    """The SIL executables, built for the fixture network (with the build's test key)."""
-    return sil.build_binaries(None)
 
 
 @pytest.fixture(scope="module")

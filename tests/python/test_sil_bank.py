@@ -43,12 +43,6 @@ def oval(av21):
 
 
 @pytest.fixture(scope="module")
-def sil_bins():
-    """The SIL executables, built for the fixture network."""
-    return sil.build_binaries(None)
-
-
-@pytest.fixture(scope="module")
 def laps(av21, oval, sil_bins, tmp_path_factory):
     out = {}
     for told in (False, True):

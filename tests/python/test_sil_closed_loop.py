@@ -2,25 +2,14 @@
 drops frames. Plant and controller node in one process (frames through memory)."""
 from __future__ import annotations
 
-import pytest
 import torch
 
 from ddyn.data import simulate
 from ddyn.learn import checkpoint
 from ddyn.learn.export import export
 from ddyn.learn.training import TrainConfig, train
-from ddyn.model import tracks, vehicle
+from ddyn.model import tracks
 from ddyn.sil import run as sil
-
-
-@pytest.fixture(scope="module")
-def orca():
-    return vehicle.load("orca_1_43")
-
-
-@pytest.fixture(scope="module")
-def mobil(shared_data):
-    return tracks.load_track("ethzMobil", shared_data)
 
 
 def test_a_lap_with_a_trained_network(orca, mobil, tmp_path, shared_data):

@@ -17,27 +17,9 @@ import subprocess
 import pytest
 
 from ddyn.errors import DdynError
-from ddyn.model.tracks import load_track
-from ddyn.model.vehicle import load as load_vehicle
 from ddyn.sil import run as sil
 
 STEER_DELAY = 0.04
-
-
-@pytest.fixture(scope="module")
-def orca():
-    return load_vehicle("orca_1_43")
-
-
-@pytest.fixture(scope="module")
-def mobil():
-    return load_track("ethzMobil")
-
-
-@pytest.fixture(scope="module")
-def sil_bins():
-    """The SIL executables, built for the fixture network."""
-    return sil.build_binaries(None)
 
 
 def _lap(orca, mobil, out, effects=None, delays=None):

@@ -10,20 +10,8 @@ import numpy as np
 import pytest
 
 from ddyn.errors import DdynError
-from ddyn.model.tracks import load_track
-from ddyn.model.vehicle import load as load_vehicle
 from ddyn.sil import loop
 from ddyn.sil import run as sil
-
-
-@pytest.fixture(scope="module")
-def orca():
-    return load_vehicle("orca_1_43")
-
-
-@pytest.fixture(scope="module")
-def mobil():
-    return load_track("ethzMobil")
 
 
 @pytest.fixture(scope="module")
