@@ -466,68 +466,56 @@ static void references(ddyn_mpc *mpc, int i0, double u0)
     }
 }
 
-/* Throttle held: take the throttle columns (even z indices) out of the QP built by build_qp (lower
- * triangle only, before mirroring). They keep only their own diagonal weight, no gradient (the fixed
- * throttle's cost is a constant), no entry in the track rows, a box and integrator rows relaxed to
- * the symmetric range of twice the bounds' width around 0. The QP then separates into the steering
- * problem (exactly the one of a steering-only MPC) and a throttle block whose optimum is z = 0,
- * strictly inside its relaxed rows; the caller uses the fixed throttle rates, not z. */
-static void hold_throttle_columns(ddyn_mpc *mpc)
+/* Take throttle column j (an even z index) out of the QP built by build_qp (lower triangle only, before
+ * mirroring): it keeps only its own diagonal weight 2 r_rate weight, no gradient (a fixed throttle's cost is a
+ * constant), no entry in the track rows, its box relaxed to +-the rate bounds' width and its integrator row
+ * to +-`span` times the throttle range's width. */
+static void take_out_throttle_column(ddyn_mpc *mpc, int j, double weight, double span)
 {
     const ddyn_mpc_config *cfg = &mpc->cfg;
     const int h = cfg->horizon, n = 2 * h;
     ddyn_mpc_qp *qp = &mpc->qp;
     const double rate_w = cfg->rate_hi[0] - cfg->rate_lo[0], state_w = cfg->state_hi[0] - cfg->state_lo[0];
-    int i, j, q;
-    for (j = 0; j < n; j += 2) {
-        for (i = 0; i < n; ++i) {
-            if (i > j) {
-                qp->hess[i + j * DDYN_QP_NV] = 0.0; /* column j below the diagonal */
-            } else if (i < j) {
-                qp->hess[j + i * DDYN_QP_NV] = 0.0; /* row j left of the diagonal */
-            }
+    int i, q;
+    for (i = 0; i < n; ++i) {
+        if (i > j) {
+            qp->hess[i + j * DDYN_QP_NV] = 0.0; /* column j below the diagonal */
+        } else if (i < j) {
+            qp->hess[j + i * DDYN_QP_NV] = 0.0; /* row j left of the diagonal */
         }
-        qp->hess[j + j * DDYN_QP_NV] = 2.0 * cfg->r_rate[0];
-        qp->grad[j] = 0.0;
-        qp->lb[j] = -rate_w;
-        qp->ub[j] = rate_w;
-        qp->hard_lo[j] = -state_w; /* row 2(k-1): the throttle after stage k */
-        qp->hard_hi[j] = state_w;
-        for (q = 0; q < h; ++q) {
-            qp->soft_row[q * DDYN_QP_NV + j] = 0.0;
-        }
+    }
+    qp->hess[j + j * DDYN_QP_NV] = 2.0 * cfg->r_rate[0] * weight;
+    qp->grad[j] = 0.0;
+    qp->lb[j] = -rate_w;
+    qp->ub[j] = rate_w;
+    qp->hard_lo[j] = -state_w * span; /* row j: the throttle after stage j / 2 + 1 */
+    qp->hard_hi[j] = state_w * span;
+    for (q = 0; q < h; ++q) {
+        qp->soft_row[q * DDYN_QP_NV + j] = 0.0;
     }
 }
 
-/* Known throttle rates of the first fix_n stages (ddyn_mpc_fix_throttle): their columns taken out as
- * hold_throttle_columns does (no coupling, no gradient, not in the track rows; their box and the
- * integrator rows of the stages they alone reach relaxed), with a weight that keeps them at 0 where a
- * later stage's integrator row pulls on them; the plan uses the known rates, not z. */
+/* Throttle held: every throttle column taken out (take_out_throttle_column, span 1).
+ * The QP then separates into the steering problem (exactly the one of a steering-only MPC) and a throttle
+ * block whose optimum is z = 0, strictly inside its relaxed rows; the caller uses the fixed throttle rates,
+ * not z. */
+static void hold_throttle_columns(ddyn_mpc *mpc)
+{
+    int j;
+    for (j = 0; j < 2 * mpc->cfg.horizon; j += 2) {
+        take_out_throttle_column(mpc, j, 1.0, 1.0);
+    }
+}
+
+/* Known throttle rates of the first fix_n stages (ddyn_mpc_fix_throttle): their columns taken out
+ * (take_out_throttle_column; the integrator rows of the stages they alone reach relaxed), with a weight
+ * that keeps them at 0 where a later stage's integrator row pulls on them; the plan uses the known rates,
+ * not z. */
 static void fix_throttle_columns(ddyn_mpc *mpc)
 {
-    const ddyn_mpc_config *cfg = &mpc->cfg;
-    const int h = cfg->horizon, n = 2 * h;
-    ddyn_mpc_qp *qp = &mpc->qp;
-    const double rate_w = cfg->rate_hi[0] - cfg->rate_lo[0], state_w = cfg->state_hi[0] - cfg->state_lo[0];
-    int i, k, q;
-    for (k = 0; k < mpc->fix_n && k < h; ++k) {
-        const int j = 2 * k;
-        for (i = 0; i < n; ++i) {
-            if (i > j) {
-                qp->hess[i + j * DDYN_QP_NV] = 0.0;
-            } else if (i < j) {
-                qp->hess[j + i * DDYN_QP_NV] = 0.0;
-            }
-        }
-        qp->hess[j + j * DDYN_QP_NV] = 2.0 * cfg->r_rate[0] * DDYN_MPC_FIX_WEIGHT;
-        qp->grad[j] = 0.0;
-        qp->lb[j] = -rate_w;
-        qp->ub[j] = rate_w;
-        qp->hard_lo[j] = -state_w * (double)(k + 1); /* row 2k: the throttle after stage k + 1, fixed */
-        qp->hard_hi[j] = state_w * (double)(k + 1);
-        for (q = 0; q < h; ++q) {
-            qp->soft_row[q * DDYN_QP_NV + j] = 0.0;
-        }
+    int k;
+    for (k = 0; k < mpc->fix_n && k < mpc->cfg.horizon; ++k) {
+        take_out_throttle_column(mpc, 2 * k, DDYN_MPC_FIX_WEIGHT, (double)(k + 1));
     }
 }
 
