@@ -114,22 +114,22 @@ def parse_effects(text: str | None) -> dict[str, float]:
     return fx
 
 
-def parse_controller_delays(text: str | None) -> dict[str, float]:
-    """`steer=0.04,throttle=0.1` (seconds >= 0) for --controller-delays."""
-    d = parse_kv(text, CONTROLLER_DELAY_KEYS, "--controller-delays")
+def _parse_seconds(text: str | None, keys, flag: str) -> dict[str, float]:
+    d = parse_kv(text, keys, flag)
     for k, v in d.items():
         if not isinstance(v, float) or not math.isfinite(v) or v < 0.0:
-            raise DdynError(f"--controller-delays: {k} needs a number of seconds >= 0, got {v!r}")
+            raise DdynError(f"{flag}: {k} needs a number of seconds >= 0, got {v!r}")
     return d
+
+
+def parse_controller_delays(text: str | None) -> dict[str, float]:
+    """`steer=0.04,throttle=0.1` (seconds >= 0) for --controller-delays."""
+    return _parse_seconds(text, CONTROLLER_DELAY_KEYS, "--controller-delays")
 
 
 def parse_controller_lag(text: str | None) -> dict[str, float]:
     """`steer=0.05` (seconds >= 0, the time constant) for --controller-lag."""
-    d = parse_kv(text, CONTROLLER_LAG_KEYS, "--controller-lag")
-    for k, v in d.items():
-        if not isinstance(v, float) or not math.isfinite(v) or v < 0.0:
-            raise DdynError(f"--controller-lag: {k} needs a number of seconds >= 0, got {v!r}")
-    return d
+    return _parse_seconds(text, CONTROLLER_LAG_KEYS, "--controller-lag")
 
 
 def parse_faults(text: str | None) -> dict:
