@@ -258,3 +258,47 @@ def test_a_new_campaign_is_scored_under_the_recorded_folds_without_a_pass_one(tm
     ok = [r for r in res["pass2"] if r["status"] == "ok"]
     assert len(ok) >= 6 and all(r["claimed"] == [] for r in ok)
     assert "no log of this campaign chose anything" in (tmp_path / "s" / "results.md").read_text()
+
+
+def _campaign(tmp_path, seed, rows, recorded="recorded.json"):
+    """A --folds-from campaign's results.json holding these pass-2 rows (family "commonroad-st")."""
+    cal = {"decision_levels": {e: 1.0 for e in lofo.EFFECTS},
+           "family_margins_per_row": {e: 0.0 for e in lofo.EFFECTS}, "families": [], "logs": 0}
+    doc = {"settings": {"seed": seed, "logs_per_family": len(rows), "base_config": {"x": 1},
+                        "folds_from": {"results": recorded, "seed": 1, "logs_per_family": 40}},
+           "folds": {"commonroad-st": {"calibration": cal, "score": lofo.score(rows)}},
+           "all_families_calibration": cal, "pass1": [], "pass2": rows, "seconds": 10.0}
+    path = tmp_path / f"c{seed}.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_blind_campaigns_under_the_same_folds_are_scored_together(tmp_path, capsys):
+    """`ddyn gap lofo --pool`: the union of the campaigns' pass-2 logs scored again per family (one campaign's one
+    right of two and another's two wrong of two give one of four, not the mean of the rates); refused for a seed
+    twice, a campaign under another recorded study, and one that calibrated on its own logs."""
+    from ddyn.cli import main
+
+    right = _rec("commonroad-st", "steer_delay", 0.05, 0.05, -90, duration=300.0) | {"claimed": ["steer_delay"]}
+    wrong = _rec("commonroad-st", "steer_lag", 0.06, 0.06, -90, duration=300.0) | {"claimed": ["steer_delay"]}
+    free = _rec("commonroad-st", "none", 0.0, 0.0, -1) | {"claimed": ["mass_offset"]}
+    a = _campaign(tmp_path, 2, [right, wrong])
+    b = _campaign(tmp_path, 3, [wrong, wrong, free])
+    assert main(["gap", "lofo", "--pool", str(a), str(b), "--out", str(tmp_path / "p")]) == 0
+    res = json.loads((tmp_path / "p" / "results.json").read_text())
+    s = res["folds"]["commonroad-st"]["score"]
+    assert (s["scored"], s["first_right"], s["effect_free_claimed"]) == (4, 1, 1)
+    assert res["settings"]["seed"] == [2, 3] and res["summary"]["worst"]["first_right"]["value"] == 0.25
+    assert "seeds 2, 3, pooled" in (tmp_path / "p" / "results.md").read_text()
+    c = _campaign(tmp_path, 4, [right], recorded="other.json")
+    for args, msg in (([a, a], "seed 2 is pooled twice"), ([a, c], "scored under other.json"),
+                      ([a, tmp_path / "recorded.json"], "not a leave-one-family-out study")):
+        if "recorded" in str(args[1]):
+            _recorded_study(tmp_path, 1.0)
+        assert main(["gap", "lofo", "--pool", *map(str, args), "--out", str(tmp_path / "q")]) != 0
+        assert msg in capsys.readouterr().err
+    own = json.loads(a.read_text())
+    del own["settings"]["folds_from"]
+    (tmp_path / "own.json").write_text(json.dumps(own))
+    assert main(["gap", "lofo", "--pool", str(tmp_path / "own.json"), str(b), "--out", str(tmp_path / "q")]) != 0
+    assert "cannot be pooled as blind" in capsys.readouterr().err

@@ -325,18 +325,21 @@ def _run_lofo(args) -> int:
         _summarised(doc)
         _write_run(doc, out)
         return _write_travelling(args, doc)
+    if args.pool:                # blind campaigns under the same recorded folds, scored together
+        if args.from_results or args.folds_from or args.calibration_out:
+            raise DdynError("--pool joins recorded --folds-from campaigns; it runs and calibrates nothing (drop "
+                            "--from-results, --folds-from and --calibration-out)")
+        doc = lofo.pooled([(_read_study(Path(p)), Path(p)) for p in args.pool])
+        _summarised(doc)
+        _write_run(doc, out)
+        return 0
     folds_from = None
     if args.folds_from:          # another campaign scored under a recorded study's fold calibrations
         if args.calibration_out:
             raise DdynError("--folds-from scores under a recorded study's calibrations; it makes none "
                             "(drop --calibration-out)")
         src = Path(args.folds_from)
-        try:
-            folds_from = {"doc": json.loads(src.read_text()), "path": src}
-        except FileNotFoundError:
-            raise DdynError(f"{src}: not found (a `ddyn gap lofo --out DIR` run writes DIR/results.json)") from None
-        except (OSError, json.JSONDecodeError) as e:
-            raise DdynError(f"{src}: not a leave-one-family-out study's results.json ({e})") from None
+        folds_from = {"doc": _read_study(src), "path": src}
         lofo.recorded_folds(folds_from["doc"], src, fams, args.seed)    # checked before the work, not after
     durations = lofo.DURATIONS
     if args.durations:
@@ -351,6 +354,15 @@ def _run_lofo(args) -> int:
     _summarised(doc)
     _write_run(doc, out)
     return _write_travelling(args, doc) if args.calibration_out else 0
+
+
+def _read_study(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DdynError(f"{path}: not found (a `ddyn gap lofo --out DIR` run writes DIR/results.json)") from None
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DdynError(f"{path}: not a leave-one-family-out study's results.json ({e})") from None
 
 
 def _summarised(doc: dict) -> None:
@@ -411,6 +423,9 @@ def _add_lofo(sub) -> None:
                    help="no calibration of its own: score this campaign (use another --seed) with each family under "
                         "the fold calibration of a recorded study (its results.json): logs that neither the "
                         "calibrations nor the choices behind their rules saw")
+    p.add_argument("--pool", nargs="+", default=None, metavar="RESULTS",
+                   help="run nothing: score together several campaigns (their results.json) that were each scored "
+                        "with --folds-from under the same recorded study, into --out")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_lofo)
 
