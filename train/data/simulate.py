@@ -258,7 +258,7 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
         f0 = drivetrain_force(v, 0.0, *drive)
         gain = drivetrain_force(v, 1.0, *drive) - f0
         want = mass * accel - f0
-        if p.drivetrain == "powertrain" and want < 0.0:
+        if p.drivetrain != "papers" and want < 0.0:
             return want / p.brake_gain
         return want / gain if gain > 0.0 else t_hi
 

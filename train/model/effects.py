@@ -361,6 +361,9 @@ def derivatives(ns: mathns.MathNamespace, state: Sequence, inputs: Sequence, coe
 def _drive_change(ns: mathns.MathNamespace, T, vx, Cm1, Cm2, fx: EffectSet, p: KnownParams):
     """Change of the drive term (Cm1 - Cm2 vx) T under the drivetrain effects (written with fmax only, so that
     numpy, torch and CasADi all take it)."""
+    if p.drivetrain == "power_limited":
+        raise ValueError("the drivetrain effects act on the drive term (Cm1 - Cm2 vx) T; the power_limited "
+                         "drivetrain's Cm1, Cm2 mean a traction cap and a power, so they do not apply to it")
     gain = Cm1 - Cm2 * vx
     Tp = ns.fmax(T, 0.0)                 # throttle part
     Tb = T - Tp                          # brake part (<= 0)

@@ -13,6 +13,9 @@ Known: mass m, CoG-to-axle distances lf, lr.
     F_rx    = (Cm1 - Cm2 vx) T - Cr0 - Cd vx^2                 drivetrain "papers" (default)
     F_rx    = (Cm1 - Cm2 vx) T+ + Kb T- - Cr0 - Cd vx^2         drivetrain "powertrain"
               (T+ = max(T, 0), T- = min(T, 0); Kb the vehicle file's known brake_gain)
+    F_rx    = T+ min(Cm1, Cm2 / vx*) + Kb T- - Cr0 - Cd vx^2       drivetrain "power_limited"
+              (the slots' meanings change: Cm1 the traction cap in N, Cm2 the wheel power in W at full
+              pedal; vx* = max(|vx|, v_min))
     dvx     = (F_rx - F_fy sin(delta)) / m + vy omega
     dvy     = (F_ry + F_fy cos(delta)) / m - vx omega
     domega  = (F_fy lf cos(delta) - F_ry lr) / Iz
@@ -53,13 +56,20 @@ VELOCITY_INDEX = (3, 4, 5)
 # input is brake pressure (the RACECAR logs' -brake/2757.9 kPa) acting through its own gain, not
 # through the engine's Cm1 - Cm2 vx: on the AV-21's Putnam log one gain for both pedals explains
 # R^2 = 0.469 of the one-step vx change on the training part, a separate brake gain 0.548
-# (`ddyn study drivetrain`, docs/model.md).
-DRIVETRAINS = ("papers", "powertrain")
+# (`ddyn study drivetrain`, docs/model.md). "power_limited" (issue 36): the powertrain's brake, but a
+# drive whose extrapolation in speed is physical: full pedal gives the smaller of a traction cap (Cm1, N)
+# and the wheel power over speed (Cm2 / vx*, Cm2 in W), scaled by the pedal; Cr0 (N) is the resistance at
+# zero pedal, Cd (kg/m) the aero drag. The same 17 coefficient slots, so networks, guard, export and codegen
+# keep their shapes; the slots' meanings and ranges are documented in the vehicle file
+# (train/vehicles/av21_power.json).
+DRIVETRAINS = ("papers", "powertrain", "power_limited")
+# the forms with a known brake gain below zero throttle (KnownParams.brake_gain)
+BRAKE_GAIN_FORMS = ("powertrain", "power_limited")
 
 
 class KnownParams(NamedTuple):
     """Quantities measured on the car, not estimated: mass (kg), lf, lr (m), v_min (m/s); the
-    drivetrain form (DRIVETRAINS) and, for "powertrain", the brake gain (N per unit of brake input)."""
+    drivetrain form (DRIVETRAINS) and, for the BRAKE_GAIN_FORMS, the brake gain (N per unit of brake input)."""
 
     mass: float
     lf: float
@@ -92,16 +102,21 @@ def slip_angles(ns: MathNamespace, vx, vy, omega, delta, Gf, Gr, p: KnownParams)
 
 def drivetrain_force(vx, T, Cm1, Cm2, Cr0, Cd, ns: MathNamespace | None = None, p: KnownParams | None = None):
     """Longitudinal force at the rear axle from throttle T: the papers' form unless p chooses
-    "powertrain" (then ns is needed for max). The papers' expression is kept as it was, term for term,
-    so its results are bit-identical to before the choice existed."""
+    "powertrain" or "power_limited" (then ns is needed for max). The papers' expression is kept as it was,
+    term for term, so its results are bit-identical to before the choice existed."""
     if p is None or p.drivetrain == "papers":
         return (Cm1 - Cm2 * vx) * T - Cr0 - Cd * vx * vx
-    if p.drivetrain != "powertrain":
+    if p.drivetrain not in DRIVETRAINS:
         raise ValueError(f"unknown drivetrain {p.drivetrain!r}; expected one of {', '.join(DRIVETRAINS)}")
     if ns is None:
-        raise ValueError("the powertrain drivetrain needs a math namespace (for max)")
+        raise ValueError(f"the {p.drivetrain} drivetrain needs a math namespace (for max)")
     T_drive = ns.fmax(T, 0.0)
-    return (Cm1 - Cm2 * vx) * T_drive + p.brake_gain * (T - T_drive) - Cr0 - Cd * vx * vx
+    if p.drivetrain == "powertrain":
+        return (Cm1 - Cm2 * vx) * T_drive + p.brake_gain * (T - T_drive) - Cr0 - Cd * vx * vx
+    # power_limited: min(a, b) written as a - max(a - b, 0), so every backend needs only fmax with a constant
+    power_force = Cm2 / ns.fmax(ns.abs(vx), p.v_min)
+    full_pedal = Cm1 - ns.fmax(Cm1 - power_force, 0.0)
+    return full_pedal * T_drive + p.brake_gain * (T - T_drive) - Cr0 - Cd * vx * vx
 
 
 def forces(ns: MathNamespace, state: Sequence, coeffs: Sequence, p: KnownParams) -> Forces:

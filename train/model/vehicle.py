@@ -17,7 +17,7 @@ import numpy as np
 
 from ddyn.errors import DdynError
 from ddyn.model.effects import MAIN_PARAM
-from ddyn.model.single_track import COEFF_NAMES, DRIVETRAINS, KnownParams
+from ddyn.model.single_track import BRAKE_GAIN_FORMS, COEFF_NAMES, DRIVETRAINS, KnownParams
 
 VEHICLE_DIR = Path(__file__).resolve().parents[1] / "vehicles"  # train/vehicles
 
@@ -25,6 +25,7 @@ VEHICLE_DIR = Path(__file__).resolve().parents[1] / "vehicles"  # train/vehicles
 # 10 cm by 5 cm, centred on the centre of gravity. Chosen here from the ORCA car's size class.
 FOOTPRINT = {"orca_1_43": (0.10, 0.05), "av21": (4.9, 1.9)}
 FOOTPRINT["av21_powertrain"] = FOOTPRINT["av21"]   # the same car with the real log's drivetrain and ranges
+FOOTPRINT["av21_power"] = FOOTPRINT["av21"]        # the same car with the power-limited drivetrain
 
 
 @dataclass(frozen=True)
@@ -145,7 +146,7 @@ def _effects(raw: dict, path: str) -> dict[str, float]:
 
 def _known(raw: dict, path: str) -> KnownParams:
     """mass, lf, lr, v_min from "known"; the drivetrain form from "drivetrain" (default the papers'), and
-    for "powertrain" the brake gain from known.brake_gain (required there, refused elsewhere)."""
+    for "powertrain" and "power_limited" the brake gain from known.brake_gain (required there, refused elsewhere)."""
     form = raw.get("drivetrain", "papers")
     if form not in DRIVETRAINS:
         raise DdynError(f"{path}: drivetrain {_short(form)} is not one of {', '.join(DRIVETRAINS)}")
@@ -153,10 +154,10 @@ def _known(raw: dict, path: str) -> KnownParams:
     gain = known.get("brake_gain")
     if gain is not None:
         gain = _number(gain, "known.brake_gain", path)
-    if form == "powertrain" and not (gain is not None and gain > 0.0):
-        raise DdynError(f"{path}: the powertrain drivetrain needs known.brake_gain > 0 (N per unit brake input)")
-    if form == "papers" and gain is not None:
-        raise DdynError(f"{path}: known.brake_gain is used only by the powertrain drivetrain")
+    if form in BRAKE_GAIN_FORMS and not (gain is not None and gain > 0.0):
+        raise DdynError(f"{path}: the {form} drivetrain needs known.brake_gain > 0 (N per unit brake input)")
+    if form not in BRAKE_GAIN_FORMS and gain is not None:
+        raise DdynError(f"{path}: known.brake_gain is used only by the {' and '.join(BRAKE_GAIN_FORMS)} drivetrains")
     values = {}
     for k in ("mass", "lf", "lr", "v_min"):
         if k not in known:
@@ -228,6 +229,14 @@ def parse(raw_bytes: bytes, origin: str) -> Vehicle:
             raise DdynError(f"{path}: range of {k} is empty: [{lo}, {hi}]")
         if vehicle.true_coefficients is not None and not lo <= vehicle.true_coefficients[k] <= hi:
             raise DdynError(f"{path}: true {k} = {vehicle.true_coefficients[k]} lies outside its range [{lo}, {hi}]")
+    if known.drivetrain == "power_limited":
+        # the slots' physical meanings: a traction cap and a power (both > 0), a resistance and a drag (>= 0)
+        for k, what, strict in (("Cm1", "traction cap (N)", True), ("Cm2", "wheel power (W)", True),
+                                ("Cr0", "resistance at zero pedal (N)", False), ("Cd", "aero drag (kg/m)", False)):
+            lo = vehicle.ranges[k][0]
+            if (lo <= 0) if strict else (lo < 0):
+                raise DdynError(f"{path}: range of {k} (the power_limited drivetrain's {what}) must lie "
+                                f"{'above' if strict else 'at or above'} 0, got [{lo}, {vehicle.ranges[k][1]}]")
     for k in ("throttle", "steering", "dthrottle", "dsteering"):
         if k not in vehicle.input_limits:
             raise DdynError(f"{path}: input_limits lacks {k!r}")

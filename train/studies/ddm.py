@@ -67,7 +67,11 @@ REAL_RUNS = (("ddm_putnam", "av21", "DDM, papers' drivetrain, papers' ranges", F
               {"guard_prior": REAL_GUARD_PRIOR, "tau": REAL_TAU}),
              ("ddm_putnam_powertrain_prior_tau_iz", "av21_powertrain",
               f"DDM, powertrain drivetrain, guard prior {REAL_GUARD_PRIOR:g}, history {REAL_TAU}, Iz in the papers' "
-              f"[500, 2000] kg m2", False, {"guard_prior": REAL_GUARD_PRIOR, "tau": REAL_TAU}))
+              f"[500, 2000] kg m2", False, {"guard_prior": REAL_GUARD_PRIOR, "tau": REAL_TAU}),
+             # issue 36 item 2: the power-limited drivetrain, every drivetrain range and Iz from the car's physics
+             # (train/vehicles/av21_power.json), TrainConfig's built-in defaults as the ddm_putnam row
+             ("ddm_putnam_power", "av21_power",
+              "DDM, power-limited drivetrain, physical ranges (av21_power)", False, {}))
 # runs trained without --only (the papers' table in docs/learning.md); the others only when named
 REAL_DEFAULT_RUNS = tuple(r[0] for r in REAL_RUNS[:5])
 # guard ranges a run takes in place of its vehicle file's (through the `ddyn train --ranges` path): the papers'
