@@ -1,6 +1,6 @@
 """From a diagnosis to the controller's configuration (issue 34 item 2; ddyn.sil.effects,
-`ddyn sil run --effects-from D [--config-only]`): steer_delay becomes control.delay.steering, steer_lag
-control.lag.steering (issue 34 item 1), every other claimed effect is named and not applied, bad input is one line
+`ddyn sil run --effects-from D [--config-only]`): steer_delay becomes control.delay.steering, throttle_delay
+control.delay.throttle, steer_lag control.lag.steering (issue 34 item 1), every other claimed effect is named and not applied, bad input is one line
 naming the file and the key, and the controller refuses a configuration whose control.delay or control.lag was
 edited after it was made from the diagnosis (controller.json `effects`)."""
 from __future__ import annotations
@@ -74,17 +74,65 @@ def test_unsupported_effects_are_named_not_applied(tmp_path):
     d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "bank_angle"],
                    {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "bank_angle": 0.1})
     fx = controller_effects(d)
-    assert fx.delays == {"steer": 0.02} and fx.applied == ["steer_delay"] and fx.lag == {}
+    assert fx.delays == {"steer": 0.02, "throttle": 0.1} and fx.applied == ["steer_delay", "throttle_delay"]
+    assert fx.lag == {}
     # selected beside steer_delay the lag is not applied (the delay fitted alone carries the response)
     assert fx.not_applied[0].startswith("steer_lag: found 0.06, not applied: selected with steer_delay")
-    assert fx.not_applied[1].startswith("throttle_delay: found 0.1, not applied")
-    assert fx.not_applied[2] == "bank_angle: not in the runtime (issue 34)"
+    assert fx.not_applied[1] == "bank_angle: not in the runtime (issue 34)" and len(fx.not_applied) == 2
     # a bank read along the track or from the roll channel is a claim as valid as any: named, not refused
     profiles = controller_effects(_diagnosis(tmp_path / "P", ["bank_profile", "bank_from_roll"]))
     assert profiles.not_applied == ["bank_profile: not in the runtime (issue 34)",
                                     "bank_from_roll: not in the runtime (issue 34)"]
     nothing = controller_effects(_diagnosis(tmp_path / "E", []))
     assert nothing.delays == {} and nothing.applied == [] and nothing.not_applied == []
+
+
+def test_a_throttle_delay_becomes_control_delay_throttle(tmp_path):
+    """A claimed throttle_delay is the controller's control.delay.throttle: fitted alone when the diagnosis has
+    it, to the nearest whole control period (87 ms acts as 4 periods of 20 ms, 0.08 s), beside the steering delay
+    when both are claimed; the record carries it, so the controller checks it like the steering's."""
+    d = _diagnosis(tmp_path / "D", ["throttle_delay", "mass_offset"], {"throttle_delay": 0.066, "mass_offset": 0.1})
+    fx = controller_effects(d)
+    assert fx.delays == {"throttle": 0.066} and fx.applied == ["throttle_delay"] and fx.lag == {}
+    assert fx.not_applied == ["mass_offset: not in the runtime (issue 34)"]
+    raw = json.loads((d / "diagnosis.json").read_text())
+    raw["candidates"] = [{"effect": "throttle_delay", "params": {"delay": 0.087}}]
+    (d / "diagnosis.json").write_text(json.dumps(raw))
+    fx = controller_effects(d, period=0.02)
+    assert fx.delays["throttle"] == pytest.approx(0.08) and "steer" not in fx.delays
+    assert fx.applied_estimates["throttle_delay"] == {"alone": 0.087, "joint": 0.066,
+                                                      "written": fx.delays["throttle"], "period": 0.02}
+    assert fx.lines()[0].startswith("throttle_delay: applied as control.delay.throttle = 0.08 s (fitted alone "
+                                    "0.087 s, joint 0.066 s, to whole periods of 0.02 s)")
+    cfg = apply_to_config({"vehicle": "orca_1_43", "control": {"period": 0.02}}, fx)
+    assert cfg["control"]["delay"] == {"steering": 0.0, "throttle": pytest.approx(0.08)}
+    assert cfg["effects"]["delay"] == cfg["control"]["delay"] and cfg["control"]["lag"] == {"steering": 0.0}
+    assert fx.summary()["controller_delays"] == {"throttle": pytest.approx(0.08)}
+    # both delays claimed: each to its own channel, each rounded
+    both = controller_effects(_diagnosis(tmp_path / "B", ["steer_delay", "throttle_delay"],
+                                         {"steer_delay": 0.041, "throttle_delay": 0.109}), period=0.02)
+    assert both.delays == {"steer": pytest.approx(0.04), "throttle": pytest.approx(0.1)}
+    assert both.applied == ["steer_delay", "throttle_delay"] and both.not_applied == []
+    raw["candidates"][0]["params"]["delay"] = 1.2
+    (d / "diagnosis.json").write_text(json.dumps(raw))
+    with pytest.raises(DdynError, match="throttle_delay delay = 1.2 s is outside control.delay's 0..1 s"):
+        controller_effects(d)
+
+
+def test_the_sil_controller_reads_a_throttle_delay_from_a_diagnosis(tmp_path):
+    """`ddyn sil run --effects-from D --config-only` writes the claimed throttle delay, rounded, into the SIL's
+    controller.json, and the controller accepts the file (its effects.delay matches control.delay)."""
+    d = _diagnosis(tmp_path / "D", ["throttle_delay"], {"throttle_delay": 0.095})
+    out = tmp_path / "cfg"
+    assert main(["sil", "run", "--effects-from", str(d), "--config-only", "--out", str(out)]) == 0
+    cfg = json.loads((out / "controller.json").read_text())
+    assert cfg["control"]["delay"] == {"steering": 0.0, "throttle": pytest.approx(0.1)}
+    assert cfg["effects"]["delay"] == cfg["control"]["delay"]
+    bins = sil.build_binaries(None)
+    ok = subprocess.run([str(bins / "ddyn_controller"), "--check", str(out / "controller.json")],
+                        capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    assert json.loads(ok.stdout)["control"]["delay"]["throttle"] == pytest.approx(0.1)
 
 
 @pytest.mark.parametrize("content, says", [

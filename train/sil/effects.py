@@ -9,8 +9,9 @@
     steer_lag       -> control.lag.steering: its `tau` fitted alone (likewise; a time constant, not rounded),
                        unless steer_delay is selected too: then not applied (the two split one response and
                        the delay fitted alone carries it: the laps of docs/sil.md's closed loop)
-    throttle_delay  -> not applied: the compensation helps since the channels' delays were aligned (docs/sil.md),
-                       a diagnosed estimate applied is not measured in the loop yet
+    throttle_delay  -> control.delay.throttle: its `delay` fitted alone, to the nearest whole control period, as
+                       steer_delay (the compensation helps since the channels' delays were aligned, dfcabe6; the
+                       loop with a throttle delay in the plant: docs/sil.md)
     anything else   -> not applied, named: "bank_angle: not in the runtime (issue 34)"
 
 The configuration records where its delays and lag came from (`effects`: the diagnosis's path, the sha256 of its
@@ -46,15 +47,13 @@ DIAGNOSIS_FILE = "diagnosis.json"
 # what the runtime applies: effect -> (ControllerEffects field: delays or lag, its key of ddyn.sil.run, the config
 # key it becomes)
 APPLIED = {"steer_delay": ("delays", "steer", "control.delay.steering"),
+           "throttle_delay": ("delays", "throttle", "control.delay.throttle"),
            "steer_lag": ("lag", "steer", "control.lag.steering")}
 # an applied effect left out when another is selected beside it (the joint fit splits one response between them)
 NOT_WITH = {"steer_lag": "steer_delay"}
 # what it could apply but does not, and why (one line each)
-NOT_APPLIED_WHY = {
-    "throttle_delay": "not told: the controller's throttle-delay compensation, which once made the laps worse, "
-                      "helps since issue 34's channel alignment (docs/sil.md), but a diagnosed estimate applied has "
-                      "not been measured in the loop",
-}
+# what it could apply but does not, and why (one line each); empty since the throttle delay is applied
+NOT_APPLIED_WHY: dict[str, str] = {}
 DELAY_MAX_S = 1.0   # the configuration's range of control.delay and control.lag (controller_config.c)
 
 
@@ -92,7 +91,7 @@ class ControllerEffects:
             a = self.applied_estimates.get(e, {})
             src = (f"fitted alone {a['alone']:.4g} s" if a.get("alone") is not None else "joint fit") + \
                 (f", joint {a['joint']:.4g} s" if a.get("alone") is not None else "")
-            per = f", to whole periods of {a['period']:g} s" if a.get("period") and e == "steer_delay" else ""
+            per = f", to whole periods of {a['period']:g} s" if a.get("period") and APPLIED[e][0] == "delays" else ""
             return f" ({src}{per})"
         out = [f"{e}: applied as {APPLIED[e][2]} = {getattr(self, APPLIED[e][0])[APPLIED[e][1]]:.4g} s{how(e)}"
                for e in self.applied]

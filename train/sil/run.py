@@ -1311,6 +1311,7 @@ def register(subparsers) -> None:
     p.add_argument("--effects-from", metavar="D", default=None,
                    help="the controller's actuation delays and steering lag from a diagnosis (`ddyn gap diagnose "
                         "--out D`: the folder or its diagnosis.json): steer_delay -> control.delay.steering, "
+                        "throttle_delay -> control.delay.throttle, "
                         "steer_lag -> control.lag.steering, every other effect named and not applied; recorded in "
                         "controller.json (effects: path, sha256; the controller refuses the file if control.delay "
                         "or control.lag is edited) and sil_metrics.json")
