@@ -51,7 +51,8 @@ typedef struct {
             {vec_##V##_euler_P, vec_##V##_rk4_P}                                                       \
     }
 
-static const vector_set sets[] = {VECTOR_SET(orca_1_43), VECTOR_SET(av21), VECTOR_SET(av21_powertrain)};
+static const vector_set sets[] = {VECTOR_SET(orca_1_43), VECTOR_SET(av21), VECTOR_SET(av21_powertrain),
+                                  VECTOR_SET(av21_power)};
 
 static void check_set(const vector_set *set)
 {
@@ -92,6 +93,13 @@ static void test_av21_powertrain_matches_python(void **state)
     check_set(&sets[2]);
 }
 
+/* the power-limited drivetrain (traction cap, power over speed, brake gain): throttle -1..1 as above */
+static void test_av21_power_matches_python(void **state)
+{
+    (void)state;
+    check_set(&sets[3]);
+}
+
 /* every sensor model of both vehicles against numpy values and torch-autograd Jacobians */
 #define MEAS_CHECK(V, KIND, NAME)                                                                              \
     do {                                                                                                       \
@@ -123,6 +131,7 @@ static void test_sensor_models_match_python(void **state)
     MEAS_CHECK_ALL(orca_1_43);
     MEAS_CHECK_ALL(av21);
     MEAS_CHECK_ALL(av21_powertrain);
+    MEAS_CHECK_ALL(av21_power);
     assert_int_equal(ddyn_meas_dim(DDYN_MEAS_COUNT), 0);
 }
 
@@ -182,6 +191,7 @@ int main(void)
         cmocka_unit_test(test_orca_matches_python),
         cmocka_unit_test(test_av21_matches_python),
         cmocka_unit_test(test_av21_powertrain_matches_python),
+        cmocka_unit_test(test_av21_power_matches_python),
         cmocka_unit_test(test_sensor_models_match_python),
         cmocka_unit_test(test_unknown_vehicle_is_null),
         cmocka_unit_test(test_nonfinite_input_refused_and_output_untouched),

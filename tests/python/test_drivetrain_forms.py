@@ -210,3 +210,85 @@ def test_union_of_moves_takes_the_widest_side_over_models():
     assert u["Iz"]["used"] == [250.0, 8000.0] and u["Cd"]["used"] == [0.025, 1.0]
     assert "2 of 3 models" in u["Iz"]["why"] and "1 of 3 models" in u["Cd"]["why"]
     assert a["Iz"]["used"] == [500.0, 8000.0]   # the inputs are not changed
+
+
+# ---- the power-limited drivetrain (issue 36 item 2): av21_power.json
+
+
+def test_power_limited_force_by_hand():
+    """Traction-limited (slow), power-limited (fast), braking, zero pedal: each against the formula typed out."""
+    v = vehicle.load("av21_power")
+    assert v.known.drivetrain == "power_limited" and v.known.brake_gain > 0
+    Ftr, P, Cr0, Cd, Kb = 4500.0, 250000.0, 400.0, 0.5, v.known.brake_gain
+    vx = np.array([5.0, 30.0, 80.0, 20.0, 25.0, -3.0])
+    T = np.array([1.0, 0.4, 0.5, -0.3, 0.0, 0.2])
+    want = np.array([
+        1.0 * Ftr - Cr0 - Cd * 25.0,                  # 5 m/s: P / v = 50 kN > cap, traction-limited
+        0.4 * Ftr - Cr0 - Cd * 900.0,                 # 30 m/s: P / v = 8.3 kN > cap, still traction-limited
+        0.5 * (P / 80.0) - Cr0 - Cd * 6400.0,         # 80 m/s: P / v = 3125 N < cap, power-limited
+        Kb * -0.3 - Cr0 - Cd * 400.0,                 # braking: the known gain, no drive
+        -Cr0 - Cd * 625.0,                            # zero pedal: resistance only
+        0.2 * Ftr - Cr0 - Cd * 9.0,                   # reversing: |vx| in P / vx, cap binds
+    ])
+    got = drivetrain_force(vx, T, Ftr, P, Cr0, Cd, mathns.NUMPY, v.known)
+    assert np.allclose(got, want, rtol=1e-14, atol=1e-9), got - want
+    # continuous at the crossover speed P / Ftr
+    vc = P / Ftr
+    below, above = drivetrain_force(np.array([vc * (1 - 1e-9), vc * (1 + 1e-9)]), np.ones(2), Ftr, P, 0.0, 0.0,
+                                    mathns.NUMPY, v.known)
+    assert abs(below - above) < 1e-3 and abs(below - Ftr) < 1e-3
+
+
+@pytest.mark.parametrize("method", ["euler", "rk4"])
+def test_power_limited_numpy_torch_casadi_agree(method):
+    diff = fidelity.backend_agreement("av21_power", method, 2000)
+    assert diff["torch"] <= 1e-12 and diff["casadi"] <= 1e-12, diff
+
+
+def test_power_limited_cases_cover_both_regimes_and_gradients_are_finite():
+    """The random cases behind the backend agreement (and the generated C's reference vectors) reach both
+    the traction cap and the power limit; gradients at zero throttle and at the kink are finite."""
+    v = vehicle.load("av21_power")
+    x, _, c = random_cases(v, 2000, np.random.default_rng(7))
+    power_limited = c[:, DRIVE[1]] / np.maximum(np.abs(x[:, 3]), v.known.v_min) < c[:, DRIVE[0]]
+    assert power_limited.any() and (~power_limited).any()
+    Ftr, P = v.true_coefficients["Cm1"], v.true_coefficients["Cm2"]
+    for vx, T in ((20.0, 0.0), (P / Ftr, 0.5)):
+        xt = torch.tensor([[0.0, 0.0, 0.0, vx, 0.1, 0.05, T, 0.01]], dtype=torch.float64, requires_grad=True)
+        ct = torch.tensor(v.true_vector(), dtype=torch.float64, requires_grad=True)
+        out = backends.step_torch(xt, torch.zeros(1, 2, dtype=torch.float64), ct, v.known, v.sample_time)
+        out[:, 3].sum().backward()
+        assert torch.isfinite(xt.grad).all() and torch.isfinite(ct.grad).all()
+
+
+def test_power_limited_vehicle_file_loads_with_physical_ranges():
+    v = vehicle.load("av21_power")
+    assert v.variant_of == "av21" and v.ranges["Iz"] == (500.0, 2000.0)
+    assert v.ranges["Cm1"][0] > 0 and v.ranges["Cm2"][0] > 0 and v.ranges["Cr0"][0] >= 0
+    for k in ("ranges (Cm1)", "ranges (Cm2)", "ranges (Cr0)", "ranges (Cd)", "ranges (Iz)", "brake_gain"):
+        assert v.sources.get(k), k
+
+
+def test_power_limited_bad_file_is_one_line_error():
+    raw = json.loads(vehicle.load("av21_power").raw_json)
+    no_gain = dict(raw, known={k: x for k, x in raw["known"].items() if k != "brake_gain"})
+    with pytest.raises(DdynError, match="power_limited drivetrain needs known.brake_gain") as e:
+        vehicle.parse(json.dumps(no_gain).encode(), "no_gain.json")
+    assert "\n" not in str(e.value)
+    zero_power = dict(raw, ranges=dict(raw["ranges"], Cm2=[0.0, 350000.0]))
+    with pytest.raises(DdynError, match=r"range of Cm2 \(the power_limited drivetrain's wheel power \(W\)\) must lie "
+                                        r"above 0") as e:
+        vehicle.parse(json.dumps(zero_power).encode(), "zero_power.json")
+    assert "\n" not in str(e.value)
+    negative_drag = dict(raw, ranges=dict(raw["ranges"], Cd=[-0.1, 0.9]))
+    with pytest.raises(DdynError, match="range of Cd"):
+        vehicle.parse(json.dumps(negative_drag).encode(), "negative_drag.json")
+
+
+def test_drivetrain_effects_refuse_the_power_limited_form():
+    from ddyn.model import effects
+
+    v = vehicle.load("av21_power")
+    with pytest.raises(ValueError, match="power_limited"):
+        effects._drive_change(mathns.NUMPY, np.array([0.5]), np.array([20.0]), 4500.0, 250000.0,
+                              effects.EffectSet(power_limit=1e5), v.known)
