@@ -45,7 +45,7 @@ COMMANDS: tuple[Command, ...] = (
             "the sim-to-real gap diagnosis: diagnose a log, calibrate, benchmark, rescore (docs/gap.md)"),
     Command("diagnose", ("ddyn.gap.cli:register_alias",)),
     Command("study", ("ddyn.studies.ddm", "ddyn.studies.fthd", "ddyn.studies.denoise", "ddyn.studies.drivetrain",
-                      "ddyn.analysis.fidelity", "ddyn.studies.sil_loop"),
+                      "ddyn.analysis.fidelity", "ddyn.studies.sil_loop", "ddyn.studies.transfer"),
             "the papers' tables and the project's studies (DDM/DPM, FTHD, denoising, fidelity)"),
     Command("results", ("ddyn.results.cli",),
             "the headline figures as data: re-run them and compare with their committed files, the README table"),

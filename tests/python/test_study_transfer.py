@@ -1,0 +1,108 @@
+"""`ddyn study transfer` (issue 36, items 1 and 3): the quick study end to end on the multi-body plant, the split's
+honesty read from the datasets every fit receives, and the one-line refusals of bad options."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from ddyn.errors import DdynError
+
+pytest.importorskip("vehiclemodels")
+
+
+def _args(argv):
+    from ddyn.cli import build_parser, commands_named
+
+    return build_parser(commands_named("study")).parse_args(["study", "transfer", *argv])
+
+
+def test_quick_study_end_to_end_and_its_splits(tmp_path, monkeypatch):
+    from ddyn.studies import transfer as T
+
+    calls = []                     # (what, dataset(s)) in call order
+    real_train, real_finetune = T.train, T.finetune
+
+    def spy_train(ds, v, cfg, progress=True, validation=None):
+        calls.append(("train", ds))
+        return real_train(ds, v, cfg, progress=progress, validation=validation)
+
+    def spy_finetune(base, train_ds, val_ds, cfg, **kw):
+        calls.append(("finetune", train_ds, val_ds))
+        return real_finetune(base, train_ds, val_ds, cfg, **kw)
+
+    monkeypatch.setattr(T, "train", spy_train)
+    monkeypatch.setattr(T, "finetune", spy_finetune)
+    out = tmp_path / "transfer"
+    args = _args(["--quick", "--quiet", "--out", str(out)])
+    assert args.func(args) == 0
+
+    res = json.loads((out / "results.json").read_text())
+    assert (out / "results.md").is_file() and (out / "A.csv").is_file() and (out / "B.csv").is_file()
+    s = res["summary"]
+    for key in ("own", "other", "b_all", "ratio"):
+        for c in T.CHANNELS:
+            assert np.isfinite(s[key][c]["mean"]), (key, c)
+    assert [f["fraction"] for f in s["fractions"]] == list(T.FRACTIONS)
+    for f in s["fractions"]:
+        for arm in ("fthd", "scratch"):
+            assert all(np.isfinite(f[arm][c]["mean"]) for c in T.CHANNELS)
+    run = res["runs"][0]
+    assert run["base"]["ratio"]["vx"] == pytest.approx(run["base"]["other"]["vx"] / run["base"]["own"]["vx"])
+    assert set(s["ratio_target"]["per_channel"]) == set(T.CHANNELS)
+    md = (out / "results.md").read_text()
+    assert "ratio other / own" in md and "FTHD (A model fine-tuned)" in md and "5%" in md
+    # the recorded budget is the quick one
+    assert res["settings"]["train"]["config"]["epochs"] == T.QUICK["epochs"]
+    assert res["settings"]["train"]["origin"]["epochs"] == "--epochs"
+
+    # honesty: the A model's fit saw only A's training part, and it came before any fine-tuning
+    a_rows, b_rows = res["rows"]["a_train"], res["rows"]["b_test"]
+    assert calls[0][0] == "train"
+    base = calls[0][1]
+    assert base.metadata["track"] == "putnam" and len(base) == a_rows[1] - a_rows[0]
+    from ddyn.data.importers import load_any
+
+    b = load_any(out / "B.csv")
+    b_test_start_time = b.time[b_rows[0]]
+    b_name = b.metadata["track"]
+    assert b_name.startswith("random301")
+    n_ft = 0
+    for call in calls[1:]:
+        for ds in call[1:]:
+            # every later fit reads B's rows, never one of B's last 20 %
+            assert ds.metadata["track"] == b_name
+            assert ds.time.max() < b_test_start_time
+            assert np.isin(ds.time, b.time[:b_rows[0]]).all()
+        if call[0] == "finetune":
+            n_ft += 1
+            assert call[1].time.max() < call[2].time.min()   # its selection rows follow its fitting rows
+    assert n_ft == len(T.FRACTIONS)
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["--family", "commonroad-xx"], "--family"),
+    (["--duration", "-5"], "--duration"),
+    (["--speed", "50"], "--speed"),
+    (["--fractions", "0.05", "1.5"], "--fractions"),
+    (["--seeds", "1", "1"], "--seeds"),
+    (["--epochs", "0"], "--epochs"),
+    (["--ft-adam-steps", "-1"], "--ft-adam-steps"),
+    (["--vehicle", "no_such_car"], "--vehicle"),
+])
+def test_bad_options_are_one_line_errors_naming_the_option(argv, option, tmp_path):
+    from ddyn.studies import transfer as T
+
+    with pytest.raises(DdynError) as e:
+        T.options(_args([*argv, "--out", str(tmp_path / "x")]))
+    msg = str(e.value)
+    assert option in msg and "\n" not in msg
+
+
+def test_road_course_is_full_size_and_seeded():
+    from ddyn.studies import transfer as T
+
+    a, b = T.road_course(301), T.road_course(301)
+    assert a.length == pytest.approx(b.length) and 1000 < a.length < 2000
+    assert a.width == pytest.approx(T.ROAD_WIDTH, rel=0.01)
