@@ -79,6 +79,7 @@ def test_quick_study_end_to_end_and_its_splits(tmp_path, monkeypatch):
             n_ft += 1
             assert call[1].time.max() < call[2].time.min()   # its selection rows follow its fitting rows
     assert n_ft == len(T.FRACTIONS)
+    assert all(isinstance(f["fthd_kept_base"], bool) for f in run["fractions"])
 
 
 @pytest.mark.parametrize("argv, option", [

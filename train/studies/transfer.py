@@ -178,6 +178,13 @@ def _steps(ckpt: dict) -> dict:
     return {"epochs": t["epochs_run"]}
 
 
+def kept_base(ckpt: dict) -> bool:
+    """Whether a fine-tuning kept the A model's weights: no step validated below the start (the first point of the
+    curve) on the fraction's own selection rows."""
+    curve = ckpt["training"]["val_loss_curve"]
+    return len(curve) < 2 or curve[0] <= min(curve[1:])
+
+
 def run_seed(seed: int, data: dict, v, opts: dict, out: Path, progress: bool = True) -> dict:
     torch.manual_seed(seed)
     d = out / f"seed{seed}"
@@ -207,7 +214,7 @@ def run_seed(seed: int, data: dict, v, opts: dict, out: Path, progress: bool = T
                                     f"{out / 'B.csv'} rows 0-{len(part)}")
         r = {"fraction": f, "rows": [0, len(part)], "fit_rows": len(ft_train), "select_rows": len(ft_val),
              "fthd": scores(ft_model, ft_ckpt, data["b_test"]), "scratch": scores(sc_model, sc_ckpt, data["b_test"]),
-             "fthd_steps": _steps(ft_ckpt), "scratch_steps": _steps(sc_ckpt),
+             "fthd_steps": _steps(ft_ckpt), "scratch_steps": _steps(sc_ckpt), "fthd_kept_base": kept_base(ft_ckpt),
              "fthd_seconds": ft_ckpt["training"]["seconds"], "scratch_seconds": sc_ckpt["training"]["seconds"]}
         row["fractions"].append(r)
         if progress:
@@ -241,6 +248,7 @@ def summarise(runs: list[dict], fractions) -> dict:
             fr[arm] = {c: _stat([x[arm][c] for x in rows]) for c in CHANNELS}
             fr[arm]["any_bound"] = _stat([x[arm]["any_bound"] for x in rows])
         # FTHD better than the zero-shot A model, and than scratch, on a channel: on the seed mean
+        fr["fthd_kept_base"] = sum(bool(x.get("fthd_kept_base")) for x in rows)
         fr["fthd_vs_zero_shot"] = {c: fr["fthd"][c]["mean"] / base["other"][c]["mean"] for c in CHANNELS}
         fr["fthd_vs_scratch"] = {c: fr["fthd"][c]["mean"] / fr["scratch"][c]["mean"] for c in CHANNELS}
         out["fractions"].append(fr)
@@ -295,7 +303,10 @@ def markdown(res: dict) -> str:
         for arm, label in (("fthd", "FTHD (A model fine-tuned)"), ("scratch", "DDM from scratch")):
             lines.append(f"| {fr['fraction']:.0%} | {fr['rows']} | {label} | "
                          + " | ".join(_cell(fr[arm][c], n) for c in CHANNELS) + " |")
-    lines += ["", "FTHD / zero-shot and FTHD / scratch (seed means):", "",
+    lines += ["", "Fine-tunings that kept the A model's weights (no step validated below the start on the fraction's "
+              "own selection rows): " + ", ".join(f"{fr['fraction']:.0%} {fr['fthd_kept_base']} of {n}"
+                                                  for fr in s["fractions"]) + ".",
+              "", "FTHD / zero-shot and FTHD / scratch (seed means):", "",
               "| fraction | " + " | ".join(f"{c} vs zero-shot" for c in CHANNELS) + " | "
               + " | ".join(f"{c} vs scratch" for c in CHANNELS) + " |", "|---|" + "---|" * (2 * len(CHANNELS))]
     for fr in s["fractions"]:
