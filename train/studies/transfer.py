@@ -275,9 +275,11 @@ def markdown(res: dict) -> str:
         lines += ["**Quick mode: tiny logs and budgets; a smoke run, not the figures.**", ""]
     ta, tb = res["tracks"]["A"], res["tracks"]["B"]
     lines += [f"Plant: {res['family']} ({res['plant']}), effect-free, {res['duration']:g} s per log at a "
-              f"{res['speed']:g} m/s cap, white sensor noise at the nominal's level. A = {ta['name']} "
-              f"({ta['length']:.0f} m, log seed {ta['log_seed']}, {ta['rows']} rows); B = {tb['name']} "
-              f"({tb['about']}, {tb['length']:.0f} m, log seed {tb['log_seed']}, {tb['rows']} rows). Model vehicle "
+              f"{res['speed']:g} m/s cap, white sensor noise at the nominal's level. " + "; ".join(
+                  f"{k} = {t['name']} ({t['about']}, {t['length']:.0f} m, log seed {t['log_seed']}, {t['rows']} rows, "
+                  f"vx {t['vx_range'][0]:.0f}-{t['vx_range'][1]:.0f} m/s, |vy| p95 {t['vy_p95']:.2f} max "
+                  f"{t['vy_max']:.2f} m/s, |vx omega| p95 {t['ay_p95']:.1f} max {t['ay_max']:.1f} m/s^2)"
+                  for k, t in (("A", ta), ("B", tb))) + f". Model vehicle "
               f"{res['vehicle']}; training settings: `ddyn train --vehicle av21`'s ({st['train']['origin_text']}). "
               f"FTHD: {st['finetune_text']}. Seeds {', '.join(map(str, res['seeds']))} (training seeds; the logs are "
               f"the same): each cell is the mean" + (" (min-max over the seeds)." if n > 1 else "."), "",
@@ -341,7 +343,7 @@ def options(args) -> dict:
          "ft_adam": (args.ft_adam_steps if args.ft_adam_steps is not None else q.get("ft_adam", FitConfig().adam_steps)),
          "ft_lbfgs": (args.ft_lbfgs_iterations if args.ft_lbfgs_iterations is not None
                       else q.get("ft_lbfgs", FitConfig().lbfgs_iterations)),
-         "road_seed": args.road_seed}
+         "road_seed": args.road_seed, "road_scale": args.road_scale, "swap": bool(args.swap)}
     for name, key in (("--lbfgs-iterations", "lbfgs"), ("--ft-adam-steps", "ft_adam"),
                       ("--ft-lbfgs-iterations", "ft_lbfgs")):
         v = o[key]
@@ -362,6 +364,8 @@ def options(args) -> dict:
     o["seeds"] = seeds
     if o["road_seed"] < 0:
         raise DdynError(f"--road-seed must be >= 0, got {o['road_seed']}")
+    if not (math.isfinite(o["road_scale"]) and 50.0 <= o["road_scale"] <= 500.0):
+        raise DdynError(f"--road-scale must lie in 50-500 (random tracks are 8-18 m long), got {o['road_scale']}")
     # the train settings themselves (epochs, lbfgs) through TrainConfig's own checks
     try:
         train_config(0, o["epochs"], o["lbfgs"])
@@ -385,20 +389,29 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     v = vehicle_mod.load(o["vehicle"])
-    track_b = road_course(o["road_seed"])
+    road = road_course(o["road_seed"], o["road_scale"])
     cache = out / "logs"
-    logs = []
-    for track, seed in (("putnam", LOG_SEEDS[0]), (track_b, LOG_SEEDS[1])):
+    recs = []
+    for track, seed in (("putnam", LOG_SEEDS[0]), (road, LOG_SEEDS[1])):
+        name = getattr(track, "name", track)
         try:
-            logs.append(for_vehicle(plant_log(o["family"], track, seed, o["duration"], o["speed"], cache), v))
+            ds = for_vehicle(plant_log(o["family"], track, seed, o["duration"], o["speed"], cache), v)
         except DdynError as e:
-            name = getattr(track, "name", track)
             raise DdynError(f"the {o['family']} log on {name} at --speed {o['speed']:g}: {e}") from None
-    a, b = logs
+        rec = {"name": "putnam", "track": "putnam", "length": _length("putnam"), "about": "the real log's track"} \
+            if track == "putnam" else \
+            {"name": f"random:{o['road_seed']}", "track": road.name, "length": road.length,
+             "about": f"random:{o['road_seed']} x{o['road_scale']:g}, {ROAD_WIDTH:g} m wide",
+             "scale": o["road_scale"], "width": ROAD_WIDTH}
+        recs.append((ds, rec | {"log_seed": seed, "rows": len(ds), **envelope(ds)}))
+    if o["swap"]:
+        recs.reverse()
+    (a, rec_a), (b, rec_b) = recs
     write_canonical(a, out / "A.csv")
     write_canonical(b, out / "B.csv")
     if progress:
-        print(f"logs: A {len(a)} rows, B {len(b)} rows ({time.perf_counter() - t0:.0f} s)", flush=True)
+        print(f"logs: A {rec_a['name']} {len(a)} rows, B {rec_b['name']} {len(b)} rows "
+              f"({time.perf_counter() - t0:.0f} s)", flush=True)
     data = {"a": a, "b": b, **splits(a, b)}
     runs = [run_seed(s, data, v, o, out, progress) for s in o["seeds"]]
     resolved = train_config(o["seeds"][0], o["epochs"], o["lbfgs"])
@@ -412,12 +425,7 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
     res = {
         "family": o["family"], "plant": a.metadata.get("plant", ""), "vehicle": v.name, "quick": o["quick"],
         "duration": o["duration"], "speed": o["speed"], "seeds": list(o["seeds"]),
-        "tracks": {"A": {"name": "putnam", "length": _length("putnam"), "log_seed": LOG_SEEDS[0], "rows": len(a),
-                         "vx_range": [float(a.states[:, 3].min()), float(a.states[:, 3].max())]},
-                   "B": {"name": f"random:{o['road_seed']}", "track": track_b.name, "length": track_b.length,
-                         "about": f"random:{o['road_seed']} x{ROAD_SCALE:g}, {ROAD_WIDTH:g} m wide",
-                         "log_seed": LOG_SEEDS[1], "rows": len(b),
-                         "vx_range": [float(b.states[:, 3].min()), float(b.states[:, 3].max())]}},
+        "tracks": {"A": rec_a, "B": rec_b}, "swap": o["swap"],
         "rows": data["rows"],
         "settings": {"train": {"config": cfg, "origin": origin, "profile": str(profile_path(PROFILE_VEHICLE)),
                                "origin_text": (", ".join(f"{k} {val}" for k, val in changed.items())
@@ -436,6 +444,15 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
     (out / "results.json").write_text(json.dumps(res, indent=2, default=float))
     (out / "results.md").write_text(markdown(res))
     return res
+
+
+def envelope(ds: Dataset) -> dict:
+    """What the log drives: speed range, |vy| and |vx omega| (lateral acceleration) 95th percentile and max."""
+    st = ds.states
+    ay = np.abs(st[:, 3] * st[:, 5])
+    return {"vx_range": [float(st[:, 3].min()), float(st[:, 3].max())],
+            "vy_p95": float(np.percentile(np.abs(st[:, 4]), 95)), "vy_max": float(np.abs(st[:, 4]).max()),
+            "ay_p95": float(np.percentile(ay, 95)), "ay_max": float(ay.max())}
 
 
 def _length(name: str) -> float:
@@ -466,6 +483,10 @@ def register(subparsers) -> None:
                                                f"(default {DEFAULTS['speed']:g})")
     p.add_argument("--road-seed", type=int, default=DEFAULT_ROAD_SEED,
                    help="track B: random:SEED scaled to a full-size road course (default %(default)s)")
+    p.add_argument("--road-scale", type=float, default=ROAD_SCALE,
+                   help="track B: the random track's scale factor to full size (default %(default)s)")
+    p.add_argument("--swap", action="store_true",
+                   help="train on the road course (A) and test on Putnam (B): the other direction")
     p.add_argument("--seeds", type=int, nargs="+", help="training seeds (default 0 1 2; quick 0)")
     p.add_argument("--fractions", type=float, nargs="+", help="shares of B's training part for fine-tuning "
                                                               "(default 0.05 0.1 0.2)")
