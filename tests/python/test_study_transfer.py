@@ -92,6 +92,7 @@ def test_quick_study_end_to_end_and_its_splits(tmp_path, monkeypatch):
     (["--ft-adam-steps", "-1"], "--ft-adam-steps"),
     (["--vehicle", "no_such_car"], "--vehicle"),
     (["--road-scale", "5"], "--road-scale"),
+    (["--noise-scale", "-1"], "--noise-scale"),
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, option, tmp_path):
     from ddyn.studies import transfer as T

@@ -85,16 +85,19 @@ def road_course(seed: int = DEFAULT_ROAD_SEED, scale: float = ROAD_SCALE, width:
                  source=f"ddyn.model.track_random seed {seed} scaled x{scale:g}, {width:g} m wide")
 
 
-def plant_log(family: str, track, seed: int, duration: float, speed: float, cache: Path | None = None) -> Dataset:
-    """One effect-free log of the family (families.make_log), cached by its settings."""
+def plant_log(family: str, track, seed: int, duration: float, speed: float, cache: Path | None = None,
+              noise: float = 1.0) -> Dataset:
+    """One effect-free log of the family (families.make_log), cached by its settings; noise: times the nominal's
+    sensor noise (0: the plant's states as they are)."""
     from ddyn.gap.benchmark import families as F
     from ddyn.plants import commonroad_st as CP
 
     name = getattr(track, "name", str(track))
-    path = None if cache is None else cache / f"{family}-{name}-{seed}-{duration:g}s-{speed:g}.pkl"
+    tail = "" if noise == 1.0 else f"-noise{noise:g}"
+    path = None if cache is None else cache / f"{family}-{name}-{seed}-{duration:g}s-{speed:g}{tail}.pkl"
     if path is not None and path.is_file():
         return pickle.loads(path.read_bytes())
-    settings = CP.LogSettings(duration=duration, target_speed=speed)
+    settings = CP.LogSettings(duration=duration, target_speed=speed, noise_scale=noise)
     ds = F.make_log(family, track, CP.PlantEffects(), seed, settings, PARAMS[family])
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -175,7 +178,8 @@ def _steps(ckpt: dict) -> dict:
     t = ckpt["training"]
     if "optimizer_steps" in t:
         return dict(t["optimizer_steps"])
-    return {"epochs": t["epochs_run"]}
+    epochs = ckpt["config"]["epochs"]      # the curve: one point per Adam epoch, then one per L-BFGS round (20 its)
+    return {"adam_epochs": epochs, "lbfgs_rounds": t["epochs_run"] - epochs}
 
 
 def kept_base(ckpt: dict) -> bool:
@@ -255,6 +259,12 @@ def summarise(runs: list[dict], fractions) -> dict:
     return out
 
 
+def _noise_text(noise: float) -> str:
+    if noise == 0:
+        return "noise-free (the plant's states as logged)"
+    return f"white sensor noise at {noise:g} x the nominal's level (vx 0.05 m/s, vy 0.02 m/s, omega 0.005 rad/s)"
+
+
 def _g(x: float) -> str:
     return f"{x:.3g}" if 1e-3 <= abs(x) < 1e4 else f"{x:.2e}"
 
@@ -275,7 +285,7 @@ def markdown(res: dict) -> str:
         lines += ["**Quick mode: tiny logs and budgets; a smoke run, not the figures.**", ""]
     ta, tb = res["tracks"]["A"], res["tracks"]["B"]
     lines += [f"Plant: {res['family']} ({res['plant']}), effect-free, {res['duration']:g} s per log at a "
-              f"{res['speed']:g} m/s cap, white sensor noise at the nominal's level. " + "; ".join(
+              f"{res['speed']:g} m/s cap, " + _noise_text(res.get("noise_scale", 1.0)) + ". " + "; ".join(
                   f"{k} = {t['name']} ({t['about']}, {t['length']:.0f} m, log seed {t['log_seed']}, {t['rows']} rows, "
                   f"vx {t['vx_range'][0]:.0f}-{t['vx_range'][1]:.0f} m/s, |vy| p95 {t['vy_p95']:.2f} max "
                   f"{t['vy_max']:.2f} m/s, |vx omega| p95 {t['ay_p95']:.1f} max {t['ay_max']:.1f} m/s^2)"
@@ -343,7 +353,8 @@ def options(args) -> dict:
          "ft_adam": (args.ft_adam_steps if args.ft_adam_steps is not None else q.get("ft_adam", FitConfig().adam_steps)),
          "ft_lbfgs": (args.ft_lbfgs_iterations if args.ft_lbfgs_iterations is not None
                       else q.get("ft_lbfgs", FitConfig().lbfgs_iterations)),
-         "road_seed": args.road_seed, "road_scale": args.road_scale, "swap": bool(args.swap)}
+         "road_seed": args.road_seed, "road_scale": args.road_scale, "swap": bool(args.swap),
+         "noise": args.noise_scale}
     for name, key in (("--lbfgs-iterations", "lbfgs"), ("--ft-adam-steps", "ft_adam"),
                       ("--ft-lbfgs-iterations", "ft_lbfgs")):
         v = o[key]
@@ -364,6 +375,8 @@ def options(args) -> dict:
     o["seeds"] = seeds
     if o["road_seed"] < 0:
         raise DdynError(f"--road-seed must be >= 0, got {o['road_seed']}")
+    if not (math.isfinite(o["noise"]) and 0.0 <= o["noise"] <= 5.0):
+        raise DdynError(f"--noise-scale must lie in 0-5 (times the nominal's sensor noise), got {o['noise']}")
     if not (math.isfinite(o["road_scale"]) and 50.0 <= o["road_scale"] <= 500.0):
         raise DdynError(f"--road-scale must lie in 50-500 (random tracks are 8-18 m long), got {o['road_scale']}")
     # the train settings themselves (epochs, lbfgs) through TrainConfig's own checks
@@ -395,7 +408,7 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
     for track, seed in (("putnam", LOG_SEEDS[0]), (road, LOG_SEEDS[1])):
         name = getattr(track, "name", track)
         try:
-            ds = for_vehicle(plant_log(o["family"], track, seed, o["duration"], o["speed"], cache), v)
+            ds = for_vehicle(plant_log(o["family"], track, seed, o["duration"], o["speed"], cache, o["noise"]), v)
         except DdynError as e:
             raise DdynError(f"the {o['family']} log on {name} at --speed {o['speed']:g}: {e}") from None
         rec = {"name": "putnam", "track": "putnam", "length": _length("putnam"), "about": "the real log's track"} \
@@ -425,7 +438,7 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
     res = {
         "family": o["family"], "plant": a.metadata.get("plant", ""), "vehicle": v.name, "quick": o["quick"],
         "duration": o["duration"], "speed": o["speed"], "seeds": list(o["seeds"]),
-        "tracks": {"A": rec_a, "B": rec_b}, "swap": o["swap"],
+        "tracks": {"A": rec_a, "B": rec_b}, "swap": o["swap"], "noise_scale": o["noise"],
         "rows": data["rows"],
         "settings": {"train": {"config": cfg, "origin": origin, "profile": str(profile_path(PROFILE_VEHICLE)),
                                "origin_text": (", ".join(f"{k} {val}" for k, val in changed.items())
@@ -485,6 +498,8 @@ def register(subparsers) -> None:
                    help="track B: random:SEED scaled to a full-size road course (default %(default)s)")
     p.add_argument("--road-scale", type=float, default=ROAD_SCALE,
                    help="track B: the random track's scale factor to full size (default %(default)s)")
+    p.add_argument("--noise-scale", type=float, default=1.0,
+                   help="sensor noise of both logs, times the nominal vehicle's (0: noise-free; default %(default)s)")
     p.add_argument("--swap", action="store_true",
                    help="train on the road course (A) and test on Putnam (B): the other direction")
     p.add_argument("--seeds", type=int, nargs="+", help="training seeds (default 0 1 2; quick 0)")
