@@ -111,11 +111,12 @@ def tracker_speed_limit(xy: np.ndarray, speed: np.ndarray, vehicle_name: str, se
     the circle through the points two either side (a chord of ~4 spacings: the 3 m table's position noise of
     a few mm would otherwise read as curvature);
     brake_limit: a backward pass (three times round the closed table) so that between consecutive points
-    v_i^2 <= v_{i+1}^2 + 2 ds brake_limit ((Cm1 - Cm2 v) + Cr0 + Cd v^2) / mass, the full brake and the drag
-    at v_{i+1}. A line may brake harder (its tyres' lateral force projected onto the path: steering at the
+    v_i^2 <= v_{i+1}^2 + 2 ds brake_limit F_brake(v_{i+1}) / mass, F_brake the drivetrain's force at full brake
+    (ddyn.control.drive_limits; the papers' form: (Cm1 - Cm2 v) + Cr0 + Cd v^2, with the drag) at v_{i+1}. A line may brake harder (its tyres' lateral force projected onto the path: steering at the
     lock with the front tyre past its peak, sideslip at its bound; the AV-21's Putnam line does, docs/tracks.md);
     a tracker that follows positions does not find that, falls behind the reference and reaches the corner
     too fast."""
+    from ddyn.control.drive_limits import longitudinal_force
     from ddyn.model.vehicle import load as load_vehicle
     v = load_vehicle(vehicle_name)
     c, mass = v.true_coefficients, float(v.known.mass)
@@ -133,7 +134,7 @@ def tracker_speed_limit(xy: np.ndarray, speed: np.ndarray, vehicle_name: str, se
         for _ in range(3):
             for i in range(n - 1, -1, -1):
                 nxt = out[(i + 1) % n]
-                decel = settings.brake_limit * ((c["Cm1"] - c["Cm2"] * nxt) + c["Cr0"] + c["Cd"] * nxt * nxt) / mass
+                decel = settings.brake_limit * -longitudinal_force(v, nxt, -1.0) / mass
                 out[i] = min(out[i], np.sqrt(nxt * nxt + 2.0 * ds[i] * decel))
     return out
 

@@ -120,10 +120,12 @@ def speed_profile(vehicle: Vehicle, kappa: np.ndarray, ds: float, vx0: float | N
     backward pass (braking at a_lat). Only a guess: IPOPT starts from a lap the car could nearly
     drive instead of a constant speed that leaves the track in the first hairpin.
     """
+    from ddyn.control.drive_limits import longitudinal_force, top_speed
+
     c, mass = vehicle.true_coefficients, float(vehicle.known.mass)
     a_lat = 0.6 * grip * (c["Df"] + c["Dr"]) / mass
-    a, b, k = c["Cd"], c["Cm2"], c["Cm1"] - c["Cr0"]
-    top = (-b + np.sqrt(b * b + 4 * a * k)) / (2 * a)
+    top = top_speed(vehicle)
+    k = longitudinal_force(vehicle, 0.0, 1.0)       # full pedal from rest
     v = np.minimum(0.9 * top, np.sqrt(a_lat / np.maximum(np.abs(kappa), 1e-6)))
     v = np.append(v, v[0])
     a_acc = 0.5 * k / mass
