@@ -112,7 +112,8 @@ def tracker_speed_limit(xy: np.ndarray, speed: np.ndarray, vehicle_name: str, se
     a few mm would otherwise read as curvature);
     brake_limit: a backward pass (three times round the closed table) so that between consecutive points
     v_i^2 <= v_{i+1}^2 + 2 ds brake_limit F_brake(v_{i+1}) / mass, F_brake the drivetrain's force at full brake
-    (ddyn.control.drive_limits; the papers' form: (Cm1 - Cm2 v) + Cr0 + Cd v^2, with the drag) at v_{i+1}. A line may brake harder (its tyres' lateral force projected onto the path: steering at the
+    and the drag at v_{i+1} (ddyn.control.drive_limits; the papers' form: (Cm1 - Cm2 v) + Cr0 + Cd v^2). A
+    line may brake harder (its tyres' lateral force projected onto the path: steering at the
     lock with the front tyre past its peak, sideslip at its bound; the AV-21's Putnam line does, docs/tracks.md);
     a tracker that follows positions does not find that, falls behind the reference and reaches the corner
     too fast."""
