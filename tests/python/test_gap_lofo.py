@@ -274,7 +274,7 @@ def _campaign(tmp_path, seed, rows, recorded="recorded.json"):
 
 
 def test_blind_campaigns_under_the_same_folds_are_scored_together(tmp_path, capsys):
-    """`ddyn gap lofo --pool`: the union of the campaigns' pass-2 logs scored again per family (one campaign's one
+    """`ddyn gap pool`: the union of the campaigns' pass-2 logs scored again per family (one campaign's one
     right of two and another's two wrong of two give one of four, not the mean of the rates); refused for a seed
     twice, a campaign under another recorded study, and one that calibrated on its own logs."""
     from ddyn.cli import main
@@ -284,7 +284,7 @@ def test_blind_campaigns_under_the_same_folds_are_scored_together(tmp_path, caps
     free = _rec("commonroad-st", "none", 0.0, 0.0, -1) | {"claimed": ["mass_offset"]}
     a = _campaign(tmp_path, 2, [right, wrong])
     b = _campaign(tmp_path, 3, [wrong, wrong, free])
-    assert main(["gap", "lofo", "--pool", str(a), str(b), "--out", str(tmp_path / "p")]) == 0
+    assert main(["gap", "pool", str(a), str(b), "--out", str(tmp_path / "p")]) == 0
     res = json.loads((tmp_path / "p" / "results.json").read_text())
     s = res["folds"]["commonroad-st"]["score"]
     assert (s["scored"], s["first_right"], s["effect_free_claimed"]) == (4, 1, 1)
@@ -295,10 +295,10 @@ def test_blind_campaigns_under_the_same_folds_are_scored_together(tmp_path, caps
                       ([a, tmp_path / "recorded.json"], "not a leave-one-family-out study")):
         if "recorded" in str(args[1]):
             _recorded_study(tmp_path, 1.0)
-        assert main(["gap", "lofo", "--pool", *map(str, args), "--out", str(tmp_path / "q")]) != 0
+        assert main(["gap", "pool", *map(str, args), "--out", str(tmp_path / "q")]) != 0
         assert msg in capsys.readouterr().err
     own = json.loads(a.read_text())
     del own["settings"]["folds_from"]
     (tmp_path / "own.json").write_text(json.dumps(own))
-    assert main(["gap", "lofo", "--pool", str(tmp_path / "own.json"), str(b), "--out", str(tmp_path / "q")]) != 0
+    assert main(["gap", "pool", str(tmp_path / "own.json"), str(b), "--out", str(tmp_path / "q")]) != 0
     assert "cannot be pooled as blind" in capsys.readouterr().err

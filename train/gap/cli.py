@@ -325,14 +325,6 @@ def _run_lofo(args) -> int:
         _summarised(doc)
         _write_run(doc, out)
         return _write_travelling(args, doc)
-    if args.pool:                # blind campaigns under the same recorded folds, scored together
-        if args.from_results or args.folds_from or args.calibration_out:
-            raise DdynError("--pool joins recorded --folds-from campaigns; it runs and calibrates nothing (drop "
-                            "--from-results, --folds-from and --calibration-out)")
-        doc = lofo.pooled([(_read_study(Path(p)), Path(p)) for p in args.pool])
-        _summarised(doc)
-        _write_run(doc, out)
-        return 0
     folds_from = None
     if args.folds_from:          # another campaign scored under a recorded study's fold calibrations
         if args.calibration_out:
@@ -354,6 +346,26 @@ def _run_lofo(args) -> int:
     _summarised(doc)
     _write_run(doc, out)
     return _write_travelling(args, doc) if args.calibration_out else 0
+
+
+def _run_pool(args) -> int:
+    """Blind campaigns under the same recorded folds, scored together (nothing is run or calibrated)."""
+    from ddyn.gap.benchmark import lofo
+
+    doc = lofo.pooled([(_read_study(Path(p)), Path(p)) for p in args.results])
+    _summarised(doc)
+    _write_run(doc, Path(args.out))
+    return 0
+
+
+def _add_pool(sub) -> None:
+    p = sub.add_parser("pool", help="score several `ddyn gap lofo --folds-from` campaigns together",
+                       description="Joins campaigns that were each scored blind with `ddyn gap lofo --folds-from` "
+                                   "under the same recorded study (other seeds) and scores every family again on "
+                                   "the union of their logs: nothing is run or calibrated (docs/gap.md).")
+    p.add_argument("results", nargs="+", metavar="RESULTS", help="the campaigns' results.json (two or more)")
+    p.add_argument("--out", required=True, help="the pooled study's folder (results.json, results.md)")
+    p.set_defaults(func=_run_pool)
 
 
 def _read_study(path: Path) -> dict:
@@ -423,9 +435,6 @@ def _add_lofo(sub) -> None:
                    help="no calibration of its own: score this campaign (use another --seed) with each family under "
                         "the fold calibration of a recorded study (its results.json): logs that neither the "
                         "calibrations nor the choices behind their rules saw")
-    p.add_argument("--pool", nargs="+", default=None, metavar="RESULTS",
-                   help="run nothing: score together several campaigns (their results.json) that were each scored "
-                        "with --folds-from under the same recorded study, into --out")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=_run_lofo)
 
@@ -435,6 +444,7 @@ def register(subparsers) -> None:
     _add_diagnose(subparsers)
     _add_calibrate(subparsers)
     _add_lofo(subparsers)
+    _add_pool(subparsers)
     _add_benchmark(subparsers)
     _add_rescore(subparsers)
 

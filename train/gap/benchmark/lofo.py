@@ -458,7 +458,7 @@ def pooled(docs: list[tuple[dict, Path]]) -> dict:
     naming the file): fewer than two, a document that is not a --folds-from campaign, another recorded study or
     other diagnosis settings than the first, a seed twice, or a family missing from one of them."""
     if len(docs) < 2:
-        raise DdynError("--pool: give two or more campaigns' results.json (each a --folds-from run)")
+        raise DdynError("ddyn gap pool: give two or more campaigns' results.json (each a --folds-from run)")
     first, first_path = docs[0]
     seeds, rows = [], []
     for doc, path in docs:
