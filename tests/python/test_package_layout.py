@@ -107,7 +107,7 @@ def test_commands_are_grouped_and_say_what_they_do():
     assert set(_commands(top["sil"])) == {"run", "table", "faults", "pid-sweep", "tracks"}
     assert set(_commands(top["can"])) == {"codegen", "export", "import", "replay", "record", "bench"}
     assert set(_commands(top["study"])) >= {"ddm", "fthd", "denoise"}
-    assert set(_commands(top["gap"])) == {"diagnose", "calibrate", "lofo", "benchmark", "rescore"}
+    assert set(_commands(top["gap"])) == {"diagnose", "calibrate", "lofo", "pool", "benchmark", "rescore"}
 
 
 def test_default_tool_and_data_paths_point_into_the_repository():
