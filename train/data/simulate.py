@@ -36,7 +36,7 @@ from ddyn.errors import DdynError
 from ddyn.model import backends
 from ddyn.model.effects import EffectSet, Plant, effects_json, parse_effects
 from ddyn.model import mathns
-from ddyn.model.single_track import COEFF_NAMES, N_STATE, STATE_NAMES, drivetrain_force
+from ddyn.model.single_track import BRAKE_GAIN_FORMS, COEFF_NAMES, N_STATE, STATE_NAMES, drivetrain_force
 from ddyn.model.track_files import open_track
 from ddyn.model.tracks import Track
 from ddyn.model.vehicle import Vehicle
@@ -258,7 +258,7 @@ def simulate(vehicle: Vehicle | str, track: Track | str, duration: float | None 
         f0 = drivetrain_force(v, 0.0, *drive)
         gain = drivetrain_force(v, 1.0, *drive) - f0
         want = mass * accel - f0
-        if p.drivetrain != "papers" and want < 0.0:
+        if p.drivetrain in BRAKE_GAIN_FORMS and want < 0.0:
             return want / p.brake_gain
         return want / gain if gain > 0.0 else t_hi
 

@@ -51,9 +51,6 @@ APPLIED = {"steer_delay": ("delays", "steer", "control.delay.steering"),
            "steer_lag": ("lag", "steer", "control.lag.steering")}
 # an applied effect left out when another is selected beside it (the joint fit splits one response between them)
 NOT_WITH = {"steer_lag": "steer_delay"}
-# what it could apply but does not, and why (one line each)
-# what it could apply but does not, and why (one line each); empty since the throttle delay is applied
-NOT_APPLIED_WHY: dict[str, str] = {}
 DELAY_MAX_S = 1.0   # the configuration's range of control.delay and control.lag (controller_config.c)
 
 
@@ -186,8 +183,6 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
                                 f"{config_key.rsplit('.', 1)[0]}'s 0..{DELAY_MAX_S:g} s")
             getattr(fx, what)[key] = value
             fx.applied.append(name)
-        elif name in NOT_APPLIED_WHY:
-            fx.not_applied.append(f"{name}: found {value:.4g}, not applied: {NOT_APPLIED_WHY[name]}")
         else:
             fx.not_applied.append(f"{name}: not in the runtime (issue 34)")
     return fx
