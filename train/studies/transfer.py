@@ -47,9 +47,9 @@ from ddyn.errors import DdynError
 from ddyn.learn import checkpoint, training_profile
 from ddyn.learn.evaluate import evaluate, public
 from ddyn.learn.finetune import FinetuneConfig, FitConfig, finetune, fraction_of, split_by_time
-from ddyn.learn.networks import SATURATION_TOL
 from ddyn.learn.training import train
 from ddyn.model import vehicle as vehicle_mod
+from ddyn.studies.ddm import any_bound_share
 
 FAMILIES = ("commonroad-mb", "mujoco")
 PARAMS = {"commonroad-mb": "av21", "mujoco": "default"}      # the family's car: CommonRoad's AV-21 set
@@ -155,21 +155,13 @@ def fit_ddm(ds: Dataset, v, cfg, path: Path, what: str) -> tuple:
     return result.model, ckpt
 
 
-def any_bound(m: dict, ckpt: dict) -> float:
-    r = ckpt["ranges"]
-    c = np.asarray(m["_series"]["coeffs"])
-    lo, hi = np.asarray(r["lo"]), np.asarray(r["hi"])
-    tol = SATURATION_TOL * (hi - lo)
-    return float(((c <= lo + tol) | (c >= hi - tol)).any(axis=1).mean())
-
-
 def scores(model, ckpt: dict, ds: Dataset) -> dict:
     m = evaluate(model, ckpt, ds)
     pub = public(m)
     worst = max(((n, c.get("at_lower_bound", 0.0) + c.get("at_upper_bound", 0.0))
                  for n, c in pub["coefficients"].items()), key=lambda t: t[1])
     return {"vx": pub["rmse"]["vx"], "vy": pub["rmse"]["vy"], "omega": pub["rmse"]["omega"], "ade": pub["ade"],
-            "fde": pub["fde"], "samples": pub["samples"], "any_bound": any_bound(m, ckpt),
+            "fde": pub["fde"], "samples": pub["samples"], "any_bound": any_bound_share(m, ckpt),
             "worst_bound": {"coefficient": worst[0], "share": worst[1]},
             "coefficients": {n: c["mean"] for n, c in pub["coefficients"].items()}}
 
