@@ -114,8 +114,9 @@ static const key_spec KEYS[] = {
      "so that gravity pulls to the left; |bank| < 45 deg) at each point, and the filter and the MPC predict with "
      "its lateral gravity g sin(bank) at their track positions (issue 34; ddyn/controller.h ddyn_ctrl_set_bank)"},
     {"effects", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE,
-     "the diagnosis the actuation delays and the steering lag come from (`ddyn sil run --effects-from D`, "
-     "docs/sil.md); a file whose control.delay differs from effects.delay, or control.lag from effects.lag, is "
+     "the diagnosis the actuation delays, the steering lag and the road's bank come from (`ddyn sil run "
+     "--effects-from D`, docs/sil.md); a file whose control.delay differs from effects.delay, control.lag from "
+     "effects.lag, or control.bank from effects.bank (or the raceline's bank column from effects.bank_peak) is "
      "refused"},
     {"effects.diagnosis", K_STRING, OFF(effects_diagnosis), FSZ(effects_diagnosis), 0, 0, 0, 0, NULL, NONE,
      "the diagnosis.json the effects were taken from (recorded, not read; default none)"},
@@ -125,6 +126,14 @@ static const key_spec KEYS[] = {
      "the delays (s) the diagnosis gave the controller: steering, throttle (default 0 0)"},
     {"effects.lag", K_NAMED, OFF(effects_lag), 0, 1, 0.0, 1.0, 0, LAG_NAMES, NONE,
      "the steering lag (s) the diagnosis gave the controller (default 0)"},
+    {"effects.bank", K_BOOL, OFF(effects_bank), 0, 0, 0, 0, 0, NULL, NONE,
+     "whether the diagnosis gave the controller the road's bank (raceline.csv's 6th column; default false); with "
+     "a sha256 given, control.bank must equal it"},
+    {"effects.bank_peak", K_NUMBER, OFF(effects_bank_peak), 0, 0, 0.0, 1.0, 0, NULL, NONE,
+     "the largest |bank| (rad) of the bank column the diagnosis gave; with effects.bank, the raceline's column "
+     "must have it (default 0)"},
+    {"effects.bank_from", K_STRING, OFF(effects_bank_from), FSZ(effects_bank_from), 0, 0, 0, 0, NULL, NONE,
+     "which bank the diagnosis gave: its effect and the column it made (recorded, not read; default none)"},
     {"control.prepare", K_BOOL, OFF(prepare), 0, 0, 0, 0, 0, NULL, NONE,
      "true (default): the MPC's preparation runs after each command (RTI split, docs/controller.md)"},
     {"control.max_steps", K_LONG, OFF(max_steps), 0, 0, 0, 1e12, 0, NULL, NONE,
@@ -467,6 +476,30 @@ static int walk(parse_ctx *p, const cJSON *obj, const char *prefix)
     return 1;
 }
 
+/* a bank column made from a diagnosis (effects.bank) must be the one it made: its largest |bank| recorded in
+ * effects.bank_peak (written exactly: the CSV's and the JSON's numbers round-trip), so a raceline swapped for
+ * another bank (the track's true one) is refused as an edited control.bank is */
+static int check_bank_peak(parse_ctx *p)
+{
+    const ddyn_app_config *c = p->c;
+    double peak = 0.0;
+    int i;
+    if (c->effects_sha256[0] == '\0' || !c->effects_bank) {
+        return 1;
+    }
+    for (i = 0; i < c->n_track; ++i) {
+        peak = fmax(peak, fabs(c->track[5][i]));
+    }
+    if (fabs(peak - c->effects_bank_peak) > 1e-9) {
+        return fail(p, "effects.bank_peak",
+                    "%.9g rad from diagnosis %s (sha256 %.12s...), but %s's bank column peaks at %.9g rad: remake "
+                    "the file (`ddyn sil run --effects-from D --config-only`) instead of editing it",
+                    c->effects_bank_peak, c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
+                    c->effects_sha256, c->raceline, peak);
+    }
+    return 1;
+}
+
 /* the raceline CSV: rows x, y, speed, width_left, width_right and, with control.bank, the bank */
 static int read_raceline(parse_ctx *p)
 {
@@ -639,6 +672,14 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
                   c->effects_lag[0], c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)", c->effects_sha256,
                   c->lag[0]);
     }
+    if (ok && c->effects_sha256[0] != '\0' && c->effects_bank != c->bank) {
+        /* a bank the diagnosis did not give (the track's true one, say), or one it gave and the file dropped */
+        ok = fail(&p, "effects.bank",
+                  "%s from diagnosis %s (sha256 %.12s...), but control.bank is %s: remake the file (`ddyn sil run "
+                  "--effects-from D --config-only`) instead of editing it",
+                  c->effects_bank ? "true" : "false", c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
+                  c->effects_sha256, c->bank ? "true" : "false");
+    }
     if (ok) {
         /* a position frame starts each period: dated at another cycle than the one it comes at, every
          * clean period reads as late (issue 34: the AV-21's 40 ms periods against the DBC's 20 ms) */
@@ -657,6 +698,9 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
     }
     if (ok) {
         ok = read_raceline(&p);
+    }
+    if (ok) {
+        ok = check_bank_peak(&p);
     }
     return ok;
 }

@@ -52,6 +52,9 @@ typedef struct {
     char effects_sha256[65];            /* effects.diagnosis_sha256: its sha256 */
     double effects_delay[2];            /* effects.delay.{steering,throttle}: the delays it gave, s */
     double effects_lag[1];              /* effects.lag.steering: the steering lag it gave, s */
+    int effects_bank;                   /* effects.bank: whether it gave the road's bank (control.bank must match) */
+    double effects_bank_peak;           /* effects.bank_peak: the largest |bank| (rad) of the column it gave */
+    char effects_bank_from[DDYN_APP_PATH_LEN]; /* effects.bank_from: which bank it is (recorded, not read) */
     int prepare;                        /* control.prepare: RTI split (ddyn_ctrl_prepare after each command) */
     long max_steps;                     /* control.max_steps */
     /* filter */

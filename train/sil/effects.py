@@ -12,12 +12,22 @@
     throttle_delay  -> control.delay.throttle: its `delay` fitted alone, to the nearest whole control period, as
                        steer_delay (the compensation helps since the channels' delays were aligned, dfcabe6; the
                        loop with a throttle delay in the plant: docs/sil.md)
-    anything else   -> not applied, named: "bank_angle: not in the runtime (issue 34)"
+    bank_angle      -> control.bank true and raceline.csv's 6th column (the road's bank, rad) the constant angle
+    bank_profile    -> control.bank true and the 6th column the profile at each raceline row's track position
+                       (the row projected on the centre line, as the diagnosis placed its log's rows; the
+                       diagnosis's own ddyn.gap.candidates.profile_at: its knots, linear, periodic along the lap),
+                       when the diagnosis placed its rows on a track, and that track is the one driven (else one
+                       line: not applied, or a DdynError naming the key when it is another track)
+    bank_from_roll  -> not applied, named: diagnosis.json carries the gain and the roll channel's check, not the
+                       log's roll along the track, which a column along the raceline would need
+    anything else   -> not applied, named: "mass_offset: not in the runtime (issue 34)"
 
-The configuration records where its delays and lag came from (`effects`: the diagnosis's path, the sha256 of its
-diagnosis.json, the delays and the lag it gave); the controller refuses a file whose control.delay differs from
-the recorded `effects.delay`, or control.lag from `effects.lag` (firmware_sim/controller/controller_config.c), as
-it refuses a network built for another checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
+The configuration records where its delays, lag and bank came from (`effects`: the diagnosis's path, the sha256 of
+its diagnosis.json, the delays and the lag it gave, and with a bank `bank` true, `bank_peak` the column's largest
+|bank| and `bank_from` a line saying which effect); the controller refuses a file whose control.delay differs from
+the recorded `effects.delay`, control.lag from `effects.lag`, control.bank from `effects.bank`, or whose raceline's
+bank column does not peak at `effects.bank_peak` (firmware_sim/controller/controller_config.c), as it refuses a
+network built for another checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
 `apply_to_config` puts the same two sections into another configuration (a car's).
 
 Which of the diagnosis's numbers: the selected effects' joint fit (`model.effects`) shares the response among
@@ -28,6 +38,9 @@ periods, to the nearest (`floor(delay / period + 1/2)`, ddyn/controller.h; until
 estimate 5 % short of three periods acted as two); with the period known the value written is that nearest whole
 number of periods, so the file says what acts. Both the estimate and the value written are recorded. Bad input (no such folder or file, not a diagnosis, a selected effect the diagnosis does not know) is
 one DdynError line naming the file and the key.
+
+The bank applied is the selected model's (`model.effects`, the joint fit): unlike a delay and a lag, no other
+applied effect shares its response.
 """
 from __future__ import annotations
 
@@ -37,11 +50,13 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from ddyn.errors import DdynError
 # every name a diagnosis may select: the effects and the profile and channel candidates (bank_profile,
 # bank_from_roll, ...), each with its main parameter
 from ddyn.gap.candidates import ALL as EFFECT_NAMES
-from ddyn.gap.candidates import MAIN_PARAM
+from ddyn.gap.candidates import MAIN_PARAM, profile_at
 
 DIAGNOSIS_FILE = "diagnosis.json"
 # what the runtime applies: effect -> (ControllerEffects field: delays or lag, its key of ddyn.sil.run, the config
@@ -52,6 +67,8 @@ APPLIED = {"steer_delay": ("delays", "steer", "control.delay.steering"),
 # an applied effect left out when another is selected beside it (the joint fit splits one response between them)
 NOT_WITH = {"steer_lag": "steer_delay"}
 DELAY_MAX_S = 1.0   # the configuration's range of control.delay and control.lag (controller_config.c)
+BANK = ("bank_angle", "bank_profile", "bank_from_roll")   # the bank family (one at most is selected)
+BANK_MAX_RAD = math.radians(45.0)   # the controller refuses a bank column reaching 45 degrees (DDYN_MPC_MAX_BANK)
 
 
 @dataclass
@@ -68,20 +85,19 @@ class ControllerEffects:
     selected: list[str] = field(default_factory=list)
     estimates: dict[str, float] = field(default_factory=dict)   # each selected effect's main parameter (joint fit)
     applied_estimates: dict[str, dict] = field(default_factory=dict)  # per applied effect: alone, joint, written
+    bank: dict | None = None   # the diagnosed bank (_bank): effect, kind constant/profile, angle or profile, track
 
-    def record(self) -> dict:
+    def record(self, bank_column=None) -> dict:
         """controller.json's `effects` section (the controller checks control.delay against `delay`, control.lag
-        against `lag`)."""
-        return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256,
-                "delay": {"steering": float(self.delays.get("steer", 0.0)),
-                          "throttle": float(self.delays.get("throttle", 0.0))},
-                "lag": {"steering": float(self.lag.get("steer", 0.0))}}
+        against `lag`, control.bank against `bank` and the raceline's bank column against `bank_peak`).
+        bank_column: the column made from self.bank (bank_column()); the bank keys only with a bank."""
+        return record(self.summary(), bank_column)
 
     def summary(self) -> dict:
-        """For sil_metrics.json and the study."""
+        """For sil_metrics.json and the study (and SilSpec.effects_from: what the configuration is made from)."""
         return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256, "selected": self.selected,
                 "estimates": self.estimates, "applied_estimates": self.applied_estimates, "applied": self.applied, "not_applied": self.not_applied,
-                "controller_delays": dict(self.delays), "controller_lag": dict(self.lag)}
+                "controller_delays": dict(self.delays), "controller_lag": dict(self.lag), "bank": self.bank}
 
     def lines(self) -> list[str]:
         def how(e):
@@ -91,8 +107,39 @@ class ControllerEffects:
             per = f", to whole periods of {a['period']:g} s" if a.get("period") and APPLIED[e][0] == "delays" else ""
             return f" ({src}{per})"
         out = [f"{e}: applied as {APPLIED[e][2]} = {getattr(self, APPLIED[e][0])[APPLIED[e][1]]:.4g} s{how(e)}"
-               for e in self.applied]
+               for e in self.applied if e in APPLIED]
+        if self.bank is not None:
+            out.append(f"{self.bank['effect']}: applied as control.bank = true, raceline.csv's bank column "
+                       f"{bank_from(self.bank)}")
         return out + self.not_applied
+
+
+def record(summary: dict, bank_column=None) -> dict:
+    """controller.json's `effects` section from a ControllerEffects.summary() (what SilSpec.effects_from holds)
+    and, when the summary has a bank, the bank column made from it."""
+    rec = {"diagnosis": summary["diagnosis"], "diagnosis_sha256": summary["diagnosis_sha256"],
+           "delay": {"steering": float(summary["controller_delays"].get("steer", 0.0)),
+                     "throttle": float(summary["controller_delays"].get("throttle", 0.0))},
+           "lag": {"steering": float(summary["controller_lag"].get("steer", 0.0))}}
+    bank = summary.get("bank")
+    if bank is not None:
+        if bank_column is None:
+            raise DdynError(f"{summary['diagnosis']}: {bank['effect']}: a diagnosed bank is raceline.csv's 6th "
+                            "column: make it with the raceline (ddyn.sil.effects.bank_column; `ddyn sil run "
+                            "--effects-from D --config-only` writes both)")
+        # the largest |bank| of the column as written: the controller compares it with the column it reads
+        rec |= {"bank": True, "bank_peak": float(np.max(np.abs(np.asarray(bank_column, float)))),
+                "bank_from": f"{bank['effect']}: {bank_from(bank)}"}
+    return rec
+
+
+def bank_from(bank: dict) -> str:
+    """One line: which bank the column is."""
+    if bank["kind"] == "constant":
+        return f"the constant {bank['angle']:.4g} rad ({math.degrees(bank['angle']):.3g} deg) on every row"
+    p = bank["profile"]
+    return (f"the profile at each row's position on track {bank['track']} ({len(p['knots_m'])} knots, linear, "
+            f"peak {bank['peak']:.4g} rad = {math.degrees(bank['peak']):.3g} deg)")
 
 
 def diagnosis_path(where: str | Path) -> Path:
@@ -152,6 +199,96 @@ def _alone(path: Path, d: dict, effect: str) -> float | None:
     return None
 
 
+def _effect_index(path: Path, d: dict, effect: str) -> int:
+    for i, e in enumerate(d["model"]["effects"]):
+        if isinstance(e, dict) and e.get("effect") == effect:
+            return i
+    raise DdynError(f"{path}: model.effects: no estimate of the selected effect {effect!r}")
+
+
+def _numbers(path: Path, key: str, v, n: int | None = None) -> list[float]:
+    """A list of finite numbers (n of them when given), else one DdynError line naming the key."""
+    if (not isinstance(v, list) or not v or (n is not None and len(v) != n)
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+        want = f"{n} finite numbers" if n is not None else "a list of finite numbers"
+        raise DdynError(f"{path}: {key}: expected {want}, got {str(v)[:80]}")
+    return [float(x) for x in v]
+
+
+def _profile_track(position_from: str) -> str | None:
+    """The track a profile's positions lie on ("track oval, knots tied to its curvature" -> "oval"); None when
+    the diagnosis placed its rows along the log's own lap or the distance it travelled (ddyn.gap.candidates
+    layout)."""
+    if not position_from.startswith("track "):
+        return None
+    return position_from[len("track "):].split(",", 1)[0].strip() or None
+
+
+def _bank(path: Path, d: dict, name: str) -> tuple[dict | None, str | None]:
+    """(the diagnosed bank to apply, or None with the one-line reason it is not applied)."""
+    i = _effect_index(path, d, name)
+    e = d["model"]["effects"][i]
+    value = _estimate(path, d, name)
+    if name == "bank_from_roll":
+        return None, (f"bank_from_roll: found gain {value:.4g}, not applied: diagnosis.json carries the gain and the "
+                      "roll channel's check, not the log's roll along the track, which a bank column along the "
+                      "raceline needs")
+    if name == "bank_angle":
+        if not abs(value) < BANK_MAX_RAD:
+            raise DdynError(f"{path}: model.effects[{i}].params.angle: {value:g} rad, beyond the controller's "
+                            f"+-{BANK_MAX_RAD:.4g} rad (45 degrees)")
+        return {"effect": name, "kind": "constant", "angle": value, "peak": value, "index": i}, None
+    key = f"model.effects[{i}].profile"
+    prof = e.get("profile")
+    if not isinstance(prof, dict):
+        raise DdynError(f"{path}: {key}: expected the fitted profile (knots_m, angle_rad, periodic_length_m, "
+                        "position_from)")
+    knots = _numbers(path, f"{key}.knots_m", prof.get("knots_m"))
+    angle = _numbers(path, f"{key}.angle_rad", prof.get("angle_rad"), len(knots))
+    if any(b <= a for a, b in zip(knots, knots[1:])):
+        raise DdynError(f"{path}: {key}.knots_m: expected ascending positions")
+    if max(abs(a) for a in angle) >= BANK_MAX_RAD:
+        raise DdynError(f"{path}: {key}.angle_rad: reaches {max(abs(a) for a in angle):g} rad, beyond the "
+                        f"controller's +-{BANK_MAX_RAD:.4g} rad (45 degrees)")
+    length = prof.get("periodic_length_m")
+    if length is not None and not (isinstance(length, (int, float)) and not isinstance(length, bool)
+                                   and math.isfinite(length) and length > knots[-1]):
+        raise DdynError(f"{path}: {key}.periodic_length_m: expected null or a lap length beyond the last knot, got "
+                        f"{length!r}")
+    where = prof.get("position_from")
+    if not isinstance(where, str):
+        raise DdynError(f"{path}: {key}.position_from: expected where the positions come from, got {where!r}")
+    track = _profile_track(where)
+    if track is None or length is None:
+        return None, (f"bank_profile: peak {value:.4g} rad, not applied: its positions are {where!r}, not a "
+                      "track's, so the raceline's rows cannot be placed on them (diagnose with the track known: "
+                      "the log's `track` metadata or --track)")
+    return {"effect": name, "kind": "profile", "peak": value, "index": i, "track": track,
+            "profile": {"knots_m": knots, "angle_rad": angle, "periodic_length_m": float(length),
+                        "position_from": where}}, None
+
+
+def bank_column(summary: dict, track, table: np.ndarray) -> np.ndarray:
+    """raceline.csv's bank column (rad per row) from the diagnosed bank of a ControllerEffects.summary(): the
+    constant on every row, or the profile at each row's position (the row projected on the track's centre line,
+    as the diagnosis placed its log's rows; evaluated by the diagnosis's own ddyn.gap.candidates.profile_at). A
+    profile fitted on another track (or another lap length) is refused, naming the key."""
+    bank = summary["bank"]
+    path = summary["diagnosis"]
+    if bank["kind"] == "constant":
+        return np.full(len(table), float(bank["angle"]))
+    key = f"model.effects[{bank['index']}].profile"
+    prof = bank["profile"]
+    if bank["track"] != track.name:
+        raise DdynError(f"{path}: {key}.position_from: the profile lies along track {bank['track']!r}, but the "
+                        f"controller drives {track.name!r}")
+    if abs(prof["periodic_length_m"] - float(track.length)) > 1e-6 * float(track.length):
+        raise DdynError(f"{path}: {key}.periodic_length_m: {prof['periodic_length_m']:g} m, but track "
+                        f"{track.name!r} is {float(track.length):g} m long")
+    s, _ = track.project(table[:, 0], table[:, 1])
+    return np.asarray(profile_at(prof, s), float)
+
+
 def controller_effects(where: str | Path, period: float | None = None) -> ControllerEffects:
     """The controller's effects from a diagnosis (a folder D or D/diagnosis.json); period: the control period
     (s), to write each delay as the nearest whole number of periods (None: as estimated)."""
@@ -170,6 +307,12 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
         if name in APPLIED and NOT_WITH.get(name) in d["selected"]:
             fx.not_applied.append(f"{name}: found {value:.4g}, not applied: selected with {NOT_WITH[name]}, whose "
                                   f"fit alone carries the response the two split")
+        elif name in BANK:
+            fx.bank, why = _bank(path, d, name)
+            if fx.bank is None:
+                fx.not_applied.append(why)
+            else:
+                fx.applied.append(name)
         elif name in APPLIED:
             what, key, config_key = APPLIED[name]
             alone = _alone(path, d, name)
@@ -188,15 +331,22 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
     return fx
 
 
-def apply_to_config(cfg: dict, fx: ControllerEffects) -> dict:
-    """A controller configuration (docs/deploy.md) with fx's delays in control.delay, its lag in control.lag and
-    the record in `effects`; every other key as it was."""
+def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None) -> dict:
+    """A controller configuration (docs/deploy.md) with fx's delays in control.delay, its lag in control.lag,
+    control.bank (true with a diagnosed bank, whose column, bank_column(), the caller writes into the raceline)
+    and the record in `effects`; every other key as it was."""
     out = json.loads(json.dumps(cfg))
     control = out.setdefault("control", {})
     if not isinstance(control, dict):
         raise DdynError("control: expected an object")
-    rec = fx.record()
+    rec = fx.record(bank_column)
     control["delay"] = dict(rec["delay"])
     control["lag"] = dict(rec["lag"])
+    if fx.bank is not None:
+        control["bank"] = True
+    elif control.get("bank"):
+        # the controller refuses a bank its effects do not record; dropping the car's own would change its drive
+        raise DdynError("control.bank: true in the configuration, but the diagnosis gives no bank: remove the bank "
+                        "(control.bank and the raceline's 6th column) first, or diagnose a log that finds it")
     out["effects"] = rec
     return out

@@ -374,6 +374,20 @@ def raceline_bank(track: Track, table: np.ndarray) -> np.ndarray:
     return np.asarray(bank_at(track, s), float)
 
 
+def controller_bank_column(spec: SilSpec, table: np.ndarray) -> np.ndarray | None:
+    """raceline.csv's bank column (rad per row): the diagnosed bank (effects_from's, ddyn.sil.effects.bank_column),
+    the track's own (controller_bank: the oracle), or None (a flat road). Both asked for is refused: the
+    controller refuses a bank its recorded effects do not give."""
+    diagnosed = (spec.effects_from or {}).get("bank")
+    if spec.effects_from is not None and spec.controller_bank:
+        raise DdynError("--controller-bank with --effects-from D: give one (the diagnosis sets the controller's "
+                        "bank, and the controller refuses a bank its recorded effects do not give)")
+    if diagnosed is not None:
+        from ddyn.sil.effects import bank_column
+        return bank_column(spec.effects_from, spec.track, table)
+    return raceline_bank(spec.track, table) if spec.controller_bank else None
+
+
 def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: str = "",
                       table: np.ndarray | None = None, key_file: str | None = None) -> dict:
     """ddyn_controller's configuration for a SIL run (the car's format: docs/deploy.md). The raceline is
@@ -425,12 +439,12 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         raise DdynError(f"controller lag: unknown {', '.join(sorted(unknown))}; expected steer")
     if any(float(d) != 0.0 for d in spec.controller_lag.values()):
         control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
-    if spec.controller_bank:  # the road's bank along the raceline (raceline.csv's 6th column)
+    bank = controller_bank_column(spec, table)
+    if bank is not None:  # the road's bank along the raceline (raceline.csv's 6th column)
         control["bank"] = True
     if spec.effects_from is not None:
-        # recorded from the diagnosis (ddyn.sil.effects): the controller refuses the file if control.delay or
-        # control.lag differs
-        fx = spec.effects_from
+        # recorded from the diagnosis (ddyn.sil.effects): the controller refuses the file if control.delay,
+        # control.lag or control.bank differs (or the bank column's peak)
         control["delay"] = {"steering": float(spec.controller_delays.get("steer", 0.0)),
                             "throttle": float(spec.controller_delays.get("throttle", 0.0))}
         control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
@@ -466,8 +480,9 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         "sil": {"die_at_step": die},
     }
     if spec.effects_from is not None:
-        cfg["effects"] = {"diagnosis": fx["diagnosis"], "diagnosis_sha256": fx["diagnosis_sha256"],
-                          "delay": dict(control["delay"]), "lag": dict(control["lag"])}
+        from ddyn.sil.effects import record
+        cfg["effects"] = record(spec.effects_from, bank) | {"delay": dict(control["delay"]),
+                                                             "lag": dict(control["lag"])}
     mpc = mpc_section(v.name)
     if mpc:
         cfg["mpc"] = mpc
@@ -477,8 +492,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
 def write_controller_files(spec: SilSpec, table: np.ndarray, work: Path, out_dir: str, lcm_url: str = "",
                            key_file: str | None = None) -> Path:
     """controller.json and raceline.csv into the run's folder; the configuration's path."""
-    bank = raceline_bank(spec.track, table) if spec.controller_bank else None
-    (work / RACELINE_CSV).write_text(raceline_csv(table, bank))
+    (work / RACELINE_CSV).write_text(raceline_csv(table, controller_bank_column(spec, table)))
     path = work / CONTROLLER_CONFIG
     path.write_text(json.dumps(controller_config(spec, out_dir, lcm_url=lcm_url, table=table, key_file=key_file),
                                indent=1) + "\n")
@@ -972,7 +986,11 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "controller": None, "plant": pm, "run": run,
         "effects": spec.effects, "faults": spec.faults, "controller_delays": spec.controller_delays,
         "controller_lag": spec.controller_lag, "controller_effects": spec.effects_from,
-        "road_bank": bool(pm.get("road_bank", False)), "controller_bank": spec.controller_bank,
+        "road_bank": bool(pm.get("road_bank", False)),
+        # the controller's bank: the track's own (--controller-bank) or a diagnosis's (--effects-from D)
+        "controller_bank": spec.controller_bank or (spec.effects_from or {}).get("bank") is not None,
+        "controller_bank_from": ("track" if spec.controller_bank else
+                                 "diagnosis" if (spec.effects_from or {}).get("bank") is not None else None),
         "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
         "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
         # frame authentication: the plant's DBW unit's counts (commands accepted; forged, replayed, stale
@@ -1221,9 +1239,9 @@ def _run(args: argparse.Namespace) -> int:
     lag = parse_controller_lag(args.controller_lag)
     if args.effects_from:
         from ddyn.sil.effects import controller_effects
-        if delays or lag:
-            raise DdynError("--effects-from and --controller-delays/--controller-lag: give one (the diagnosis sets "
-                            "the delays and the lag)")
+        if delays or lag or args.controller_bank:
+            raise DdynError("--effects-from and --controller-delays/--controller-lag/--controller-bank: give one (the "
+                            "diagnosis sets the delays, the lag and the bank)")
         fx = controller_effects(args.effects_from, vehicle.sample_time)
         delays, lag, effects_from = dict(fx.delays), dict(fx.lag), fx.summary()
         for line in fx.lines() or ["nothing to apply"]:
@@ -1244,7 +1262,8 @@ def _run(args: argparse.Namespace) -> int:
         path = write_controller_files(spec, table, out, str(out.resolve()))
         control = json.loads(path.read_text())["control"]
         print(f"sil: wrote {path} and {out / RACELINE_CSV} (control.delay {control.get('delay', 'none')}, "
-              f"control.lag {control.get('lag', 'none')}); not driven (--config-only)")
+              f"control.lag {control.get('lag', 'none')}, control.bank {control.get('bank', False)}); not driven "
+              "(--config-only)")
         return 0
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
@@ -1309,12 +1328,13 @@ def register(subparsers) -> None:
                         "predicts with the acting steering, its MPC plans from it and its first command inverts the "
                         "lag; e.g. with --effects steer_lag=0.05 give steer=0.05 (default: none)")
     p.add_argument("--effects-from", metavar="D", default=None,
-                   help="the controller's actuation delays and steering lag from a diagnosis (`ddyn gap diagnose "
-                        "--out D`: the folder or its diagnosis.json): steer_delay -> control.delay.steering, "
-                        "throttle_delay -> control.delay.throttle, "
-                        "steer_lag -> control.lag.steering, every other effect named and not applied; recorded in "
-                        "controller.json (effects: path, sha256; the controller refuses the file if control.delay "
-                        "or control.lag is edited) and sil_metrics.json")
+                   help="the controller's actuation delays, steering lag and road bank from a diagnosis (`ddyn gap "
+                        "diagnose --out D`: the folder or its diagnosis.json): steer_delay -> control.delay.steering, "
+                        "throttle_delay -> control.delay.throttle, steer_lag -> control.lag.steering, bank_angle or "
+                        "bank_profile -> control.bank and raceline.csv's bank column (the profile at each row's track "
+                        "position), every other effect named and not applied; recorded in controller.json (effects: "
+                        "path, sha256; the controller refuses the file if control.delay, control.lag or the bank is "
+                        "edited) and sil_metrics.json")
     p.add_argument("--controller-bank", action="store_true",
                    help="the controller knows the road's bank (controller.json control.bank): the track's own bank "
                         "profile (--track oval) at each raceline point, raceline.csv's 6th column; its filter and "
