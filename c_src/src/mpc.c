@@ -439,22 +439,47 @@ static void sensitivities(ddyn_mpc *mpc)
     }
 }
 
+/* How fast the car can gain speed from x0: the prediction model's dvx/dt at full throttle, driving straight
+ * (vy = omega = steering = 0), with the coefficients the prediction uses; 0 when the model gives no finite
+ * positive value (then the references follow the line's speed alone). The acceleration falls with speed (drag),
+ * so the value at x0's speed bounds what the car gains over the horizon. */
+static double launch_accel(ddyn_mpc *mpc, const double x0[DDYN_NX])
+{
+    double x[DDYN_NX] = {0.0}, u[DDYN_NU] = {0.0}, xdot[DDYN_NX];
+    x[3] = x0[3] > 0.0 ? x0[3] : 0.0;
+    x[6] = mpc->cfg.state_hi[0];
+    if (ddyn_model_derivatives(mpc->model, x, u, mpc->c, xdot, &mpc->model_work) != DDYN_OK ||
+        !isfinite(xdot[3]) || !(xdot[3] > 0.0)) {
+        return 0.0;
+    }
+    return xdot[3];
+}
+
 /* cost references along the raceline's speed profile, and track half-planes at the projections of
- * the linearisation trajectory's positions */
-static void references(ddyn_mpc *mpc, int i0, double u0)
+ * the linearisation trajectory's positions. The cost point moves on at the line's speed, but no faster than
+ * the car could reach from vx0 at `accel` (launch_accel; 0: no such bound): a car far below its line's speed
+ * (a flying line's first lap from standstill) is otherwise pulled towards points it cannot reach, around the
+ * next bend, and steers across the track at walking pace to cut to them. A car on its line's speed profile
+ * is never held back: the line itself accelerates no faster than the model. */
+static void references(ddyn_mpc *mpc, int i0, double u0, double vx0, double accel)
 {
     const ddyn_mpc_track *t = &mpc->track;
     const double dt = mpc->model->sample_time;
+    const double v0 = vx0 > 0.0 ? vx0 : 0.0;
     int k, i = i0, ic = i0;
     double u = u0;
     for (k = 0; k <= mpc->cfg.horizon; ++k) {
-        double *r = mpc->ref + k * 8, uc;
+        double *r = mpc->ref + k * 8, uc, v;
         track_point p = track_at(t, i, u), c;
         r[0] = p.x;
         r[1] = p.y;
         mpc->ref_tangent[2 * k] = p.tx;
         mpc->ref_tangent[2 * k + 1] = p.ty;
-        advance(t, &i, &u, p.speed * dt);
+        v = p.speed; /* over interval k the car is at most at v0 + accel (k + 1) dt */
+        if (accel > 0.0 && v > v0 + accel * (double)(k + 1) * dt) {
+            v = v0 + accel * (double)(k + 1) * dt;
+        }
+        advance(t, &i, &u, v * dt);
         ic = project(t, mpc->x_lin[k * DDYN_NX], mpc->x_lin[k * DDYN_NX + 1], ic, k == 0 ? LOCAL_WINDOW : STAGE_WINDOW, &uc);
         c = track_at(t, ic, uc);
         r[2] = c.x;
@@ -668,7 +693,7 @@ static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, do
         return st;
     }
     sensitivities(mpc);
-    references(mpc, mpc->prep_index, u0);
+    references(mpc, mpc->prep_index, u0, x0[3], launch_accel(mpc, x0));
     build_qp(mpc, x0, hold);
     /* DAQP starts cold without a plan to continue (its working set belongs to that plan) or without a
      * working set; the feedback then runs the interior point instead, which needs no factorisation */

@@ -88,6 +88,53 @@ static void test_reference_speed_reads_ahead_along_the_line(void **state)
     assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, NAN, &speed), DDYN_ERR_NONFINITE_INPUT);
 }
 
+/* arc length (m) on the ring from the car's start (angle 0) to stage k's cost point */
+static double ring_arc_to_stage(int k)
+{
+    double a = atan2(mpc.ref[k * 8 + 1], mpc.ref[k * 8]);
+    return RADIUS * (a < 0.0 ? a + 2.0 * PI : a);
+}
+
+static void test_cost_points_run_no_faster_than_the_car_can_reach(void **state)
+{
+    /* a ring whose line runs at 3 m/s: a car there at its line's speed has its cost points 3 dt apart; a car
+     * near standstill has them no further ahead than it can reach at full throttle (the model's dvx/dt at
+     * its speed), not around the ring at the line's speed (a flying line's first lap from standstill) */
+    static double x[RING], y[RING], v[RING], wl[RING], wr[RING];
+    const int h = 20;
+    double x0[DDYN_NX], xs[DDYN_NX] = {0.0}, u0[DDYN_NU] = {0.0}, xdot[DDYN_NX], reach = 0.0, dt, accel;
+    int i, k;
+    (void)state;
+    ring_mpc(30);
+    for (i = 0; i < RING; ++i) {
+        double a = 2.0 * PI * i / RING;
+        x[i] = RADIUS * cos(a);
+        y[i] = RADIUS * sin(a);
+        v[i] = 3.0;
+        wl[i] = wr[i] = 0.15;
+    }
+    assert_int_equal(ddyn_mpc_set_track(&mpc, RING, x, y, v, wl, wr), DDYN_OK);
+    assert_int_equal(mpc.cfg.horizon, h);
+    dt = mpc.model->sample_time;
+    ring_start(x0);
+    x0[3] = 3.0; /* at the line's speed: the line alone sets the cost points */
+    assert_int_equal(ddyn_mpc_prepare(&mpc, x0), DDYN_OK);
+    assert_true(fabs(ring_arc_to_stage(h) - 3.0 * h * dt) < 1e-3 * 3.0 * h * dt);
+    x0[3] = 0.1; /* near standstill */
+    ddyn_mpc_reset(&mpc);
+    assert_int_equal(ddyn_mpc_prepare(&mpc, x0), DDYN_OK);
+    xs[3] = 0.1;
+    xs[6] = mpc.cfg.state_hi[0];
+    assert_int_equal(ddyn_model_derivatives(&ddyn_model_orca_1_43, xs, u0, C, xdot, &mpc.model_work), DDYN_OK);
+    accel = xdot[3];
+    assert_true(accel > 1.0); /* the car accelerates: the bound is the reachable distance, not a stop */
+    for (k = 0; k < h; ++k) {
+        reach += fmin(3.0, 0.1 + accel * (k + 1) * dt) * dt;
+    }
+    assert_true(reach < 0.8 * 3.0 * h * dt);
+    assert_true(fabs(ring_arc_to_stage(h) - reach) < 1e-3 * reach);
+}
+
 static void test_prepare_then_feedback_is_the_real_time_iteration(void **state)
 {
     /* The split (acados' preparation and feedback phases): prepared at the prediction of the next
@@ -1106,6 +1153,7 @@ int main(void)
         cmocka_unit_test(test_held_throttle_plans_the_steering_alone),
         cmocka_unit_test(test_known_throttle_rates_fix_the_first_stages),
         cmocka_unit_test(test_reference_speed_reads_ahead_along_the_line),
+        cmocka_unit_test(test_cost_points_run_no_faster_than_the_car_can_reach),
         cmocka_unit_test(test_bank_gravity_term_matches_the_python_model),
         cmocka_unit_test(test_bank_table_lookup_and_refusals),
         cmocka_unit_test(test_plan_inputs_need_no_simulation),

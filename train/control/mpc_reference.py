@@ -19,7 +19,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from ddyn.control.mpc_setup import MpcSettings, TableGeometry, raceline_table
+from ddyn.control.mpc_setup import MpcSettings, TableGeometry, launch_accel, raceline_table
 from ddyn.errors import DdynError
 from ddyn.model import backends
 from ddyn.model import vehicle as vehicle_mod
@@ -111,7 +111,8 @@ class ReferenceMPC:
         u_lin = np.vstack([self.u_plan[1:], self.u_plan[-1:]])
         u_lin = np.clip(u_lin, self.rate_lo, self.rate_hi)
         x_lin = self._simulate(x0, u_lin)
-        i0, refs, planes = self.geo.stage_geometry(x0, x_lin[:, :2], dt, self.hint)
+        i0, refs, planes = self.geo.stage_geometry(x0, x_lin[:, :2], dt, self.hint,
+                                                   launch_accel(self.v, self.c, x0, self.state_hi[0]))
         self.hint = i0
         k = np.arange(1, H + 1)[:, None]
         lo = np.minimum(self.state_lo, x0[6:8] + k * dt * self.rate_hi)

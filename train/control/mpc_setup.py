@@ -181,19 +181,37 @@ class TableGeometry:
             i, u = (i + 1) % self.n, 0.0
         return i, u
 
-    def stage_geometry(self, x0: np.ndarray, predicted_xy: np.ndarray, dt: float, hint: int):
-        """As mpc.c: cost references (H+1, 2) and half-planes (H+1, 6: anchor, normal, room l, r)."""
+    def stage_geometry(self, x0: np.ndarray, predicted_xy: np.ndarray, dt: float, hint: int,
+                       accel: float = 0.0):
+        """As mpc.c: cost references (H+1, 2) and half-planes (H+1, 6: anchor, normal, room l, r). accel: what
+        the car can gain per second from x0's speed (launch_accel; 0: no bound): the cost point moves on at the
+        line's speed but no faster than x0's speed + accel (k + 1) dt over interval k (mpc.c's references)."""
         i0, u0 = self.project(x0[0], x0[1], hint)
         refs, planes = [], []
         i, u, ic = i0, u0, i0
+        v0 = max(float(x0[3]), 0.0)
         for k in range(len(predicted_xy)):
             p = self.at(i, u)
             refs.append((p["x"], p["y"]))
-            i, u = self.advance(i, u, p["speed"] * dt)
+            v = p["speed"]
+            if accel > 0.0:
+                v = min(v, v0 + accel * (k + 1) * dt)
+            i, u = self.advance(i, u, v * dt)
             ic, uc = self.project(predicted_xy[k, 0], predicted_xy[k, 1], ic, LOCAL_WINDOW if k == 0 else STAGE_WINDOW)
             c = self.at(ic, uc)
             planes.append((c["x"], c["y"], -c["ty"], c["tx"], c["wl"], c["wr"]))
         return i0, np.array(refs), np.array(planes)
+
+
+def launch_accel(vehicle, coeffs: np.ndarray, x0: np.ndarray, throttle_max: float) -> float:
+    """As mpc.c's launch_accel: the model's dvx/dt at x0's speed, full throttle, driving straight (vy = omega =
+    steering = 0); 0 when not a finite positive number."""
+    from ddyn.model.backends import derivatives_numpy
+    x = np.zeros(8)
+    x[3] = max(float(x0[3]), 0.0)
+    x[6] = throttle_max
+    a = float(derivatives_numpy(x, np.zeros(2), np.asarray(coeffs, float), vehicle.known)[3])
+    return a if np.isfinite(a) and a > 0.0 else 0.0
 
 
 def start_state(table: dict[str, np.ndarray], speed: float = 0.1) -> np.ndarray:
