@@ -26,8 +26,10 @@ def case(orca, mobil, tmp_path_factory):
 def test_the_loop_drives_diagnoses_rebuilds_and_scores(case):
     c, out = case
     assert c["reference"]["lap_completed"] and c["reference"]["violations"] == 0
-    # the nominal controller leaves the track at full speed with the plant's 40 ms steering delay; the oracle laps
-    assert not c["before"]["lap_completed"]
+    # the nominal controller does not lap cleanly at full speed with the plant's 40 ms steering delay (it left the
+    # track until the MPC's cost points were bounded by the car's reach, 09151bb: now a lap with 1 violation); the
+    # oracle laps
+    assert not (c["before"]["lap_completed"] and c["before"]["violations"] == 0)
     assert c["oracle"]["lap_completed"] and c["oracle"]["violations"] == 0
     assert c["oracle"]["vs_reference_pct"] < 2.0
     # the log drive: slower, no violation, at least the asked driving time
@@ -50,7 +52,9 @@ def test_the_loop_drives_diagnoses_rebuilds_and_scores(case):
     if written is not None:
         assert written == pytest.approx(round(dg["steer_delay_candidate_s"] / 0.02) * 0.02)
     else:
-        assert fx["not_applied"] and "steer_delay" not in fx["applied"]
+        assert "steer_delay" not in fx["applied"]
+    # every claim is either applied or named (a claimed bank_angle is applied since the bank reached the runtime)
+    assert set(fx["selected"]) == set(fx["applied"]) | {line.split(":")[0] for line in fx["not_applied"]}
     assert "| ethzMobil | steer_delay 0.04 |" in loop.markdown([c])
 
 

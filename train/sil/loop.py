@@ -11,7 +11,15 @@ Per case (an effect and its size in the SIL plant, on a track):
    user's log (`user_log`, a canonical dataset; no plant truth in it), diagnosed with `ddyn gap diagnose
    --vehicle V --data LOG --out D` and nothing else;
 5. rebuilt: full speed, one lap, the controller configured from D (`--effects-from D`, ddyn.sil.effects);
-6. oracle: full speed, one lap, the controller told the true effect (`--controller-delays`).
+6. oracle: full speed, one lap, the controller told the true effect (`--controller-delays`, `--controller-lag`;
+   the road's bank: `--controller-bank`, the track's own profile).
+
+The road's bank is a case too (`--cases road_bank=1`, on a track with its own banking: the oval): the plant drives
+the track's bank (plant.json road_bank); every other case, the reference and `none=0` included, drives that track
+flat (the SIL's `--flat-road`), so the no-effect case on the oval is the flat road. The user's log names its track
+(its `track` metadata, which `ddyn gap diagnose` reads for the track positions of its bank profile, as it does on
+any log that names a known track); the case records the diagnosed bank against the track's (`bank`: in the turns'
+constant part and on the straights, and the bank candidates' held-out evidence, dBIC, claimed or not).
 
 This scores the loop, not the diagnosis (the plant is the project's own model with the effect). Every run is
 `ddyn sil run --where inprocess` (deterministic); each run's folder keeps its lap.png (the SIL's plot).
@@ -36,19 +44,24 @@ LOG_SPEEDS = (0.6, 0.5, 0.4, 0.3, 0.2)
 LOG_SECONDS = 60.0
 MIN_VX = 0.3        # m/s: rows slower than this (the standing start) are left out of the user's log
 # the plant effect -> (the controller's compensation: delays or lag, its key) that is its oracle
-ORACLE = {"steer_delay": ("delays", "steer"), "throttle_delay": ("delays", "throttle"), "steer_lag": ("lag", "steer")}
+ORACLE = {"steer_delay": ("delays", "steer"), "throttle_delay": ("delays", "throttle"), "steer_lag": ("lag", "steer"),
+          "road_bank": ("bank", None)}
+ROAD_BANK = "road_bank"   # the case of the track's own bank in the plant (size 1: the track's profile as it is)
+BANK_CANDIDATES = ("bank_profile", "bank_angle", "bank_from_roll")
 
 
 # ---------------------------------------------------------------------------------------------- the user's log
 
-def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx: float = MIN_VX):
+def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx: float = MIN_VX,
+             track_name: str | None = None):
     """The controller's own log as a user's log (a canonical Dataset): per control period, the state estimate
     (x .. omega) and, as throttle and steering, the set-points the controller had commanded, i.e. what a
     drive-by-wire car's log records as its inputs. Row k's throttle/steering is the set-point sent in period
     k - 1 (the one the actuator reaches at the start of period k: the DBW unit's actuator reaches each set-point
     within a period), its rate (dthrottle, dsteering) the step to period k's set-point. With no effect in the
     plant, `ddyn gap diagnose` finds no delay on it (with row k's own set-point it finds one period).
-    Rows with the safe command or slower than min_vx are dropped; each gap starts a segment."""
+    Rows with the safe command or slower than min_vx are dropped; each gap starts a segment. track_name: the
+    track driven, as the log's `track` metadata (what a user's log of a known track carries)."""
     from ddyn.data.dataset import Dataset
     from ddyn.sil.run import read_csv
 
@@ -84,24 +97,30 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
                                     "dthrottle, dsteering = their steps per period / sample time",
                    "rows": f"{len(keep)} of {len(c['step'])} periods kept (vx >= {min_vx} m/s, no safe command) "
                            f"in {segment[-1] + 1} segment(s)"}
+    if track_name:
+        ds.metadata["track"] = track_name
     assert ds.states.shape[1] == len(STATE_NAMES) and ds.inputs.shape[1] == len(INPUT_NAMES)
     return ds
 
 
-def write_user_log(controller_log: Path, out: Path, vehicle_name: str, sample_time: float) -> Path:
+def write_user_log(controller_log: Path, out: Path, vehicle_name: str, sample_time: float,
+                   track_name: str | None = None) -> Path:
     from ddyn.data.dataset import write_canonical
-    return write_canonical(user_log(controller_log, vehicle_name, sample_time), out)
+    return write_canonical(user_log(controller_log, vehicle_name, sample_time, track_name=track_name), out)
 
 
 # ---------------------------------------------------------------------------------------------- runs
 
 def _drive(vehicle, track, out: Path, *, effects: dict, delays: dict | None = None, lag: dict | None = None,
-           effects_from: dict | None = None, speed_scale: float | None = None, laps: int = 1, seed: int = 1) -> dict:
+           effects_from: dict | None = None, speed_scale: float | None = None, laps: int = 1, seed: int = 1,
+           road_bank: bool = False, controller_bank: bool = False) -> dict:
+    """One in-process SIL run. road_bank: the track's own bank in the plant (a case of it; else a banked track is
+    driven flat); controller_bank: the controller told the track's bank (the oracle)."""
     from ddyn.sil.run import SilSpec, run_sil
 
     spec = SilSpec.true_car(vehicle, track, laps=laps, effects=dict(effects), speed_scale=speed_scale, seed=seed,
                             controller_delays=dict(delays or {}), controller_lag=dict(lag or {}),
-                            effects_from=effects_from)
+                            effects_from=effects_from, road_bank=road_bank, controller_bank=controller_bank)
     with contextlib.redirect_stdout(io.StringIO()):
         m = run_sil(spec, out, None, where="inprocess")
     return m
@@ -116,7 +135,7 @@ def _row(m: dict, out: Path) -> dict:
 
 
 def log_drive(vehicle, track, out: Path, effects: dict, ref_lap: float, speeds=LOG_SPEEDS,
-              seconds: float = LOG_SECONDS, seed: int = 1) -> tuple[dict, Path]:
+              seconds: float = LOG_SECONDS, seed: int = 1, road_bank: bool = False) -> tuple[dict, Path]:
     """The nominal controller's drive for the log: the fastest speed scale that drives `seconds` (several
     laps) without a violation, else the one that completes them with the fewest violations (the faster of
     equals)."""
@@ -125,7 +144,7 @@ def log_drive(vehicle, track, out: Path, effects: dict, ref_lap: float, speeds=L
     for s in speeds:
         laps = max(2, math.ceil(seconds / (ref_lap / s)) + 1)
         d = out / f"log_speed{s:g}"
-        m = _drive(vehicle, track, d, effects=effects, speed_scale=s, laps=laps, seed=seed)
+        m = _drive(vehicle, track, d, effects=effects, speed_scale=s, laps=laps, seed=seed, road_bank=road_bank)
         driven = float(sum(m["lap_times"]))
         r = {"speed_scale": s, "laps": laps, "lap_completed": bool(m["lap_completed"]), "driven_s": driven,
              "violations": int(m["violations"]), "end": m["end_reason"],
@@ -169,21 +188,116 @@ def _first(d: dict) -> dict:
             "calibration": (d.get("calibration") or {}).get("name")}
 
 
+def _bank_values(bank, track) -> np.ndarray:
+    """A diagnosed bank (a constant, or a reported profile) at the track's centre-line points."""
+    from ddyn.gap.candidates import profile_at
+
+    s = np.asarray(track.s, float)
+    return np.full(len(s), float(bank)) if not isinstance(bank, dict) else np.asarray(profile_at(bank, s), float)
+
+
+def bank_against_truth(bank, track, banked: bool = True) -> dict:
+    """A diagnosed bank (a constant angle, rad, or a reported profile) against the plant's road, in degrees: the
+    track's own bank (banked) or zero (driven flat); in the turns' constant part (Track.turns) and on the
+    straights' constant parts (outside the turns, where the track's bank does not change), and over the lap."""
+    own = np.asarray(track.bank, float)
+    truth = own if banked else np.zeros(len(own))
+    est = _bank_values(bank, track)
+    turns = np.asarray(getattr(track, "turns", np.zeros(len(truth), bool)), bool)
+    flat = np.r_[np.abs(np.diff(own)) < 1e-12, True] & np.r_[True, np.abs(np.diff(own)) < 1e-12]
+    straights = flat & ~turns
+
+    def part(mask):
+        if not mask.any():
+            return None
+        e, t = np.degrees(est[mask]), np.degrees(truth[mask])
+        return {"mean_deg": float(e.mean()), "true_deg": float(t.mean()),
+                "max_error_deg": float(np.max(np.abs(e - t)))}
+
+    # each straight on its own (the oval's front straight is banked 9 degrees, its back straight 5)
+    edges = np.flatnonzero(np.diff(np.r_[0, straights.astype(int), 0]))
+    runs = [np.arange(a, b) for a, b in zip(edges[::2], edges[1::2])]
+    return {"peak_deg": float(np.degrees(est[np.argmax(np.abs(est))])), "turns": part(turns),
+            "straights": [part(np.isin(np.arange(len(truth)), r)) for r in runs],
+            "rms_error_deg": float(np.degrees(np.sqrt(np.mean((est - truth) ** 2))))}
+
+
+def plant_states_log(user: Path, trajectory: Path, out: Path) -> tuple[Path, float]:
+    """Not the loop's log: the user's log (user_log) with the plant's true states (the SIL's trajectory.csv) in
+    place of the controller's estimates, at the same rows and with the same inputs; what a log whose states come
+    from another estimate than the controller's own flat-road filter (a car's INS) would hold at best. Each row's
+    time is matched to the trajectory by the shift (within two periods, the trajectory's own steps) that brings
+    the positions closest; (the log, that shift in s)."""
+    from ddyn.data.dataset import write_canonical
+    from ddyn.data.importers import read_canonical
+    from ddyn.sil.run import read_csv
+
+    ds = read_canonical(user)
+    t = read_csv(trajectory)
+    step = float(np.median(np.diff(t["t"])))
+    shifts = np.arange(-2 * ds.sample_time, 2 * ds.sample_time + 0.5 * step, step)
+    err = [np.mean(np.hypot(np.interp(ds.time + h, t["t"], t["x"]) - ds.states[:, 0],
+                            np.interp(ds.time + h, t["t"], t["y"]) - ds.states[:, 1])) for h in shifts]
+    shift = float(shifts[int(np.argmin(err))])
+    est_yaw = ds.states[:, 2].copy()
+    for j, k in enumerate(("x", "y", "yaw", "vx", "vy", "omega")):
+        v = np.unwrap(t[k]) if k == "yaw" else t[k]
+        ds.states[:, j] = np.interp(ds.time + shift, t["t"], v)
+    # the yaw as the log writes it (the estimate's turns), the plant's angle
+    ds.states[:, 2] = est_yaw + np.angle(np.exp(1j * (ds.states[:, 2] - est_yaw)))
+    ds.metadata["import_format"] = ("ddyn study sil-loop plant_states_log: the user's log with the plant's true "
+                                    f"states (trajectory.csv shifted {shift:+.3f} s) in place of the controller's")
+    return write_canonical(ds, out), shift
+
+
+def bank_found(d: dict, track, banked: bool = True) -> dict:
+    """What the diagnosis found of the bank: the bank claimed (its effect and how it compares with the track's),
+    and each bank candidate fitted alone (round 1) with its held-out evidence (dBIC < 0 pays) and comparison."""
+    cands = {}
+    for c in d.get("candidates", []):
+        if c.get("effect") in BANK_CANDIDATES:
+            value = c.get("profile") or next(iter(c["params"].values()))
+            cands[c["effect"]] = {"delta_bic": c.get("delta_bic"), "significant": c.get("significant"),
+                                  "main": next(iter(c["params"].values())),
+                                  **({"vs_truth": bank_against_truth(value, track, banked)}
+                                     if c["effect"] != "bank_from_roll" else {})}
+    claimed = next((e for e in d["model"].get("effects", []) if e.get("effect") in BANK_CANDIDATES), None)
+    out = {"claimed": claimed["effect"] if claimed else None, "candidates": cands,
+           "not_claimed_why": {k: d.get(k) for k in ("below_limit", "not_told_apart", "unexplained")
+                               if d.get(k) and d[k].get("effect") in BANK_CANDIDATES}}
+    if claimed and claimed["effect"] != "bank_from_roll":
+        out["vs_truth"] = bank_against_truth(claimed.get("profile") or claimed["params"]["angle"], track, banked)
+    return out
+
+
 def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, seed: int = 1,
              speeds=LOG_SPEEDS, seconds: float = LOG_SECONDS) -> dict:
-    fx = {} if effect == "none" else {effect: size}
-    case = {"track": track.name, "effect": effect, "size": size, "reference": ref}
+    banked = effect == ROAD_BANK
+    if banked and getattr(track, "bank", None) is None:
+        raise DdynError(f"--cases {ROAD_BANK}: track {track.name!r} has no bank of its own (the banked oval: oval)")
+    if banked and size != 1.0:
+        raise DdynError(f"--cases {ROAD_BANK}={size:g}: the track's bank is driven as it is: give {ROAD_BANK}=1")
+    fx = {} if effect in ("none", ROAD_BANK) else {effect: size}
+    case = {"track": track.name, "effect": effect, "size": size, "reference": ref,
+            "plant_road": "the track's own bank" if banked else
+            ("flat (the track's bank taken out: --flat-road)" if getattr(track, "bank", None) is not None
+             else "flat")}
     t0 = time.time()
-    m = _drive(vehicle, track, out / "before", effects=fx, seed=seed)
+    m = _drive(vehicle, track, out / "before", effects=fx, seed=seed, road_bank=banked)
     case["before"] = _row(m, out / "before")
-    drive, d = log_drive(vehicle, track, out, fx, ref["lap_s"], speeds, seconds, seed)
+    drive, d = log_drive(vehicle, track, out, fx, ref["lap_s"], speeds, seconds, seed, road_bank=banked)
     case["log_drive"] = drive
-    log = write_user_log(d / "controller_log.csv", out / "user_log.csv", vehicle.name, vehicle.sample_time)
+    log = write_user_log(d / "controller_log.csv", out / "user_log.csv", vehicle.name, vehicle.sample_time,
+                         track_name=track.name)
     diag = diagnose(log, vehicle.name, out / "diagnosis")
-    case["diagnosis"] = _first(diag) | {"path": str(out / "diagnosis"), "truth": size,
-                                        "first_is_the_effect": (not diag["selected"]) if effect == "none" else
-                                        (bool(diag["selected"]) and diag["selected"][0] == effect)}
-    if case["diagnosis"]["first_is_the_effect"] and effect != "none":
+    first_is = ((not diag["selected"]) if effect == "none" else
+                bool(diag["selected"]) and (diag["selected"][0] in BANK_CANDIDATES if banked
+                                            else diag["selected"][0] == effect))
+    case["diagnosis"] = _first(diag) | {"path": str(out / "diagnosis"), "truth": size, "first_is_the_effect": first_is,
+                                        "selected_text": ", ".join(diag["selected"]) or "none"}
+    if getattr(track, "bank", None) is not None:
+        case["diagnosis"]["bank"] = bank_found(diag, track, banked)
+    if case["diagnosis"]["first_is_the_effect"] and effect not in ("none", ROAD_BANK):
         case["diagnosis"]["error_pct"] = 100.0 * (case["diagnosis"]["first_estimate"] - size) / size
     if effect == "steer_delay" and case["diagnosis"]["steer_delay_candidate_s"] is not None:
         case["diagnosis"]["steer_delay_candidate_error_pct"] = \
@@ -191,12 +305,13 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
     cfx = controller_effects(out / "diagnosis", vehicle.sample_time)
     case["rebuilt_effects"] = cfx.summary()
     m = _drive(vehicle, track, out / "rebuilt", effects=fx, delays=cfx.delays, lag=cfx.lag, effects_from=cfx.summary(),
-               seed=seed)
+               seed=seed, road_bank=banked)
     case["rebuilt"] = _row(m, out / "rebuilt")
     if effect in ORACLE:
         what, key = ORACLE[effect]
-        m = _drive(vehicle, track, out / "oracle", effects=fx, seed=seed,
-                   **({"delays": {key: size}} if what == "delays" else {"lag": {key: size}}))
+        told = {"delays": {"delays": {key: size}}, "lag": {"lag": {key: size}},
+                "bank": {"controller_bank": True}}[what]
+        m = _drive(vehicle, track, out / "oracle", effects=fx, seed=seed, road_bank=banked, **told)
         case["oracle"] = _row(m, out / "oracle")
     sd = case["diagnosis"]["steer_delay_candidate_s"]
     if effect == "steer_delay" and "steer_delay" not in cfx.applied and sd is not None and 0.0 <= sd <= 0.1:
@@ -205,11 +320,19 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
         sdw = round(sd / vehicle.sample_time) * vehicle.sample_time     # as ddyn.sil.effects writes it
         m = _drive(vehicle, track, out / "steer_delay_candidate", effects=fx, delays={"steer": sdw}, seed=seed)
         case["steer_delay_candidate"] = _row(m, out / "steer_delay_candidate") | {"delay_s": sd, "written_s": sdw}
+    if banked:
+        case["plant_states"] = plant_states_case(vehicle, track, out, d, seed)
     ref_lap = ref["lap_s"]
     for k in ("before", "rebuilt", "oracle", "steer_delay_candidate"):
         r = case.get(k)
         if r and r["lap_s"] is not None and r["lap_completed"]:
             r["vs_reference_pct"] = 100.0 * (r["lap_s"] / ref_lap - 1.0)
+    ps = (case.get("plant_states") or {}).get("rebuilt")
+    if ps and ps["lap_completed"] and ps["lap_s"] is not None:
+        ps["vs_reference_pct"] = 100.0 * (ps["lap_s"] / ref_lap - 1.0)
+        o = case.get("oracle")
+        if o and o["lap_completed"] and o["lap_s"]:
+            ps["vs_oracle_pct"] = 100.0 * (ps["lap_s"] / o["lap_s"] - 1.0)
     o, b = case.get("oracle"), case["rebuilt"]
     if o and o.get("lap_s") and b.get("lap_s") and o["lap_completed"] and b["lap_completed"]:
         b["vs_oracle_pct"] = 100.0 * (b["lap_s"] / o["lap_s"] - 1.0)
@@ -226,6 +349,22 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
     return case
 
 
+def plant_states_case(vehicle, track, out: Path, drive_dir: Path, seed: int) -> dict:
+    """Not the loop's answer: the same log drive's rows with the plant's true states (plant_states_log),
+    diagnosed the same way, and the controller rebuilt from that diagnosis; to tell a bank the controller's
+    own filter hides from one the diagnosis or the runtime cannot carry."""
+    log, shift = plant_states_log(out / "user_log.csv", drive_dir / "trajectory.csv", out / "plant_states_log.csv")
+    d = diagnose(log, vehicle.name, out / "diagnosis_plant_states")
+    cfx = controller_effects(out / "diagnosis_plant_states", vehicle.sample_time)
+    m = _drive(vehicle, track, out / "rebuilt_plant_states", effects={}, delays=cfx.delays, lag=cfx.lag,
+               effects_from=cfx.summary(), seed=seed, road_bank=True)
+    return {"what": "not the loop's answer: the log drive's rows with the plant's true states in place of the "
+                    "controller's estimates (what a log with another state estimate, a car's INS, would hold at best)",
+            "time_shift_s": shift, "diagnosis": _first(d) | {"path": str(out / "diagnosis_plant_states"),
+                                                             "bank": bank_found(d, track)},
+            "rebuilt_effects": cfx.summary(), "rebuilt": _row(m, out / "rebuilt_plant_states")}
+
+
 def parse_cases(text: str) -> list[tuple[str, float]]:
     from ddyn.sil.run import PLANT_EFFECTS
 
@@ -236,8 +375,9 @@ def parse_cases(text: str) -> list[tuple[str, float]]:
         if "=" not in item:
             raise DdynError(f"--cases: expected effect=SIZE, got {item!r}")
         k, v = item.split("=", 1)
-        if k not in PLANT_EFFECTS + ("none",):
-            raise DdynError(f"--cases: unknown effect {k!r}; expected one of {', '.join(PLANT_EFFECTS)}")
+        if k not in PLANT_EFFECTS + ("none", ROAD_BANK):
+            raise DdynError(f"--cases: unknown effect {k!r}; expected one of "
+                            f"{', '.join(PLANT_EFFECTS + (ROAD_BANK, 'none'))}")
         try:
             out.append((k, float(v)))
         except ValueError:
@@ -264,14 +404,46 @@ def markdown(cases: list[dict]) -> str:
         sd = f"{dg['steer_delay_candidate_s']:.4g} s (rank {dg['steer_delay_candidate_rank']})" \
             if dg["steer_delay_candidate_s"] is not None else "-"
         ld = c["log_drive"]["chosen"]
+        bank = c["rebuilt_effects"].get("bank")
         written = ", ".join([f"{k} {v:.4g} s" for k, v in c["rebuilt_effects"]["controller_delays"].items()] +
-                            [f"lag {k} {v:.4g} s" for k, v in c["rebuilt_effects"].get("controller_lag", {}).items()])
+                            [f"lag {k} {v:.4g} s" for k, v in c["rebuilt_effects"].get("controller_lag", {}).items()] +
+                            ([f"bank ({bank['effect']}, peak {math.degrees(bank['peak']):.3g} deg)"] if bank else []))
         applied = written or ("nothing (" + "; ".join(c["rebuilt_effects"]["not_applied"]) + ")"
                               if c["rebuilt_effects"]["not_applied"] else "nothing")
         lines.append(f"| {c['track']} | {c['effect']} {c['size']:g} | {ld['speed_scale']:g}, {ld['driven_s']:.1f} s, "
                      f"{ld['violations']} viol. | {first} | {sd} | {applied} | {_fmt_run(c['before'])} | "
                      f"{_fmt_run(c['rebuilt'])} | {_fmt_run(c.get('oracle'))} | {_fmt_run(c['reference'])} |")
-    return "\n".join(lines) + "\n\n(lap / violations / mean tracking error, m)\n"
+    notes = [bank_line(c) for c in cases if "bank" in c["diagnosis"]]
+    return "\n".join(lines) + "\n\n(lap / violations / mean tracking error, m)\n" + \
+        ("\n" + "\n".join(notes) + "\n" if notes else "")
+
+
+def _bank_text(b: dict | None) -> str:
+    """A bank against the track's, in degrees: turns and each straight (estimate vs truth)."""
+    if not b:
+        return "-"
+    parts = [f"turns {b['turns']['mean_deg']:.1f} (true {b['turns']['true_deg']:.0f})"] if b["turns"] else []
+    parts += [f"straight {i + 1} {p['mean_deg']:.1f} (true {p['true_deg']:.0f})" for i, p in enumerate(b["straights"])]
+    return f"peak {b['peak_deg']:.1f} deg; " + ", ".join(parts)
+
+
+def bank_line(c: dict) -> str:
+    """One line per case on a banked track: the bank the diagnosis claimed or fitted (each candidate's dBIC), and
+    the plant-states experiment when there is one."""
+    bk = c["diagnosis"]["bank"]
+    cands = "; ".join(f"{k} dBIC {v['delta_bic']:.0f}" + (f", {_bank_text(v.get('vs_truth'))}" if v.get("vs_truth")
+                                                          else "") for k, v in bk["candidates"].items())
+    why = "; ".join(f"{k}: {v['effect']}" for k, v in bk["not_claimed_why"].items())
+    out = (f"- {c['track']} {c['effect']}: bank claimed: {bk['claimed'] or 'none'}"
+           + (f" ({_bank_text(bk.get('vs_truth'))})" if bk.get("vs_truth") else "")
+           + (f" (not claimed: {why})" if why else "") + f"; candidates alone: {cands}")
+    ps = c.get("plant_states")
+    if ps:
+        pb = ps["diagnosis"]["bank"]
+        out += (f"\n  - on the plant's true states (not the loop's answer): claimed {pb['claimed'] or 'none'}"
+                + (f" ({_bank_text(pb.get('vs_truth'))})" if pb.get("vs_truth") else "")
+                + f"; rebuilt from it {_fmt_run(ps['rebuilt'])}")
+    return out
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -319,7 +491,8 @@ def register(subparsers) -> None:
     p.add_argument("--tracks", default="ethzMobil", help="comma-separated tracks (e.g. ethzMobil,random:301)")
     p.add_argument("--cases", default="steer_delay=0.04,steer_delay=0.08",
                    help="plant effects and sizes, effect=SIZE,...; none=0: no effect (what the diagnosis claims on "
-                        "an effect-free log) (default: %(default)s)")
+                        "an effect-free log); road_bank=1: the track's own bank in the plant (the oval; every other "
+                        "case drives a banked track flat) (default: %(default)s)")
     p.add_argument("--log-speeds", default=",".join(f"{s:g}" for s in LOG_SPEEDS),
                    help="speed scales tried for the log drive, fastest first (default: %(default)s)")
     p.add_argument("--log-seconds", type=float, default=LOG_SECONDS,
