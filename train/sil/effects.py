@@ -28,7 +28,8 @@ its diagnosis.json, the delays and the lag it gave, and with a bank `bank` true,
 the recorded `effects.delay`, control.lag from `effects.lag`, control.bank from `effects.bank`, or whose raceline's
 bank column does not peak at `effects.bank_peak` (firmware_sim/controller/controller_config.c), as it refuses a
 network built for another checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
-`apply_to_config` puts the same two sections into another configuration (a car's).
+`apply_to_config` puts the same sections into another configuration (a car's; a diagnosed bank's column, made by
+`bank_column`, into its raceline by the caller).
 
 Which of the diagnosis's numbers: the selected effects' joint fit (`model.effects`) shares the response among
 them, e.g. a 60 ms steering delay as steer_delay 29 ms + steer_lag; the runtime carries only the delay, so the
