@@ -491,6 +491,15 @@ static void references(ddyn_mpc *mpc, int i0, double u0, double vx0, double acce
     }
 }
 
+/* Row j (an even index: the throttle after stage j / 2 + 1) of the integrator rows relaxed to +-`span` times
+ * the throttle range's width */
+static void relax_throttle_row(ddyn_mpc *mpc, int j, double span)
+{
+    const double state_w = mpc->cfg.state_hi[0] - mpc->cfg.state_lo[0];
+    mpc->qp.hard_lo[j] = -state_w * span;
+    mpc->qp.hard_hi[j] = state_w * span;
+}
+
 /* Take throttle column j (an even z index) out of the QP built by build_qp (lower triangle only, before
  * mirroring): it keeps only its own diagonal weight 2 r_rate weight, no gradient (a fixed throttle's cost is a
  * constant), no entry in the track rows, its box relaxed to +-the rate bounds' width and its integrator row
@@ -500,7 +509,7 @@ static void take_out_throttle_column(ddyn_mpc *mpc, int j, double weight, double
     const ddyn_mpc_config *cfg = &mpc->cfg;
     const int h = cfg->horizon, n = 2 * h;
     ddyn_mpc_qp *qp = &mpc->qp;
-    const double rate_w = cfg->rate_hi[0] - cfg->rate_lo[0], state_w = cfg->state_hi[0] - cfg->state_lo[0];
+    const double rate_w = cfg->rate_hi[0] - cfg->rate_lo[0];
     int i, q;
     for (i = 0; i < n; ++i) {
         if (i > j) {
@@ -513,8 +522,7 @@ static void take_out_throttle_column(ddyn_mpc *mpc, int j, double weight, double
     qp->grad[j] = 0.0;
     qp->lb[j] = -rate_w;
     qp->ub[j] = rate_w;
-    qp->hard_lo[j] = -state_w * span; /* row j: the throttle after stage j / 2 + 1 */
-    qp->hard_hi[j] = state_w * span;
+    relax_throttle_row(mpc, j, span);
     for (q = 0; q < h; ++q) {
         qp->soft_row[q * DDYN_QP_NV + j] = 0.0;
     }
@@ -756,6 +764,13 @@ static void shift_to(ddyn_mpc *mpc, const double x0[DDYN_NX])
             qp->hard_lo[2 * (k - 1) + ch] = lo - (xk[6 + ch] + dx[6 + ch]);
             qp->hard_hi[2 * (k - 1) + ch] = hi - (xk[6 + ch] + dx[6 + ch]);
         }
+    }
+    /* the known throttle stages' rows stay relaxed, as fix_throttle_columns built them (issue 34: rewritten
+     * here, the bound the known throttle is at or beyond made the QP move their columns, which the plan then
+     * replaces by the known rates: the free throttle was planned for another throttle, capped QPs and
+     * throttle limit cycles at 120 ms, docs/sil.md) */
+    for (k = 0; k < mpc->fix_n && k < h; ++k) {
+        relax_throttle_row(mpc, 2 * k, (double)(k + 1));
     }
 }
 

@@ -1127,6 +1127,27 @@ static void test_known_throttle_rates_fix_the_first_stages(void **state)
         assert_true(up[2 * j] == fixed[j]);
         assert_true(mpc.qp.grad[2 * j] == 0.0);
     }
+    /* known rates that take the throttle below its bound (braking in the pipe), fed back at a moved state:
+     * the known stages' integrator rows stay relaxed (the feedback's move once rewrote them, and the QP
+     * then moved the known columns to meet the bound: the free throttle planned for another throttle) */
+    fixed[0] = -1.0;
+    fixed[1] = 0.0;
+    fixed[2] = 0.0;
+    xp[6] = -0.09; /* the known throttle: -0.11 after stage 1 (its bound -0.1), the stage-3 rate can lift it */
+    assert_int_equal(ddyn_mpc_fix_throttle(&mpc, 3, fixed), DDYN_OK);
+    assert_int_equal(ddyn_mpc_prepare(&mpc, xp), DDYN_OK);
+    xp[0] += 0.002;
+    xp[6] = -0.095;
+    {
+        ddyn_status fs = ddyn_mpc_feedback(&mpc, xp, u, &info);
+        assert_true(fs == DDYN_OK || fs == DDYN_ERR_QP_NOT_CONVERGED);
+    }
+    assert_int_equal(ddyn_mpc_plan_inputs(&mpc, up), 20);
+    for (j = 0; j < 3; ++j) {
+        assert_true(up[2 * j] == fixed[j]);
+        assert_true(mpc.qp.hard_lo[2 * j] == -1.1 * (j + 1) && mpc.qp.hard_hi[2 * j] == 1.1 * (j + 1));
+        assert_true(fabs(mpc.qp.z[2 * j]) < 1e-4);
+    }
     (void)dt;
 }
 
