@@ -7,7 +7,7 @@ coefficients, noise seed 1, in process (ddyn_sil_inprocess: emulated time, frame
 Everything asserted is counted in simulated time (laps, violations, metres); no wall-clock bound.
 Measured (seeds 1-4): without a delay 5.461-5.469 s; with the delay compensated 5.521-5.575 s (+1.0 to
 +1.9 %; the throttle held back to the steering's delay since issue 34: 5.513-5.547 s before), 0 violations in all four; uncompensated none completes cleanly (three leave the track, one
-completes in 29 s with 4 violations).
+completes in 29 s with 4 violations; seed 1 since 09151bb completes in 12.6 s with 1 violation).
 """
 from __future__ import annotations
 
@@ -50,12 +50,14 @@ def test_the_compensated_controller_laps_a_40ms_steering_delay_cleanly(laps):
 
 
 def test_the_uncompensated_controller_does_worse(laps):
-    """The contrast the compensation makes (measured, seed 1: the uncompensated car leaves the track after
-    2 violations, its mean distance to the raceline 0.083 m against 0.030 m)."""
+    """The contrast the compensation makes (measured, seed 1, at 09151bb: the uncompensated car completes its lap
+    in 12.6 s with 1 violation and 54 safe periods, its largest distance to the raceline 0.188 m against 0.083 m
+    compensated; before 09151bb it left the track after 2 violations). Its mean distance is no longer the contrast
+    (0.030 m against 0.025 m): most of its lap is driven in the safe command's slow recoveries, close to the line."""
     comp, unc = laps["compensated"], laps["uncompensated"]
     assert not (unc["lap_completed"] and unc["violations"] == 0), (unc["end_reason"], unc["violations"])
     assert unc["violations"] > comp["violations"]
-    assert unc["tracking_error"]["mean"] > 1.5 * comp["tracking_error"]["mean"]
+    assert unc["tracking_error"]["max"] > 1.5 * comp["tracking_error"]["max"]
     assert unc["controller"]["safe_periods"] > 0
 
 
