@@ -7,7 +7,8 @@ coefficients, noise seed 1, in process (ddyn_sil_inprocess: emulated time, frame
 asserted is counted in simulated time (laps, violations, metres, periods); no wall-clock bound.
 Measured (seeds 1-4, results/sil_steer_lag.json): without a lag 5.461-5.469 s; 50 ms compensated 5.438-5.445 s,
 0 violations, no safe period (uncompensated 5.424-5.439 s, 0 violations, 7 safe periods each); 100 ms compensated
-5.448-5.464 s, 0 violations (uncompensated: off the track in 3 of 4, the fourth 71.7 s with 5 violations).
+5.448-5.464 s, 0 violations (uncompensated: off the track in 3 of 4, the fourth 71.7 s with 5 violations;
+seed 1 since 09151bb completes in 17.9 s with 4 violations).
 """
 from __future__ import annotations
 
@@ -46,13 +47,16 @@ def test_the_compensated_controller_laps_a_steering_lag_cleanly(laps, tau):
 
 
 def test_the_uncompensated_controller_does_worse(laps):
-    """The contrast (measured, seed 1): at 100 ms the uncompensated car leaves the track after 3 violations (mean
-    distance to the raceline 0.224 m against 0.019 m); at 50 ms it laps, but with 7 periods of the safe command
-    (the filter, predicting the steering without the lag, gates the steering sensor until it restarts)."""
+    """The contrast (measured, seed 1): at 100 ms the uncompensated car completes its lap in 17.9 s with 4
+    violations and 172 safe periods (since 09151bb; before it left the track after 3), its largest distance to the
+    raceline 0.417 m against 0.070 m told, its mean 0.046 m against 0.019 m; at 50 ms it laps, but with 7 periods
+    of the safe command (the filter, predicting the steering without the lag, gates the steering sensor until it
+    restarts)."""
     comp, unc = laps[(0.1, True)], laps[(0.1, False)]
     assert not (unc["lap_completed"] and unc["violations"] == 0), (unc["end_reason"], unc["violations"])
     assert unc["violations"] > comp["violations"]
-    assert unc["tracking_error"]["mean"] > 3.0 * comp["tracking_error"]["mean"]
+    assert unc["tracking_error"]["max"] > 3.0 * comp["tracking_error"]["max"]
+    assert unc["tracking_error"]["mean"] > 2.0 * comp["tracking_error"]["mean"]
     assert laps[(0.05, False)]["controller"]["safe_periods"] > 0 == laps[(0.05, True)]["controller"]["safe_periods"]
 
 
