@@ -56,24 +56,30 @@ static void ring_start(double x0[DDYN_NX])
     memcpy(x0, s, sizeof s);
 }
 
-static void test_reference_speed_reads_ahead_along_the_line(void **state)
+/* the ring again with the table speed v0 + dv * i at point i (0.15 m of room either side) */
+static void ring_speeds(double v0, double dv)
 {
-    /* a ring whose table speed grows with the angle: the speed `ahead` metres past the car's
-     * projection is the table's there (the throttle PID's preview) */
     static double x[RING], y[RING], v[RING], wl[RING], wr[RING];
-    const double seg = 2.0 * RADIUS * sin(PI / RING); /* chord length between table points */
-    double x0[DDYN_NX], speed;
     int i;
-    (void)state;
-    ring_mpc(30);
     for (i = 0; i < RING; ++i) {
         double a = 2.0 * PI * i / RING;
         x[i] = RADIUS * cos(a);
         y[i] = RADIUS * sin(a);
-        v[i] = 1.0 + 0.01 * i;
+        v[i] = v0 + dv * i;
         wl[i] = wr[i] = 0.15;
     }
     assert_int_equal(ddyn_mpc_set_track(&mpc, RING, x, y, v, wl, wr), DDYN_OK);
+}
+
+static void test_reference_speed_reads_ahead_along_the_line(void **state)
+{
+    /* a ring whose table speed grows with the angle: the speed `ahead` metres past the car's
+     * projection is the table's there (the throttle PID's preview) */
+    const double seg = 2.0 * RADIUS * sin(PI / RING); /* chord length between table points */
+    double x0[DDYN_NX], speed;
+    (void)state;
+    ring_mpc(30);
+    ring_speeds(1.0, 0.01);
     ring_start(x0); /* at table point 0 */
     assert_int_equal(ddyn_mpc_reference_speed(&mpc, x0, 0.0, &speed), DDYN_OK);
     assert_true(fabs(speed - 1.0) < 1e-9);
@@ -100,20 +106,12 @@ static void test_cost_points_run_no_faster_than_the_car_can_reach(void **state)
     /* a ring whose line runs at 3 m/s: a car there at its line's speed has its cost points 3 dt apart; a car
      * near standstill has them no further ahead than it can reach at full throttle (the model's dvx/dt at
      * its speed), not around the ring at the line's speed (a flying line's first lap from standstill) */
-    static double x[RING], y[RING], v[RING], wl[RING], wr[RING];
     const int h = 20;
     double x0[DDYN_NX], xs[DDYN_NX] = {0.0}, u0[DDYN_NU] = {0.0}, xdot[DDYN_NX], reach = 0.0, dt, accel;
-    int i, k;
+    int k;
     (void)state;
     ring_mpc(30);
-    for (i = 0; i < RING; ++i) {
-        double a = 2.0 * PI * i / RING;
-        x[i] = RADIUS * cos(a);
-        y[i] = RADIUS * sin(a);
-        v[i] = 3.0;
-        wl[i] = wr[i] = 0.15;
-    }
-    assert_int_equal(ddyn_mpc_set_track(&mpc, RING, x, y, v, wl, wr), DDYN_OK);
+    ring_speeds(3.0, 0.0);
     assert_int_equal(mpc.cfg.horizon, h);
     dt = mpc.model->sample_time;
     ring_start(x0);
