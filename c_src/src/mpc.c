@@ -702,7 +702,10 @@ static ddyn_status prepare(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, do
         return st;
     }
     sensitivities(mpc);
-    references(mpc, mpc->prep_index, u0, x0[3], launch_accel(mpc, x0));
+    /* with the throttle held, a speed controller outside the MPC (the PID) pursues the line's speed: the cost
+     * points follow the line as that controller's reference does, unbounded (bounded, the steering was planned
+     * for a car slower than the PID drives it: ETHZMobil's PID laps left the track, test_av21_putnam) */
+    references(mpc, mpc->prep_index, u0, x0[3], hold ? 0.0 : launch_accel(mpc, x0));
     build_qp(mpc, x0, hold);
     /* DAQP starts cold without a plan to continue (its working set belongs to that plan) or without a
      * working set; the feedback then runs the interior point instead, which needs no factorisation */

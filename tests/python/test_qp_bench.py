@@ -56,7 +56,9 @@ def test_runtime_daqp_path_is_optimal(lap):
     assert all(conv[5:])
     # the path's cold starts (the first QP, and the one after a capped solve) are the interior point's answers
     # (mpc.c feedback), stopped at its tolerance 1e-6: above the optimum by up to 1.5e-3 of the objective here
-    # (the 3rd QP, after the capped 2nd; its steering rate 5.3e-3 rad/s off)
+    # (the 3rd QP, after the capped 2nd; its steering rate 1.27e-2 rad/s off of 1.59, 0.8 %, since the cost points
+    # are bounded by what the car can reach from standstill, 09151bb; 5.3e-3 before): within 1 % of the rate, as
+    # the objective is
     cold = {0} | {i + 1 for i, ok in enumerate(conv) if not ok}
     for i, (sf, x_d, x_ref, ok) in enumerate(zip(forms, own["daqp"]["x"], ref["x"], conv)):
         if not ok:
@@ -65,7 +67,7 @@ def test_runtime_daqp_path_is_optimal(lap):
         if i in cold:
             assert qpb.violation(sf, x_d) < 1e-6
             assert f_ref - 1e-9 * max(1.0, abs(f_ref)) <= f_d <= f_ref + 1e-2 * max(1.0, abs(f_ref))
-            assert abs(x_d[1] - x_ref[1]) < 1e-2
+            assert abs(x_d[1] - x_ref[1]) < 1e-2 * max(1.0, abs(x_ref[1]))
             continue
         assert qpb.violation(sf, x_d) < 1e-6  # DAQP's primal tolerance
         assert abs(f_d - f_ref) <= 1e-7 * max(1.0, abs(f_ref))
