@@ -115,6 +115,16 @@ ddyn_net_status ddyn_guard_net_init(ddyn_guard_net *net, const ddyn_net_tables *
                 return DDYN_NET_ERR_NORMALISATION;
             }
         }
+        /* the feature range: both or neither, finite, lo <= hi (a NaN bound would let every input through) */
+        if ((tables->feature_lo == NULL) != (tables->feature_hi == NULL)) {
+            return DDYN_NET_ERR_NORMALISATION;
+        }
+        for (f = 0; tables->feature_lo != NULL && f < DDYN_NET_NFEAT; ++f) {
+            if (!isfinite((double)tables->feature_lo[f]) || !isfinite((double)tables->feature_hi[f]) ||
+                !(tables->feature_lo[f] <= tables->feature_hi[f])) {
+                return DDYN_NET_ERR_NORMALISATION;
+            }
+        }
     }
     net->tables = tables;
     net->initialised = 1;
@@ -142,11 +152,14 @@ ddyn_net_status ddyn_guard_net_infer(ddyn_guard_net *net, const double history[D
             }
         }
     }
-    /* normalised input, flattened row-major (oldest row first) into a */
+    /* held inside the trained feature range, normalised, flattened row-major (oldest row first) into a */
     for (step = 0; step < DDYN_NET_TAU; ++step) {
         for (f = 0; f < DDYN_NET_NFEAT; ++f) {
-            net->a[step * DDYN_NET_NFEAT + f] =
-                ((ddyn_net_real)history[step][f] - t->mean[f]) / t->std[f];
+            ddyn_net_real x = (ddyn_net_real)history[step][f];
+            if (t->feature_lo != NULL) {
+                x = x < t->feature_lo[f] ? t->feature_lo[f] : (x > t->feature_hi[f] ? t->feature_hi[f] : x);
+            }
+            net->a[step * DDYN_NET_NFEAT + f] = (x - t->mean[f]) / t->std[f];
         }
     }
     feat = net->a;

@@ -3,8 +3,9 @@ exported with `ddyn export`, and reference outputs from PyTorch for the cmocka t
 
     .venv/bin/python tests/c/make_net_fixture.py
 
-The fixture only has to exercise every code path of c_src/src/guard_net.c (GRU, Mish,
-guard) under the sanitizers; its numbers mean nothing physically.
+The fixture only has to exercise every code path of c_src/src/guard_net.c (feature range, GRU,
+Mish, guard) under the sanitizers; its numbers mean nothing physically. Its feature range is the
+mean +- 1.5 std, so about one in seven of the reference histories' features is held at an edge.
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ import torch
 
 from ddyn.learn import checkpoint
 from ddyn.learn.export import export
+from ddyn.learn.networks import set_feature_range
 from ddyn.learn.training import TrainConfig, TrainResult, build_model
 from ddyn.model import vehicle
 
@@ -30,6 +32,7 @@ def main() -> None:
     mean = np.array([1.5, 0.0, 0.0, 0.3, 0.0, 0.0, 0.0])
     std = np.array([0.7, 0.1, 2.0, 0.3, 0.15, 2.0, 1.0])
     model = build_model(cfg, v, mean, std)
+    set_feature_range(model, np.stack([mean - 1.5 * std, mean + 1.5 * std])[None])
     with tempfile.TemporaryDirectory() as tmp:
         ckpt = checkpoint.save(checkpoint.make(TrainResult(model, cfg, np.ones(3), [], 0.0, 0.0), v, "fixture",
                                                "tests/c/make_net_fixture.py", 0), Path(tmp) / "fixture.ckpt")

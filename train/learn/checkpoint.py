@@ -8,7 +8,8 @@ A checkpoint is a `torch.save` file of plain containers (loadable with
   config                 the TrainConfig fields (tau, hidden, layers, gru_layers, ...)
   architecture           features (input order), outputs (coefficient order), activation,
                          n_features, tau, hidden, layers, gru_layers, method, substeps
-  state_dict             the network's tensors (encoder.mean/std hold the input normalisation)
+  state_dict             the network's tensors (encoder.mean/std hold the input normalisation, encoder.feature_lo/hi
+                         the feature range its inputs are held in; absent in older checkpoints: not held)
   normalisation          {"mean": [7], "std": [7]}   (same values as in state_dict, for readers without torch)
   ranges                 {"names", "lo", "hi"}  the Physics Guard's ranges (ddm), or None
   dpm_iz                 the yaw inertia given to a DPM, or None
@@ -162,8 +163,12 @@ def load(path: str | Path) -> tuple[torch.nn.Module, dict]:
     v = vehicle_of(ckpt)
     norm = ckpt["normalisation"]
     model = build_model(cfg, v, np.array(norm["mean"]), np.array(norm["std"]))
+    state = dict(ckpt["state_dict"])
+    for key in ("encoder.feature_lo", "encoder.feature_hi"):
+        # a checkpoint from before the feature range was recorded: its inputs are not held (build_model's +-inf)
+        state.setdefault(key, model.state_dict()[key])
     try:
-        model.load_state_dict(ckpt["state_dict"])
+        model.load_state_dict(state)
     except RuntimeError as e:
         detail = " ".join(str(e).split())   # torch lists the keys over several lines
         raise DdynError(f"{path}: weights do not fit the recorded architecture: {detail[:300]}") from None

@@ -91,6 +91,13 @@ def export(ckpt_path: str | Path, out: str | Path, double: bool = False, torch_e
     if guarded:
         arrays.append(_array(f"{PREFIX}_lo", sd["lo"], double))
         arrays.append(_array(f"{PREFIX}_hi", sd["hi"], double))
+    # the feature range the inputs are held in (networks.HistoryEncoder); a checkpoint from before it was
+    # recorded has none (+-inf after checkpoint.load): NULL, not held, as in PyTorch
+    feature_lo, feature_hi = model.encoder.feature_lo.numpy(), model.encoder.feature_hi.numpy()
+    held = bool(np.all(np.isfinite(feature_lo)) and np.all(np.isfinite(feature_hi)))
+    if held:
+        arrays.append(_array(f"{PREFIX}_feature_lo", feature_lo, double))
+        arrays.append(_array(f"{PREFIX}_feature_hi", feature_hi, double))
 
     def lst(fmt: str, n: int) -> str:
         return "{" + ", ".join(fmt.format(i) for i in range(n)) + "}" if n else "{NULL}"
@@ -105,6 +112,7 @@ def export(ckpt_path: str | Path, out: str | Path, double: bool = False, torch_e
         lst(PREFIX + "_dense_w_{}", layers), lst(PREFIX + "_dense_b_{}", layers),
         f"{PREFIX}_head_w, {PREFIX}_head_b",
         f"{PREFIX}_lo, {PREFIX}_hi" if guarded else "NULL, NULL",
+        f"{PREFIX}_feature_lo, {PREFIX}_feature_hi" if held else "NULL, NULL",
     ]
     weights = [_banner(ckpt_path, sha), "#include <stddef.h>", "", '#include "ddyn/guard_net.h"', ""] + arrays
     weights += ["const ddyn_net_tables ddyn_net_weights = {", "    " + ",\n    ".join(fields), "};", ""]
@@ -118,7 +126,9 @@ def export(ckpt_path: str | Path, out: str | Path, double: bool = False, torch_e
                 "outputs": arch["outputs"], "features": arch["features"], "tau": tau, "hidden": hidden,
                 "layers": layers, "gru_layers": gru, "dtype": "double" if double else "float",
                 "parameters": int(sum(v.numel() for k, v in sd.items() if k not in
-                                      ("encoder.mean", "encoder.std", "lo", "hi"))),
+                                      ("encoder.mean", "encoder.std", "encoder.feature_lo",
+                                       "encoder.feature_hi", "lo", "hi"))),
+                "feature_range": ({"lo": feature_lo.tolist(), "hi": feature_hi.tolist()} if held else None),
                 "vehicle": ckpt["vehicle"]["name"], "files": [p.name for p in written]}
     (out / "export.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return written + [out / "export.json"]

@@ -13,7 +13,8 @@ holds the GRU's *_l{i} tensors), the dense Linear layers of the encoder, and the
 A fraction f freezes the first floor(f * n_layers) of them. At least one hidden
 (non-head) layer must stay trainable and the head always is; a fraction that would
 freeze more is refused. The input normalisation (encoder.mean/std) is the base's:
-the frozen layers were trained on it.
+the frozen layers were trained on it; its feature range (networks.set_feature_range) is the
+base's widened to the fine-tuning and selection rows.
 
 The derivative term
 -------------------
@@ -89,6 +90,7 @@ from ddyn.data.dataset import Dataset
 from ddyn.data.windows import Windows, make_windows, valid_end_rows
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
+from ddyn.learn.networks import set_feature_range
 from ddyn.learn.training import TrainConfig, TrainResult, build_model, loss_fn
 from ddyn.model import mathns
 from ddyn.model.single_track import N_COEFF, N_INPUT, N_STATE, derivatives
@@ -448,6 +450,8 @@ def finetune(base_path: str | Path, train_ds: Dataset, val_ds: Dataset, cfg: Fin
     scale = one_step_scale(tw)
     vscale = scale if val_scale is None else np.asarray(val_scale, float)
     frozen, trainable = freeze(model, cfg.freeze_fraction)
+    # the base's input range widened to the rows it is fine-tuned and selected on
+    set_feature_range(model, tw.history, vw.history, join=True)
     fr = fit(model, batch_of(part, tw, dtype), batch_of(val_ds, vw, dtype), torch.as_tensor(scale, dtype=dtype),
              torch.as_tensor(vscale, dtype=dtype), (cfg.lambda1, cfg.lambda2), cfg.fit, progress, "finetune")
     for p in model.parameters():
@@ -485,6 +489,7 @@ def train_scratch(vehicle: Vehicle, train_ds: Dataset, val_ds: Dataset, tcfg: Tr
     flat = tw.history.reshape(-1, tw.history.shape[-1])
     torch.manual_seed(fcfg.seed)
     model = build_model(tcfg, vehicle, flat.mean(axis=0), np.maximum(flat.std(axis=0), 1e-12))
+    set_feature_range(model, tw.history, vw.history)
     scale = one_step_scale(tw)
     vscale = scale if val_scale is None else np.asarray(val_scale, float)
     fr = fit(model, batch_of(train_ds, tw, dtype), batch_of(val_ds, vw, dtype), torch.as_tensor(scale, dtype=dtype),

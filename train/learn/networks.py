@@ -1,6 +1,7 @@
 """The networks: Deep Dynamics (DDM) with its Physics Guard, and the Deep Pacejka baseline (DPM).
 
-Both read a normalised history (batch, tau, 7), produce coefficients, and take
+Both read a history (batch, tau, 7), held inside the feature range of the windows they were trained and
+selected on and then normalised (HistoryEncoder), produce coefficients, and take
 one step of the shared single-track model (ddyn.model.single_track via ddyn.model.backends) to
 predict the next state. Only the coefficient heads differ:
 
@@ -36,13 +37,25 @@ DPM_OUTPUTS = ("Bf", "Cf", "Df", "Ef", "Br", "Cr", "Dr", "Er", "Frx")
 
 
 class HistoryEncoder(nn.Module):
-    """Normalise the history, optionally run GRU layers, then Mish-activated dense layers."""
+    """Hold the history inside its feature range, normalise it, optionally run GRU layers, then Mish-activated
+    dense layers.
+
+    The feature range (feature_lo, feature_hi: per feature, the smallest and largest value in the windows the
+    network was trained and selected on; set_feature_range) is why a DDM's coefficients do not run away where its
+    inputs leave what it has seen: a row beyond it (a faster, more sideways car than in training) gets the
+    coefficients of the nearest row it knows, and the physics step, not the network, carries the state past it.
+    Measured (issue 36; docs/learning.md "Inputs held to the trained range"): trained below 20 m/s on the real
+    Putnam log and scored above, and trained on one track of an independent plant and scored on another. Inside
+    the range it is the identity, so it changes no training; an old checkpoint without a range is not held
+    (+-inf)."""
 
     def __init__(self, tau: int, n_features: int, hidden: int, layers: int, gru_layers: int,
                  mean: torch.Tensor, std: torch.Tensor):
         super().__init__()
         self.register_buffer("mean", mean.clone())
         self.register_buffer("std", std.clone())
+        self.register_buffer("feature_lo", torch.full_like(mean, -float("inf")))
+        self.register_buffer("feature_hi", torch.full_like(mean, float("inf")))
         self.gru = nn.GRU(n_features, hidden, gru_layers, batch_first=True) if gru_layers > 0 else None
         width = hidden if gru_layers > 0 else tau * n_features
         dense: list[nn.Module] = []
@@ -53,13 +66,27 @@ class HistoryEncoder(nn.Module):
         self.out_width = width
 
     def forward(self, history: torch.Tensor) -> torch.Tensor:
-        h = (history - self.mean) / self.std
+        h = (torch.clamp(history, self.feature_lo, self.feature_hi) - self.mean) / self.std
         if self.gru is not None:
             h, _ = self.gru(h)
             h = h[:, -1]
         else:
             h = h.flatten(1)
         return self.dense(h)
+
+
+def set_feature_range(model: nn.Module, *histories, join: bool = False) -> None:
+    """model's feature range: per feature, the extremes over every row of the given histories (numpy
+    (n, tau, 7) arrays: the training and the validation windows). join: widened to them from the range the
+    model holds (a fine-tuned model keeps what its base was trained on; a base without a range, +-inf, stays
+    without one) instead of replaced."""
+    flat = torch.cat([torch.as_tensor(h).reshape(-1, h.shape[-1]) for h in histories if len(h)])
+    enc = model.encoder
+    lo, hi = flat.amin(dim=0).to(enc.feature_lo), flat.amax(dim=0).to(enc.feature_hi)
+    if join:
+        lo, hi = torch.minimum(enc.feature_lo, lo), torch.maximum(enc.feature_hi, hi)
+    enc.feature_lo.copy_(lo)
+    enc.feature_hi.copy_(hi)
 
 
 class DeepDynamics(nn.Module):

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from ddyn.data.dataset import Dataset
 from ddyn.data.windows import Windows, split_train_validation
 from ddyn.errors import DdynError
-from ddyn.learn.networks import DPM_OUTPUTS, DeepDynamics, DeepPacejka, bound_shares
+from ddyn.learn.networks import DPM_OUTPUTS, DeepDynamics, DeepPacejka, bound_shares, set_feature_range
 from ddyn.model.integrators import DISCRETISATIONS
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
@@ -207,6 +207,8 @@ def _train_once(ds: Dataset, vehicle: Vehicle, cfg: TrainConfig, progress: bool,
     scale_np = np.maximum((tr.target - tr.state[:, 3:6]).std(axis=0), 1e-12)
     scale = _tensor(scale_np, dtype)
     model = build_model(cfg, vehicle, mean, std)
+    # the inputs it is trained and selected on: the identity on every window used here (training unchanged)
+    set_feature_range(model, tr.history, va.history)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=cfg.epochs, eta_min=cfg.lr * 1e-3)
     h_all, s_all, u_all, t_all = _batch_tensors(tr, dtype)

@@ -3,7 +3,8 @@
  *
  * The network (train/learn/networks.py) maps a history of DDYN_NET_TAU rows of
  * [vx, vy, omega, throttle, steering, dthrottle, dsteering] to DDYN_NET_NOUT
- * coefficients: normalisation, optional GRU layers (PyTorch gate order r, z, n),
+ * coefficients: each feature held inside the range the network was trained on
+ * (feature_lo/hi, when the tables carry one), normalisation, optional GRU layers (PyTorch gate order r, z, n),
  * dense layers with Mish, a linear head and, for a DDM, the Physics Guard
  * lo + (hi - lo) * sigmoid(z).
  *
@@ -60,6 +61,10 @@ typedef struct {
     const ddyn_net_real *dense_b[DDYN_NET_LAYERS_MAX];      /* [H] */
     const ddyn_net_real *head_w, *head_b;                   /* [NOUT][H or in], [NOUT] */
     const ddyn_net_real *lo, *hi;                           /* [NOUT] (guarded only) */
+    /* [7] each: the feature range of the windows the network was trained and selected on; an input
+     * outside is held at its edge (train/learn/networks.py HistoryEncoder). NULL, both: not held (a
+     * checkpoint from before the range was recorded; last in the struct, so such tables still build). */
+    const ddyn_net_real *feature_lo, *feature_hi;
 } ddyn_net_tables;
 
 /* Caller-owned context: the validated tables and scratch buffers. */
