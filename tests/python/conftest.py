@@ -37,6 +37,18 @@ def multicast_route() -> str:
     return LCM_GROUP
 
 
+@pytest.fixture
+def one_torch_thread():
+    """Tiny trainings run faster on one thread, and do not fight other jobs on a small machine (a test module
+    opts in with `pytestmark = pytest.mark.usefixtures("one_torch_thread")`)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 # The SIL tests' car, track and executables (one set for the session: the binaries are built once)
 @pytest.fixture(scope="session")
 def orca():

@@ -13,23 +13,13 @@ from ddyn.learn import checkpoint
 from ddyn.learn import finetune as ft
 from ddyn.learn.export import export
 from ddyn.learn.training import TrainConfig, train
-from ddyn.model import tracks, vehicle
+from ddyn.model import tracks
 
 TINY = TrainConfig(hidden=8, layers=2, epochs=2, lbfgs_iterations=2, batch_size=128)
 TINY_FIT = ft.FitConfig(adam_steps=5, lbfgs_iterations=2, lr=3e-3, batch_size=128, eval_every=5)
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture(scope="module")
-def orca():
-    return vehicle.load("orca_1_43")
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -22,12 +22,7 @@ from ddyn.studies import fthd as fthd_study
 TINY_FIT = ft.FitConfig(adam_steps=15, lbfgs_iterations=3, lr=3e-3, batch_size=128, eval_every=5)
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -39,15 +39,7 @@ SERVER_CAP_S = 600
 TINY = dict(epochs=2, lbfgs_iterations=0, seed=0, worker_id="test", progress=False)
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Tiny trials run faster on one thread, and do not fight other jobs on a small machine."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
