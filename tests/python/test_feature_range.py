@@ -109,3 +109,16 @@ def test_finetuning_widens_the_base_range_to_its_own_rows(orca, lap, tmp_path):
     np.testing.assert_array_equal(model.encoder.feature_hi.numpy(),
                                   np.maximum(base_model.encoder.feature_hi.numpy(), hi))
     assert not np.array_equal(model.encoder.feature_hi.numpy(), base_model.encoder.feature_hi.numpy())
+
+
+def test_evaluate_reports_the_rows_outside_the_range(lap, trained, capsys):
+    from ddyn.learn.evaluate import evaluate, format_summary
+
+    model, path = trained
+    _, ckpt = checkpoint.load(path)
+    assert evaluate(model, ckpt, lap)["outside_range"]["any"] == 0.0      # its own rows: inside
+    faster = lap.subset(slice(None))
+    faster.states[:, 3] *= 1.5                                            # every row faster than trained on
+    m = evaluate(model, ckpt, faster)
+    assert m["outside_range"]["features"]["vx"] > 0.3 and m["outside_range"]["features"]["steering"] == 0.0
+    assert "inputs outside the trained range in" in format_summary(m) and "vx " in format_summary(m)

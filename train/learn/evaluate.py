@@ -26,7 +26,7 @@ from ddyn.data.dataset import Dataset
 from ddyn.data.windows import TARGET_NAMES, make_windows, valid_end_rows
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
-from ddyn.learn.networks import bound_shares
+from ddyn.learn.networks import bound_shares, outside_range_shares
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
 
@@ -124,6 +124,8 @@ def evaluate(model, ckpt: dict, ds: Dataset) -> dict:
         "horizon_s": steps * v.sample_time,
         **rollout_errors(model, ds, tau, steps),
         "coefficients": coefficient_report(coeffs, names, truth, ckpt.get("ranges")),
+        # samples whose history leaves the trained feature range (held at its edge: networks.HistoryEncoder)
+        "outside_range": outside_range_shares(model, w.history),
         "truth_source": truth_source,
         # which guard ranges the model was trained with (`ddyn train --ranges`; None: the vehicle file's)
         "guard_ranges": (ckpt.get("ranges") or {}).get("source"),
@@ -145,6 +147,11 @@ def format_summary(m: dict) -> str:
              f"  ADE {m['ade']:.3e} m  FDE {m['fde']:.3e} m over {m['horizon_s'] * 1000:.0f} ms"
              f" ({m['starts']} starts)",
              f"  coefficients (truth: {m['truth_source']}):"]
+    held = m.get("outside_range")
+    if held and held["any"] > 0:
+        worst = sorted(((v, k) for k, v in held["features"].items() if v > 0), reverse=True)
+        lines.insert(3, f"  inputs outside the trained range in {100 * held['any']:.1f} % of samples (held at its edge): "
+                        + ", ".join(f"{k} {100 * v:.1f} %" for v, k in worst))
     for name, c in m["coefficients"].items():
         s = f"    {name:4s} mean {c['mean']:+.5g}  std {c['std']:.2g}"
         if c.get("rel_error") is not None:

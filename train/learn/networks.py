@@ -16,9 +16,11 @@ predict the next state. Only the coefficient heads differ:
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
+from ddyn.data.windows import FEATURE_NAMES
 from ddyn.model import integrators, mathns
 from ddyn.model.backends import step_torch
 from ddyn.model.single_track import KnownParams, pacejka, rigid_body, slip_angles
@@ -87,6 +89,18 @@ def set_feature_range(model: nn.Module, *histories, join: bool = False) -> None:
         lo, hi = torch.minimum(enc.feature_lo, lo), torch.maximum(enc.feature_hi, hi)
     enc.feature_lo.copy_(lo)
     enc.feature_hi.copy_(hi)
+
+
+def outside_range_shares(model: nn.Module, history) -> dict | None:
+    """Where a history leaves the model's feature range: the share of samples with any feature outside it, and per
+    feature (numpy (n, tau, 7) raw histories); None for a model without a range (a checkpoint from before it)."""
+    enc = model.encoder
+    lo, hi = enc.feature_lo.detach().cpu().numpy(), enc.feature_hi.detach().cpu().numpy()
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or len(history) == 0:
+        return None
+    out = (history < lo) | (history > hi)            # (n, tau, 7)
+    per_feature = out.any(axis=1).mean(axis=0)
+    return {"any": float(out.any(axis=(1, 2)).mean()), "features": dict(zip(FEATURE_NAMES, map(float, per_feature)))}
 
 
 class DeepDynamics(nn.Module):
