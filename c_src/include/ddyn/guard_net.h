@@ -4,9 +4,9 @@
  * The network (train/learn/networks.py) maps a history of DDYN_NET_TAU rows of
  * [vx, vy, omega, throttle, steering, dthrottle, dsteering] to DDYN_NET_NOUT
  * coefficients: each feature held inside the range the network was trained on
- * (feature_lo/hi, when the tables carry one), normalisation, optional GRU layers (PyTorch gate order r, z, n),
- * dense layers with Mish, a linear head and, for a DDM, the Physics Guard
- * lo + (hi - lo) * sigmoid(z).
+ * (feature_lo/hi, when the tables carry one), normalisation, optional GRU layers
+ * (PyTorch gate order r, z, n), dense layers with Mish, a linear head and, for a
+ * DDM, the Physics Guard lo + (hi - lo) * sigmoid(z).
  *
  * Shapes are compile-time constants from the exported configuration header
  * (`ddyn export` writes ddyn_net_config.h beside the weight tables), so every
