@@ -109,3 +109,21 @@ def test_road_course_is_full_size_and_seeded():
     a, b = T.road_course(301), T.road_course(301)
     assert a.length == pytest.approx(b.length) and 1000 < a.length < 2000
     assert a.width == pytest.approx(T.ROAD_WIDTH, rel=0.01)
+
+
+def test_transfer_compare_counts_beyond_the_seed_spread(tmp_path):
+    """ddyn.studies.transfer_compare: a figure moves beyond the spread only when each mean lies outside the other's
+    seed range."""
+    from ddyn.studies.transfer_compare import compare, verdict
+
+    r = lambda m, lo, hi: {"mean": m, "min": lo, "max": hi}  # noqa: E731
+    assert verdict(r(1.0, 0.9, 1.1), r(0.5, 0.4, 0.6)) == "better"
+    assert verdict(r(1.0, 0.9, 1.1), r(1.5, 1.4, 1.6)) == "worse"
+    assert verdict(r(1.0, 0.9, 1.1), r(0.85, 0.5, 1.2)) == "within"    # below the old range, but spread wide
+    figs = lambda m: {c: r(m, m, m) for c in ("vx", "vy", "omega", "ade", "fde")}  # noqa: E731
+    for folder, m in (("old", 1.0), ("new", 0.5)):
+        (tmp_path / folder / "transfer").mkdir(parents=True)
+        summary = {"other": figs(m), "fractions": [{"fraction": 0.05, "fthd": figs(m), "scratch": figs(2 * m)}]}
+        (tmp_path / folder / "transfer" / "results.json").write_text(json.dumps({"summary": summary}))
+    lines, tally = compare(tmp_path / "old", tmp_path / "new")
+    assert tally == {"better": 15, "within": 0, "worse": 0} and len(lines) == 3
