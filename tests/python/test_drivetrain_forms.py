@@ -216,27 +216,30 @@ def test_union_of_moves_takes_the_widest_side_over_models():
 
 
 def test_power_limited_force_by_hand():
-    """Traction-limited (slow), power-limited (fast), braking, zero pedal: each against the formula typed out."""
+    """Traction-limited (slow, much pedal), power-limited (part pedal, fast), braking, zero pedal: each against the
+    formula typed out. The cap bounds the force delivered, T+ P / vx, not the full-pedal envelope: at 30 m/s and
+    40 % pedal the force is the pedal's share of the power (3.3 kN), not 40 % of the cap (1.8 kN)."""
     v = vehicle.load("av21_power")
     assert v.known.drivetrain == "power_limited" and v.known.brake_gain > 0
     Ftr, P, Cr0, Cd, Kb = 4500.0, 250000.0, 400.0, 0.5, v.known.brake_gain
     vx = np.array([5.0, 30.0, 80.0, 20.0, 25.0, -3.0])
     T = np.array([1.0, 0.4, 0.5, -0.3, 0.0, 0.2])
     want = np.array([
-        1.0 * Ftr - Cr0 - Cd * 25.0,                  # 5 m/s: P / v = 50 kN > cap, traction-limited
-        0.4 * Ftr - Cr0 - Cd * 900.0,                 # 30 m/s: P / v = 8.3 kN > cap, still traction-limited
-        0.5 * (P / 80.0) - Cr0 - Cd * 6400.0,         # 80 m/s: P / v = 3125 N < cap, power-limited
+        Ftr - Cr0 - Cd * 25.0,                        # 5 m/s, full pedal: T P / v = 50 kN > cap, traction-limited
+        0.4 * P / 30.0 - Cr0 - Cd * 900.0,            # 30 m/s: T P / v = 3.3 kN < cap, power-limited
+        0.5 * (P / 80.0) - Cr0 - Cd * 6400.0,         # 80 m/s: T P / v = 1.6 kN < cap, power-limited
         Kb * -0.3 - Cr0 - Cd * 400.0,                 # braking: the known gain, no drive
         -Cr0 - Cd * 625.0,                            # zero pedal: resistance only
-        0.2 * Ftr - Cr0 - Cd * 9.0,                   # reversing: |vx| in P / vx, cap binds
+        Ftr - Cr0 - Cd * 9.0,                         # reversing: |vx| in P / vx, 16.7 kN > cap, cap binds
     ])
     got = drivetrain_force(vx, T, Ftr, P, Cr0, Cd, mathns.NUMPY, v.known)
     assert np.allclose(got, want, rtol=1e-14, atol=1e-9), got - want
-    # continuous at the crossover speed P / Ftr
-    vc = P / Ftr
-    below, above = drivetrain_force(np.array([vc * (1 - 1e-9), vc * (1 + 1e-9)]), np.ones(2), Ftr, P, 0.0, 0.0,
-                                    mathns.NUMPY, v.known)
-    assert abs(below - above) < 1e-3 and abs(below - Ftr) < 1e-3
+    # continuous at the crossover speed T P / Ftr, for full and for part pedal
+    for pedal in (1.0, 0.3):
+        vc = pedal * P / Ftr
+        below, above = drivetrain_force(np.array([vc * (1 - 1e-9), vc * (1 + 1e-9)]), np.full(2, pedal), Ftr, P,
+                                        0.0, 0.0, mathns.NUMPY, v.known)
+        assert abs(below - above) < 1e-3 and abs(below - Ftr) < 1e-3
 
 
 @pytest.mark.parametrize("method", ["euler", "rk4"])
@@ -250,10 +253,12 @@ def test_power_limited_cases_cover_both_regimes_and_gradients_are_finite():
     the traction cap and the power limit; gradients at zero throttle and at the kink are finite."""
     v = vehicle.load("av21_power")
     x, _, c = random_cases(v, 2000, np.random.default_rng(7))
-    power_limited = c[:, DRIVE[1]] / np.maximum(np.abs(x[:, 3]), v.known.v_min) < c[:, DRIVE[0]]
-    assert power_limited.any() and (~power_limited).any()
+    drive = x[:, 6] > 0
+    asked = np.maximum(x[:, 6], 0.0) * c[:, DRIVE[1]] / np.maximum(np.abs(x[:, 3]), v.known.v_min)
+    power_limited = asked < c[:, DRIVE[0]]
+    assert (drive & power_limited).any() and (drive & ~power_limited).any()
     Ftr, P = v.true_coefficients["Cm1"], v.true_coefficients["Cm2"]
-    for vx, T in ((20.0, 0.0), (P / Ftr, 0.5)):
+    for vx, T in ((20.0, 0.0), (0.5 * P / Ftr, 0.5)):
         xt = torch.tensor([[0.0, 0.0, 0.0, vx, 0.1, 0.05, T, 0.01]], dtype=torch.float64, requires_grad=True)
         ct = torch.tensor(v.true_vector(), dtype=torch.float64, requires_grad=True)
         out = backends.step_torch(xt, torch.zeros(1, 2, dtype=torch.float64), ct, v.known, v.sample_time)

@@ -13,7 +13,7 @@ Known: mass m, CoG-to-axle distances lf, lr.
     F_rx    = (Cm1 - Cm2 vx) T - Cr0 - Cd vx^2                 drivetrain "papers" (default)
     F_rx    = (Cm1 - Cm2 vx) T+ + Kb T- - Cr0 - Cd vx^2         drivetrain "powertrain"
               (T+ = max(T, 0), T- = min(T, 0); Kb the vehicle file's known brake_gain)
-    F_rx    = T+ min(Cm1, Cm2 / vx*) + Kb T- - Cr0 - Cd vx^2       drivetrain "power_limited"
+    F_rx    = min(Cm1, T+ Cm2 / vx*) + Kb T- - Cr0 - Cd vx^2       drivetrain "power_limited"
               (the slots' meanings change: Cm1 the traction cap in N, Cm2 the wheel power in W at full
               pedal; vx* = max(|vx|, v_min))
     dvx     = (F_rx - F_fy sin(delta)) / m + vy omega
@@ -57,8 +57,8 @@ VELOCITY_INDEX = (3, 4, 5)
 # through the engine's Cm1 - Cm2 vx: on the AV-21's Putnam log one gain for both pedals explains
 # R^2 = 0.469 of the one-step vx change on the training part, a separate brake gain 0.548
 # (`ddyn study drivetrain`, docs/model.md). "power_limited" (issue 36): the powertrain's brake, but a
-# drive whose extrapolation in speed is physical: full pedal gives the smaller of a traction cap (Cm1, N)
-# and the wheel power over speed (Cm2 / vx*, Cm2 in W), scaled by the pedal; Cr0 (N) is the resistance at
+# drive whose extrapolation in speed is physical: the pedal's share of the wheel power over speed
+# (T+ Cm2 / vx*, Cm2 in W at full pedal), at most a traction cap (Cm1, N); Cr0 (N) is the resistance at
 # zero pedal, Cd (kg/m) the aero drag. The same 17 coefficient slots, so networks, guard, export and codegen
 # keep their shapes; the slots' meanings and ranges are documented in the vehicle file
 # (train/vehicles/av21_power.json).
@@ -113,10 +113,14 @@ def drivetrain_force(vx, T, Cm1, Cm2, Cr0, Cd, ns: MathNamespace | None = None, 
     T_drive = ns.fmax(T, 0.0)
     if p.drivetrain == "powertrain":
         return (Cm1 - Cm2 * vx) * T_drive + p.brake_gain * (T - T_drive) - Cr0 - Cd * vx * vx
-    # power_limited: min(a, b) written as a - max(a - b, 0), so every backend needs only fmax with a constant
-    power_force = Cm2 / ns.fmax(ns.abs(vx), p.v_min)
-    full_pedal = Cm1 - ns.fmax(Cm1 - power_force, 0.0)
-    return full_pedal * T_drive + p.brake_gain * (T - T_drive) - Cr0 - Cd * vx * vx
+    # power_limited: the pedal asks for a share of the wheel power, T+ Cm2 / vx*, and the tyres deliver at most
+    # the traction cap Cm1 of it. The cap bounds the force delivered, not the full-pedal envelope: capping the
+    # envelope (min(Cm1, Cm2 / vx*) T+, as before) made the force's slope in the pedal flat below Cm2 / Cm1,
+    # where the Putnam log's slope keeps growing as 1 / vx (about 21 kN per unit of pedal at 7.5 m/s), and
+    # held the cap on its bound. min(a, b) is written a - max(a - b, 0): every backend needs only fmax
+    power_force = T_drive * Cm2 / ns.fmax(ns.abs(vx), p.v_min)
+    drive = power_force - ns.fmax(power_force - Cm1, 0.0)
+    return drive + p.brake_gain * (T - T_drive) - Cr0 - Cd * vx * vx
 
 
 def forces(ns: MathNamespace, state: Sequence, coeffs: Sequence, p: KnownParams) -> Forces:
