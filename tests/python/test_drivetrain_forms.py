@@ -297,3 +297,29 @@ def test_drivetrain_effects_refuse_the_power_limited_form():
     with pytest.raises(ValueError, match="power_limited"):
         effects._drive_change(mathns.NUMPY, np.array([0.5]), np.array([20.0]), 4500.0, 250000.0,
                               effects.EffectSet(power_limit=1e5), v.known)
+
+
+def test_pedal_by_speed_tells_a_power_share_from_a_force_share():
+    """`ddyn study drivetrain`'s pedal_by_speed on rows made by hand (vy = omega = 0, so the force is m dvx/dt): a
+    pedal that asks for a share of a power P gives slope x speed = P in every band (within the spread of 1 / vx
+    inside a band), a pedal that asks for a share of a force F gives the slope F in every band."""
+    from types import SimpleNamespace
+
+    from ddyn.studies import drivetrain
+
+    v = vehicle.load("av21_power")
+    rng = np.random.default_rng(0)
+    n = 6000
+    vx = rng.uniform(5.0, 35.0, n)
+    pedal = rng.uniform(0.02, 0.4, n)
+    resistance = 300.0 + 0.5 * vx ** 2
+    for law, want in (("power", 180e3), ("force", 9e3)):
+        drive = pedal * want / vx if law == "power" else pedal * want
+        states = np.zeros((2 * n, 8))
+        states[0::2, 3], states[0::2, 6] = vx, pedal
+        states[1::2, 3] = vx + v.sample_time * (drive - resistance) / v.known.mass
+        bands = drivetrain.pedal_by_speed(SimpleNamespace(states=states), np.arange(0, 2 * n, 2), v)
+        assert len(bands) == len(drivetrain.SPEED_BANDS)
+        for b in bands:
+            got = b["slope_times_speed"] if law == "power" else b["slope"]
+            assert abs(got / want - 1) < 0.05, (law, b)

@@ -121,6 +121,7 @@ def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -
         out["slip_offsets"] = slip_offsets(ds, train_rows, v)
     except DdynError as e:
         out["slip_offsets"] = {"error": str(e)}
+    out["pedal_by_speed"] = pedal_by_speed(ds, train_rows, v)
     for form in FIT_FORMS:
         fit = fit_form(ds, train_rows, v, form)
         drive = np.array([fit[n] for n in DRIVE])
@@ -132,6 +133,32 @@ def run(ds: Dataset, v: vehicle_mod.Vehicle, fraction: float = TRAIN_FRACTION) -
                            if len(test_rows) else None),
             "ranges": ranges_from_fit(fit, v), "rule": RULE,
         }
+    return out
+
+
+# speed bands (m/s) of pedal_by_speed, and the fewest driven rows a band needs for its line
+SPEED_BANDS = ((5.0, 10.0), (10.0, 15.0), (15.0, 20.0), (20.0, 25.0), (25.0, 30.0), (30.0, 40.0))
+BAND_MIN_ROWS = 50
+
+
+def pedal_by_speed(ds: Dataset, rows: np.ndarray, v: vehicle_mod.Vehicle) -> list[dict]:
+    """How the drive force grows with the pedal, speed band by speed band, on the driven rows (throttle > 0) of
+    rows: a straight line F = slope T + intercept through the longitudinal force the log shows,
+    m ((vx[k+1] - vx[k]) / Ts - vy omega) (the single-track's vx equation without the front tyre's small
+    F_fy sin(delta)). The form's evidence: a slope that falls as 1 / vx (slope times speed about constant) is a
+    pedal that asks for a share of a power, a flat one a share of a force."""
+    s0, s1 = ds.states[rows], ds.states[rows + 1]
+    force = v.known.mass * ((s1[:, 3] - s0[:, 3]) / v.sample_time - s0[:, 4] * s0[:, 5])
+    pedal, vx = s0[:, 6], s0[:, 3]
+    out = []
+    for lo, hi in SPEED_BANDS:
+        sel = (pedal > 0) & (vx >= lo) & (vx < hi)
+        if sel.sum() < BAND_MIN_ROWS or np.ptp(pedal[sel]) <= 0:
+            continue
+        slope, intercept = np.polyfit(pedal[sel], force[sel], 1)
+        speed = float(np.mean(vx[sel]))
+        out.append({"band": [lo, hi], "rows": int(sel.sum()), "mean_speed": speed, "pedal_max": float(pedal[sel].max()),
+                    "slope": float(slope), "intercept": float(intercept), "slope_times_speed": float(slope * speed)})
     return out
 
 
@@ -234,6 +261,14 @@ def markdown(res: dict) -> str:
         f = r["fit"]
         lines.append(f"| {form} | {r['r2_train']:.3f} | {r['r2_heldout']:.3f} | {f['Cm1']:.4g} | {f['Cm2']:.4g} | "
                      f"{f['Cr0']:.4g} | {f['Cd']:.3g} | {f.get('brake_gain', float('nan')):.4g} |")
+    if res.get("pedal_by_speed"):
+        lines += ["", "Drive force per unit of pedal by speed band (driven rows of the same part; a slope times speed "
+                  "about constant: the pedal asks for a share of a power)", "",
+                  "| speed band (m/s) | rows | largest pedal | slope (N per unit) | intercept (N) | slope x speed (kW) |",
+                  "|---|---|---|---|---|---|"]
+        for b in res["pedal_by_speed"]:
+            lines.append(f"| {b['band'][0]:g}-{b['band'][1]:g} | {b['rows']} | {b['pedal_max']:.2f} | {b['slope']:.0f} | "
+                         f"{b['intercept']:.0f} | {b['slope_times_speed'] / 1000:.0f} |")
     return "\n".join(lines)
 
 
