@@ -71,7 +71,13 @@ REAL_RUNS = (("ddm_putnam", "av21", "DDM, papers' drivetrain, papers' ranges", F
              # issue 36 item 2: the power-limited drivetrain, every drivetrain range and Iz from the car's physics
              # (train/vehicles/av21_power.json), TrainConfig's built-in defaults as the ddm_putnam row
              ("ddm_putnam_power", "av21_power",
-              "DDM, power-limited drivetrain, physical ranges (av21_power)", False, {}))
+              "DDM, power-limited drivetrain, physical ranges (av21_power)", False, {}),
+             # the same with the guard prior: does pulling the coefficients the log cannot tell apart (Cr0 against
+             # Cd, the tyres' scale against Iz) toward the middle of their physical ranges keep them off the bounds
+             # without costing held-out error
+             ("ddm_putnam_power_prior", "av21_power",
+              f"DDM, power-limited drivetrain, physical ranges, guard prior {REAL_GUARD_PRIOR:g}", False,
+              {"guard_prior": REAL_GUARD_PRIOR}))
 # runs trained without --only (the papers' table in docs/learning.md); the others only when named
 REAL_DEFAULT_RUNS = tuple(r[0] for r in REAL_RUNS[:5])
 # guard ranges a run takes in place of its vehicle file's (through the `ddyn train --ranges` path): the papers'
