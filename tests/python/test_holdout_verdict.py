@@ -90,6 +90,12 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert hv.main([str(laps)]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no baseline run 'ddm_putnam'" in err
+    broken = json.loads((laps / "results.json").read_text())
+    del broken["real"][0]["split"]
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "results.json").write_text(json.dumps(broken))
+    with pytest.raises(DdynError, match=r"broken/results.json: run 'other' lacks 'split'"):
+        hv.collect([tmp_path / "broken"])
     twice = _write(tmp_path / "laps2", LAPS, {"other": _figures([0.03] * 3)})
     with pytest.raises(DdynError, match="also in an earlier DIR"):
         hv.collect([laps, twice])

@@ -264,11 +264,12 @@ def markdown(res: dict) -> str:
     if res.get("pedal_by_speed"):
         lines += ["", "Drive force per unit of pedal by speed band (driven rows of the same part; a slope times speed "
                   "about constant: the pedal asks for a share of a power)", "",
-                  "| speed band (m/s) | rows | largest pedal | slope (N per unit) | intercept (N) | slope x speed (kW) |",
+                  "| speed band (m/s) | rows | largest pedal | slope (N per unit) | intercept (N) "
+                  "| slope x speed (kW) |",
                   "|---|---|---|---|---|---|"]
         for b in res["pedal_by_speed"]:
-            lines.append(f"| {b['band'][0]:g}-{b['band'][1]:g} | {b['rows']} | {b['pedal_max']:.2f} | {b['slope']:.0f} | "
-                         f"{b['intercept']:.0f} | {b['slope_times_speed'] / 1000:.0f} |")
+            lines.append(f"| {b['band'][0]:g}-{b['band'][1]:g} | {b['rows']} | {b['pedal_max']:.2f} | "
+                         f"{b['slope']:.0f} | {b['intercept']:.0f} | {b['slope_times_speed'] / 1000:.0f} |")
     return "\n".join(lines)
 
 

@@ -52,8 +52,15 @@ def collect(folders: list[Path]) -> dict:
     for folder in folders:
         data = _read(folder)
         for row in data["holdout_summary"]:
-            runs = [r for r in data["real"] if r["name"] == row["name"] and "in_sample" in r]
-            what = runs[0]["split"]["what"]
+            try:
+                runs = [r for r in data["real"] if r["name"] == row["name"] and "in_sample" in r]
+                what = runs[0]["split"]["what"]
+                # every field judge() reads, read once here so that a broken file is one line naming it
+                [(r["coefficients"]["Iz"]["mean"] if "Iz" in r["coefficients"] else None) for r in runs]
+                [row["test"][c][k] for c in CHANNELS for k in ("mean", "min", "max")]
+            except (KeyError, IndexError, TypeError, AttributeError) as e:
+                raise DdynError(f"{folder / 'results.json'}: run {row.get('name')!r} lacks {e} (not the output of "
+                                f"`ddyn study ddm real --holdout ... --seeds ...`)") from None
             if row["name"] in splits.get(what, {}):
                 raise DdynError(f"{folder / 'results.json'}: run {row['name']!r} on '{what}' is also in an earlier "
                                 f"DIR; give each setting and condition once")
