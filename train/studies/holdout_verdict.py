@@ -24,9 +24,8 @@ import sys
 from pathlib import Path
 
 from ddyn.errors import DdynError
-from ddyn.studies.transfer_compare import verdict
+from ddyn.studies.transfer_compare import CHANNELS, verdict
 
-CHANNELS = ("vx", "vy", "omega", "ade", "fde")
 BASELINE = "ddm_putnam"
 BOUND_SHARE_MAX = 0.05          # issue 36: no coefficient at a guard bound in more than 5 % of held-out samples
 IZ_VEHICLE = "av21"             # whose Iz range is the physical one (the papers' range for this car)
@@ -46,6 +45,19 @@ def _read(folder: Path) -> dict:
     return data
 
 
+def _read_fields(row: dict, runs: list[dict]) -> None:
+    """Every field judge() reads, read once while collecting, so that a broken file is one line naming it."""
+    for r in runs:
+        for c in r["coefficients"].values():
+            float(c.get("at_lower_bound", 0.0))
+            float(c.get("at_upper_bound", 0.0))
+        if "Iz" in r["coefficients"]:
+            float(r["coefficients"]["Iz"]["mean"])
+    for c in CHANNELS:
+        for k in ("mean", "min", "max"):
+            float(row["test"][c][k])
+
+
 def collect(folders: list[Path]) -> dict:
     """{split description: {run name: {"summary": holdout_summary row, "seeds": [per-seed run records]}}}."""
     splits: dict = {}
@@ -55,9 +67,7 @@ def collect(folders: list[Path]) -> dict:
             try:
                 runs = [r for r in data["real"] if r["name"] == row["name"] and "in_sample" in r]
                 what = runs[0]["split"]["what"]
-                # every field judge() reads, read once here so that a broken file is one line naming it
-                [(r["coefficients"]["Iz"]["mean"] if "Iz" in r["coefficients"] else None) for r in runs]
-                [row["test"][c][k] for c in CHANNELS for k in ("mean", "min", "max")]
+                _read_fields(row, runs)
             except (KeyError, IndexError, TypeError, AttributeError) as e:
                 raise DdynError(f"{folder / 'results.json'}: run {row.get('name')!r} lacks {e} (not the output of "
                                 f"`ddyn study ddm real --holdout ... --seeds ...`)") from None
