@@ -102,7 +102,7 @@ int main(int argc, char** argv) {
     std::FILE* log = std::fopen(setup->log, "w");
     if (log == nullptr) throw std::runtime_error(std::string("cannot write ") + setup->log);
     std::fprintf(log, "step,wall,start,loop_us,prepare_us,status,trigger,safe,stale,overrun,throttle_cmd,steering_cmd,"
-                      "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7\n");
+                      "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7," DDYN_SIL_LOG_READINGS_HEADER "\n");
     std::vector<double> loop_us, prep_us;
     std::array<long, DDYN_CTRL_STATUS_BITS> status_count{};
     long misses = 0;
@@ -140,6 +140,9 @@ int main(int argc, char** argv) {
                        per.throttle, per.steering);
           for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", per.out.x_est[k]);
           for (int k = 0; k < DDYN_NX; ++k) std::fprintf(log, ",%.6g", node->ctl.ekf.P[k * DDYN_NX + k]);
+          double raw[DDYN_SIL_LOG_READINGS];
+          ddyn_sil_log_readings(&per, raw);
+          for (double r : raw) std::fprintf(log, ",%.6g", r);
           std::fputc('\n', log);
           fsim::CanFrame cmd;
           cmd.id = per.can_id;

@@ -1,5 +1,6 @@
 #include "controller_node.h"
 
+#include <math.h>
 #include <string.h>
 
 static double clampd(double v, double lo, double hi)
@@ -242,6 +243,7 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
         node->catch_up -= 1;
         node->steps += 1;
     }
+    p->readings = node->in;
     ddyn_ctrl_step(&node->ctl, &node->in, &p->out);
     memset(&node->in, 0, sizeof node->in);
     p->safe = p->stale || (p->out.status & DDYN_CTRL_SAFE_COMMAND) != 0;
@@ -291,4 +293,12 @@ void ddyn_sil_node_period(ddyn_sil_node *node, ddyn_sil_period *p)
     }
     node->safe_steps += p->safe ? 1 : 0;
     node->steps += 1;
+}
+
+void ddyn_sil_log_readings(const ddyn_sil_period *p, double out[DDYN_SIL_LOG_READINGS])
+{
+    const ddyn_ctrl_reading *yaw = &p->readings.reading[DDYN_MEAS_YAW_RATE];
+    const ddyn_ctrl_reading *steer = &p->readings.reading[DDYN_MEAS_STEERING];
+    out[0] = yaw->valid ? yaw->z[0] : NAN;
+    out[1] = steer->valid ? steer->z[0] : NAN;
 }

@@ -73,7 +73,18 @@ typedef struct {
     int has_auth;              /* authentication on: send auth_data under auth_can_id right after data */
     uint8_t auth_data[DDYN_DBW_FRAME_LEN];
     uint32_t auth_can_id;
+    /* the readings the period's step fused (a copy: the node clears its own after the step), so that the log
+     * can record the raw sensors beside the filter's estimate, as a car's log does (ddyn_sil_log_readings) */
+    ddyn_ctrl_input readings;
 } ddyn_sil_period;
+
+/* The raw readings a log records per period, after the state estimate: the yaw rate (IMU) and the steering
+ * angle fed back by the drive-by-wire unit, each NaN when no reading came in the period. A diagnosis of the
+ * log reads the yaw rate from here rather than from the estimate: the estimate comes from a filter whose
+ * model lacks whatever the diagnosis looks for (an actuation delay, filtered by it, reads as a lag). */
+#define DDYN_SIL_LOG_READINGS_HEADER "yaw_rate_meas,steering_meas"
+#define DDYN_SIL_LOG_READINGS 2
+void ddyn_sil_log_readings(const ddyn_sil_period *p, double out[DDYN_SIL_LOG_READINGS]);
 
 /* Set up the node around an initialised controller configuration. Returns DDYN_OK or the
  * controller's error. */

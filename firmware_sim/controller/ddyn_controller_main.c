@@ -268,6 +268,7 @@ static void run_period(app_loop *L, int trigger, double start)
     struct can_frame cf;
     double t0 = now_s(), t1, t2;
     int k, overrun;
+    double raw[DDYN_SIL_LOG_READINGS];
     long i = L->steps < MAX_STEPS ? L->steps : MAX_STEPS - 1;
     ddyn_sil_node_period(&node, &per);
     memset(&cf, 0, sizeof cf);
@@ -325,6 +326,10 @@ static void run_period(app_loop *L, int trigger, double start)
         }
         for (k = 0; k < DDYN_NX; ++k) {
             fprintf(L->log, ",%.6g", node.ctl.ekf.P[k * DDYN_NX + k]);
+        }
+        ddyn_sil_log_readings(&per, raw);
+        for (k = 0; k < DDYN_SIL_LOG_READINGS; ++k) {
+            fprintf(L->log, ",%.6g", raw[k]);
         }
         fputc('\n', L->log);
     }
@@ -593,7 +598,7 @@ int main(int argc, char **argv)
         }
         /* wall: when the command went out; start: when the period began (its frame, or its deadline) */
         fprintf(L.log, "step,wall,start,loop_us,prepare_us,status,trigger,safe,stale,overrun,throttle_cmd,steering_cmd,"
-                       "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7\n");
+                       "x,y,yaw,vx,vy,omega,throttle,steering,P0,P1,P2,P3,P4,P5,P6,P7," DDYN_SIL_LOG_READINGS_HEADER "\n");
     }
     memset(&sa, 0, sizeof sa);
     sa.sa_handler = on_signal; /* no SA_RESTART: poll() and clock_nanosleep return at once */

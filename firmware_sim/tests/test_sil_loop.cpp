@@ -106,3 +106,32 @@ TEST(SilLoop, LostPositionFramesAreCaughtUp) {
   EXPECT_EQ(per.data[6] >> 4, (counter0 + 1) % 16);  // the caught-up period sent no frame
   EXPECT_EQ(node->ctl.x_hist_n, 3);                  // but the filter ran it
 }
+
+// The log's raw readings: a period records the IMU's yaw rate and the steering feedback it fused, and NaN for
+// a sensor whose frame did not come in it (the node clears its readings after each step, so the copy in the
+// period is what the log can read).
+TEST(SilLoop, APeriodCarriesTheRawReadingsItFused) {
+  FSIM_REQUIRE_TRACKS();
+  fsim_test::SilLoop loop(fsim_test::orca_sil_config());
+  fsim::FeedbackEncoder enc;
+  ddyn_sil_node* node = loop.node.get();
+  fsim::CanFrame f = enc.imu(0.123, 0.0, 0.0);
+  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 0);
+  f = enc.steering(-0.05, 0.0);
+  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 0);
+  f = enc.gnss_position(1.2, 0.9);
+  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 1);
+  ddyn_sil_period per;
+  ddyn_sil_node_period(node, &per);
+  double raw[DDYN_SIL_LOG_READINGS];
+  ddyn_sil_log_readings(&per, raw);
+  EXPECT_NEAR(raw[0], 0.123, 1e-3);   // the frame's resolution
+  EXPECT_NEAR(raw[1], -0.05, 1e-3);
+  EXPECT_EQ(node->in.reading[DDYN_MEAS_YAW_RATE].valid, 0);  // the node's own copy is cleared
+  f = enc.gnss_position(1.21, 0.9);  // the next period: a position frame only
+  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 1);
+  ddyn_sil_node_period(node, &per);
+  ddyn_sil_log_readings(&per, raw);
+  EXPECT_TRUE(std::isnan(raw[0]));
+  EXPECT_TRUE(std::isnan(raw[1]));
+}

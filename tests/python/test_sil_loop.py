@@ -26,6 +26,12 @@ def case(orca, mobil, tmp_path_factory):
 def test_the_loop_drives_diagnoses_rebuilds_and_scores(case):
     c, out = case
     assert c["reference"]["lap_completed"] and c["reference"]["violations"] == 0
+    # scored on the flying lap, the lap from rest kept beside it; the start from rest is the slower one
+    for k in ("reference", "rebuilt", "oracle"):
+        r = c[k]
+        assert len(r["lap_times"]) == loop.SCORED_LAPS == 2
+        assert (r["lap_s"], r["standing_lap_s"]) == (r["lap_times"][1], r["lap_times"][0])
+    assert c["reference"]["lap_s"] < c["reference"]["standing_lap_s"]
     # the nominal controller does not lap cleanly at full speed with the plant's 40 ms steering delay (it left the
     # track until the MPC's cost points were bounded by the car's reach, 09151bb: now a lap with 1 violation); the
     # oracle laps
@@ -45,8 +51,12 @@ def test_the_loop_drives_diagnoses_rebuilds_and_scores(case):
     metrics = json.loads((out / "case" / "rebuilt" / "sil_metrics.json").read_text())
     assert metrics["controller_effects"]["diagnosis_sha256"] == fx["diagnosis_sha256"]
     assert (out / "case" / "before" / "lap.png").is_file() and (out / "case" / "rebuilt" / "lap.png").is_file()
-    assert set(c["rebuilt"]["targets"]) == {"clean_within_2pct_of_reference", "diagnosis_first_within_15pct",
-                                            "diagnosis_first_within_15pct_alone", "within_1pct_of_oracle"}
+    assert set(c["rebuilt"]["targets"]) == {"clean_within_2pct_of_reference", "clean_within_2pct_of_reference_standing",
+                                            "diagnosis_first_within_15pct", "diagnosis_first_within_15pct_alone",
+                                            "within_1pct_of_oracle"}
+    # the effect's own candidate fitted alone, against the truth
+    assert dg["alone_error_pct"] == pytest.approx(100.0 * (dg["alone_estimate"] - 0.04) / 0.04)
+    assert dg["alone_estimate"] == dg["steer_delay_candidate_s"]
     # the delay written is the diagnosis's steering delay fitted alone, to whole periods (or nothing, named)
     written = fx["controller_delays"].get("steer")
     if written is not None:
@@ -69,6 +79,25 @@ def test_the_user_log_is_the_controller_estimate_and_the_set_points_sent_before(
     assert ds.column("dsteering")[10] == pytest.approx((raw["steering_cmd"][k] - raw["steering_cmd"][k - 1])
                                                        / orca.sample_time)
     assert np.all(ds.column("vx") >= loop.MIN_VX)
+    # the yaw rate is the IMU's reading of the period (every period gets one: the IMU runs at 100 Hz)
+    assert np.isfinite(raw["yaw_rate_meas"]).all()
+    assert ds.column("omega")[10] == raw["yaw_rate_meas"][k] != raw["omega"][k]
+
+
+def test_the_user_log_takes_the_measured_yaw_rate_where_a_reading_came(tmp_path, orca):
+    """A period without an IMU reading (NaN in yaw_rate_meas) keeps the filter's estimate; a log without the
+    column (an older SIL, a car logging only its estimate) keeps the estimate throughout and says so."""
+    head = "step,safe,throttle_cmd,steering_cmd,x,y,yaw,vx,vy,omega"
+    rows = [f"{k},0,0.1,0.01,{k * 0.02},0,0,1,0,0.5" for k in range(6)]
+    (tmp_path / "old.csv").write_text("\n".join([head] + rows) + "\n")
+    meas = ["0.40", "nan", "0.60", "0.55", "nan", "0.52"]
+    (tmp_path / "new.csv").write_text("\n".join([head + ",yaw_rate_meas,steering_meas"] +
+                                                [f"{r},{m},nan" for r, m in zip(rows, meas)]) + "\n")
+    old = loop.user_log(tmp_path / "old.csv", orca.name, orca.sample_time)
+    assert np.all(old.column("omega") == 0.5) and "no yaw_rate_meas" in old.metadata["omega"]
+    new = loop.user_log(tmp_path / "new.csv", orca.name, orca.sample_time)
+    assert new.column("omega").tolist() == [0.40, 0.5, 0.60, 0.55, 0.5, 0.52]
+    assert new.metadata["omega"].startswith("the IMU's yaw rate (yaw_rate_meas) in 4 of 6 rows")
 
 
 def test_a_bad_controller_log_is_one_line(tmp_path, orca):
@@ -79,3 +108,22 @@ def test_a_bad_controller_log_is_one_line(tmp_path, orca):
         loop.user_log(tmp_path / "c.csv", orca.name, orca.sample_time)
     with pytest.raises(DdynError, match="unknown effect 'warp'"):
         loop.parse_cases("warp=1")
+
+
+def test_the_summary_counts_targets_per_effect_and_takes_the_worst_lap():
+    def case(effect, first, completed, violations, vs_ref, vs_oracle):
+        r = {"lap_completed": completed, "violations": violations}
+        r |= {"vs_reference_pct": vs_ref} if vs_ref is not None else {}
+        r |= {"vs_oracle_pct": vs_oracle} if vs_oracle is not None else {}
+        r["targets"] = {"clean_within_2pct_of_reference": completed and violations == 0 and (vs_ref or 9) <= 2,
+                        "within_1pct_of_oracle": vs_oracle is not None and abs(vs_oracle) <= 1}
+        return {"effect": effect, "diagnosis": {"first_is_the_effect": first}, "rebuilt": r}
+
+    s = loop.summarise([case("steer_delay", True, True, 0, 0.8, 0.0), case("steer_delay", False, True, 3, 140.0, -2.5),
+                        case("steer_lag", True, True, 0, 2.9, 1.0), case("none", False, True, 0, 0.1, None),
+                        case("throttle_delay", True, False, 1, None, None)])
+    assert s["steer_delay"] == {"cases": 2, "first_is_the_effect": 1, "clean": 1, "clean_within_2pct_of_reference": 1,
+                                "within_1pct_of_oracle": 1, "worst_vs_reference_pct": 140.0,
+                                "worst_vs_oracle_pct": -2.5}
+    assert s["effects"]["cases"] == 4 and s["effects"]["clean"] == 2 and s["effects"]["first_is_the_effect"] == 3
+    assert s["throttle_delay"]["worst_vs_reference_pct"] is None and s["none"]["cases"] == 1
