@@ -62,11 +62,14 @@ BANK_CANDIDATES = ("bank_profile", "bank_angle", "bank_from_roll")
 def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx: float = MIN_VX,
              track_name: str | None = None):
     """The controller's own log as a user's log (a canonical Dataset): per control period, the state estimate
-    (x .. vy), the yaw rate as the IMU read it (yaw_rate_channel) and, as throttle and steering, the set-points the controller had commanded, i.e. what a
-    drive-by-wire car's log records as its inputs. Row k's throttle/steering is the set-point sent in period
-    k - 1 (the one the actuator reaches at the start of period k: the DBW unit's actuator reaches each set-point
-    within a period), its rate (dthrottle, dsteering) the step to period k's set-point. With no effect in the
-    plant, `ddyn gap diagnose` finds no delay on it (with row k's own set-point it finds one period).
+    (x .. vy), the yaw rate as the IMU read it (yaw_rate_channel) and, as throttle and steering, the set-points
+    the controller had commanded, i.e. what a drive-by-wire car's log records as its inputs. Row k's
+    throttle/steering is the set-point sent in period k - 1 (the one the actuator reaches at the start of period
+    k: the DBW unit's actuator reaches each set-point within a period), its rate (dthrottle, dsteering) the step
+    to period k's set-point. With no effect in the plant, `ddyn gap diagnose` finds no delay on it (with row k's
+    own set-point it finds one period). The price: the SIL plant's actuators step to a set-point within a
+    millisecond, and this ramp is about half a period behind them, so throttle delays and steering lags read
+    about 10 ms short (also on the plant's true states).
     Rows with the safe command or slower than min_vx are dropped; each gap starts a segment. track_name: the
     track driven, as the log's `track` metadata (what a user's log of a known track carries)."""
     from ddyn.data.dataset import Dataset
@@ -105,8 +108,8 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
                                     "dthrottle, dsteering = their steps per period / sample time",
                    "rows": f"{len(keep)} of {len(c['step'])} periods kept (vx >= {min_vx} m/s, no safe command) "
                            f"in {segment[-1] + 1} segment(s)",
-                   "omega": (f"the IMU's yaw rate (yaw_rate_meas) in {int(measured[keep].sum())} of {len(keep)} rows, the "
-                             "estimate where no reading came" if "yaw_rate_meas" in c else
+                   "omega": (f"the IMU's yaw rate (yaw_rate_meas) in {int(measured[keep].sum())} of {len(keep)} "
+                             "rows, the estimate where no reading came" if "yaw_rate_meas" in c else
                              "the controller's estimate (the log has no yaw_rate_meas)")}
     if track_name:
         ds.metadata["track"] = track_name
