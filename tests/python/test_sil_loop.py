@@ -4,6 +4,7 @@ ETHZMobil; a short log drive (20 s, not the study's 60 s) so that it runs in wel
 asserted is the loop's plumbing and what the study's figures rest on, not the diagnosis's quality."""
 from __future__ import annotations
 
+import argparse
 import json
 
 import numpy as np
@@ -115,15 +116,49 @@ def test_the_summary_counts_targets_per_effect_and_takes_the_worst_lap():
         r = {"lap_completed": completed, "violations": violations}
         r |= {"vs_reference_pct": vs_ref} if vs_ref is not None else {}
         r |= {"vs_oracle_pct": vs_oracle} if vs_oracle is not None else {}
-        r["targets"] = {"clean_within_2pct_of_reference": completed and violations == 0 and (vs_ref or 9) <= 2,
-                        "within_1pct_of_oracle": vs_oracle is not None and abs(vs_oracle) <= 1}
+        r["targets"] = dict.fromkeys(loop.TARGETS, False)
+        r["targets"] |= {"clean_within_2pct_of_reference": completed and violations == 0 and (vs_ref or 9) <= 2,
+                         "within_1pct_of_oracle": vs_oracle is not None and abs(vs_oracle) <= 1}
         return {"effect": effect, "diagnosis": {"first_is_the_effect": first}, "rebuilt": r}
 
+    failed = {"track": "ethzMobil", "effect": "steer_delay", "size": 0.08, "reference": {}, "error": "no log drive"}
     s = loop.summarise([case("steer_delay", True, True, 0, 0.8, 0.0), case("steer_delay", False, True, 3, 140.0, -2.5),
                         case("steer_lag", True, True, 0, 2.9, 1.0), case("none", False, True, 0, 0.1, None),
-                        case("throttle_delay", True, False, 1, None, None)])
-    assert s["steer_delay"] == {"cases": 2, "first_is_the_effect": 1, "clean": 1, "clean_within_2pct_of_reference": 1,
+                        case("throttle_delay", True, False, 1, None, None), failed])
+    assert s["steer_delay"] == {"cases": 3, "not_scored": 1, "first_is_the_effect": 1, "clean": 1,
+                                **dict.fromkeys(loop.TARGETS, 0), "clean_within_2pct_of_reference": 1,
                                 "within_1pct_of_oracle": 1, "worst_vs_reference_pct": 140.0,
                                 "worst_vs_oracle_pct": -2.5}
-    assert s["effects"]["cases"] == 4 and s["effects"]["clean"] == 2 and s["effects"]["first_is_the_effect"] == 3
+    assert s["effects"]["cases"] == 5 and s["effects"]["clean"] == 2 and s["effects"]["first_is_the_effect"] == 3
     assert s["throttle_delay"]["worst_vs_reference_pct"] is None and s["none"]["cases"] == 1
+
+
+def test_a_case_that_cannot_be_scored_is_recorded_and_the_study_goes_on(tmp_path, monkeypatch, capsys):
+    """One case without a log drive (the nominal controller cannot drive 60 s at any speed) is kept as a case with
+    its error, the other cases are scored, and loop.json is written with both."""
+    fake_run = {"lap_completed": True, "lap_s": 5.2, "standing_lap_s": 5.4, "lap_times": [5.4, 5.2], "violations": 0,
+                "end": "laps_completed", "tracking_error_mean_m": 0.02, "worst_clearance_m": 0.1, "plot": "x"}
+    monkeypatch.setattr(loop, "_drive", lambda *a, **k: None)
+    monkeypatch.setattr(loop, "_row", lambda m, out: dict(fake_run))
+
+    def run_case(vehicle, track, effect, size, out, ref, *a):
+        if size == 0.08:
+            raise DdynError(f"{track.name}, plant effects {{'steer_delay': 0.08}}: no speed drives 60 s")
+        r = dict(fake_run, targets=dict.fromkeys(loop.TARGETS, True), vs_reference_pct=0.5, vs_oracle_pct=0.0)
+        return {"track": track.name, "effect": effect, "size": size, "reference": ref, "seconds": 1.0,
+                "log_drive": {"chosen": {"speed_scale": 0.6, "driven_s": 61.0, "violations": 0}},
+                "diagnosis": {"selected": [effect], "first": effect, "first_estimate": size, "first_is_the_effect": True},
+                "rebuilt_effects": {"controller_delays": {"steer": size}, "not_applied": []},
+                "before": dict(fake_run), "rebuilt": r, "oracle": dict(fake_run)}
+
+    monkeypatch.setattr(loop, "run_case", run_case)
+    parser = argparse.ArgumentParser()
+    loop.register(parser.add_subparsers())
+    args = parser.parse_args(["sil-loop", "--cases", "steer_delay=0.04,steer_delay=0.08", "--out", str(tmp_path)])
+    assert loop._run(args) == 0
+    doc = json.loads((tmp_path / "loop.json").read_text())
+    assert [c.get("error") for c in doc["cases"]][0] is None and "no speed drives 60 s" in doc["cases"][1]["error"]
+    assert (doc["summary"]["steer_delay"]["cases"], doc["summary"]["steer_delay"]["not_scored"],
+            doc["summary"]["steer_delay"]["within_1pct_of_oracle"]) == (2, 1, 1)
+    assert "| ethzMobil | steer_delay 0.08 | not scored: " in (tmp_path / "loop.md").read_text()
+    assert "steer_delay=0.08: not scored" in capsys.readouterr().out

@@ -53,6 +53,9 @@ ORACLE = {"steer_delay": ("delays", "steer"), "throttle_delay": ("delays", "thro
 # flying lap: from rest an input delay costs its own length whatever compensates it (100 ms of throttle delay is
 # 2.5 % of a 4 s lap), which is the start's, not the compensation's. The standing lap is kept beside it.
 SCORED_LAPS = 2
+# the rebuilt run's targets (issue 34), each a yes per case in rebuilt.targets and a count in the summary
+TARGETS = ("clean_within_2pct_of_reference", "clean_within_2pct_of_reference_standing", "diagnosis_first_within_15pct",
+           "diagnosis_first_within_15pct_alone", "within_1pct_of_oracle")
 ROAD_BANK = "road_bank"   # the case of the track's own bank in the plant (size 1: the track's profile as it is)
 BANK_CANDIDATES = ("bank_profile", "bank_angle", "bank_from_roll")
 
@@ -387,6 +390,7 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
                         and abs(case["diagnosis"]["alone_error_pct"]) <= 15.0),
                     "within_1pct_of_oracle": bool(b.get("vs_oracle_pct") is not None
                                                   and abs(b["vs_oracle_pct"]) <= 1.0)}
+    assert tuple(b["targets"]) == TARGETS
     case["seconds"] = time.time() - t0
     return case
 
@@ -394,7 +398,8 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
 def summarise(cases: list[dict]) -> dict:
     """Per plant effect (and over every effect but none and road_bank: "effects"), how many cases meet each of
     the rebuilt run's targets, and the worst rebuilt lap against the car without the effect and against the
-    oracle (flying laps, %; None when no rebuilt lap completed)."""
+    oracle (flying laps, %; None when no rebuilt lap completed). A case that could not be scored (its `error`)
+    counts in `cases` and `not_scored`, and meets no target."""
     groups: dict[str, list[dict]] = {}
     for c in cases:
         groups.setdefault(c["effect"], []).append(c)
@@ -402,13 +407,14 @@ def summarise(cases: list[dict]) -> dict:
             groups.setdefault("effects", []).append(c)
     out = {}
     for name, cs in groups.items():
-        reb = [c["rebuilt"] for c in cs]
+        scored = [c for c in cs if "error" not in c]
+        reb = [c["rebuilt"] for c in scored]
         vs_ref = [r["vs_reference_pct"] for r in reb if "vs_reference_pct" in r]
         vs_or = [r["vs_oracle_pct"] for r in reb if "vs_oracle_pct" in r]
-        out[name] = {"cases": len(cs),
-                     "first_is_the_effect": sum(c["diagnosis"]["first_is_the_effect"] for c in cs),
+        out[name] = {"cases": len(cs), "not_scored": len(cs) - len(scored),
+                     "first_is_the_effect": sum(c["diagnosis"]["first_is_the_effect"] for c in scored),
                      "clean": sum(bool(r["lap_completed"] and r["violations"] == 0) for r in reb),
-                     **{k: sum(r["targets"][k] for r in reb) for k in reb[0]["targets"]},
+                     **{k: sum(r["targets"][k] for r in reb) for k in TARGETS},
                      "worst_vs_reference_pct": max(vs_ref) if vs_ref else None,
                      "worst_vs_oracle_pct": max(vs_or, key=abs) if vs_or else None}
     return out
@@ -465,6 +471,10 @@ def markdown(cases: list[dict]) -> str:
              "reference (no effect) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
+        if "error" in c:
+            lines.append(f"| {c['track']} | {c['effect']} {c['size']:g} | not scored: {c['error']} |"
+                         + " |" * 7 + f" {_fmt_run(c['reference'])} |")
+            continue
         dg = c["diagnosis"]
         first = (f"{dg['first']} {dg['first_estimate']:.4g}" if dg["first"] else "none")
         sd = (f"{dg['alone_estimate']:.4g} ({dg['alone_error_pct']:+.0f} %)" if "alone_estimate" in dg else "-")
@@ -478,7 +488,7 @@ def markdown(cases: list[dict]) -> str:
         lines.append(f"| {c['track']} | {c['effect']} {c['size']:g} | {ld['speed_scale']:g}, {ld['driven_s']:.1f} s, "
                      f"{ld['violations']} viol. | {first} | {sd} | {applied} | {_fmt_run(c['before'])} | "
                      f"{_fmt_run(c['rebuilt'])} | {_fmt_run(c.get('oracle'))} | {_fmt_run(c['reference'])} |")
-    notes = [bank_line(c) for c in cases if "bank" in c["diagnosis"]]
+    notes = [bank_line(c) for c in cases if "bank" in c.get("diagnosis", {})]
     return "\n".join(lines) + "\n\n(flying lap (standing lap) / violations / mean tracking error, m)\n" + \
         ("\n" + "\n".join(notes) + "\n" if notes else "")
 
@@ -528,23 +538,35 @@ def _run(args: argparse.Namespace) -> int:
         tdir = out / tname.replace(":", "_")
         m = _drive(vehicle, track, tdir / "reference", effects={}, seed=args.seed)
         ref = _row(m, tdir / "reference")
-        if not ref["lap_completed"]:
-            raise DdynError(f"{tname}: the car without any effect does not complete the lap ({ref['end']})")
         for effect, size in cases:
-            c = run_case(vehicle, track, effect, size, tdir / f"{effect}_{size:g}", ref, args.seed, speeds,
-                         args.log_seconds)
+            try:
+                if not ref["lap_completed"]:
+                    raise DdynError(f"{tname}: the car without any effect does not complete the lap ({ref['end']})")
+                c = run_case(vehicle, track, effect, size, tdir / f"{effect}_{size:g}", ref, args.seed, speeds,
+                             args.log_seconds)
+                print(f"{tname} {effect}={size:g}: "
+                      f"diagnosis {c['diagnosis']['selected']}; before {_fmt_run(c['before'])}; rebuilt "
+                      f"{_fmt_run(c['rebuilt'])}; oracle {_fmt_run(c.get('oracle'))} ({c['seconds']:.0f} s)",
+                      flush=True)
+            except DdynError as e:
+                # one case that cannot be scored (no log drive, a failed diagnosis) is recorded and the study
+                # goes on: the other cases' runs are not lost
+                c = {"track": track.name, "effect": effect, "size": size, "reference": ref, "error": str(e)}
+                print(f"{tname} {effect}={size:g}: not scored: {e}", flush=True)
             results.append(c)
-            print(f"{tname} {effect}={size:g}: "
-                  f"diagnosis {c['diagnosis']['selected']}; before {_fmt_run(c['before'])}; rebuilt "
-                  f"{_fmt_run(c['rebuilt'])}; oracle {_fmt_run(c.get('oracle'))} ({c['seconds']:.0f} s)", flush=True)
-    doc = {"vehicle": vehicle.name, "seed": args.seed, "log_speeds": list(speeds), "log_seconds": args.log_seconds,
+            write_results(out, vehicle.name, args, speeds, results)   # after every case: an interrupted study keeps
+    write_results(out, vehicle.name, args, speeds, results)           # what it measured
+    print(markdown(results))
+    print(f"wrote {out / 'loop.json'} and loop.md")
+    return 0
+
+
+def write_results(out: Path, vehicle_name: str, args: argparse.Namespace, speeds, results: list[dict]) -> None:
+    doc = {"vehicle": vehicle_name, "seed": args.seed, "log_speeds": list(speeds), "log_seconds": args.log_seconds,
            "scored_laps": SCORED_LAPS, "summary": summarise(results), "cases": results, "markdown": markdown(results)}
     out.mkdir(parents=True, exist_ok=True)
     (out / "loop.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
     (out / "loop.md").write_text(doc["markdown"])
-    print(doc["markdown"])
-    print(f"wrote {out / 'loop.json'} and loop.md")
-    return 0
 
 
 def register(subparsers) -> None:
