@@ -473,7 +473,7 @@ def markdown(cases: list[dict]) -> str:
     for c in cases:
         if "error" in c:
             lines.append(f"| {c['track']} | {c['effect']} {c['size']:g} | not scored: {c['error']} |"
-                         + " |" * 7 + f" {_fmt_run(c['reference'])} |")
+                         + " |" * 6 + f" {_fmt_run(c['reference'])} |")
             continue
         dg = c["diagnosis"]
         first = (f"{dg['first']} {dg['first_estimate']:.4g}" if dg["first"] else "none")
@@ -554,8 +554,9 @@ def _run(args: argparse.Namespace) -> int:
                 c = {"track": track.name, "effect": effect, "size": size, "reference": ref, "error": str(e)}
                 print(f"{tname} {effect}={size:g}: not scored: {e}", flush=True)
             results.append(c)
-            write_results(out, vehicle.name, args, speeds, results)   # after every case: an interrupted study keeps
-    write_results(out, vehicle.name, args, speeds, results)           # what it measured
+            # after every case, so that an interrupted study keeps what it measured
+            write_results(out, vehicle.name, args, speeds, results)
+    write_results(out, vehicle.name, args, speeds, results)
     print(markdown(results))
     print(f"wrote {out / 'loop.json'} and loop.md")
     return 0
