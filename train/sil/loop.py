@@ -334,9 +334,6 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
         case["diagnosis"]["bank"] = bank_found(diag, track, banked)
     if case["diagnosis"]["first_is_the_effect"] and effect not in ("none", ROAD_BANK):
         case["diagnosis"]["error_pct"] = 100.0 * (case["diagnosis"]["first_estimate"] - size) / size
-    if effect == "steer_delay" and case["diagnosis"]["steer_delay_candidate_s"] is not None:
-        case["diagnosis"]["steer_delay_candidate_error_pct"] = \
-            100.0 * (case["diagnosis"]["steer_delay_candidate_s"] - size) / size
     alone = next((c for c in diag.get("candidates", []) if c["effect"] == effect), None)
     if alone is not None and effect not in ("none", ROAD_BANK):
         # the plant effect's candidate fitted alone: the estimate the rebuild writes (ddyn.sil.effects), where the
