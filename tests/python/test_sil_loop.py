@@ -69,16 +69,18 @@ def test_the_loop_drives_diagnoses_rebuilds_and_scores(case):
     assert "| ethzMobil | steer_delay 0.04 |" in loop.markdown([c])
 
 
-def test_the_user_log_is_the_controller_estimate_and_the_set_points_sent_before(case, orca):
+def test_the_user_log_is_the_controller_estimate_and_the_set_points_sampled_centred(case, orca):
     c, out = case
     clog = out / "case" / "log_speed0.6" / "controller_log.csv"
     ds = loop.user_log(clog, orca.name, orca.sample_time)
     raw = sil.read_csv(clog)
     k = int(np.flatnonzero(raw["step"] == ds.time[10] / orca.sample_time)[0])
     assert ds.column("vx")[10] == raw["vx"][k]
-    assert ds.column("steering")[10] == raw["steering_cmd"][k - 1]       # the set-point sent the period before
-    assert ds.column("dsteering")[10] == pytest.approx((raw["steering_cmd"][k] - raw["steering_cmd"][k - 1])
-                                                       / orca.sample_time)
+    u = raw["steering_cmd"]
+    assert u[k - 1] != u[k] != u[k + 1]       # the set-point moves either side of row 10 (else the test is blind)
+    # the held set-point sampled at its step: the mean of the one before and row k's own
+    assert ds.column("steering")[10] == pytest.approx(0.5 * (u[k - 1] + u[k]))
+    assert ds.column("dsteering")[10] == pytest.approx(0.5 * (u[k + 1] - u[k - 1]) / orca.sample_time)
     assert np.all(ds.column("vx") >= loop.MIN_VX)
     # the yaw rate is the IMU's reading of the period (every period gets one: the IMU runs at 100 Hz)
     assert np.isfinite(raw["yaw_rate_meas"]).all()
@@ -164,3 +166,18 @@ def test_a_case_that_cannot_be_scored_is_recorded_and_the_study_goes_on(tmp_path
     row = next(line for line in md if line.startswith("| ethzMobil | steer_delay 0.08 | not scored: "))
     assert row.count("|") == md[0].count("|")       # as many cells as the header
     assert "steer_delay=0.08: not scored" in capsys.readouterr().out
+
+
+def test_centred_set_points_put_the_ramp_on_the_held_command():
+    # a set-point held 1 for two periods between zeros: sampled at its steps, the ramp between the samples has
+    # the held command's area and centre (no lead, no lag), which the set-point of the period before lacks
+    u = np.array([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+    c = loop.centred_set_points(u)
+    assert c.tolist() == [0.0, 0.0, 0.5, 1.0, 0.5, 0.0, 0.0]
+    t = np.arange(len(u))
+    held_centre = np.sum(u * (t + 0.5)) / np.sum(u)              # the command held over [k, k + 1)
+    ramp_area = np.trapezoid(c, t)
+    ramp_centre = np.trapezoid(c * t, t) / ramp_area
+    assert ramp_area == pytest.approx(np.sum(u)) and ramp_centre == pytest.approx(held_centre)
+    before = np.r_[u[:1], u[:-1]]
+    assert np.trapezoid(before * t, t) / np.trapezoid(before, t) == pytest.approx(held_centre + 0.5)

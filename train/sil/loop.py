@@ -66,13 +66,16 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
              track_name: str | None = None):
     """The controller's own log as a user's log (a canonical Dataset): per control period, the state estimate
     (x .. vy), the yaw rate as the IMU read it (yaw_rate_channel) and, as throttle and steering, the set-points
-    the controller had commanded, i.e. what a drive-by-wire car's log records as its inputs. Row k's
-    throttle/steering is the set-point sent in period k - 1 (the one the actuator reaches at the start of period
-    k: the DBW unit's actuator reaches each set-point within a period), its rate (dthrottle, dsteering) the step
-    to period k's set-point. With no effect in the plant, `ddyn gap diagnose` finds no delay on it (with row k's
-    own set-point it finds one period). The price: the SIL plant's actuators step to a set-point within a
-    millisecond, and this ramp is about half a period behind them, so throttle delays and steering lags read
-    about 10 ms short (also on the plant's true states).
+    the controller commanded, i.e. what a drive-by-wire car's log records as its inputs, sampled centred
+    (centred_set_points): the actuator steps to period k's set-point at row k's instant and holds it through the
+    period, so row k's throttle/steering is the mean of the set-points either side of that step, and its rate
+    (dthrottle, dsteering) the step to row k + 1's. The model ramps between rows, and this ramp is centred on
+    each held set-point: it neither leads nor lags the held command on average.
+    Measured (`ddyn study sil-loop`, ETHZMobil, random:301 and :302, the plant's delays and lags fitted alone):
+    the set-point of the period before (a ramp half a period behind the held command) read throttle delays and
+    steering lags about 10 ms short (a 60 ms throttle delay 46 ms); row k's own set-point read every delay 10-20
+    ms long; centred, throttle delays and steering lags are within 6 ms and steering delays 4-7 ms long (the
+    plant's rate-limited steering), also on the plant's true states.
     Rows with the safe command or slower than min_vx are dropped; each gap starts a segment. track_name: the
     track driven, as the log's `track` metadata (what a user's log of a known track carries)."""
     from ddyn.data.dataset import Dataset
@@ -87,8 +90,8 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
         raise DdynError(f"{controller_log}: not a controller log: no column {missing[0]!r}")
     if len(c["step"]) < 3:
         raise DdynError(f"{controller_log}: {len(c['step'])} rows; need at least 3")
-    thr = np.r_[c["throttle_cmd"][0], c["throttle_cmd"][:-1]]
-    ste = np.r_[c["steering_cmd"][0], c["steering_cmd"][:-1]]
+    thr = centred_set_points(c["throttle_cmd"])
+    ste = centred_set_points(c["steering_cmd"])
     omega, measured = yaw_rate_channel(c)
     states = np.column_stack([c[k] for k in STATE_NAMES[:5]] + [omega, thr, ste])
     rates = np.column_stack([np.r_[np.diff(thr), 0.0], np.r_[np.diff(ste), 0.0]]) / sample_time
@@ -107,7 +110,8 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
     ds = Dataset(time=step * sample_time, segment=segment, states=states[keep], inputs=inputs,
                  sample_time=sample_time, vehicle=vehicle_name, source=f"{controller_log.parent.name}/controller_log.csv")
     ds.metadata = {"import_format": "ddyn study sil-loop user_log (the controller's own log)",
-                   "input_mapping": "throttle, steering = the set-points commanded the period before; "
+                   "input_mapping": "throttle, steering = the mean of the set-points commanded the period before "
+                                    "and in the period (the held command sampled at its step); "
                                     "dthrottle, dsteering = their steps per period / sample time",
                    "rows": f"{len(keep)} of {len(c['step'])} periods kept (vx >= {min_vx} m/s, no safe command) "
                            f"in {segment[-1] + 1} segment(s)",
@@ -118,6 +122,13 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
         ds.metadata["track"] = track_name
     assert ds.states.shape[1] == len(STATE_NAMES) and ds.inputs.shape[1] == len(INPUT_NAMES)
     return ds
+
+
+def centred_set_points(commanded) -> np.ndarray:
+    """Set-points held through each period, sampled at the instants they step: the mean of the one before and
+    the one after each step (row 0 has no set-point before it and takes its own)."""
+    u = np.asarray(commanded, dtype=float)
+    return 0.5 * (np.r_[u[:1], u[:-1]] + u)
 
 
 def yaw_rate_channel(c: dict) -> tuple[np.ndarray, np.ndarray]:
