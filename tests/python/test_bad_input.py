@@ -130,6 +130,19 @@ def test_bad_vehicle_file_is_one_line(tmp_path, name, doc, expected):
     assert path in line
 
 
+@pytest.mark.parametrize("argv", [
+    ["sil", "run", "--where", "inprocess", "--track", "ethzMobil", "--coeffs", "true", "--laps", "1"],
+    ["mpc", "raceline", "--track", "ethzMobil"],
+])
+def test_a_vehicle_file_of_another_car_is_one_line_where_its_body_is_needed(tmp_path, argv):
+    """A user's own vehicle file (another name, valid) has no body size for the track-bound checks. Before: a
+    KeyError traceback from the MPC's setup (`ddyn sil run`)."""
+    path = write_vehicle(tmp_path / "my_car.json", {**ORCA, "name": "my_car"})
+    line = assert_one_line_error([*argv, "--vehicle", path, "--out", str(tmp_path / "o")], "'my_car'",
+                                 "no body size known")
+    assert "orca_1_43" in line
+
+
 def test_todays_vehicle_files_keep_loading():
     folder = vehicle.VEHICLE_DIR
     files = sorted(folder.glob("*.json")) + sorted((folder / "plants").glob("*.json"))

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from ddyn.control import raceline as R
-from ddyn.control.mpc_setup import FOOTPRINT, MpcSettings, raceline_table
+from ddyn.control.mpc_setup import MpcSettings, raceline_table
+from ddyn.model.vehicle import FOOTPRINT
 from ddyn.errors import DdynError
 from ddyn.model.track_files import open_track, track_digest
 from ddyn.model.tracks import load_track

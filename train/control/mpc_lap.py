@@ -23,7 +23,7 @@ from ddyn.errors import DdynError
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.track_files import open_track
 from ddyn.model.tracks import Track
-from ddyn.model.vehicle import FOOTPRINT
+from ddyn.model.vehicle import footprint
 from ddyn.paths import BUILD
 
 DEFAULT_TOOL = BUILD / "c_src" / "ddyn_mpc_lap"
@@ -97,7 +97,7 @@ def run_c(vehicle_name: str, track: Track, settings: MpcSettings, steps: int, co
 
 def footprint_corners(x: np.ndarray, vehicle_name: str) -> np.ndarray:
     """(N, 4, 2) corners of the car's rectangle centred on the centre of gravity."""
-    length, width = FOOTPRINT[vehicle_name]
+    length, width = footprint(vehicle_name)
     local = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * np.array([length / 2, width / 2])
     c, s = np.cos(x[:, 2]), np.sin(x[:, 2])
     cx = x[:, 0, None] + c[:, None] * local[:, 0] - s[:, None] * local[:, 1]

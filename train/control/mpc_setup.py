@@ -15,7 +15,7 @@ import numpy as np
 
 from ddyn.control.raceline import line_for
 from ddyn.model.tracks import Track, resample_closed
-from ddyn.model.vehicle import FOOTPRINT
+from ddyn.model.vehicle import footprint
 
 LOCAL_WINDOW, STAGE_WINDOW = 40, 10  # as in mpc.c
 
@@ -98,7 +98,7 @@ def raceline_table(track: Track, vehicle_name: str, settings: MpcSettings) -> di
     # room along the normal: centre-line half widths at the projection, minus the lateral offset
     s_c, lat = track.project(xy[:, 0], xy[:, 1])
     wl, wr = track.half_widths(s_c)
-    half = 0.5 * FOOTPRINT[vehicle_name][1] + settings.margin
+    half = 0.5 * footprint(vehicle_name)[1] + settings.margin
     return {"x": xy[:, 0], "y": xy[:, 1], "speed": speed, "room_left": wl - lat - half,
             "room_right": wr + lat - half}
 

@@ -105,11 +105,9 @@ def default_path(vehicle_name: str, track: str | Track, flying: bool | None = No
 
 
 def _footprint(vehicle_name: str) -> tuple[float, float]:
-    from ddyn.model.vehicle import FOOTPRINT
+    from ddyn.model.vehicle import footprint
 
-    if vehicle_name not in FOOTPRINT:
-        raise DdynError(f"no footprint known for vehicle {vehicle_name!r}")
-    return FOOTPRINT[vehicle_name]
+    return footprint(vehicle_name)
 
 
 def speed_profile(vehicle: Vehicle, kappa: np.ndarray, ds: float, vx0: float | None, grip: float = 1.0) -> np.ndarray:

@@ -28,6 +28,16 @@ FOOTPRINT["av21_powertrain"] = FOOTPRINT["av21"]   # the same car with the real 
 FOOTPRINT["av21_power"] = FOOTPRINT["av21"]        # the same car with the power-limited drivetrain
 
 
+def footprint(vehicle_name: str) -> tuple[float, float]:
+    """The car's body (length, width) in m; a car without one is one line naming it, not a KeyError deep in the MPC
+    setup (a vehicle file of the user's own car: its body is what the track-bound checks need)."""
+    if vehicle_name not in FOOTPRINT:
+        raise DdynError(f"vehicle {vehicle_name!r}: no body size known (FOOTPRINT in ddyn.model.vehicle holds "
+                        f"{', '.join(sorted(FOOTPRINT))}); the MPC, racing line and SIL check the car's body "
+                        "against the track")
+    return FOOTPRINT[vehicle_name]
+
+
 @dataclass(frozen=True)
 class Vehicle:
     name: str
