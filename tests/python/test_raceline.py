@@ -6,10 +6,10 @@ import pytest
 
 from ddyn.control import raceline as R
 from ddyn.control.mpc_setup import MpcSettings, raceline_table
-from ddyn.model.vehicle import FOOTPRINT
 from ddyn.errors import DdynError
 from ddyn.model.track_files import open_track, track_digest
 from ddyn.model.tracks import load_track
+from ddyn.model.vehicle import FOOTPRINT
 from ddyn.model.vehicle import load as load_vehicle
 
 COMMITTED = ("ethzMobil", "ethz")
