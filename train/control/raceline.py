@@ -43,7 +43,7 @@ from ddyn.model.single_track import derivatives
 from ddyn.model.track_frame import frame
 from ddyn.model.track_files import is_named, open_track, track_digest
 from ddyn.model.tracks import Raceline, Track
-from ddyn.model.vehicle import Vehicle
+from ddyn.model.vehicle import Vehicle, footprint
 from ddyn.model.vehicle import load as load_vehicle
 
 RACELINE_DIR = Path(__file__).resolve().parents[1] / "racelines"  # train/racelines
@@ -104,12 +104,6 @@ def default_path(vehicle_name: str, track: str | Track, flying: bool | None = No
     return USER_RACELINE_DIR / f"{vehicle_name}_{track.name}{suffix}.npz"
 
 
-def _footprint(vehicle_name: str) -> tuple[float, float]:
-    from ddyn.model.vehicle import footprint
-
-    return footprint(vehicle_name)
-
-
 def speed_profile(vehicle: Vehicle, kappa: np.ndarray, ds: float, vx0: float | None, grip: float = 1.0) -> np.ndarray:
     """A curvature-limited speed at the m frame points plus the closing point (the warm start).
 
@@ -151,7 +145,7 @@ def solve(vehicle: Vehicle, track: Track, settings: RacelineSettings = RacelineS
         raise DdynError(f"vehicle {vehicle.name!r} has no true coefficients to drive with")
     ns = get_ns("casadi")
     N = resolved(settings, track).intervals
-    length_fp, width_fp = _footprint(vehicle.name)
+    length_fp, width_fp = footprint(vehicle.name)
     fr = frame(track, N)
     ds = fr.length / N
     kap = fr.kappa  # each interval is an arc: a constant, not a function of s
