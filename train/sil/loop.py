@@ -73,9 +73,9 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
     each held set-point: it neither leads nor lags the held command on average.
     Measured (`ddyn study sil-loop`, ETHZMobil, random:301 and :302, the plant's delays and lags fitted alone):
     the set-point of the period before (a ramp half a period behind the held command) read throttle delays and
-    steering lags about 10 ms short (a 60 ms throttle delay 46 ms); row k's own set-point read every delay 7-15
-    ms long; centred, throttle delays are within 7 ms, steering lags within 1.4 ms and steering delays 4.5-7 ms
-    long, also on the plant's true states (the plant's rate-limited steering is the likely cause, not isolated).
+    steering lags about 10 ms short (a 60 ms throttle delay 46 ms; row k's own set-point would lead by as much);
+    centred, throttle delays are within 7 ms, steering lags within 1.4 ms and steering delays 4.5-7 ms long
+    (loop.json's alone_error_pct; the plant's rate-limited steering is a likely cause, not isolated).
     Rows with the safe command or slower than min_vx are dropped; each gap starts a segment. track_name: the
     track driven, as the log's `track` metadata (what a user's log of a known track carries)."""
     from ddyn.data.dataset import Dataset
