@@ -57,6 +57,30 @@ def test_raceline_table_room_matches_the_track(orca, mobil):
     np.testing.assert_allclose(wider[:, 3], table[:, 3] + margin)
 
 
+def test_two_builds_of_one_build_dir_take_turns(tmp_path, monkeypatch):
+    """Two studies side by side configure the same SIL build dir before each run; the second waits on the build
+    dir's lock (two cmake configures racing there failed a run). cmake itself is replaced by a recorder."""
+    import fcntl
+    import threading
+    from types import SimpleNamespace
+
+    calls = []
+    monkeypatch.setattr(sil.subprocess, "run",
+                        lambda c, **kw: calls.append(c[1]) or SimpleNamespace(returncode=0, stdout="", stderr=""))
+    sil.build_binaries(None, build_root=tmp_path)
+    assert calls == ["-S", "--build"]
+    (lock_path,) = tmp_path.glob("*/.ddyn_build.lock")
+    with open(lock_path) as held:
+        fcntl.flock(held, fcntl.LOCK_EX)          # another study's build under way
+        second = threading.Thread(target=sil.build_binaries, args=(None,), kwargs={"build_root": tmp_path})
+        second.start()
+        second.join(timeout=1.0)
+        assert second.is_alive() and len(calls) == 2   # waits: no cmake call while the other holds the dir
+        fcntl.flock(held, fcntl.LOCK_UN)
+    second.join()
+    assert calls == ["-S", "--build"] * 2
+
+
 def test_plant_config_and_controller_config(orca, mobil, tmp_path):
     spec = sil.SilSpec.true_car(orca, mobil, effects={"steer_delay": 0.02},
                     faults={"drop": 0.05, "silent": "imu", "silent_at": 1.5, "kill_controller": 2.0})

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import fcntl
 import hashlib
 import importlib.util
 import json
@@ -544,11 +545,17 @@ def build_binaries(export_dir: Path | None, build_root: Path | None = None, quie
     build = (build_root or Path(os.environ.get("DDYN_SIL_BUILD_DIR") or REPO / "build-sil")) / key
     cmd = ["cmake", "-S", str(REPO), "-B", str(build), "-DCMAKE_BUILD_TYPE=Release", "-DDDYN_BUILD_TESTS=OFF",
            f"-DDDYN_NET_EXPORT_DIR={Path(net).resolve()}"]
-    for c in (cmd, ["cmake", "--build", str(build), "-j2", "--target", "ddyn_sil_plant", "ddyn_controller_app",
-                    "ddyn_sil_inprocess"]):
-        r = subprocess.run(c, capture_output=True, text=True)
-        if r.returncode != 0:
-            raise DdynError(f"building the SIL binaries failed: {' '.join(c)}\n{(r.stdout + r.stderr)[-3000:]}")
+    build.mkdir(parents=True, exist_ok=True)
+    # one build at a time per build dir: two studies run side by side configure the same dir before each run, and
+    # two cmake configures racing there failed one run (CMakePackageConfigHelpers' configure_file, seen with two
+    # `ddyn study sil-loop` at once); the second waits for the first and then finds the build up to date
+    with open(build / ".ddyn_build.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        for c in (cmd, ["cmake", "--build", str(build), "-j2", "--target", "ddyn_sil_plant", "ddyn_controller_app",
+                        "ddyn_sil_inprocess"]):
+            r = subprocess.run(c, capture_output=True, text=True)
+            if r.returncode != 0:
+                raise DdynError(f"building the SIL binaries failed: {' '.join(c)}\n{(r.stdout + r.stderr)[-3000:]}")
     return build / "firmware_sim"
 
 
