@@ -299,6 +299,9 @@ void ddyn_sil_log_readings(const ddyn_sil_period *p, double out[DDYN_SIL_LOG_REA
 {
     const ddyn_ctrl_reading *yaw = &p->readings.reading[DDYN_MEAS_YAW_RATE];
     const ddyn_ctrl_reading *steer = &p->readings.reading[DDYN_MEAS_STEERING];
+    const ddyn_ctrl_reading *acc = &p->readings.reading[DDYN_MEAS_ACCELERATION];
     out[0] = yaw->valid ? yaw->z[0] : NAN;
     out[1] = steer->valid ? steer->z[0] : NAN;
+    out[2] = acc->valid ? acc->z[0] : NAN;
+    out[3] = acc->valid ? acc->z[1] : NAN;
 }

@@ -115,7 +115,7 @@ TEST(SilLoop, APeriodCarriesTheRawReadingsItFused) {
   fsim_test::SilLoop loop(fsim_test::orca_sil_config());
   fsim::FeedbackEncoder enc;
   ddyn_sil_node* node = loop.node.get();
-  fsim::CanFrame f = enc.imu(0.123, 0.0, 0.0);
+  fsim::CanFrame f = enc.imu(0.123, 0.5, -2.25);
   EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 0);
   f = enc.steering(-0.05, 0.0);
   EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 0);
@@ -127,6 +127,8 @@ TEST(SilLoop, APeriodCarriesTheRawReadingsItFused) {
   ddyn_sil_log_readings(&per, raw);
   EXPECT_NEAR(raw[0], 0.123, 1e-3);   // the frame's resolution
   EXPECT_NEAR(raw[1], -0.05, 1e-3);
+  EXPECT_NEAR(raw[2], 0.5, 0.005);     // AccelX, AccelY: 0.005 m/s^2 per bit
+  EXPECT_NEAR(raw[3], -2.25, 0.005);
   EXPECT_EQ(node->in.reading[DDYN_MEAS_YAW_RATE].valid, 0);  // the node's own copy is cleared
   f = enc.gnss_position(1.21, 0.9);  // the next period: a position frame only
   EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 1);
@@ -134,4 +136,5 @@ TEST(SilLoop, APeriodCarriesTheRawReadingsItFused) {
   ddyn_sil_log_readings(&per, raw);
   EXPECT_TRUE(std::isnan(raw[0]));
   EXPECT_TRUE(std::isnan(raw[1]));
+  EXPECT_TRUE(std::isnan(raw[3]));
 }
