@@ -76,6 +76,17 @@ def test_the_user_log_is_the_controller_estimate_and_the_set_points_sampled_cent
     raw = sil.read_csv(clog)
     k = int(np.flatnonzero(raw["step"] == ds.time[10] / orca.sample_time)[0])
     assert ds.column("vx")[10] == raw["vx"][k]
+    # vy from the track of the positions, not the filter's; against the plant's own (its trajectory.csv, the truth
+    # the loop never reads) within the heading's noise (0.01 rad at 1-2 m/s): a wrong rotation or sign would be
+    # off by the car's speed
+    assert ds.column("vy") == pytest.approx(loop.track_lateral_velocity(
+        ds.column("x"), ds.column("y"), ds.column("yaw"), ds.segment, orca.sample_time))
+    truth, _ = loop.plant_states_log(out / "case" / "user_log.csv", out / "case" / "log_speed0.6" / "trajectory.csv",
+                                     out / "plant_states.csv")
+    got = loop.vy_against_plant(out / "case" / "user_log.csv", truth, clog, orca.sample_time)
+    assert got["user_log"]["rms"] < 0.05 and abs(got["user_log"]["mean"]) < 0.01
+    # the accelerometer's readings ride along as the log's ax, ay
+    assert np.isfinite(raw["ay_meas"]).all() and ds.extras["ay"][10] == raw["ay_meas"][k]
     u = raw["steering_cmd"]
     assert u[k - 1] != u[k] != u[k + 1]       # the set-point moves either side of row 10 (else the test is blind)
     # the held set-point sampled at its step: the mean of the one before and row k's own
@@ -101,6 +112,31 @@ def test_the_user_log_takes_the_measured_yaw_rate_where_a_reading_came(tmp_path,
     new = loop.user_log(tmp_path / "new.csv", orca.name, orca.sample_time)
     assert new.column("omega").tolist() == [0.40, 0.5, 0.60, 0.55, 0.5, 0.52]
     assert new.metadata["omega"].startswith("the IMU's yaw rate (yaw_rate_meas) in 4 of 6 rows")
+
+
+def test_the_lateral_velocity_comes_from_the_track_of_the_positions():
+    """A car on a circle (radius 20 m, 5 m/s over the ground) with a 0.1 rad sideslip: vy = 5 sin(0.1) in the
+    body; within 0.1 % from 50 Hz samples inside a segment, 3 % at its ends (one-sided differences). Each segment
+    differenced on its own (a jump between segments is not a speed)."""
+    dt, r, v, beta = 0.02, 20.0, 5.0, 0.1
+    t = np.arange(200) * dt
+    course = v * t / r                     # the direction of travel on the circle
+    x, y = r * np.sin(course), r * (1 - np.cos(course))
+    yaw = course - beta                    # the body points 0.1 rad inside the direction of travel
+    seg = np.r_[np.zeros(100, int), np.ones(100, int)]
+    x[100:] += 50.0                        # the second segment elsewhere: no 2500 m/s jump may appear
+    vy = loop.track_lateral_velocity(x, y, yaw, seg, dt)
+    ends = np.isin(np.arange(200), [0, 99, 100, 199])
+    assert vy[~ends] == pytest.approx(np.full(196, v * np.sin(beta)), rel=1e-3)
+    assert vy[ends] == pytest.approx(np.full(4, v * np.sin(beta)), rel=0.03)
+
+
+def test_the_accelerometer_is_the_latest_reading():
+    c = {"ax_meas": np.array([np.nan, 1.0, np.nan, 3.0]), "ay_meas": np.array([np.nan, -2.0, np.nan, np.nan])}
+    got = loop.accelerometer_channels(c)
+    assert got["ax"].tolist() == [1.0, 1.0, 1.0, 3.0] and got["ay"].tolist() == [-2.0, -2.0, -2.0, -2.0]
+    assert loop.accelerometer_channels({"ax_meas": np.full(3, np.nan), "ay_meas": np.full(3, np.nan)}) == {}
+    assert loop.accelerometer_channels({"yaw_rate_meas": np.zeros(3)}) == {}
 
 
 def test_a_bad_controller_log_is_one_line(tmp_path, orca):

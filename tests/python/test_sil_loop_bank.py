@@ -100,3 +100,26 @@ def test_the_plant_states_log_replaces_the_estimates_only(tmp_path):
     assert shift == pytest.approx(0.04)
     assert np.allclose(out.column("vy"), 0.2) and np.allclose(out.column("x"), 20 * (tk + 0.04))
     assert np.allclose(out.column("throttle"), 0.3) and np.allclose(out.inputs, 0.0)
+
+
+def test_vy_against_the_plant_compares_both_estimates_at_the_users_rows(tmp_path):
+    """The experiment's figure: the user's log's vy and the filter's (the controller log's row of the same step)
+    against the plant's, as mean and RMS of the estimate minus the plant."""
+    from ddyn.data.dataset import write_canonical
+
+    tk = np.arange(2, 12) * 0.04                      # the user's rows: steps 2..11
+    def log(vy):
+        return Dataset(time=tk, segment=np.zeros(len(tk), int), states=np.column_stack(
+            [tk, 0 * tk, 0 * tk, 20 + 0 * tk, vy, 0 * tk, 0 * tk, 0 * tk]), inputs=np.zeros((len(tk), 2)),
+            sample_time=0.04, vehicle="av21", source="test")
+    write_canonical(log(0.25 + 0 * tk), tmp_path / "u.csv")
+    write_canonical(log(0.2 + 0 * tk), tmp_path / "p.csv")
+    steps = np.arange(14)
+    rows = ["step,vy"] + [f"{k},{-0.1 if 2 <= k <= 11 else 9.0}" for k in steps]
+    (tmp_path / "c.csv").write_text("\n".join(rows) + "\n")
+    got = loop.vy_against_plant(tmp_path / "u.csv", tmp_path / "p.csv", tmp_path / "c.csv", 0.04)
+    assert got["user_log"]["mean"] == pytest.approx(0.05) and got["user_log"]["rms"] == pytest.approx(0.05)
+    assert got["filter"]["mean"] == pytest.approx(-0.3) and got["filter"]["rms"] == pytest.approx(0.3)
+    (tmp_path / "other.csv").write_text("step,vy\n0,0\n1,0\n")
+    with pytest.raises(DdynError, match="not the controller log of"):
+        loop.vy_against_plant(tmp_path / "u.csv", tmp_path / "p.csv", tmp_path / "other.csv", 0.04)
