@@ -300,8 +300,13 @@ void ddyn_sil_log_readings(const ddyn_sil_period *p, double out[DDYN_SIL_LOG_REA
     const ddyn_ctrl_reading *yaw = &p->readings.reading[DDYN_MEAS_YAW_RATE];
     const ddyn_ctrl_reading *steer = &p->readings.reading[DDYN_MEAS_STEERING];
     const ddyn_ctrl_reading *acc = &p->readings.reading[DDYN_MEAS_ACCELERATION];
+    const ddyn_ctrl_reading *pos = &p->readings.reading[DDYN_MEAS_GNSS_POSITION];
+    const ddyn_ctrl_reading *head = &p->readings.reading[DDYN_MEAS_HEADING];
     out[0] = yaw->valid ? yaw->z[0] : NAN;
     out[1] = steer->valid ? steer->z[0] : NAN;
     out[2] = acc->valid ? acc->z[0] : NAN;
     out[3] = acc->valid ? acc->z[1] : NAN;
+    out[4] = pos->valid ? pos->z[0] : NAN;
+    out[5] = pos->valid ? pos->z[1] : NAN;
+    out[6] = head->valid ? head->z[0] : NAN;
 }

@@ -107,7 +107,7 @@ TEST(SilLoop, LostPositionFramesAreCaughtUp) {
   EXPECT_EQ(node->ctl.x_hist_n, 3);                  // but the filter ran it
 }
 
-// The log's raw readings: a period records the IMU's yaw rate and the steering feedback it fused, and NaN for
+// The log's raw readings: a period records the IMU, the steering feedback and the GNSS it fused, and NaN for
 // a sensor whose frame did not come in it (the node clears its readings after each step, so the copy in the
 // period is what the log can read).
 TEST(SilLoop, APeriodCarriesTheRawReadingsItFused) {
@@ -119,6 +119,8 @@ TEST(SilLoop, APeriodCarriesTheRawReadingsItFused) {
   EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 0);
   f = enc.steering(-0.05, 0.0);
   EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 0);
+  f = enc.gnss_heading(0.75);
+  EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 0);
   f = enc.gnss_position(1.2, 0.9);
   EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 1);
   ddyn_sil_period per;
@@ -129,6 +131,9 @@ TEST(SilLoop, APeriodCarriesTheRawReadingsItFused) {
   EXPECT_NEAR(raw[1], -0.05, 1e-3);
   EXPECT_NEAR(raw[2], 0.5, 0.005);     // AccelX, AccelY: 0.005 m/s^2 per bit
   EXPECT_NEAR(raw[3], -2.25, 0.005);
+  EXPECT_NEAR(raw[4], 1.2, 0.01);      // the GNSS position and heading as measured, not the estimate
+  EXPECT_NEAR(raw[5], 0.9, 0.01);
+  EXPECT_NEAR(raw[6], 0.75, 1e-3);
   EXPECT_EQ(node->in.reading[DDYN_MEAS_YAW_RATE].valid, 0);  // the node's own copy is cleared
   f = enc.gnss_position(1.21, 0.9);  // the next period: a position frame only
   EXPECT_EQ(ddyn_sil_node_on_frame(node, f.id, f.data.data(), f.dlc), 1);
@@ -137,4 +142,6 @@ TEST(SilLoop, APeriodCarriesTheRawReadingsItFused) {
   EXPECT_TRUE(std::isnan(raw[0]));
   EXPECT_TRUE(std::isnan(raw[1]));
   EXPECT_TRUE(std::isnan(raw[3]));
+  EXPECT_NEAR(raw[4], 1.21, 0.01);    // this period's position; no heading came in it
+  EXPECT_TRUE(std::isnan(raw[6]));
 }

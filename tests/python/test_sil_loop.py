@@ -76,11 +76,14 @@ def test_the_user_log_is_the_controller_estimate_and_the_set_points_sampled_cent
     raw = sil.read_csv(clog)
     k = int(np.flatnonzero(raw["step"] == ds.time[10] / orca.sample_time)[0])
     assert ds.column("vx")[10] == raw["vx"][k]
-    # vy from the track of the positions, not the filter's; against the plant's own (its trajectory.csv, the truth
-    # the loop never reads) within the heading's noise (0.01 rad at 1-2 m/s): a wrong rotation or sign would be
-    # off by the car's speed
+    # vy from the track of the positions, not the filter's, turned by the inertial heading (the GNSS heading read
+    # every period here); against the plant's own (its trajectory.csv, the truth the loop never reads) within the
+    # noise: a wrong rotation or sign would be off by the car's speed
+    assert "the inertial heading (GNSS heading_meas and the yaw rate) in" in ds.metadata["vy"]
+    keep = np.searchsorted(raw["step"], np.round(ds.time / orca.sample_time).astype(int))
+    heading = loop.inertial_heading(raw["heading_meas"][keep], ds.column("omega"), ds.segment, orca.sample_time)
     assert ds.column("vy") == pytest.approx(loop.track_lateral_velocity(
-        ds.column("x"), ds.column("y"), ds.column("yaw"), ds.segment, orca.sample_time))
+        ds.column("x"), ds.column("y"), heading, ds.segment, orca.sample_time))
     truth, _ = loop.plant_states_log(out / "case" / "user_log.csv", out / "case" / "log_speed0.6" / "trajectory.csv",
                                      out / "plant_states.csv")
     got = loop.vy_against_plant(out / "case" / "user_log.csv", truth, clog, orca.sample_time)
@@ -129,6 +132,40 @@ def test_the_lateral_velocity_comes_from_the_track_of_the_positions():
     ends = np.isin(np.arange(200), [0, 99, 100, 199])
     assert vy[~ends] == pytest.approx(np.full(196, v * np.sin(beta)), rel=1e-3)
     assert vy[ends] == pytest.approx(np.full(4, v * np.sin(beta)), rel=0.03)
+
+
+def test_the_inertial_heading_averages_the_gnss_noise_and_ignores_a_gyro_bias():
+    """A car turning at 0.4 rad/s through the +-pi wrap: the gyro reads 0.02 rad/s high, the GNSS heading has
+    0.01 rad of noise, wrapped into (-pi, pi], and misses every other period. The inertial heading is within a
+    tenth of the noise of the truth inside the segment (a constant bias drifts linearly, and a centred mean keeps a
+    line) and still well inside it within half a window of the ends; the raw readings are not."""
+    dt, n = 0.02, 1000
+    rng = np.random.default_rng(3)
+    truth = 2.5 + 0.4 * np.arange(n) * dt
+    gyro = np.full(n, 0.4 + 0.02)
+    meas = np.angle(np.exp(1j * (truth + rng.normal(0.0, 0.01, n))))
+    meas[1::2] = np.nan
+    got = loop.inertial_heading(meas, gyro, np.zeros(n, int), dt)
+    err = np.angle(np.exp(1j * (got - truth)))
+    inside = slice(50, n - 50)
+    assert np.sqrt(np.mean(err[inside] ** 2)) < 0.002 and np.max(np.abs(err)) < 0.01
+    assert np.max(np.abs(np.diff(got))) < 0.01      # unwrapped: no 2 pi step where the readings wrap
+    # each segment integrates on its own; a segment without a reading is NaN (heading_channel falls back)
+    seg = np.r_[np.zeros(500, int), np.ones(500, int)]
+    meas2 = meas.copy()
+    meas2[500:] = np.nan
+    got2 = loop.inertial_heading(meas2, gyro, seg, dt)
+    assert np.isnan(got2[500:]).all() and np.isfinite(got2[:500]).all()
+
+
+def test_the_heading_falls_back_to_the_filter_without_readings():
+    c = {"yaw": np.array([0.1, 0.2, 0.3, 0.4]), "heading_meas": np.full(4, np.nan)}
+    keep, seg, omega = np.arange(4), np.zeros(4, int), np.zeros(4)
+    got, why = loop.heading_channel(c, omega, keep, seg, 0.02)
+    assert got.tolist() == [0.1, 0.2, 0.3, 0.4] and "no heading_meas" in why
+    c["heading_meas"] = np.array([0.5, 0.5, np.nan, 0.5])
+    got, why = loop.heading_channel(c, omega, keep, seg, 0.02)
+    assert got == pytest.approx(np.full(4, 0.5)) and why.startswith("the inertial heading")
 
 
 def test_the_accelerometer_is_the_latest_reading():

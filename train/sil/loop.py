@@ -105,7 +105,8 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
     brk = np.r_[False, np.diff(step) != 1]
     segment = np.cumsum(brk)
     states = states[keep]
-    states[:, 4] = track_lateral_velocity(states[:, 0], states[:, 1], states[:, 2], segment, sample_time)
+    heading, heading_from = heading_channel(c, omega, keep, segment, sample_time)
+    states[:, 4] = track_lateral_velocity(states[:, 0], states[:, 1], heading, segment, sample_time)
     # the last row of a segment has no successor in it: repeat the previous rate (as the LCM importer)
     inputs = rates[keep].copy()
     last = np.flatnonzero(np.r_[brk[1:], True])
@@ -120,7 +121,8 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
                    "input_mapping": "throttle, steering = the mean of the set-points commanded the period before "
                                     "and in the period (the held command sampled at its step); "
                                     "dthrottle, dsteering = their steps per period / sample time",
-                   "vy": "from the track of the estimated positions (track_lateral_velocity), not the filter's vy",
+                   "vy": "from the track of the estimated positions (track_lateral_velocity), not the filter's vy, "
+                         f"rotated by {heading_from}",
                    "rows": f"{len(keep)} of {len(c['step'])} periods kept (vx >= {min_vx} m/s, no safe command) "
                            f"in {segment[-1] + 1} segment(s)",
                    "omega": (f"the IMU's yaw rate (yaw_rate_meas) in {int(measured[keep].sum())} of {len(keep)} "
@@ -140,8 +142,10 @@ def track_lateral_velocity(x, y, yaw, segment, sample_time: float) -> np.ndarray
     Why not the controller's estimate: its filter's model is the nominal one and has no term for what the
     diagnosis looks for, so it bends vy until the nominal explains the motion. On the banked oval (AV-21, `ddyn
     study sil-loop --cases road_bank=1`) its vy sat 0.2 m/s below the plant's on average and the bank fitted on
-    it was 1-2 of 20 degrees; this one, within 0.05 m/s RMS, shows the bank. The positions are measured directly
-    (GNSS) and the heading too, so the filter's model barely moves them."""
+    it was 1-2 of 20 degrees. The positions are measured directly (GNSS at 2 cm), so the filter's model barely
+    moves them, and its positions are smoother than the readings (differenced, 2 cm of noise over two 40 ms
+    periods is about 0.35 m/s). The heading is the caller's: heading_channel's inertial heading, since the
+    filter's own heading turned with its bent vy, and through it the oval's bank came out 14 of 20 degrees."""
     x, y, yaw = (np.asarray(a, dtype=float) for a in (x, y, yaw))
     seg = np.asarray(segment)
     vy = np.zeros(len(x))
@@ -152,6 +156,52 @@ def track_lateral_velocity(x, y, yaw, segment, sample_time: float) -> np.ndarray
         vxw, vyw = np.gradient(x[m], sample_time), np.gradient(y[m], sample_time)
         vy[m] = -np.sin(yaw[m]) * vxw + np.cos(yaw[m]) * vyw
     return vy
+
+
+HEADING_WINDOW_S = 1.0   # inertial_heading's averaging window: the gyro drifts far less than the GNSS's noise in it
+
+
+def inertial_heading(heading_meas, yaw_rate, segment, sample_time: float,
+                     window: float = HEADING_WINDOW_S) -> np.ndarray:
+    """The heading as a car's INS puts it together, without a vehicle model: the yaw rate (gyro) integrated
+    within each segment, its offset from the GNSS heading readings averaged over a centred window (a centred
+    mean keeps a linear drift, so a constant gyro bias leaves no offset). The GNSS heading's noise is averaged
+    away and the gyro's drift corrected. Why not the controller's estimate: its filter predicts with the flat,
+    effect-free model, and on the banked oval its heading turned with the vy it bent, so vy read through it
+    (track_lateral_velocity) kept a third of the bank hidden. Rows of a segment without any heading reading
+    within the window take the nearest average; a segment with none at all is NaN."""
+    h = np.asarray(heading_meas, dtype=float)
+    r = np.asarray(yaw_rate, dtype=float)
+    seg = np.asarray(segment)
+    out = np.full(len(h), np.nan)
+    half = max(1, int(round(0.5 * window / sample_time)))
+    for g in np.unique(seg):
+        m = np.flatnonzero(seg == g)
+        integral = np.r_[0.0, np.cumsum(0.5 * (r[m][1:] + r[m][:-1]) * sample_time)]
+        have = np.flatnonzero(np.isfinite(h[m]))
+        if len(have) == 0:
+            continue
+        offset = np.unwrap(np.angle(np.exp(1j * (h[m][have] - integral[have]))))
+        sums = np.r_[0.0, np.cumsum(offset)]
+        lo = np.searchsorted(have, have - half)
+        hi = np.searchsorted(have, have + half, side="right")
+        mean = (sums[hi] - sums[lo]) / (hi - lo)
+        out[m] = integral + np.interp(np.arange(len(m)), have, mean)
+    return out
+
+
+def heading_channel(c: dict, omega: np.ndarray, keep: np.ndarray, segment: np.ndarray,
+                    sample_time: float) -> tuple[np.ndarray, str]:
+    """The heading that turns the positions' track into vy, at the kept rows: the inertial heading
+    (inertial_heading, from the GNSS heading readings and the yaw rate) where the log has heading_meas, the
+    filter's estimate elsewhere (an older SIL log; a segment with no reading); and which it is."""
+    est = np.asarray(c["yaw"], dtype=float)[keep]
+    if "heading_meas" not in c or not np.isfinite(c["heading_meas"]).any():
+        return est, "the filter's heading (the log has no heading_meas)"
+    ins = inertial_heading(np.asarray(c["heading_meas"], dtype=float)[keep], omega[keep], segment, sample_time)
+    have = np.isfinite(ins)
+    return np.where(have, ins, est), (f"the inertial heading (GNSS heading_meas and the yaw rate) in {int(have.sum())} "
+                                      f"of {len(have)} rows, the filter's elsewhere")
 
 
 def centred_set_points(commanded) -> np.ndarray:
