@@ -78,14 +78,14 @@ typedef struct {
     ddyn_ctrl_input readings;
 } ddyn_sil_period;
 
-/* The raw readings a log records per period, after the state estimate: the yaw rate (IMU), the steering
- * angle fed back by the drive-by-wire unit, the accelerometer's (ax, ay), the GNSS position (x, y) and the
- * GNSS heading, each NaN when no reading came in the period. A diagnosis of the log reads the yaw rate from here rather than from the estimate: the estimate
- * comes from a filter whose model lacks whatever the diagnosis looks for (an actuation delay, filtered by it,
- * reads as a lag). The accelerometer reads the tyre and drag forces, not gravity: on a banked road its ay
- * differs from dvy + vx omega by the bank's g sin(bank), which the filter's states alone hide. The position and
- * heading as measured give the lateral velocity over the ground without the filter's model, whose flat road
- * turns its heading (and so the vy read from its track) away from a banked plant's. */
+/* The raw readings a log records per period, after the state estimate: the yaw rate (IMU), the steering angle fed
+ * back by the drive-by-wire unit, the accelerometer's (ax, ay), the GNSS position (x, y) and the GNSS heading,
+ * each NaN when no reading came in the period. A diagnosis of the log reads the yaw rate from here rather than
+ * from the estimate: the estimate comes from a filter whose model lacks whatever the diagnosis looks for (an
+ * actuation delay, filtered by it, reads as a lag). The accelerometer reads the tyre and drag forces, not gravity:
+ * on a banked road its ay differs from dvy + vx omega by the bank's g sin(bank), which the filter's states alone
+ * hide. The position and heading as measured give the lateral velocity over the ground without the filter's model,
+ * whose flat road turns its heading (and so the vy read from its track) away from a banked plant's. */
 #define DDYN_SIL_LOG_READINGS_HEADER "yaw_rate_meas,steering_meas,ax_meas,ay_meas,gnss_x_meas,gnss_y_meas,heading_meas"
 #define DDYN_SIL_LOG_READINGS 7
 void ddyn_sil_log_readings(const ddyn_sil_period *p, double out[DDYN_SIL_LOG_READINGS]);

@@ -149,6 +149,8 @@ def test_the_inertial_heading_averages_the_gnss_noise_and_ignores_a_gyro_bias():
     err = np.angle(np.exp(1j * (got - truth)))
     inside = slice(50, n - 50)
     assert np.sqrt(np.mean(err[inside] ** 2)) < 0.002 and np.max(np.abs(err)) < 0.01
+    raw = np.angle(np.exp(1j * (meas - truth)))
+    assert np.sqrt(np.nanmean(raw ** 2)) > 0.005                 # the readings themselves: the noise, 0.01
     assert np.max(np.abs(np.diff(got))) < 0.01      # unwrapped: no 2 pi step where the readings wrap
     # each segment integrates on its own; a segment without a reading is NaN (heading_channel falls back)
     seg = np.r_[np.zeros(500, int), np.ones(500, int)]

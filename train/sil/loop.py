@@ -70,19 +70,19 @@ BANK_CANDIDATES = ("bank_profile", "bank_angle", "bank_from_roll")
 def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx: float = MIN_VX,
              track_name: str | None = None):
     """The controller's own log as a user's log (a canonical Dataset): per control period, the state estimate
-    (x, y, yaw, vx), the lateral velocity from the track of those positions (track_lateral_velocity: what a car's
-    INS or GNSS log carries, not the filter's vy), the yaw rate as the IMU read it (yaw_rate_channel), the
-    accelerometer as extras ax, ay (accelerometer_channels) and, as throttle and steering, the set-points
-    the controller commanded, i.e. what a drive-by-wire car's log records as its inputs, sampled centred
-    (centred_set_points): the actuator steps to period k's set-point at row k's instant and holds it through the
-    period, so row k's throttle/steering is the mean of the set-points either side of that step, and its rate
-    (dthrottle, dsteering) the step to row k + 1's. The model ramps between rows, and this ramp is centred on
-    each held set-point: it neither leads nor lags the held command on average.
+    (x, y, yaw, vx), the lateral velocity from the track of those positions turned by the inertial heading
+    (track_lateral_velocity, heading_channel: what a car's INS or GNSS log carries, not the filter's vy), the yaw
+    rate as the IMU read it (yaw_rate_channel), the accelerometer as extras ax, ay (accelerometer_channels) and, as
+    throttle and steering, the set-points the controller commanded, i.e. what a drive-by-wire car's log records as
+    its inputs, sampled centred (centred_set_points): the actuator steps to period k's set-point at row k's instant
+    and holds it through the period, so row k's throttle/steering is the mean of the set-points either side of that
+    step, and its rate (dthrottle, dsteering) the step to row k + 1's. The model ramps between rows, and this ramp
+    is centred on each held set-point: it neither leads nor lags the held command on average.
     Measured (`ddyn study sil-loop`, ETHZMobil, random:301 and :302, the plant's delays and lags fitted alone):
     the set-point of the period before (a ramp half a period behind the held command) read throttle delays and
     steering lags about 10 ms short (a 60 ms throttle delay 46 ms; row k's own set-point would lead by as much);
-    centred (and vy from the positions' track), at noise seed 1 the steering delays are -5 to +9 %, the
-    throttle delays 0 to +6 % and the steering lags -13 to 0 % (loop.json's alone_error_pct).
+    centred (and vy from the positions' track), at noise seed 1 the steering delays are -1 to +11 %, the
+    throttle delays -9 to +6 % and the steering lags -15 to -1 % (loop.json's alone_error_pct).
     Rows with the safe command or slower than min_vx are dropped; each gap starts a segment. track_name: the
     track driven, as the log's `track` metadata (what a user's log of a known track carries)."""
     from ddyn.data.dataset import Dataset
@@ -146,10 +146,10 @@ def track_lateral_velocity(x, y, yaw, segment, sample_time: float) -> np.ndarray
     Why not the controller's estimate: its filter's model is the nominal one and has no term for what the
     diagnosis looks for, so it bends vy until the nominal explains the motion. On the banked oval (AV-21, `ddyn
     study sil-loop --cases road_bank=1`) its vy sat 0.2 m/s below the plant's on average and the bank fitted on
-    it was 1-2 of 20 degrees. The positions are measured directly (GNSS at 2 cm), so the filter's model barely
-    moves them, and its positions are smoother than the readings (differenced, 2 cm of noise over two 40 ms
-    periods is about 0.35 m/s). The heading is the caller's: heading_channel's inertial heading, since the
-    filter's own heading turned with its bent vy, and through it the oval's bank came out 14 of 20 degrees."""
+    it was 1-2 of 20 degrees. The positions are measured directly (GNSS; 2 cm on the AV-21), so the filter's model
+    barely moves them, and its positions are smoother than the readings (differenced, 2 cm of noise over two 40 ms
+    periods is about 0.35 m/s). The heading is the caller's: heading_channel's inertial heading, since the filter's
+    own heading turned with its bent vy, and through it the oval's bank came out 14 of 20 degrees."""
     x, y, yaw = (np.asarray(a, dtype=float) for a in (x, y, yaw))
     seg = np.asarray(segment)
     vy = np.zeros(len(x))
