@@ -619,7 +619,8 @@ def markdown(cases: list[dict]) -> str:
                      f"{ld['violations']} viol. | {first} | {sd} | {applied} | {_fmt_run(c['before'])} | "
                      f"{_fmt_run(c['rebuilt'])} | {_fmt_run(c.get('oracle'))} | {_fmt_run(c['reference'])} |")
     notes = [bank_line(c) for c in cases if "bank" in c.get("diagnosis", {})]
-    return "\n".join(lines) + "\n\n(flying lap (standing lap) / violations / mean tracking error, m)\n" + \
+    return "\n".join(lines) + \
+        "\n\n(median of the flying laps (standing lap) / violations / mean tracking error, m)\n" + \
         ("\n" + "\n".join(notes) + "\n" if notes else "")
 
 
