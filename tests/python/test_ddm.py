@@ -86,6 +86,11 @@ def test_true_coefficients_give_zero_error_on_euler_data(orca, lap):
     assert max(m["rmse"].values()) < 1e-12
     assert m["ade"] < 1e-10 and m["fde"] < 1e-10
     assert m["truth_source"].startswith("plant coefficients")
+    # "nothing changes" on the same windows and starts: worse than the exact model on a lap that turns and
+    # changes speed
+    ref = m["reference"]
+    assert ref["samples"] == m["samples"] and ref["starts"] == m["starts"]
+    assert min(ref["rmse"].values()) > 1e-6 and ref["ade"] > 1e-4
     lo, hi = orca.range_arrays()
     for i, (name, c) in enumerate(m["coefficients"].items()):
         assert abs(c["rel_error"] or 0) < 1e-9, name
@@ -170,7 +175,7 @@ def test_cli_train_and_evaluate(lap, tmp_path, capsys):
     assert "restarts: kept seed" in capsys.readouterr().out
     assert cli_main(["evaluate", "--model", str(ck), "--data", str(data), "--out", str(tmp_path / "ev")]) == 0
     out = capsys.readouterr().out
-    assert "one-step RMSE" in out and "ADE" in out
+    assert "one-step RMSE" in out and "ADE" in out and "reference, nothing changes" in out
     for f in ("metrics.json", "tyre_curves.png", "predictions.png"):
         assert (tmp_path / "ev" / f).stat().st_size > 0
 

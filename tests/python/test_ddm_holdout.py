@@ -120,6 +120,16 @@ def test_study_holdout_laps_quick_on_the_real_log(tmp_path, shared_data):
     assert s["name"] == "ddm_putnam" and s["seeds"] == [0, 1]
     assert s["test"]["vx"]["min"] <= s["test"]["vx"]["mean"] <= s["test"]["vx"]["max"]
     assert (out / "real" / "seed1" / "ddm_putnam" / "model.ckpt").is_file()
+    # "nothing changes" scored on the same held-out rows: its one-step vx error is the rms change of vx over
+    # the held-out lap's steps, computed here from the log itself
+    from ddyn.data.importers import load_any
+
+    lap = ddm.split_real(load_any(shared_data / "real" / "Putnam_park2023_run4_2.csv", vehicle="av21"), "laps")[1]
+    same = lap.segment[1:] == lap.segment[:-1]
+    want = float(np.sqrt(np.mean(np.diff(lap.states[:, 3])[same] ** 2)))
+    assert s["reference"]["test"]["vx"] == pytest.approx(want, rel=1e-12)
+    assert 0 < s["reference"]["test"]["ade"] < s["reference"]["test"]["fde"]
+    assert "| reference: nothing changes" in (out / "results.md").read_text()
     # --holdout-laps without --holdout laps is refused, not ignored
     args = build_parser(commands_named("study")).parse_args(
         ["study", "ddm", "real", "--quick", "--holdout-laps", "2", "--out", str(out)])

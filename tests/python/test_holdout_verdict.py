@@ -96,6 +96,44 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     (tmp_path / "broken" / "results.json").write_text(json.dumps(broken))
     with pytest.raises(DdynError, match=r"broken/results.json: run 'other' lacks 'split'"):
         hv.collect([tmp_path / "broken"])
+    # a split the reference cannot remake: one line naming the run and the key
+    with_base = _write(tmp_path / "with_base", LAPS, {"ddm_putnam": _figures([0.03] * 3)})
+    assert hv.main([str(with_base)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "run 'ddm_putnam' (seed 0) lacks 'tau'" in err
     twice = _write(tmp_path / "laps2", LAPS, {"other": _figures([0.03] * 3)})
     with pytest.raises(DdynError, match="also in an earlier DIR"):
         hv.collect([laps, twice])
+
+
+def test_the_reference_is_reported_beside_each_setting_not_part_of_the_rule(tmp_path):
+    """With references given, each condition says on which channels a setting's worst seed beats "nothing
+    changes"; a setting beating it nowhere is still judged by the rule alone."""
+    laps = _write(tmp_path / "laps", LAPS, {"ddm_putnam": _figures([0.043, 0.0432, 0.0434]),
+                                            "other": _figures([0.043, 0.0433, 0.0434])})
+    ref = {LAPS: {"vx": 0.05, "vy": 0.02, "omega": 0.031, "ade": 0.01, "fde": 0.02}}
+    v = hv.judge(hv.collect([laps]), references=ref)
+    c = v["other"]["conditions"][LAPS]
+    assert c["reference"] == ref[LAPS]
+    # vx 0.0434 < 0.05 and omega 0.032 > 0.031 at the worst seed: vx beats it, omega does not
+    assert c["beats_reference"] == {"vx": True, "vy": False, "omega": False, "ade": False, "fde": False}
+    assert v["other"]["adoptable"]
+    lines = hv.report(v)
+    assert any("beats the reference on vx" in line for line in lines)
+    assert any(line.startswith("  reference on " + LAPS) and "the baseline beats it on vx" in line for line in lines)
+
+
+def test_the_reference_is_scored_on_the_runs_own_held_out_rows(shared_data):
+    """reference_of remakes a run's split of the Putnam log: on the speed split its one-step omega error is the
+    rms change of omega over the held-out fast rows."""
+    import numpy as np
+
+    from ddyn.data.importers import load_any
+    from ddyn.studies.ddm import split_real
+
+    run = {"split": {"holdout": "speed", "speed": 20.0}, "tau": 1, "vehicle": "av21"}
+    r = hv.reference_of(run)
+    test = split_real(load_any(shared_data / "real" / "Putnam_park2023_run4_2.csv", vehicle="av21"), "speed")[1]
+    same = test.segment[1:] == test.segment[:-1]
+    assert r["omega"] == pytest.approx(float(np.sqrt(np.mean(np.diff(test.states[:, 5])[same] ** 2))))
+    assert set(r) == {"vx", "vy", "omega", "ade", "fde"}

@@ -12,7 +12,10 @@ Metrics (all on windows that lie inside one segment):
              the plant's coefficients recorded by `ddyn simulate`; the papers' .npz:
              the vehicle file's reference_dataset_coefficients);
   guard saturation  share of estimates within 1 % of the range width of a guard
-             bound, per coefficient (DDM): a pinned coefficient is a finding.
+             bound, per coefficient (DDM): a pinned coefficient is a finding;
+  reference  the one-step and multi-step figures of "nothing changes" (constant vx, vy
+             and yaw rate; ddyn.learn.reference) on the same windows and starts: what
+             a model has to beat to predict anything.
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ from ddyn.data.windows import TARGET_NAMES, make_windows, valid_end_rows
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
 from ddyn.learn.networks import bound_shares, outside_range_shares
+from ddyn.learn.reference import constant_motion_errors, format_reference
 from ddyn.model.single_track import COEFF_NAMES
 from ddyn.model.vehicle import Vehicle
 
@@ -129,6 +133,7 @@ def evaluate(model, ckpt: dict, ds: Dataset) -> dict:
         "truth_source": truth_source,
         # which guard ranges the model was trained with (`ddyn train --ranges`; None: the vehicle file's)
         "guard_ranges": (ckpt.get("ranges") or {}).get("source"),
+        "reference": constant_motion_errors(ds, tau, steps),
         "_series": {"time": ds.time[w.end_row + 1], "pred": pred[:, 3:6], "target": w.target,
                     "coeffs": coeffs},
     }
@@ -160,6 +165,8 @@ def format_summary(m: dict) -> str:
         if sat > 0:
             s += f"  AT GUARD BOUND in {100 * sat:.1f} % of samples"
         lines.append(s)
+    if m.get("reference"):
+        lines.insert(3, format_reference(m["reference"]))
     if m.get("guard_ranges"):
         from ddyn.learn.guard_ranges import describe
 

@@ -325,6 +325,11 @@ def holdout_summary(real: list[dict]) -> list[dict]:
                 if xs:
                     row[part][k] = {"mean": float(np.mean(xs)), "min": float(np.min(xs)), "max": float(np.max(xs)),
                                     "spread": float(np.max(xs) - np.min(xs))}
+        # "nothing changes" on the same windows (ddyn.learn.reference): no seed, so one value per part
+        refs = (runs[0].get("reference"), runs[0]["in_sample"].get("reference"))
+        if all(r and "rmse" in r for r in refs):
+            row["reference"] = {part: {**r["rmse"], "ade": r["ade"], "fde": r["fde"]}
+                                for part, r in zip(("test", "in_sample"), refs)}
         out.append(row)
     return out
 
@@ -342,6 +347,7 @@ def holdout_markdown(summary: list[dict], split: dict) -> str:
              "validation fifth included) below.", "",
              "| model | part | seeds | vx (m/s) | vy (m/s) | omega (rad/s) | ADE (m) | FDE (m) | samples with a coefficient at a bound | worst coefficient at a bound | mean Iz (kg m2) |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    ref = next((row["reference"] for row in summary if row.get("reference")), None)
     for row in summary:
         for part in ("test", "in_sample"):
             f = row[part]
@@ -350,6 +356,11 @@ def holdout_markdown(summary: list[dict], split: dict) -> str:
                          + cell(f.get("any_bound"), True) + " | " + cell(f.get("worst_bound"), True) + " | "
                          + (f"{f['Iz_mean']['mean']:.0f} ({f['Iz_mean']['min']:.0f}-{f['Iz_mean']['max']:.0f})"
                             if "Iz_mean" in f else "-") + " |")
+    if ref:
+        for part in ("test", "in_sample"):
+            lines.append(f"| reference: nothing changes (constant vx, vy, yaw rate) | "
+                         f"{'held out' if part == 'test' else 'in sample'} | - | "
+                         + " | ".join(_fmt(ref[part][k]) for k in ("vx", "vy", "omega", "ade", "fde")) + " | - | - | - |")
     return "\n".join(lines) + "\n"
 
 

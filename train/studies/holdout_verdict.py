@@ -14,6 +14,10 @@ whole range, both ways) or within it. A setting
 - is **adoptable** when it is not rejected, meets the bound target and was measured on every condition the
   baseline was.
 
+Beside the baseline, every condition reports the reference "nothing changes" (constant vx, vy and yaw rate,
+ddyn.learn.reference) on the same held-out rows, and on which channels each setting beats it. It is reported, not
+part of the rule: on the Putnam log no setting measured beats it on vy, so as a rule it would reject them all.
+
 So that a verdict in docs/learning.md is a command's output, not a reading of tables by hand.
 """
 from __future__ import annotations
@@ -92,7 +96,32 @@ def _bounds(seeds: list[dict], iz_range: tuple[float, float]) -> dict:
             "meets": worst <= BOUND_SHARE_MAX and iz_ok}
 
 
-def judge(splits: dict, baseline: str = BASELINE, iz_range: tuple[float, float] = (500.0, 2000.0)) -> dict:
+def reference_of(run: dict) -> dict:
+    """The reference's held-out figures on the rows a run was scored on: its split of the Putnam log remade
+    (ddyn.studies.ddm.split_real, from the split the run recorded), its history length and its vehicle's horizon."""
+    from ddyn.data.importers import load_any
+    from ddyn.learn.reference import constant_motion_errors
+    from ddyn.model import vehicle as vehicle_mod
+    from ddyn.paths import shared_data_dir
+    from ddyn.studies.ddm import HOLDOUT_LAPS, HOLDOUT_SPEED, split_real
+
+    try:
+        split, tau, v = run["split"], int(run["tau"]), vehicle_mod.load(run["vehicle"])
+        holdout = split["holdout"]
+    except (KeyError, TypeError, ValueError) as e:
+        raise DdynError(f"run {run.get('name')!r} (seed {run.get('seed')}) lacks {e}: its held-out rows cannot be "
+                        f"remade for the reference (not the output of `ddyn study ddm real --holdout ...`)") from None
+    src = shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+    if not src.is_file():
+        raise DdynError(f"real log not found: {src} (the reference is scored on the runs' own held-out rows)")
+    _, test, _ = split_real(load_any(src, vehicle=v.name), holdout,
+                            tuple(split.get("test_laps", HOLDOUT_LAPS)), float(split.get("speed", HOLDOUT_SPEED)))
+    r = constant_motion_errors(test, tau, max(1, int(round(v.evaluation_horizon / v.sample_time))))
+    return {**r["rmse"], "ade": r["ade"], "fde": r["fde"]}
+
+
+def judge(splits: dict, baseline: str = BASELINE, iz_range: tuple[float, float] = (500.0, 2000.0),
+          references: dict | None = None) -> dict:
     """Per setting: per condition the channel verdicts against the baseline and the bound check; overall flags."""
     settings: dict = {}
     for what, runs in splits.items():
@@ -100,12 +129,17 @@ def judge(splits: dict, baseline: str = BASELINE, iz_range: tuple[float, float] 
             raise DdynError(f"no baseline run {baseline!r} held out on '{what}' (in {', '.join(sorted(runs))}); "
                             f"add its DIR (`ddyn study ddm real ... --only {baseline} --seeds ...`)")
         base = runs[baseline]["summary"]["test"]
+        ref = (references or {}).get(what)
         for name, run in runs.items():
             test = run["summary"]["test"]
             channels = {c: {"baseline": base[c], "setting": test[c], "verdict": verdict(base[c], test[c])}
                         for c in CHANNELS}
             settings.setdefault(name, {})[what] = {"seeds": run["summary"]["seeds"], "channels": channels,
                                                    "bounds": _bounds(run["seeds"], iz_range)}
+            if ref is not None:
+                # beats "nothing changes" on a channel: its worst seed below the reference
+                settings[name][what]["reference"] = ref
+                settings[name][what]["beats_reference"] = {c: test[c]["max"] < ref[c] for c in CHANNELS}
     conditions = list(splits)
     out = {}
     for name, per in settings.items():
@@ -128,6 +162,9 @@ def report(verdicts: dict, baseline: str = BASELINE) -> list[str]:
             b = [f"{what}: worst bound {100 * c['bounds']['worst_bound']:.0f} % ({c['bounds']['worst_coefficient']})"
                  for what, c in v["conditions"].items()]
             lines.append(f"{name} (baseline): " + "; ".join(b))
+            lines += [f"  reference on {what}: " + ", ".join(f"{k} {c['reference'][k]:.3g}" for k in CHANNELS)
+                      + "; the baseline beats it on " + _beats(c) for what, c in v["conditions"].items()
+                      if "reference" in c]
             continue
         for what, c in v["conditions"].items():
             cells = [f"{k} {x['baseline']['mean']:.3g}->{x['setting']['mean']:.3g}"
@@ -136,9 +173,15 @@ def report(verdicts: dict, baseline: str = BASELINE) -> list[str]:
             bd = c["bounds"]
             lines.append(f"{name} on {what} (seeds {', '.join(map(str, c['seeds']))}): " + "; ".join(cells)
                          + f"; worst bound {100 * bd['worst_bound']:.1f} % ({bd['worst_coefficient']})"
-                         + ("" if bd["Iz_inside"] else "; Iz outside its physical range"))
+                         + ("" if bd["Iz_inside"] else "; Iz outside its physical range")
+                         + (f"; beats the reference on {_beats(c)}" if "reference" in c else ""))
         lines.append(f"  => {name}: {_state(v)}")
     return lines
+
+
+def _beats(c: dict) -> str:
+    won = [k for k, b in c["beats_reference"].items() if b]
+    return ", ".join(won) if won else "no channel"
 
 
 def _state(v: dict) -> str:
@@ -160,7 +203,10 @@ def main(argv=None) -> int:
     try:
         from ddyn.model import vehicle as vehicle_mod
         iz = tuple(vehicle_mod.load(IZ_VEHICLE).ranges["Iz"])
-        verdicts = judge(collect(args.dirs), args.baseline, iz)
+        splits = collect(args.dirs)
+        judge(splits, args.baseline, iz)     # every DIR's baseline present before the log is read
+        references = {what: reference_of(next(iter(runs.values()))["seeds"][0]) for what, runs in splits.items()}
+        verdicts = judge(splits, args.baseline, iz, references)
     except DdynError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
