@@ -294,7 +294,8 @@ def line_for(track: Track, vehicle_name: str, flying: bool | None = None) -> Rac
     if line is None:
         line = track.raceline
     if line is None:
-        raise DdynError(f"track {track.name!r} has no raceline for {vehicle_name!r} (compute one: ddyn mpc raceline --vehicle {vehicle_name} --track with the same track)")
+        raise DdynError(f"track {track.name!r} has no raceline for {vehicle_name!r} (compute one: ddyn mpc raceline "
+                        f"--vehicle {vehicle_name} --track TRACK, TRACK this track's name or file)")
     return line
 
 
