@@ -9,8 +9,8 @@ exact solution, no step size). It is scored on exactly the windows and starts `d
 changes of that channel that do not happen.
 
 Measured on the real Putnam log's held-out conditions (results/ddm_real_heldout.json, reference_* figures), this
-reference beats every trained DDM on vy and comes within the seed spread of the best omega; the models win vx and
-the positions (ADE, FDE).
+reference beats the trained DDMs on vy and omega at their worst seed on lap 1 and above 20 m/s, and on lap 2 all but
+the powertrain settings with five rows of history; every DDM wins vx and the positions (ADE, FDE).
 """
 from __future__ import annotations
 
