@@ -16,6 +16,11 @@ def shared_data_dir() -> Path:
     return Path(os.environ.get("DDYN_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
+def putnam_log() -> Path:
+    """The real AV-21 log of the shared data (Putnam Park, RACECAR format) the studies train and score on."""
+    return shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+
+
 def check_writable(path: str | os.PathLike, what: str = "output", directory: bool = False) -> Path:
     """Refuse, before any work, an output path that cannot be written: an existing directory where a file is
     meant, a parent that is a file, or a place this process may not create a file in. Creates nothing and

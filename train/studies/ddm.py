@@ -43,7 +43,7 @@ from ddyn.learn.train_cmd import train_to_checkpoint
 from ddyn.learn.training import TrainConfig
 from ddyn.model import tracks
 from ddyn.model import vehicle as vehicle_mod
-from ddyn.paths import REPO, shared_data_dir
+from ddyn.paths import REPO, putnam_log
 
 PAPER_SIM_DDM = {"vx": 1.506e-5, "vy": 1.839e-4, "omega": 9.6e-3, "ade": 3.77e-5, "fde": 1.15e-4}
 PAPER_REAL_DDM = {"vx": 0.0312, "vy": 0.0730, "omega": 0.0187, "ade": 0.1827, "fde": 0.3840}
@@ -235,7 +235,7 @@ def run_real(out: Path, quick: bool = False, seed: int = 0, only: tuple[str, ...
     from ddyn.data.importers import load_any
 
     out.mkdir(parents=True, exist_ok=True)
-    src = shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+    src = putnam_log()
     if not src.is_file():
         raise DdynError(f"real log not found: {src}")
     from ddyn.studies import drivetrain

@@ -50,7 +50,7 @@ from ddyn.errors import DdynError
 from ddyn.model import backends
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.single_track import COEFF_NAMES, DRIVETRAINS
-from ddyn.paths import shared_data_dir
+from ddyn.paths import putnam_log
 
 DRIVE = ("Cm1", "Cm2", "Cr0", "Cd")
 # the forms this study fits and derives ranges for: those whose data-derived ranges it was written for. The
@@ -276,7 +276,7 @@ def markdown(res: dict) -> str:
 def _run(args) -> int:
     from ddyn.data.importers import load_any
 
-    src = Path(args.data) if args.data else shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+    src = Path(args.data) if args.data else putnam_log()
     if not src.is_file():
         raise DdynError(f"log not found: {src}")
     v = vehicle_mod.load(args.vehicle)

@@ -55,7 +55,7 @@ from ddyn.learn.training import TrainConfig
 from ddyn.model import tracks
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.single_track import COEFF_NAMES, pacejka
-from ddyn.paths import shared_data_dir
+from ddyn.paths import putnam_log
 
 SIM_FRACTIONS = (0.8, 0.5, 0.3, 0.2, 0.15)
 REAL_FRACTIONS = (0.9, 0.6, 0.3, 0.15, 0.05)
@@ -129,7 +129,7 @@ def real_data(out: Path, quick: bool, pretrain_source: str = "sim") -> dict:
     """
     from ddyn.data.importers import load_any
 
-    src = shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+    src = putnam_log()
     if not src.is_file():
         raise DdynError(f"real log not found: {src}")
     v = vehicle_mod.load("av21")

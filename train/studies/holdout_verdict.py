@@ -102,7 +102,7 @@ def reference_of(run: dict) -> dict:
     from ddyn.data.importers import load_any
     from ddyn.learn.reference import constant_motion_errors
     from ddyn.model import vehicle as vehicle_mod
-    from ddyn.paths import shared_data_dir
+    from ddyn.paths import putnam_log
     from ddyn.studies.ddm import HOLDOUT_LAPS, HOLDOUT_SPEED, split_real
 
     try:
@@ -111,7 +111,7 @@ def reference_of(run: dict) -> dict:
     except (KeyError, TypeError, ValueError) as e:
         raise DdynError(f"run {run.get('name')!r} (seed {run.get('seed')}) lacks {e}: its held-out rows cannot be "
                         f"remade for the reference (not the output of `ddyn study ddm real --holdout ...`)") from None
-    src = shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+    src = putnam_log()
     if not src.is_file():
         raise DdynError(f"real log not found: {src} (the reference is scored on the runs' own held-out rows)")
     _, test, _ = split_real(load_any(src, vehicle=v.name), holdout,

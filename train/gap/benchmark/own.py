@@ -465,9 +465,9 @@ def run(n_cases: int, out: Path, seed: int = DEFAULT_SEED, progress: bool = True
 def run_real(out: Path, model: str | None = None, ident_fraction: float = 0.5) -> dict:
     """Nominal from the first part of the Putnam log (or a checkpoint); diagnose the rest."""
     from ddyn.data.importers import load_any
-    from ddyn.paths import shared_data_dir
+    from ddyn.paths import putnam_log
 
-    src = shared_data_dir() / "real" / "Putnam_park2023_run4_2.csv"
+    src = putnam_log()
     if not src.is_file():
         raise DdynError(f"real log not found: {src}")
     out.mkdir(parents=True, exist_ok=True)
