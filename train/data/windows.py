@@ -47,6 +47,15 @@ def valid_end_rows(ds: Dataset, tau: int, horizon: int = 1) -> np.ndarray:
     return k[ok]
 
 
+def rollout_starts(ds: Dataset, tau: int, steps: int, max_starts: int = 20000) -> np.ndarray:
+    """The rows a multi-step score (ADE, FDE) starts from: every row with tau rows of history and `steps`
+    successors in its segment, thinned evenly to at most max_starts."""
+    k = valid_end_rows(ds, tau, horizon=steps)
+    if len(k) > max_starts:
+        k = k[np.linspace(0, len(k) - 1, max_starts).astype(int)]
+    return k
+
+
 def make_windows(ds: Dataset, tau: int, end_rows: np.ndarray | None = None) -> Windows:
     if tau < 1:
         raise DdynError(f"history length tau must be at least 1, got {tau}")

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from ddyn.data.dataset import Dataset
-from ddyn.data.windows import TARGET_NAMES, make_windows, valid_end_rows
+from ddyn.data.windows import TARGET_NAMES, make_windows, rollout_starts
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint
 from ddyn.learn.networks import bound_shares, outside_range_shares
@@ -57,11 +57,9 @@ def predict(model, history, state, inputs, batch: int = 8192) -> tuple[np.ndarra
 
 def rollout_errors(model, ds: Dataset, tau: int, steps: int, max_starts: int = 20000) -> dict:
     """ADE and FDE (m) of positions over `steps` steps with coefficients held from each start."""
-    k = valid_end_rows(ds, tau, horizon=steps)
+    k = rollout_starts(ds, tau, steps, max_starts)
     if len(k) == 0:
         return {"ade": float("nan"), "fde": float("nan"), "starts": 0}
-    if len(k) > max_starts:
-        k = k[np.linspace(0, len(k) - 1, max_starts).astype(int)]
     w = make_windows(ds, tau, k)
     dtype = _dtype(model)
     with torch.no_grad():

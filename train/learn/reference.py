@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ddyn.data.dataset import Dataset
-from ddyn.data.windows import TARGET_NAMES, valid_end_rows
+from ddyn.data.windows import TARGET_NAMES, rollout_starts, valid_end_rows
 
 NAME = "nothing changes (constant vx, vy and yaw rate)"
 # below this |omega * t| (rad) the arc's closed form loses digits to cancellation: its series is used instead
@@ -49,10 +49,7 @@ def constant_motion_errors(ds: Dataset, tau: int, steps: int, max_starts: int = 
         err = ds.states[k + 1, 3:6] - ds.states[k, 3:6]
         out["rmse"] = dict(zip(TARGET_NAMES, np.sqrt((err ** 2).mean(axis=0)).tolist()))
         out["max_error"] = dict(zip(TARGET_NAMES, np.abs(err).max(axis=0).tolist()))
-    # the multi-step starts exactly as rollout_errors picks them
-    k = valid_end_rows(ds, tau, horizon=steps)
-    if len(k) > max_starts:
-        k = k[np.linspace(0, len(k) - 1, max_starts).astype(int)]
+    k = rollout_starts(ds, tau, steps, max_starts)     # the starts ddyn.learn.evaluate.rollout_errors uses
     if len(k) == 0:
         return out | {"ade": float("nan"), "fde": float("nan"), "starts": 0}
     x0, y0, yaw0, vx, vy, omega = (ds.states[k, i] for i in range(6))
