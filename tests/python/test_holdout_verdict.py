@@ -111,10 +111,11 @@ def test_the_reference_is_reported_beside_each_setting_not_part_of_the_rule(tmp_
     changes"; a setting beating it nowhere is still judged by the rule alone."""
     laps = _write(tmp_path / "laps", LAPS, {"ddm_putnam": _figures([0.043, 0.0432, 0.0434]),
                                             "other": _figures([0.043, 0.0433, 0.0434])})
-    ref = {LAPS: {"vx": 0.05, "vy": 0.02, "omega": 0.031, "ade": 0.01, "fde": 0.02}}
+    figs = {"vx": 0.05, "vy": 0.02, "omega": 0.031, "ade": 0.01, "fde": 0.02}
+    ref = {(LAPS, "ddm_putnam"): figs, (LAPS, "other"): figs}
     v = hv.judge(hv.collect([laps]), references=ref)
     c = v["other"]["conditions"][LAPS]
-    assert c["reference"] == ref[LAPS]
+    assert c["reference"] == figs
     # vx 0.0434 < 0.05 and omega 0.032 > 0.031 at the worst seed: vx beats it, omega does not
     assert c["beats_reference"] == {"vx": True, "vy": False, "omega": False, "ade": False, "fde": False}
     assert v["other"]["adoptable"]

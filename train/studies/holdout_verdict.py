@@ -122,15 +122,16 @@ def reference_of(run: dict) -> dict:
 
 def judge(splits: dict, baseline: str = BASELINE, iz_range: tuple[float, float] = (500.0, 2000.0),
           references: dict | None = None) -> dict:
-    """Per setting: per condition the channel verdicts against the baseline and the bound check; overall flags."""
+    """Per setting: per condition the channel verdicts against the baseline and the bound check; overall flags.
+    references: {(condition, run name): the reference's figures on that run's held-out windows} (reference_of)."""
     settings: dict = {}
     for what, runs in splits.items():
         if baseline not in runs:
             raise DdynError(f"no baseline run {baseline!r} held out on '{what}' (in {', '.join(sorted(runs))}); "
                             f"add its DIR (`ddyn study ddm real ... --only {baseline} --seeds ...`)")
         base = runs[baseline]["summary"]["test"]
-        ref = (references or {}).get(what)
         for name, run in runs.items():
+            ref = (references or {}).get((what, name))
             test = run["summary"]["test"]
             channels = {c: {"baseline": base[c], "setting": test[c], "verdict": verdict(base[c], test[c])}
                         for c in CHANNELS}
@@ -205,7 +206,16 @@ def main(argv=None) -> int:
         iz = tuple(vehicle_mod.load(IZ_VEHICLE).ranges["Iz"])
         splits = collect(args.dirs)
         judge(splits, args.baseline, iz)     # every DIR's baseline present before the log is read
-        references = {what: reference_of(next(iter(runs.values()))["seeds"][0]) for what, runs in splits.items()}
+        # each setting's own windows: a longer history drops rows at each segment's start (one reading of the
+        # log per split, history and vehicle)
+        cache, references = {}, {}
+        for what, runs in splits.items():
+            for name, run in runs.items():
+                first = run["seeds"][0]
+                key = (what, first.get("tau"), first.get("vehicle"))
+                if key not in cache:
+                    cache[key] = reference_of(first)
+                references[(what, name)] = cache[key]
         verdicts = judge(splits, args.baseline, iz, references)
     except DdynError as e:
         print(f"error: {e}", file=sys.stderr)
