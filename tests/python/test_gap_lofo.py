@@ -168,6 +168,23 @@ def test_plan_varies_the_campaign_and_is_reproducible():
     assert all(c["magnitude"] != 0 for c in a if c["effect"] != "none" and c["track"] != "oval")
 
 
+def test_every_log_carries_roll_and_pitch_of_one_kind(monkeypatch):
+    """Until 2026-11-30 no campaign log carried a pitch channel (a grade could only be found as a profile along
+    laps, which 60 and 120 s logs of Putnam never drive). One attitude source per log gives both channels, and
+    every kind of the issue (none, an IMU, a map, a broken one) is drawn."""
+    cases = [c for fam in lofo.F.FAMILIES for c in lofo.plan(fam, 40, 8101)]
+    assert all(c["pitch_channel"] == c["roll_channel"] for c in cases)
+    assert {c["roll_channel"] for c in cases} == set(lofo.CHANNEL_KINDS)
+    assert {c["roll_channel"] for c in cases if c["effect"] == "grade"} >= {"imu", "map"}
+    seen = []
+    monkeypatch.setattr(lofo.F, "make_log", lambda fam, track, fx, seed, settings, params: seen.append(settings))
+    for kind in lofo.CHANNEL_KINDS:
+        lofo.make_case_log(cases[0] | {"roll_channel": kind, "pitch_channel": kind})
+    assert [(st.roll_channel, st.pitch_channel) for st in seen] == [(k, k) for k in lofo.CHANNEL_KINDS]
+    # the log's cache name follows its pitch channel: a log made without one is never read for a case with one
+    assert lofo.cache_name(cases[0] | {"pitch_channel": "none"}) != lofo.cache_name(cases[0] | {"pitch_channel": "map"})
+
+
 # ----------------------------------------------------------------------------------------------- calibration
 
 def _study_doc():

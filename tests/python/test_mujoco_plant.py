@@ -192,3 +192,26 @@ def test_unsupported_effect_is_refused():
         with pytest.raises(DdynError, match=name) as err:
             M.make_log(TRACK, PlantEffects(**{name: 0.1}), 1, LogSettings(duration=2.0))
         assert "\n" not in str(err.value) and "cannot" in str(err.value)
+
+
+def test_channel_kinds_are_those_of_commonroad():
+    """Until issue 33's pitch channels the plant logged an IMU roll for any truthy kind, "none", "map" and "broken"
+    included, so the campaign's MuJoCo logs all carried one. Each kind now logs what it says."""
+    imu = _log(PlantEffects(grade=0.08), duration=8.0, roll_channel="imu", pitch_channel="imu")
+    none = _log(PlantEffects(grade=0.08), duration=8.0, roll_channel="none", pitch_channel="none")
+    assert "roll" not in none.extras and "pitch" not in none.extras
+    # the drive itself does not depend on what is logged
+    assert np.array_equal(none.states, imu.states)
+    road = _log(PlantEffects(grade=0.08), duration=8.0, roll_channel="map", pitch_channel="map")
+    e = road.extras
+    s, _ = TRACK.project(road.states[:, 0], road.states[:, 1])
+    grade = np.asarray(TRACK.interpolate(CP.grade_profile(TRACK, 0.08), s), float)
+    # a map of the road: no body pitch, no noise, the grade at the car's position to the map's cell and rounding
+    assert np.max(np.abs(e["pitch"] - grade)) < 0.01
+    assert np.max(np.abs(e["roll"])) == 0.0                      # a flat road's bank on the map
+    assert np.max(np.abs(imu.extras["pitch"] - grade)) > 2 * np.max(np.abs(e["pitch"] - grade))
+    broken = _log(PlantEffects(grade=0.08), duration=8.0, roll_channel="broken", pitch_channel="broken")
+    # an untrustworthy channel: off the truth by far more than an IMU's noise and body motion
+    assert np.median(np.abs(broken.extras["pitch"] - grade)) > 0.05
+    with pytest.raises(DdynError, match="roll_channel 'lidar'"):
+        _log(duration=1.0, roll_channel="lidar")

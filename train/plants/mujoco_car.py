@@ -29,9 +29,14 @@ How a log is made (the way commonroad_st.make_log makes one, and with its types 
   - bank and grade: the ground is a flat plane and gravity is tilted by the road's bank (+: pulls the car to
     its left) and grade (+: uphill) at the car's track position, in the car's heading frame; the track's own
     banking (Track.bank, the oval) adds to the bank_angle effect's profile (commonroad_st.bank_profile);
-  - LogSettings.roll_channel / pitch_channel: extras "roll" / "pitch" from the chassis's actual orientation:
-    the road's bank plus the body's roll on its springs relative to the road (+: left side down, as
-    commonroad_st), the road's grade plus the body's pitch (+: nose up), plus ROLL_NOISE / PITCH_NOISE;
+  - LogSettings.roll_channel / pitch_channel: extras "roll" / "pitch", of the kinds of commonroad_st
+    (CHANNEL_KINDS): "imu" (True) from the chassis's actual orientation: the road's bank plus the body's roll on
+    its springs relative to the road (+: left side down, as commonroad_st), the road's grade plus the body's
+    pitch (+: nose up), plus ROLL_NOISE / PITCH_NOISE; "map" a track map's bank / grade at the car's position
+    (commonroad_st.map_channel); "broken" that orientation with an offset, drift, walk and jumps
+    (commonroad_st.broken_channel); "none" (False) no channel. (Until issue 33's pitch channels every truthy
+    value, "none", "map" and "broken" included, logged the IMU channel, so the campaign's MuJoCo logs all
+    carried one);
   - every logged state gets white or AR(1) noise as in commonroad_st; yaw_rate_bias is added to the logged
     omega only.
 
@@ -89,7 +94,8 @@ from ddyn.errors import DdynError
 from ddyn.model.tracks import Track, load_track
 from ddyn.model.vehicle import Vehicle
 from ddyn.plants.commonroad_st import (PLANT_EFFECTS, LogSettings, PlantEffects, _command_at, bank_profile,
-                                       equivalent_gamma, grade_profile)
+                                       broken_channel, channel_kind, equivalent_gamma, grade_profile,
+                                       map_channel)
 
 try:
     import mujoco
@@ -316,6 +322,8 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     """One log of the MuJoCo car driven around `track` (see the module docstring)."""
     require_mujoco()
     check_effects(effects)
+    roll_kind = channel_kind(settings.roll_channel, "roll_channel")
+    pitch_kind = channel_kind(settings.pitch_channel, "pitch_channel")
     track = load_track(track) if isinstance(track, str) else track
     veh = vehicle_ref.as_vehicle(nominal) if not isinstance(nominal, Vehicle) else nominal
     Ts = veh.sample_time
@@ -405,6 +413,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     body_pitch = np.zeros(n)
     road_bank = np.zeros(n)
     road_grade = np.zeros(n)
+    s_rows = np.zeros(n)           # the car's track position at each row (a map channel's lookup)
     T_hist: list[float] = []
     D_hist: list[float] = []
     T_cmd, D_cmd = 0.0, delta0
@@ -446,6 +455,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             true_delta[k] = delta
             body_roll[k] = roll
             body_pitch[k] = pitch
+            s_rows[k] = s
             wl, wr = track.half_widths(s)
             if max(lat - float(wl), -lat - float(wr)) > 0.5 * track.width:
                 raise DdynError(f"the driver lost the MuJoCo car at t = {t:.2f} s, s = {s:.0f} m "
@@ -503,12 +513,23 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
     extras["true_steering"] = true_delta
     extras["true_bank"] = road_bank
     extras["true_body_roll"] = body_roll
-    if settings.roll_channel:
+    # each channel its own random stream (those of commonroad_st), so the other channels are a log's without it
+    if roll_kind == "imu":
         roll_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(5)[4])
         extras["roll"] = road_bank + body_roll + ROLL_NOISE * roll_rng.standard_normal(n)
-    if settings.pitch_channel:
+    elif roll_kind == "map":
+        extras["roll"] = map_channel(track, bank, s_rows)
+    elif roll_kind == "broken":
+        extras["roll"] = broken_channel(road_bank + body_roll, Ts,
+                                        np.random.default_rng(np.random.SeedSequence(seed).spawn(7)[6]))
+    if pitch_kind == "imu":
         pitch_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(6)[5])
         extras["pitch"] = road_grade + body_pitch + PITCH_NOISE * pitch_rng.standard_normal(n)
+    elif pitch_kind == "map":
+        extras["pitch"] = map_channel(track, grade, s_rows)
+    elif pitch_kind == "broken":
+        extras["pitch"] = broken_channel(road_grade + body_pitch, Ts,
+                                         np.random.default_rng(np.random.SeedSequence(seed).spawn(8)[7]))
     noisy = states.copy()
     if settings.noise_scale > 0:
         std = np.array([settings.noise_scale * veh.sensor_noise_std[c] for c in NOISY])

@@ -5,7 +5,10 @@ every family (ddyn.gap.benchmark.families) is in turn the new plant: its logs ch
 
 The campaign (plan): per family, logs that vary what a real one varies: the car (the family's parameter sets),
 log length (DURATIONS), drive-by-wire rate (DBW_PERIODS), sensor noise level and colour, target speed, track
-(Putnam; the banked oval for half the bank logs) and the roll channel (CHANNEL_KINDS, where the plant has them).
+(Putnam; the banked oval for half the bank logs) and the roll and pitch channels (CHANNEL_KINDS), of one kind per
+log: one attitude source gives both, an IMU its roll and pitch, a map its bank and grade, a broken estimator both
+broken. (Until 2026-11-30 no log carried a pitch channel, so a grade could only be found as a profile along laps,
+and every MuJoCo log carried an IMU roll whatever its kind: the plant ignored it.)
 Each log holds one effect (EFFECTS, drawn between MAGNITUDES times its size that matters, ddyn.gap.limits.SIZES)
 or none (NONE_SHARE of the logs). The nominal is the user's: the family's vehicle file for that car.
 
@@ -110,6 +113,7 @@ def plan(family: str, n: int, seed: int, durations=DURATIONS) -> list[dict]:
                     "dbw_period": float(rng.choice(DBW_PERIODS)), "noise_scale": float(rng.uniform(*NOISE_SCALES)),
                     "noise_color": float(rng.choice(NOISE_COLOURS)), "target_speed": speed,
                     "roll_channel": kinds[int(rng.integers(len(kinds)))]})
+        out[-1]["pitch_channel"] = out[-1]["roll_channel"]    # one attitude source: the same kind
     return out
 
 
@@ -125,7 +129,8 @@ def make_case_log(case: dict):
     effects = {} if case["effect"] == NONE or case["track"] == "oval" else {case["effect"]: case["magnitude"]}
     settings = CP.LogSettings(duration=case["duration"], noise_scale=case["noise_scale"],
                               noise_color=case["noise_color"], target_speed=case["target_speed"],
-                              dbw_period=case["dbw_period"], roll_channel=case["roll_channel"])
+                              dbw_period=case["dbw_period"], roll_channel=case["roll_channel"],
+                              pitch_channel=case["pitch_channel"])
     track = case["track"]
     if track == "oval":
         from ddyn.model.track_oval import oval_track
@@ -137,7 +142,7 @@ def make_case_log(case: dict):
 # what makes a case's log: its cache file is named by them, so a campaign of another size (another shuffle of
 # the same seeds) never reads a log made for another case
 LOG_FIELDS = ("family", "effect", "track", "magnitude", "params", "seed", "duration", "dbw_period", "noise_scale",
-              "noise_color", "target_speed", "roll_channel")
+              "noise_color", "target_speed", "roll_channel", "pitch_channel")
 
 
 def cache_name(case: dict) -> str:
