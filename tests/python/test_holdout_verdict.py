@@ -124,6 +124,20 @@ def test_the_reference_is_reported_beside_each_setting_not_part_of_the_rule(tmp_
     assert any(line.startswith("  reference on " + LAPS) and "the baseline beats it on vx" in line for line in lines)
 
 
+def test_each_setting_is_read_against_the_reference_on_its_own_windows():
+    """A setting with five rows of history scores on fewer windows than one with one row: its reference is made on
+    its own, once per condition, history length and vehicle, not the first run's of the condition."""
+    def run(tau):
+        return {"seeds": [{"tau": tau, "vehicle": "av21"}]}
+
+    splits = {LAPS: {"ddm_putnam": run(1), "same_tau": run(1), "tau5": run(5)}, SPEED: {"ddm_putnam": run(1)}}
+    calls = []
+    refs = hv.references_of(splits, score=lambda r: calls.append(r["tau"]) or {"vx": 0.05 + r["tau"]})
+    assert calls == [1, 5, 1]
+    assert refs[(LAPS, "tau5")] == {"vx": 5.05} and refs[(LAPS, "same_tau")] == refs[(LAPS, "ddm_putnam")]
+    assert refs[(SPEED, "ddm_putnam")] == {"vx": 1.05}
+
+
 def test_the_reference_is_scored_on_the_runs_own_held_out_rows(shared_data):
     """reference_of remakes a run's split of the Putnam log: on the speed split its one-step omega error is the
     rms change of omega over the held-out fast rows."""

@@ -120,6 +120,22 @@ def reference_of(run: dict) -> dict:
     return {**r["rmse"], "ade": r["ade"], "fde": r["fde"]}
 
 
+def references_of(splits: dict, score=None) -> dict:
+    """{(condition, run name): the reference on that setting's own held-out windows}: a longer history drops rows
+    at each segment's start, so each setting is read against its own. score: reference_of (the default), called once
+    per condition, history length and vehicle (each call reads and splits the log)."""
+    score = score or reference_of
+    cache, out = {}, {}
+    for what, runs in splits.items():
+        for name, run in runs.items():
+            first = run["seeds"][0]
+            key = (what, first.get("tau"), first.get("vehicle"))
+            if key not in cache:
+                cache[key] = score(first)
+            out[(what, name)] = cache[key]
+    return out
+
+
 def judge(splits: dict, baseline: str = BASELINE, iz_range: tuple[float, float] = (500.0, 2000.0),
           references: dict | None = None) -> dict:
     """Per setting: per condition the channel verdicts against the baseline and the bound check; overall flags.
@@ -206,17 +222,7 @@ def main(argv=None) -> int:
         iz = tuple(vehicle_mod.load(IZ_VEHICLE).ranges["Iz"])
         splits = collect(args.dirs)
         judge(splits, args.baseline, iz)     # every DIR's baseline present before the log is read
-        # each setting's own windows: a longer history drops rows at each segment's start (one reading of the
-        # log per split, history and vehicle)
-        cache, references = {}, {}
-        for what, runs in splits.items():
-            for name, run in runs.items():
-                first = run["seeds"][0]
-                key = (what, first.get("tau"), first.get("vehicle"))
-                if key not in cache:
-                    cache[key] = reference_of(first)
-                references[(what, name)] = cache[key]
-        verdicts = judge(splits, args.baseline, iz, references)
+        verdicts = judge(splits, args.baseline, iz, references_of(splits))
     except DdynError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
