@@ -29,6 +29,13 @@ log drove, so unless a plausible roll (pitch) channel carries it to every row, t
 constant form (a bank of one angle everywhere) and its profile form (the same angle only on the held-out rows
 whose track position the fit part's knots cover: none covered, none found).
 
+A bank's limit is the larger of its constant form's and its form in the turns (turn_shape: banked into the turns
+as a road is, steepest in the tightest), whose gain is what is left once the tyre refit (Df, Dr) has taken up
+what it can: a friction scale changes the lateral force by about rho m a_y, and a bank that follows the turns
+reads the same (candidates.HOLDS_REFIT). On the study's Putnam logs a bank of 3.5 degrees in the turns paid
+nothing, with the map's exact bank as a channel and the tyre refitted (dBIC +3; held, +78), while the constant
+form stated a limit of 3 degrees; the turns form states 4 to 6 degrees there.
+
 A limit is also never below what a claim needs: with a decision level (a calibration's share of the size that
 matters, or an absolute detection limit) an estimate under it is reported, not claimed, so the stated limit is
 at least that level; a family the calibration never claims has no limit ("no ... of any size would be found").
@@ -51,6 +58,12 @@ WORDS = {"steer_delay": "steering delay", "throttle_delay": "throttle delay", "s
          "mass_offset": "mass offset", "bank_angle": "bank", "grade": "grade", "yaw_rate_bias": "yaw-rate bias",
          "tire_relaxation": "tyre relaxation length", "combined_slip": "combined-slip coupling",
          "tire_wear": "tyre wear", "downforce": "downforce"}
+# the bank in the turns (turn_shape): a road's bank changes over tens of metres, ten wheelbases of a full-scale car
+# (the plant's bank_profile smooths its curvature over about 30 m: the AV-21's wheelbase is 2.97 m), and a scale
+# model's track in proportion; below a tenth of the log's mean speed the yaw rate over the speed is no curvature
+TURN_SMOOTHING_WHEELBASES = 10.0
+TURN_MIN_SPEED_SHARE = 0.1
+BOUND_WORDS = {"turns": "a bank in the turns, which the tyre refit takes up"}
 LIMIT_CAP = 1e3             # t above this: the log carries no information on the family (limit reported as None)
 
 
@@ -124,10 +137,39 @@ def profile_coverage(prob, family: str, candidates=()) -> np.ndarray | None:
     return free[i] | free[j]
 
 
+def turn_shape(time, states, wheelbase: float) -> np.ndarray:
+    """A bank that follows the turns, per row of a log (time (N,), states (N, 6) with vx, vy, omega last),
+    peak 1: the path's curvature (yaw rate over speed) averaged over TURN_SMOOTHING_WHEELBASES wheelbases
+    travelled, over its largest value where the car moves (TURN_MIN_SPEED_SHARE). The shape of
+    ddyn.plants.commonroad_st.bank_profile, read from the log instead of a track map; zeros on a log shorter
+    than the averaging or one that does not move."""
+    vx, om = np.abs(np.asarray(states, float)[:, 3]), np.asarray(states, float)[:, 5]
+    t = np.asarray(time, float)
+    v_min = TURN_MIN_SPEED_SHARE * max(float(np.mean(vx)), 1e-9)
+    moving = vx >= v_min
+    kappa = np.where(moving, om / np.maximum(vx, v_min), 0.0)
+    s = np.concatenate([[0.0], np.cumsum(0.5 * (vx[1:] + vx[:-1]) * np.diff(t).clip(0.0))])
+    window = TURN_SMOOTHING_WHEELBASES * float(wheelbase)
+    if not np.any(moving) or window <= 0 or s[-1] <= window:
+        return np.zeros(len(vx))
+    step = window / 30.0                       # the curvature on a grid of 30 points per window
+    grid = np.arange(0.0, s[-1], step)
+    on_grid = np.interp(grid, s, kappa)
+    half = 15
+    smooth = np.convolve(np.pad(on_grid, half, mode="edge"), np.ones(2 * half + 1) / (2 * half + 1), mode="valid")
+    shape = np.interp(s, grid, smooth)
+    peak = float(np.max(np.abs(shape[moving])))
+    return shape / peak if peak > 0 else np.zeros(len(vx))
+
+
 def gains(prob, base_rho, families, candidates=()) -> dict:
-    """{family: (size that matters, g per channel (3,), g of its profile form or None)} on the held-out rows of
+    """{family: (size that matters, g per channel (3,), g of its profile form or None, its form: "evidence", or
+    "turns" for a bank in the turns)} on the held-out rows of
     prob (refit factors base_rho). g: the normalised gain an effect of the size that matters would give (module
-    docstring); the profile form's: the same effect on the rows profile_coverage leaves, zero elsewhere."""
+    docstring); the profile form's: the same effect on the rows profile_coverage leaves, zero elsewhere. The bank's
+    g is the smaller of its constant form's and its form in the turns (turn_shape) with the tyre refit projected
+    out: a bank that follows the turns is taken up by the refitted grip (candidates.HOLDS_REFIT), on the nominal
+    and on every hypothesis that refits, whatever a hypothesis of the bank holds."""
     rows = prob.rows_held
     r0 = prob.residuals({}, base_rho, rows)
     var = np.maximum(np.mean(r0 ** 2, axis=0), 1e-12)
@@ -146,7 +188,15 @@ def gains(prob, base_rho, families, candidates=()) -> dict:
         held = C.holds_refit((fam,), prob.bank_family_held)
         cover = profile_coverage(prob, fam, candidates)
         g_profile = None if cover is None else _projected_gain(prob, base_rho, dr * cover[:, None], held, var)
-        out[fam] = (size, _projected_gain(prob, base_rho, dr, held, var), g_profile)
+        g, form = _projected_gain(prob, base_rho, dr, held, var), "evidence"
+        if fam == "bank_angle":
+            # the effect of a bank on a one-step prediction is that of the bank at the row: linear per row
+            p = prob.nominal.vehicle.known
+            shape = turn_shape(prob.ds.time, prob.ds.states, p.lf + p.lr)
+            g_turns = _projected_gain(prob, base_rho, dr * shape[rows][:, None], False, var)
+            if np.sum(g_turns) < np.sum(g):
+                g, form = g_turns, "turns"
+        out[fam] = (size, g, g_profile, form)
     return out
 
 
@@ -176,9 +226,9 @@ def log_limits(prob, base_rho, families, margins: dict, m: int, levels: dict | N
     n = len(prob.rows_held)
     levels = levels or {}
     out = {}
-    for fam, (size, g, g_profile) in gains(prob, base_rho, families, candidates).items():
+    for fam, (size, g, g_profile, form) in gains(prob, base_rho, families, candidates).items():
         lim = limit(size, g, n, margins[fam], 1, m)
-        bound_by = "evidence"
+        bound_by = form
         if g_profile is not None and lim is not None:
             lim_p = limit(size, g_profile, n, margins[fam], 1, m)
             lim, bound_by = (None, "coverage") if lim_p is None else (max(lim, lim_p), "coverage" if lim_p > lim
@@ -191,12 +241,13 @@ def log_limits(prob, base_rho, families, margins: dict, m: int, levels: dict | N
                 lim, bound_by = abs(level), "decision level"
         word = WORDS.get(fam, fam.replace("_", " "))
         why = {"not claimable": " (the calibration never claims it)",
-               "coverage": " (the held-out part drives where the fit part did not: a profile cannot be learned)"}
+               "coverage": " (the held-out part drives where the fit part did not: a profile cannot be learned)",
+               "turns": " (a bank that follows the turns reads as a change of tyre grip)"}
         out[fam] = {"size_that_matters": size, "limit": lim, "gain_at_size": [float(x) for x in g],
                     "unit": C.UNITS.get(fam, ""), "limit_over_size": None if lim is None else lim / size,
                     "bound_by": bound_by,
                     "sentence": (f"no {word} of any size in range would be found on this log"
                                  + why.get(bound_by, "") if lim is None else
                                  f"a {word} below {in_words(fam, lim)} would not be found on this log "
-                                 f"(size that matters: {in_words(fam, size)}; set by its {bound_by})")}
+                                 f"(size that matters: {in_words(fam, size)}; set by {BOUND_WORDS.get(bound_by, 'its ' + bound_by)})")}
     return out
