@@ -241,3 +241,42 @@ def test_flat_means_no_bank_that_matters():
         roll = body + math.radians(amplitude) * np.sign(np.sin(0.05 * t))
         v = roll_check.check(roll, t, ay)
         assert v["plausible"] and v["flat"] is flat, (amplitude, v["reason"])
+
+
+@pytest.fixture(scope="module")
+def steep():
+    """60 s of Putnam (under a lap: no laps) with a 7-degree grade profile."""
+    t = load_track("putnam")
+    return t, CP.make_log(t, CP.PlantEffects(grade=0.12), 3, CP.LogSettings(duration=60.0))
+
+
+def test_a_steep_grade_without_laps_is_accepted_when_it_shows_in_the_acceleration(steep):
+    """Without laps a pitch channel mostly unrelated to the longitudinal acceleration is rejected, unless its grade
+    shows in that acceleration (roll_check.gravity_fit): the map's grade and an IMU's (body pitch, noise) pass
+    with a gravity coefficient near -1, a channel logged the other way round near +1; the same channel read from
+    another part of the drive, a constant-free sinusoid of the same size and a broken channel do not."""
+    t, ds = steep
+    e = ds.extras
+    rng = np.random.default_rng(3)
+    n = len(ds)
+    ax = np.gradient(ds.states[:, 3], ds.sample_time) - ds.states[:, 4] * ds.states[:, 5]
+    grade = np.asarray(e["true_grade"], float)
+    assert np.ptp(grade) > 0.15
+    imu = grade + 0.01 * ax / G + 0.003 * rng.standard_normal(n)
+    walk = np.cumsum(0.01 * rng.standard_normal(n) + np.where(rng.random(n) < 0.003, rng.uniform(-2, 2, n), 0.0))
+    channels = {"map": (grade, -1), "imu": (imu, -1), "other_way_round": (-grade, 1),
+                "elsewhere": (np.roll(grade, n // 2), None), "made_up": (0.12 * np.sin(0.2 * ds.time), None),
+                "broken": (np.mod(walk + math.pi, 2 * math.pi) - math.pi, None)}
+    for name, (pitch, sign) in channels.items():
+        v = RC.check_dataset(_with(ds, pitch=pitch), "pitch")
+        assert v["rule"] == "no laps", name
+        gv = v["gravity"]
+        if sign is None:
+            assert not v["plausible"] and not gv.get("waived"), (name, v["reason"], gv)
+            continue
+        assert v["plausible"] and not v["flat"] and gv["waived"] == "longitudinal", (name, v["reason"])
+        assert gv["gravity_coefficient"] == pytest.approx(sign, abs=0.2), name
+        assert "its grade shows in it" in v["reason"]
+        # without the gravity fit the same channel fails the share of its spread the acceleration explains
+        bare = RC.check(pitch, ds.time, ax, "pitch", "longitudinal")
+        assert bare["failed"] == ["longitudinal"], (name, bare["reason"])
