@@ -138,7 +138,7 @@ def profile_coverage(prob, family: str, candidates=()) -> np.ndarray | None:
 
 
 def turn_shape(time, states, wheelbase: float) -> np.ndarray:
-    """A bank that follows the turns, per row of a log (time (N,), states (N, 6) with vx, vy, omega last),
+    """A bank that follows the turns, per row of a log (time (N,), states (N, >= 6): vx, vy, omega in columns 3-5),
     peak 1: the path's curvature (yaw rate over speed) averaged over TURN_SMOOTHING_WHEELBASES wheelbases
     travelled, over its largest value where the car moves (TURN_MIN_SPEED_SHARE). The shape of
     ddyn.plants.commonroad_st.bank_profile, read from the log instead of a track map; zeros on a log shorter
