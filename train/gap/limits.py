@@ -33,7 +33,8 @@ A bank's limit is the larger of its constant form's and its form in the turns (t
 as a road is, steepest in the tightest), whose gain is what is left once the tyre refit (Df, Dr) has taken up
 what it can: a friction scale changes the lateral force by about rho m a_y, and a bank that follows the turns
 reads the same (candidates.HOLDS_REFIT). On the study's Putnam logs a bank of 3.5 degrees in the turns paid
-nothing, with the map's exact bank as a channel and the tyre refitted (dBIC +3; held, +78), while the constant
+nothing, with the map's exact bank as a channel and the tyre refitted (dBIC +3; held, +78: an exploration with
+the flatness check and the refit hold switched off by hand), while the constant
 form stated a limit of 3 degrees; the turns form states 4 to 6 degrees there.
 
 A limit is also never below what a claim needs: with a decision level (a calibration's share of the size that
