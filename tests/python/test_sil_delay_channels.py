@@ -1,5 +1,5 @@
 """Actuation delays that differ between the channels (issue 34; ddyn/controller.h "Known actuation delays",
-docs/sil.md "Why 80 ms left the track, and the throttle delay").
+docs/sil.md "Delays that differ between the channels").
 
 (a) An 80 ms steering delay with none on the throttle: the MPC plans from the state its new steering acts in, so
 its throttle, which acts at once, used to act 4 periods before the plan put it (and the pipe's prediction held the
