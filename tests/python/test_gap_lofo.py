@@ -160,6 +160,25 @@ def test_score_reads_the_issue_rules():
     assert s["delay_vs_lag"] == {"told": 2, "right": 1}
 
 
+def test_the_misses_listed_are_the_logs_behind_the_rates():
+    rows = [_rec("x", "steer_delay", 0.05, 0.05, -90, duration=300.0) | {"claimed": ["steer_delay"]},
+            _rec("x", "steer_lag", 0.06, 0.06, -90, duration=300.0) | {"claimed": ["steer_delay"], "case": 7},
+            _rec("x", "throttle_delay", 0.05, 0.05, -90, duration=300.0) | {"claimed": []},
+            _rec("x", "grade", 0.06, 0.0, -1, limit=0.1) | {"claimed": []},          # 120 s, below its stated limit
+            _rec("x", "mass_offset", 0.03, 0.03, -5, size=0.1) | {"claimed": ["mass_offset"]},
+            _rec("x", "none", 0.0, 0.0, -1) | {"claimed": ["downforce"]},
+            _rec("x", "none", 0.0, 0.0, -1) | {"claimed": []}]
+    s, m = lofo.score(rows), lofo.misses(rows)
+    assert [r["effect"] for r in m["scored_not_right"]] == ["steer_lag", "throttle_delay"]
+    assert len(m["scored_not_right"]) == s["scored"] - s["first_right"]
+    assert sorted(r["effect"] for r in m["claimed_no_claim"]) == ["mass_offset", "none"]
+    assert len(m["claimed_no_claim"]) == s["effect_free_claimed"] + s["below_size_claimed"]
+    md = "\n".join(lofo.misses_markdown(rows))
+    assert "first claim is not their effect (2)" in md and "with a claim (2)" in md
+    assert "| x | 7 | steer_lag | 0.06 | 0.02 | 300 | - | - | steer_delay | steer_lag (-90.0) |" in md
+    assert "| throttle_delay | 0.05 | 0.02 | 300 | - | - | none |" in md
+
+
 def test_plan_varies_the_campaign_and_is_reproducible():
     a = lofo.plan("commonroad-std", 24, 3)
     assert a == lofo.plan("commonroad-std", 24, 3)

@@ -341,19 +341,22 @@ def applied_config(cal: dict) -> DiagnosisConfig:
 
 # ----------------------------------------------------------------------------------------------- score
 
+def _scored(r: dict) -> bool:
+    """A log with an effect counts in the scoring: at or above its size, and on logs shorter than
+    SCORED_FROM_DURATION also at or above the log's own stated limit (issue 33 item 4)."""
+    if not _matters(r):
+        return False
+    if r["duration"] >= SCORED_FROM_DURATION:
+        return True
+    lim = r["limits"].get(r["effect"], {}).get("limit")
+    return lim is not None and abs(r["true_magnitude"]) >= lim
+
+
 def score(rows: list[dict]) -> dict:
     ok = [r for r in rows if r["status"] == "ok"]
     eff = [r for r in ok if r["effect"] != NONE]
 
-    def scored(r):
-        if not _matters(r):
-            return False
-        if r["duration"] >= SCORED_FROM_DURATION:
-            return True
-        lim = r["limits"].get(r["effect"], {}).get("limit")
-        return lim is not None and abs(r["true_magnitude"]) >= lim
-
-    sc = [r for r in eff if scored(r)]
+    sc = [r for r in eff if _scored(r)]
     right = [r for r in sc if r["claimed"][:1] == [r["effect"]]]
     none = [r for r in ok if r["effect"] == NONE]
     below = [r for r in eff if not _matters(r)]
@@ -422,9 +425,46 @@ def markdown(doc: dict) -> str:
     w = doc.get("worst")
     if w:
         lines += ["", f"Worst family: {w['family']} ({w['why']})."]
+    lines += misses_markdown(doc.get("pass2", []))
     if doc.get("skipped"):
         lines += ["", "Not run: " + "; ".join(f"{k}: {v}" for k, v in doc["skipped"].items()) + "."]
     return "\n".join(lines) + "\n"
+
+
+def _first(r: dict) -> str:
+    return r["claimed"][0] if r["claimed"] else "none"
+
+
+def misses(rows: list[dict]) -> dict:
+    """The logs behind the rates, as score() counts them: {"scored_not_right": scored logs whose first claim is
+    not their effect, "claimed_no_claim": effect-free logs and logs below their effect's size with a claim}."""
+    ok = [r for r in rows if r["status"] == "ok"]
+    eff = [r for r in ok if r["effect"] != NONE]
+    return {"scored_not_right": [r for r in eff if _scored(r) and r["claimed"][:1] != [r["effect"]]],
+            "claimed_no_claim": [r for r in ok if _no_claim_log(r) and r["claimed"]]}
+
+
+def misses_markdown(rows: list[dict]) -> list[str]:
+    """The misses as a table per kind (where a user looks first when a family's rate falls short)."""
+    m = misses(rows)
+    out = []
+    head = ("| family | case | effect | true size | limit | s | track | channel | first claim | top candidate "
+            "(dBIC) |", "|---|---|---|---|---|---|---|---|---|---|")
+    for key, title in (("scored_not_right", "Scored logs whose first claim is not their effect"),
+                       ("claimed_no_claim", "Effect-free logs and logs below the size that matters with a claim")):
+        rs = sorted(m[key], key=lambda r: (r["family"], r["effect"], r.get("case", 0)))
+        out += ["", f"{title} ({len(rs)}):"]
+        if not rs:
+            continue
+        out += ["", *head]
+        for r in rs:
+            lim = r["limits"].get(r["effect"], {}).get("limit") if r["effect"] != NONE else None
+            top = r.get("families", {}).get(r.get("top"), {})
+            out.append(f"| {r['family']} | {r.get('case', '-')} | {r['effect']} | {r['true_magnitude']:.4g} | "
+                       f"{'-' if lim is None else f'{lim:.3g}'} | {r['duration']:g} | {r.get('track', '-')} | "
+                       f"{r.get('roll_channel', '-')} | {_first(r)} | {r.get('top', '-')} "
+                       f"({top.get('delta_bic', float('nan')):.1f}) |")
+    return out
 
 
 def worst(folds: dict) -> dict | None:
