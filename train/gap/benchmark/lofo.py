@@ -70,8 +70,9 @@ MIN_LEVEL_LOGS = 3
 LEVEL_GRID = (None, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 LEVEL_SWEEPS = 2
 TARGET_FALSE_ALARMS = 0.05
-DEFAULT_LOGS = 60
-DEFAULT_SEED = 8101
+# the defaults are the README's study (results/gap_lofo.json): `ddyn gap lofo --out D` remakes it
+DEFAULT_LOGS = 100
+DEFAULT_SEED = 8606
 
 
 def base_config() -> DiagnosisConfig:
