@@ -78,6 +78,10 @@ def test_quick_study_end_to_end_and_its_splits(tmp_path, monkeypatch):
         if call[0] == "finetune":
             n_ft += 1
             assert call[1].time.max() < call[2].time.min()   # its selection rows follow its fitting rows
+            # the fraction is spread over B's training part (FRACTION_BLOCKS blocks), not its first rows
+            rows = np.concatenate([call[1].time, call[2].time])
+            assert len(np.unique(np.concatenate([call[1].segment, call[2].segment]))) == T.FRACTION_BLOCKS
+            assert rows.max() > b.time[int(0.75 * b_rows[0])]
     assert n_ft == len(T.FRACTIONS)
     assert all(isinstance(f["fthd_kept_base"], bool) for f in run["fractions"])
 
@@ -93,6 +97,7 @@ def test_quick_study_end_to_end_and_its_splits(tmp_path, monkeypatch):
     (["--vehicle", "no_such_car"], "--vehicle"),
     (["--road-scale", "5"], "--road-scale"),
     (["--noise-scale", "-1"], "--noise-scale"),
+    (["--fraction-blocks", "0"], "--fraction-blocks"),
 ])
 def test_bad_options_are_one_line_errors_naming_the_option(argv, option, tmp_path):
     from ddyn.studies import transfer as T
@@ -101,6 +106,25 @@ def test_bad_options_are_one_line_errors_naming_the_option(argv, option, tmp_pat
         T.options(_args([*argv, "--out", str(tmp_path / "x")]))
     msg = str(e.value)
     assert option in msg and "\n" not in msg
+
+
+def test_fraction_blocks_spread_over_the_pool_and_never_join_at_a_seam():
+    from ddyn.data.dataset import Dataset
+    from ddyn.studies import transfer as T
+
+    n = 1000
+    pool = Dataset(np.arange(n) * 0.04, np.zeros(n, dtype=np.int64), np.random.default_rng(0).normal(size=(n, 8)),
+                   np.zeros((n, 2)), 0.04)
+    part, ranges = T.fraction_blocks(pool, 0.1, 4)
+    assert ranges == [[0, 25], [250, 275], [500, 525], [750, 775]]
+    assert len(part) == 100 and np.array_equal(part.states, np.concatenate([pool.states[a:b] for a, b in ranges]))
+    # one segment per block: no one-step pair reads across a seam, every pair inside a block is kept
+    assert len(np.unique(part.segment)) == 4 and np.all(np.diff(part.segment) >= 0)
+    assert len(part.transition_index()) == 4 * 24
+    first, r1 = T.fraction_blocks(pool, 0.1, 1)
+    assert r1 == [[0, 100]] and np.array_equal(first.time, pool.time[:100])
+    with pytest.raises(DdynError, match="fraction 0.001 in 4 blocks"):
+        T.fraction_blocks(pool, 0.001, 4)
 
 
 def test_road_course_is_full_size_and_seeded():

@@ -21,9 +21,10 @@ seed:
             channel (the issue's target: <= 1.5 on every channel). B's whole log is scored too (b_all).
   fractions the FTHD path: the A model fine-tuned (train/learn/finetune.py with `ddyn finetune`'s defaults:
             half the layers frozen, lambda1 = lambda2 = 0.5, 1500 Adam + 300 L-BFGS steps, lr 1e-3; --ft-*
-            lower them) on the first 5, 10, 20 % of B's first 80 % (B's training part), beside a DDM trained on
-            the same rows from scratch with the same settings as the A model. Each arm selects its weights on the
-            last fifth of its own fraction (as `ddyn finetune --data PART` and `ddyn train --data PART` split):
+            lower them) on 5, 10, 20 % of B's first 80 % (B's training part), taken as FRACTION_BLOCKS equal
+            blocks spread evenly over it (--fraction-blocks 1: its first rows), beside a DDM trained on the same
+            rows from scratch with the same settings as the A model. Each arm selects its weights on the last
+            fifth of its own fraction's rows (as `ddyn finetune --data PART` and `ddyn train --data PART` split):
             B's last 20 % is only scored, never used to fit or select.
 
 The A model never sees B before fine-tuning; no row of B's last 20 % enters any fit (the test checks both from the
@@ -55,7 +56,13 @@ FAMILIES = ("commonroad-mb", "mujoco")
 PARAMS = {"commonroad-mb": "av21", "mujoco": "default"}      # the family's car: CommonRoad's AV-21 set
 PROFILE_VEHICLE = "av21"           # whose training profile sets every training setting
 TEST_FRACTION = 0.2                # the last 20 % of each log: A's own-track test, B's held-out part
-FRACTIONS = (0.05, 0.10, 0.20)     # of B's training part (its first 80 %), from its first row
+FRACTIONS = (0.05, 0.10, 0.20)     # of B's training part (its first 80 %)
+# the fine-tuning rows of a fraction: this many equal blocks spread evenly over B's training part, each its own
+# segment (no window reads across a seam). Until 2026-12-01 a fraction was B's first rows (--fraction-blocks 1):
+# Putnam's first 5-10 % is its start straight, so the rows the transferred model failed on (the slow corners) were
+# not in the fraction and 27 of 36 fine-tunings kept the pre-trained weights. A user who fine-tunes on a new
+# track logs some of every part of it, not one straight.
+FRACTION_BLOCKS = 4
 ROAD_SCALE = 200.0                 # random 1:43 course to full size: random:301 becomes 1.88 km, tightest radius 60 m
                                    # (x100 and x150 put bends at 30 and 45 m where the multi-body car spun within
                                    # the first seconds or the first lap on random:301 at 22-24 m/s)
@@ -181,6 +188,25 @@ def kept_base(ckpt: dict) -> bool:
     return len(curve) < 2 or curve[0] <= min(curve[1:])
 
 
+def fraction_blocks(pool: Dataset, fraction: float, blocks: int) -> tuple[Dataset, list[list[int]]]:
+    """`fraction` of pool's rows as `blocks` equal blocks, block i starting at i/blocks of the way through it, each
+    block its own segment (a model never steps from one into the next); with blocks 1 the first rows (as
+    finetune.fraction_of). Returns the rows and their [start, end) ranges in pool."""
+    if blocks == 1:
+        part = fraction_of(pool, fraction)
+        return part, [[0, len(part)]]
+    n = len(pool)
+    size = int(round(n * fraction / blocks))
+    if size < 2:
+        raise DdynError(f"fraction {fraction:g} in {blocks} blocks leaves {size} row(s) per block of {n}")
+    ranges = [[int(round(i * n / blocks)), int(round(i * n / blocks)) + size] for i in range(blocks)]
+    index = np.concatenate([np.arange(a, b) for a, b in ranges])
+    part = pool.subset(index)
+    span = int(pool.segment.max()) + 1
+    part.segment = np.concatenate([pool.segment[a:b] + i * span for i, (a, b) in enumerate(ranges)])
+    return part, ranges
+
+
 def run_seed(seed: int, data: dict, v, opts: dict, out: Path, progress: bool = True) -> dict:
     torch.manual_seed(seed)
     d = out / f"seed{seed}"
@@ -200,15 +226,18 @@ def run_seed(seed: int, data: dict, v, opts: dict, out: Path, progress: bool = T
               + _fmt(other), flush=True)
     fit = FitConfig(adam_steps=opts["ft_adam"], lbfgs_iterations=opts["ft_lbfgs"], seed=seed)
     for f in opts["fractions"]:
-        part = fraction_of(data["b_pool"], f)
+        part, ranges = fraction_blocks(data["b_pool"], f, opts["blocks"])
         ft_train, ft_val = split_by_time(part, cfg.val_fraction)
         fc = FinetuneConfig(fit=fit)
-        ft_model, ft_ckpt = finetune(base_path, ft_train, ft_val, fc, source=f"{out / 'B.csv'} rows 0-{len(part)}",
-                                     split=f"first {f:.0%} of B's training part; its last fifth validates")
+        rows_text = ", ".join(f"{a}-{b}" for a, b in ranges)
+        ft_model, ft_ckpt = finetune(base_path, ft_train, ft_val, fc, source=f"{out / 'B.csv'} rows {rows_text}",
+                                     split=f"{f:.0%} of B's training part in {len(ranges)} block(s); the last "
+                                           "fifth of those rows validates")
         checkpoint.save(ft_ckpt, d / f"fthd_f{round(100 * f):02d}.ckpt")
         sc_model, sc_ckpt = fit_ddm(part, v, cfg, d / f"scratch_f{round(100 * f):02d}.ckpt",
-                                    f"{out / 'B.csv'} rows 0-{len(part)}")
-        r = {"fraction": f, "rows": [0, len(part)], "fit_rows": len(ft_train), "select_rows": len(ft_val),
+                                    f"{out / 'B.csv'} rows {rows_text}")
+        r = {"fraction": f, "rows": [0, len(part)], "blocks": ranges, "fit_rows": len(ft_train),
+             "select_rows": len(ft_val),
              "fthd": scores(ft_model, ft_ckpt, data["b_test"]), "scratch": scores(sc_model, sc_ckpt, data["b_test"]),
              "fthd_steps": _steps(ft_ckpt), "scratch_steps": _steps(sc_ckpt), "fthd_kept_base": kept_base(ft_ckpt),
              "fthd_seconds": ft_ckpt["training"]["seconds"], "scratch_seconds": sc_ckpt["training"]["seconds"]}
@@ -297,7 +326,9 @@ def markdown(res: dict) -> str:
               f" (" + ", ".join(f"{c} {'yes' if ok else 'no'}" for c, ok in t["per_channel"].items()) + "). "
               f"Samples with a coefficient on a guard bound: own {100 * s['any_bound']['own']['mean']:.0f} %, other "
               f"{100 * s['any_bound']['other']['mean']:.0f} %.", "",
-              "FTHD path: the A model fine-tuned on the first rows of B's training part, beside a DDM trained on the "
+              "FTHD path: the A model fine-tuned on "
+              + ("the first rows" if res["settings"].get("fraction_blocks", 1) == 1
+                 else f"{res['settings']['fraction_blocks']} blocks spread over") + " of B's training part, beside a DDM trained on the "
               "same rows from scratch (same settings as the A model); scored on B's last 20 % (never fitted or "
               "selected on):", "",
               "| fraction of B's training part | rows | model | " + " | ".join(CHANNELS) + " |",
@@ -361,6 +392,7 @@ def options(args) -> dict:
         if not (math.isfinite(f) and 0 < f <= 1):
             raise DdynError(f"--fractions: each must lie in (0, 1], got {f}")
     o["fractions"] = tuple(sorted(set(fr)))
+    o["blocks"] = _positive("--fraction-blocks", args.fraction_blocks, True)
     seeds = tuple(args.seeds) if args.seeds else ((0,) if args.quick else DEFAULTS["seeds"])
     if len(set(seeds)) != len(seeds) or any(s < 0 for s in seeds):
         raise DdynError(f"--seeds: distinct non-negative integers, got {' '.join(map(str, seeds))}")
@@ -441,7 +473,7 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
                      "finetune_text": f"freeze fraction {fc.freeze_fraction}, lambda1 {fc.lambda1}, lambda2 "
                                       f"{fc.lambda2}, {fc.fit.adam_steps} Adam + {fc.fit.lbfgs_iterations} L-BFGS "
                                       f"steps, lr {fc.fit.lr}",
-                     "fractions": list(o["fractions"])},
+                     "fractions": list(o["fractions"]), "fraction_blocks": o["blocks"]},
         "runs": runs,
         "summary": summarise(runs, o["fractions"]),
         "seconds": time.perf_counter() - t0,
@@ -497,6 +529,9 @@ def register(subparsers) -> None:
     p.add_argument("--seeds", type=int, nargs="+", help="training seeds (default 0 1 2; quick 0)")
     p.add_argument("--fractions", type=float, nargs="+", help="shares of B's training part for fine-tuning "
                                                               "(default 0.05 0.1 0.2)")
+    p.add_argument("--fraction-blocks", type=int, default=FRACTION_BLOCKS,
+                   help="each fine-tuning fraction as this many equal blocks spread evenly over B's training part "
+                        "(1: its first rows; default %(default)s)")
     p.add_argument("--epochs", type=int, help="Adam epochs of every DDM training (default: the av21 profile's)")
     p.add_argument("--lbfgs-iterations", type=int, help="L-BFGS iterations of every DDM training (default: the "
                                                         "av21 profile's)")
