@@ -187,6 +187,23 @@ def test_plan_varies_the_campaign_and_is_reproducible():
     assert all(c["magnitude"] != 0 for c in a if c["effect"] != "none" and c["track"] != "oval")
 
 
+def test_road_tracks_change_the_track_and_nothing_else(monkeypatch):
+    """`--tracks road`: every log not on the oval drives its own full-size random road course (road:SEED, the log's
+    seed); every other draw of the campaign is the Putnam campaign's, so the two differ in the track alone."""
+    putnam, road = lofo.plan("commonroad-mb", 24, 3), lofo.plan("commonroad-mb", 24, 3, tracks="road")
+    for p, r in zip(putnam, road):
+        assert {k: v for k, v in p.items() if k != "track"} == {k: v for k, v in r.items() if k != "track"}
+        assert r["track"] == ("oval" if p["track"] == "oval" else f"road:{p['seed']}")
+    assert len({r["track"] for r in road if r["track"] != "oval"}) == sum(r["track"] != "oval" for r in road)
+    seen = []
+    monkeypatch.setattr(lofo.F, "make_log", lambda fam, track, fx, seed, settings, params: seen.append(track))
+    lofo.make_case_log(road[0] if road[0]["track"] != "oval" else road[1])
+    assert seen[0].name.startswith("random") and seen[0].name.endswith("x200") and 1000 < seen[0].length < 5000
+    assert lofo.cache_name(road[0]) != lofo.cache_name(putnam[0])
+    with pytest.raises(DdynError, match="unknown track set 'moon'"):
+        lofo.plan("commonroad-mb", 4, 3, tracks="moon")
+
+
 def test_every_log_carries_roll_and_pitch_of_one_kind(monkeypatch):
     """Until 2026-11-30 no campaign log carried a pitch channel (a grade could only be found as a profile along
     laps, which 60 and 120 s logs of Putnam never drive). One attitude source per log gives both channels, and
@@ -289,6 +306,7 @@ def test_a_new_campaign_is_scored_under_the_recorded_folds_without_a_pass_one(tm
     assert main(args) == 0
     res = json.loads((tmp_path / "s" / "results.json").read_text())
     assert res["pass1"] == [] and res["settings"]["folds_from"]["seed"] == 1
+    assert res["settings"]["tracks"] == "putnam"
     assert {f: v["calibration"] for f, v in res["folds"].items()} == {f: v["calibration"]
                                                                       for f, v in doc["folds"].items()}
     ok = [r for r in res["pass2"] if r["status"] == "ok"]

@@ -342,7 +342,7 @@ def _run_lofo(args) -> int:
         if not durations or any(not 10.0 <= d <= 900.0 for d, _ in durations):
             raise DdynError(f"--durations {args.durations!r}: each between 10 and 900 s")
     doc = _with_scheduler(args, lambda: lofo.run(fams, args.logs, args.seed, out, args.jobs, not args.no_progress,
-                                                 durations, folds_from))
+                                                 durations, folds_from, args.tracks))
     _summarised(doc)
     _write_run(doc, out)
     return _write_travelling(args, doc) if args.calibration_out else 0
@@ -423,6 +423,10 @@ def _add_lofo(sub) -> None:
     p.add_argument("--seed", type=int, default=lofo.DEFAULT_SEED, help="the campaign's seed (default %(default)s)")
     p.add_argument("--durations", default=None, help="log lengths in s, comma-separated, drawn equally often "
                                                      "(default 60, 120, 300 s in shares 45, 35, 20 %%)")
+    p.add_argument("--tracks", choices=lofo.TRACK_SETS, default="putnam",
+                   help="the track of every log not on the banked oval: putnam (every rule was chosen there), or "
+                        "road (a full-size random road course per log: with --folds-from, the held-out-track "
+                        "check; default %(default)s)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes")
     p.add_argument("--scheduler", default=None, help="a Dask scheduler address (tcp://HOST:8786) instead of --jobs")
     p.add_argument("--out", required=True, help="the study's folder (results.json, results.md, the logs' cache)")

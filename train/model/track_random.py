@@ -129,3 +129,20 @@ def random_track(seed: int) -> Track:
             track.properties = dict(p, width=width, draws=attempt + 1)
             return track
     raise DdynError(f"random track {seed}: no drivable draw in {ATTEMPTS} attempts")
+
+
+# a full-size road course from a random track (`ddyn study transfer`'s other track, `ddyn gap lofo --tracks road`):
+# x200 makes MIN_RADIUS 60 m and the tracks 1.6-3.6 km; x100 and x150 put bends at 30 and 45 m where the multi-body
+# AV-21 spun within the first seconds or the first lap on random:301 at 22-24 m/s
+ROAD_SCALE = 200.0
+ROAD_WIDTH = 9.0            # m, Putnam's median width
+
+
+def road_course(seed: int, scale: float = ROAD_SCALE, width: float = ROAD_WIDTH) -> Track:
+    """The random 1:43 track random:SEED scaled to a full-size road course of constant width."""
+    r = random_track(seed)
+    c = np.asarray(r.center, float) * scale
+    half = np.full(len(c), 0.5 * width)
+    left, right = bounds_from_widths(c, half, half)
+    return Track(f"random{seed}x{scale:g}", c, left, right, None,
+                 source=f"ddyn.model.track_random seed {seed} scaled x{scale:g}, {width:g} m wide")

@@ -50,6 +50,7 @@ from ddyn.learn.evaluate import evaluate, public
 from ddyn.learn.finetune import FinetuneConfig, FitConfig, finetune, fraction_of, split_by_time
 from ddyn.learn.training import train
 from ddyn.model import vehicle as vehicle_mod
+from ddyn.model.track_random import ROAD_SCALE, ROAD_WIDTH, road_course
 from ddyn.studies.ddm import any_bound_share
 
 FAMILIES = ("commonroad-mb", "mujoco")
@@ -63,10 +64,6 @@ FRACTIONS = (0.05, 0.10, 0.20)     # of B's training part (its first 80 %)
 # not in the fraction and 27 of 36 fine-tunings kept the pre-trained weights. A user who fine-tunes on a new
 # track logs some of every part of it, not one straight.
 FRACTION_BLOCKS = 4
-ROAD_SCALE = 200.0                 # random 1:43 course to full size: random:301 becomes 1.88 km, tightest radius 60 m
-                                   # (x100 and x150 put bends at 30 and 45 m where the multi-body car spun within
-                                   # the first seconds or the first lap on random:301 at 22-24 m/s)
-ROAD_WIDTH = 9.0                   # m, Putnam's median width
 DEFAULT_ROAD_SEED = 301
 LOG_SEEDS = (3601, 3602)           # plant seeds (excitation, noise) of A and B
 RATIO_TARGET = 1.5
@@ -78,19 +75,6 @@ QUICK = dict(duration=16.0, epochs=2, lbfgs=20, ft_adam=20, ft_lbfgs=5)
 
 # ---------------------------------------------------------------------------------------------
 # data
-
-def road_course(seed: int = DEFAULT_ROAD_SEED, scale: float = ROAD_SCALE, width: float = ROAD_WIDTH):
-    """The random 1:43 track random:SEED scaled to a full-size road course of constant width."""
-    from ddyn.model.track_random import random_track
-    from ddyn.model.tracks import Track, bounds_from_widths
-
-    r = random_track(seed)
-    c = np.asarray(r.center, float) * scale
-    half = np.full(len(c), 0.5 * width)
-    left, right = bounds_from_widths(c, half, half)
-    return Track(f"random{seed}x{scale:g}", c, left, right, None,
-                 source=f"ddyn.model.track_random seed {seed} scaled x{scale:g}, {width:g} m wide")
-
 
 def plant_log(family: str, track, seed: int, duration: float, speed: float, cache: Path | None = None,
               noise: float = 1.0) -> Dataset:

@@ -5,10 +5,11 @@ every family (ddyn.gap.benchmark.families) is in turn the new plant: its logs ch
 
 The campaign (plan): per family, logs that vary what a real one varies: the car (the family's parameter sets),
 log length (DURATIONS), drive-by-wire rate (DBW_PERIODS), sensor noise level and colour, target speed, track
-(Putnam; the banked oval for half the bank logs) and the roll and pitch channels (CHANNEL_KINDS), of one kind per
-log: one attitude source gives both, an IMU its roll and pitch, a map its bank and grade, a broken estimator both
-broken. (Until 2026-11-30 no log carried a pitch channel, so a grade could only be found as a profile along laps,
-and every MuJoCo log carried an IMU roll whatever its kind: the plant ignored it.)
+(Putnam, or with --tracks road a full-size random road course per log; the banked oval for half the bank logs)
+and the roll and pitch channels (CHANNEL_KINDS), of one kind per log: one attitude source gives both, an IMU its
+roll and pitch, a map its bank and grade, a broken estimator both broken. (Until 2026-11-30 no log carried a pitch
+channel, so a grade could only be found as a profile along laps, and every MuJoCo log carried an IMU roll whatever
+its kind: the plant ignored it.)
 Each log holds one effect (EFFECTS, drawn between MAGNITUDES times its size that matters, ddyn.gap.limits.SIZES)
 or none (NONE_SHARE of the logs). The nominal is the user's: the family's vehicle file for that car.
 
@@ -63,6 +64,10 @@ NOISE_COLOURS = (0.0, 0.6)
 SPEEDS = (18.0, 27.0)
 CHANNEL_KINDS = ("none", "imu", "map", "broken")
 OVAL_SHARE = 0.5                        # bank logs on the banked oval (its own bank), the rest on Putnam
+# the track of every log not on the oval (--tracks): "putnam", the track every rule and calibration was chosen on;
+# or "road", a full-size random road course per log (road:SEED, ddyn.model.track_random.road_course, the log's own
+# seed), tracks no rule has seen: the held-out-track check of a recorded study's folds (--folds-from)
+TRACK_SETS = ("putnam", "road")
 SCORED_FROM_DURATION = 300.0
 MIN_LEVEL_LOGS = 3
 # the decision levels a calibration chooses among (shares of the size that matters; None: never claimed). Not
@@ -89,9 +94,11 @@ def _channel_kinds() -> tuple:
     return CHANNEL_KINDS if getattr(CP, "CHANNEL_KINDS", None) else (False, True)
 
 
-def plan(family: str, n: int, seed: int, durations=DURATIONS) -> list[dict]:
+def plan(family: str, n: int, seed: int, durations=DURATIONS, tracks: str = "putnam") -> list[dict]:
     """n cases of one family: the effect, its magnitude and the campaign settings, all drawn from `seed`
-    (durations: ((seconds, share), ...) of the log lengths)."""
+    (durations: ((seconds, share), ...) of the log lengths; tracks: one of TRACK_SETS)."""
+    if tracks not in TRACK_SETS:
+        raise DdynError(f"unknown track set {tracks!r}; expected one of {', '.join(TRACK_SETS)}")
     rng = np.random.default_rng([seed, sum(map(ord, family))])
     effects = [e for e in EFFECTS if e in F.supported_effects(family)]
     sets = F.params_sets(family)
@@ -105,6 +112,8 @@ def plan(family: str, n: int, seed: int, durations=DURATIONS) -> list[dict]:
         duration = float(rng.choice(lengths, p=np.array(weights) / sum(weights)))
         speed = float(rng.uniform(*SPEEDS))
         track = "oval" if eff == "bank_angle" and rng.random() < OVAL_SHARE else "putnam"
+        if track == "putnam" and tracks == "road":      # drawn from the log's seed: the other draws stay the same
+            track = f"road:{seed * 1000 + i}"
         u = float(math.exp(rng.uniform(math.log(MAGNITUDES[0]), math.log(MAGNITUDES[1]))))
         sign = -1.0 if eff in SIGNED and rng.random() < 0.5 else 1.0
         size = _planned_size(eff, duration, speed)
@@ -137,6 +146,10 @@ def make_case_log(case: dict):
         from ddyn.model.track_oval import oval_track
 
         track = oval_track()
+    elif track.startswith("road:"):
+        from ddyn.model.track_random import road_course
+
+        track = road_course(int(track.split(":", 1)[1]))
     return F.make_log(case["family"], track, CP.PlantEffects(**effects), case["seed"], settings, case["params"])
 
 
@@ -540,7 +553,7 @@ def pooled(docs: list[tuple[dict, Path]]) -> dict:
 
 
 def run(families: list[str], n: int, seed: int, out: Path, jobs: int = 1, progress: bool = True,
-        durations=DURATIONS, folds_from: dict | None = None) -> dict:
+        durations=DURATIONS, folds_from: dict | None = None, tracks: str = "putnam") -> dict:
     """The study: plan, pass 1, folds, pass 2; the results document (written by the caller).
     folds_from: {"doc": a recorded study's results.json, "path": where it was read}: no pass 1, each family's logs
     of this campaign are scored under that study's fold calibration for it (made from the OTHER families' logs of
@@ -561,7 +574,8 @@ def run(families: list[str], n: int, seed: int, out: Path, jobs: int = 1, progre
     cfg = base_config().to_dict()
     # pass 1 reads round one only (what the calibration reads): one effect, no nuisance rounds
     first_round = base_config().with_(max_effects=1, max_unclaimed=0).to_dict()
-    cases = [c | {"config": first_round, "cache": str(cache)} for fam in use for c in plan(fam, n, seed, durations)]
+    cases = [c | {"config": first_round, "cache": str(cache)}
+             for fam in use for c in plan(fam, n, seed, durations, tracks)]
     recorded = None
     if folds_from is not None:
         recorded = recorded_folds(folds_from["doc"], folds_from["path"], use, seed)
@@ -577,7 +591,7 @@ def run(families: list[str], n: int, seed: int, out: Path, jobs: int = 1, progre
         folds[fam]["score"] = score([r for r in pass2 if r["family"] == fam])
     doc = {"settings": {"families": use, "logs_per_family": n, "seed": seed, "base_config": cfg,
                         "effects": list(EFFECTS), "durations": [list(d) for d in durations],
-                        "dbw_periods": list(DBW_PERIODS), "noise_scales": list(NOISE_SCALES)},
+                        "dbw_periods": list(DBW_PERIODS), "noise_scales": list(NOISE_SCALES), "tracks": tracks},
            "skipped": skipped, "folds": folds, "worst": worst(folds),
            "all_families_calibration": (folds_from["doc"]["all_families_calibration"] if recorded
                                         else calibrate(pass1)),
