@@ -75,7 +75,7 @@ def holds_refit(names, bank_family: bool = False) -> bool:
     bank_angle holds them too. diagnose sets it when a bank profile or the roll channel is among the candidates,
     so that the bank family is compared on one footing: a constant bank that may move the tyre while the profile
     may not can win by the tyre, not by being the better bank (on the banked oval with an identified nominal it
-    beat the profile on 2 of 6 logs, 6 and 8 degrees off in the turns: docs/gap.md)."""
+    beat the profile on 2 of 6 logs, 6 and 8 degrees off in the turns)."""
     held = HOLDS_REFIT + (("bank_angle",) if bank_family else ())
     return any(base(n) in held for n in names)
 

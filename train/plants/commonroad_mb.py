@@ -21,8 +21,8 @@ State mapping (CommonRoad mb -> canonical): x, y = x[0], x[1]; yaw = x[4]; vx = 
 sprung mass's body-frame velocities); omega = x[5]. Wheel angle x[2]; body roll x[6] (extras true_body_roll).
 
 Integration: RK4 at commonroad_st.PLANT_RATE (1 kHz), as the single-track plant; about 27 us per
-right-hand side in pure Python, so a 60 s log costs about 7-10 s (docs/gap.md, the convergence
-check in convergence()).
+right-hand side in pure Python, so a 60 s log costs about 7-10 s (the step's convergence check:
+convergence()).
 """
 from __future__ import annotations
 
