@@ -393,7 +393,7 @@ def _write_travelling(args, doc: dict) -> int:
     typed = sys.argv[1:3] == ["gap", "lofo"]
     from ddyn.gap.benchmark import lofo
 
-    cal = CAL.travelling_from_study(args.name or path.stem, doc,
+    cal = CAL.travelling_from_study(path.stem, doc,     # named as its file: a shipped name is its file stem
                                     lofo.applied_config(doc["all_families_calibration"]).to_dict(),
                                     "ddyn gap lofo " + shlex.join(sys.argv[3:]) if typed else "")
     CAL.write(cal, path)
@@ -432,7 +432,6 @@ def _add_lofo(sub) -> None:
     p.add_argument("--out", required=True, help="the study's folder (results.json, results.md, the logs' cache)")
     p.add_argument("--calibration-out", default=None, metavar="FILE",
                    help="also write the calibration of all families (a travelling calibration) to FILE")
-    p.add_argument("--name", default=None, help="that calibration's name (default the file's stem)")
     p.add_argument("--from-results", action="store_true",
                    help="make --calibration-out from the study already recorded in --out (nothing re-run)")
     p.add_argument("--folds-from", default=None, metavar="RESULTS",
