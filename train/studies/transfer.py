@@ -311,10 +311,10 @@ def markdown(res: dict) -> str:
               f"Samples with a coefficient on a guard bound: own {100 * s['any_bound']['own']['mean']:.0f} %, other "
               f"{100 * s['any_bound']['other']['mean']:.0f} %.", "",
               "FTHD path: the A model fine-tuned on "
-              + ("the first rows" if res["settings"].get("fraction_blocks", 1) == 1
-                 else f"{res['settings']['fraction_blocks']} blocks spread over") + " of B's training part, beside a DDM trained on the "
-              "same rows from scratch (same settings as the A model); scored on B's last 20 % (never fitted or "
-              "selected on):", "",
+              + ("the first rows of" if res["settings"].get("fraction_blocks", 1) == 1
+                 else f"{res['settings']['fraction_blocks']} blocks spread over")
+              + " B's training part, beside a DDM trained on the same rows from scratch (same settings as the A "
+                "model); scored on B's last 20 % (never fitted or selected on):", "",
               "| fraction of B's training part | rows | model | " + " | ".join(CHANNELS) + " |",
               "|---|---|---|" + "---|" * len(CHANNELS),
               "| 0 | 0 | A model, zero-shot | " + " | ".join(_cell(s["other"][c], n) for c in CHANNELS) + " |"]
