@@ -338,8 +338,12 @@ def test_blind_campaigns_under_the_same_folds_are_scored_together(tmp_path, caps
     free = _rec("commonroad-st", "none", 0.0, 0.0, -1) | {"claimed": ["mass_offset"]}
     a = _campaign(tmp_path, 2, [right, wrong])
     b = _campaign(tmp_path, 3, [wrong, wrong, free])
+    road = json.loads(b.read_text())        # one campaign on road courses: the pool says it holds both
+    road["settings"]["tracks"] = "road"
+    b.write_text(json.dumps(road))
     assert main(["gap", "pool", str(a), str(b), "--out", str(tmp_path / "p")]) == 0
     res = json.loads((tmp_path / "p" / "results.json").read_text())
+    assert res["settings"]["tracks"] == "putnam+road"
     s = res["folds"]["commonroad-st"]["score"]
     assert (s["scored"], s["first_right"], s["effect_free_claimed"]) == (4, 1, 1)
     assert res["settings"]["seed"] == [2, 3] and res["summary"]["worst"]["first_right"]["value"] == 0.25

@@ -544,6 +544,8 @@ def pooled(docs: list[tuple[dict, Path]]) -> dict:
              for fam, f in first["folds"].items()}
     settings = {**first["settings"], "seed": seeds,
                 "logs_per_family": sum(d["settings"]["logs_per_family"] for d, _ in docs),
+                # the campaigns' track sets, all of them: a pool of Putnam and road campaigns is not either alone
+                "tracks": "+".join(sorted({d["settings"].get("tracks", "putnam") for d, _ in docs})),
                 "pooled": [str(p) for _, p in docs]}
     doc = {"settings": settings, "skipped": first.get("skipped", {}), "folds": folds, "worst": worst(folds),
            "all_families_calibration": first["all_families_calibration"], "pass1": [], "pass2": rows,
