@@ -3,8 +3,11 @@ was made by the fitting and plant code of this version. A change to what the dia
 this test fail until the calibration is made again with the command it records (`made.command`)."""
 from __future__ import annotations
 
+import json
+
 import pytest
 
+from ddyn.errors import DdynError
 from ddyn.gap import calibration as CAL
 from ddyn.gap.config import ANY_OTHER, DiagnosisConfig
 
@@ -85,3 +88,55 @@ def test_the_code_version_follows_what_the_code_does_not_its_words(tmp_path, mon
     b = version_of('"""other doc"""\nX = 1  # another comment\n\ndef f():\n    "other words"\n    return X\n')
     c = version_of('"""doc"""\nX = 2\n\ndef f():\n    "words"\n    return X\n')
     assert a == b != c
+
+
+def _ddyn_imports(module: str) -> set[str]:
+    """The ddyn modules `module` imports anywhere in its source (function-level imports too), by name."""
+    import ast
+    import importlib.util
+
+    def is_module(name: str) -> bool:
+        try:
+            return importlib.util.find_spec(name) is not None
+        except ModuleNotFoundError:
+            return False
+
+    out = set()
+    tree = ast.parse(open(importlib.util.find_spec(module).origin).read())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("ddyn"):
+            out |= {f"{node.module}.{a.name}" if is_module(f"{node.module}.{a.name}") else node.module
+                    for a in node.names}
+        elif isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name.startswith("ddyn")}
+    return out
+
+
+def test_every_module_behind_a_calibration_is_hashed_or_said_not_to_matter():
+    """A calibration goes stale when the code it measured changes: every ddyn module that a hashed module imports
+    is hashed too, or named in NOT_MEASURED with the reason it cannot move what a calibration measures (the
+    driver in ddyn.data.simulate once was neither)."""
+    import importlib.util
+
+    hashed = set(CAL.FITTING_MODULES) | {m for mods in CAL.PLANT_MODULES.values() for m in mods}
+    assert "ddyn.data.simulate" in CAL.PLANT_MODULES["families"]
+    for name in CAL.NOT_MEASURED:
+        assert importlib.util.find_spec(name) is not None, name
+    unhashed = {m: sorted(_ddyn_imports(m) - hashed - set(CAL.NOT_MEASURED)) for m in sorted(hashed)}
+    assert not {m: u for m, u in unhashed.items() if u}
+
+
+def test_the_plant_version_follows_the_plants_vehicle_files_values(tmp_path):
+    """A changed value in a plant's vehicle file moves the data version; the same values re-indented do not."""
+    (tmp_path / "vehicles" / "plants").mkdir(parents=True)
+    car = tmp_path / "vehicles" / "plants" / "car.json"
+    car.write_text(json.dumps({"name": "car", "mass": 790.0}))
+    a = CAL.data_version(CAL.PLANT_FILES, root=tmp_path)
+    car.write_text(json.dumps({"mass": 790.0, "name": "car"}, indent=4))
+    b = CAL.data_version(CAL.PLANT_FILES, root=tmp_path)
+    car.write_text(json.dumps({"name": "car", "mass": 800.0}))
+    c = CAL.data_version(CAL.PLANT_FILES, root=tmp_path)
+    assert a == b != c
+    car.write_text("{not json")
+    with pytest.raises(DdynError, match="car.json"):
+        CAL.data_version(CAL.PLANT_FILES, root=tmp_path)

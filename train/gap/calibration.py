@@ -291,12 +291,37 @@ LENGTH_TOLERANCE = 0.1
 FITTING_MODULES = ("ddyn.gap.config", "ddyn.gap.candidates", "ddyn.gap.problem", "ddyn.gap.fit", "ddyn.gap.heldout",
                    "ddyn.gap.selection", "ddyn.gap.limits", "ddyn.gap.eiv", "ddyn.gap.hold_estimate",
                    "ddyn.data.roll_check", "ddyn.data.laps", "ddyn.model.effects",
-                   "ddyn.model.single_track", "ddyn.model.integrators")
-PLANT_MODULES = {"commonroad": ("ddyn.plants.commonroad_st",),
-                 "commonroad-mb": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb"),
+                   "ddyn.model.single_track", "ddyn.model.integrators", "ddyn.model.mathns", "ddyn.model.backends",
+                   "ddyn.model.vehicle", "ddyn.data.dataset")
+# What makes the plants' logs besides the plant modules themselves: the driver, its speed profile and the sensor
+# noise (ddyn.data.simulate), the tracks (Putnam's file reader, the banked oval, the road courses) and the
+# identification behind the MuJoCo car's nominal (ddyn.gap.benchmark.commonroad). Until 2026-12-01 none of them was
+# hashed, so a change to the driver kept a calibration "current" whose logs it no longer drove.
+LOG_MODULES = ("ddyn.data.simulate", "ddyn.data.vehicle_ref", "ddyn.model.tracks", "ddyn.model.track_files",
+               "ddyn.model.track_oval", "ddyn.model.track_random", "ddyn.gap.benchmark.commonroad")
+PLANT_MODULES = {"commonroad": ("ddyn.plants.commonroad_st",) + LOG_MODULES,
+                 "commonroad-mb": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb") + LOG_MODULES,
                  # a travelling calibration: every plant family's code and the study that drew their logs
                  "families": ("ddyn.plants.commonroad_st", "ddyn.plants.commonroad_mb", "ddyn.plants.mujoco_car",
-                              "ddyn.gap.benchmark.families", "ddyn.gap.benchmark.lofo", "ddyn.gap.baseline")}
+                              "ddyn.gap.benchmark.families", "ddyn.gap.benchmark.lofo", "ddyn.gap.baseline")
+                 + LOG_MODULES}
+# The ddyn modules the hashed ones import that cannot change what a calibration measures, and why; every other
+# import of a hashed module must be hashed too (tests/python/test_gap_calibrations.py checks it).
+NOT_MEASURED = {
+    "ddyn.errors": "error types and messages",
+    "ddyn.paths": "where files are",
+    "ddyn.gap.calibration": "this module: the sweeps' rules and the artifact; the families' rules are lofo.py's",
+    "ddyn.gap.benchmark.parallel": "runs the same cases in processes or on Dask, results in case order",
+    "ddyn.gap.benchmark.seeds": "the seed ledger: which seeds have been looked at",
+    "ddyn.gap.where": "where the error lies along the log: reported, never read by the selection",
+    "ddyn.data.windows": "history windows of a DDM nominal (--model); calibrations diagnose with vehicle files",
+    "ddyn.learn.checkpoint": "a DDM nominal (--model); calibrations diagnose with vehicle files",
+    "ddyn.learn.networks": "a DDM nominal (--model); calibrations diagnose with vehicle files",
+    "ddyn.learn.training": "a DDM nominal (--model); calibrations diagnose with vehicle files",
+}
+# the plants' vehicle files (train/vehicles/plants): the cars the plants drive and the nominal each case is
+# diagnosed with (the MuJoCo car's identified one among them), hashed as parsed JSON so that only a value moves it
+PLANT_FILES = ("vehicles/plants/*.json",)
 
 
 def _stripped(source: str) -> str:
@@ -326,8 +351,33 @@ def code_version(modules) -> str:
     return h.hexdigest()[:16]
 
 
+def data_version(patterns, root: Path = Path(__file__).resolve().parents[1]) -> str:
+    """sha256 (first 16 hex digits) of the JSON files matching `patterns` under `root` (train/), each parsed and
+    dumped with sorted keys: a value that changes moves it, a re-indented file does not."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for path in sorted({p for pat in patterns for p in root.glob(pat)}):
+        try:
+            value = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise DdynError(f"code version: {path}: not readable JSON ({e})") from None
+        h.update(path.relative_to(root).as_posix().encode())
+        h.update(json.dumps(value, sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
 def current_code_version(plant: str) -> dict:
-    return {"fitting": code_version(FITTING_MODULES), "plant": code_version(PLANT_MODULES.get(plant, ()))}
+    """{"fitting": the diagnosis's code, "plant": the code and vehicle files that make the plant's logs}."""
+    modules = PLANT_MODULES.get(plant, ())
+    plant_version = _combined(code_version(modules), data_version(PLANT_FILES)) if modules else code_version(())
+    return {"fitting": code_version(FITTING_MODULES), "plant": plant_version}
+
+
+def _combined(*versions: str) -> str:
+    import hashlib
+
+    return hashlib.sha256("/".join(versions).encode()).hexdigest()[:16]
 
 
 def _stale(cal) -> str | None:
