@@ -311,7 +311,11 @@ def test_a_new_campaign_is_scored_under_the_recorded_folds_without_a_pass_one(tm
                                                                       for f, v in doc["folds"].items()}
     ok = [r for r in res["pass2"] if r["status"] == "ok"]
     assert len(ok) >= 6 and all(r["claimed"] == [] for r in ok)
-    assert "no log of this campaign chose anything" in (tmp_path / "s" / "results.md").read_text()
+    md = (tmp_path / "s" / "results.md").read_text()
+    assert "no log of this campaign chose anything" in md
+    for fam in res["folds"]:      # each family's row says how many of its logs the plant could drive
+        rows = [r for r in res["pass2"] if r["family"] == fam]
+        assert f"| {fam} | {sum(r['status'] == 'ok' for r in rows)}/{len(rows)} | " in md
 
 
 def _campaign(tmp_path, seed, rows, recorded="recorded.json"):

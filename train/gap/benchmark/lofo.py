@@ -421,16 +421,17 @@ def markdown(doc: dict) -> str:
              + (" The calibrations are those of the study in {results} (seed {seed}, {logs_per_family} logs per "
                 "family): no log of this campaign chose anything.".format(**doc["settings"]["folds_from"])
                 if doc["settings"].get("folds_from") else ""), "",
-             "| left out | largest family margin/row | claimable | first effect right | effect-free claimed | below size claimed "
-             "| delay vs lag | median param error | found above stated limit | limit <= size |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| left out | simulated | largest family margin/row | claimable | first effect right | effect-free claimed "
+             "| below size claimed | delay vs lag | median param error | found above stated limit | limit <= size |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for fam, f in doc["folds"].items():
         s, cal = f["score"], f["calibration"]
         claimable = sum(v is not None for v in cal["decision_levels"].values())
         pe = s["param_error_median"]
         lh = s["limits_hold"]
         top = max(cal["family_margins_per_row"].items(), key=lambda kv: kv[1])
-        lines.append(f"| {fam} | {top[1]:.3g} ({top[0]}) | {claimable}/{len(EFFECTS)} | "
+        # logs the plant could not drive (the driver lost the car, the plant diverged) are not scored: say how many
+        lines.append(f"| {fam} | {s['ok']}/{s['logs']} | {top[1]:.3g} ({top[0]}) | {claimable}/{len(EFFECTS)} | "
                      f"{_rate(s['first_right'], s['scored'])} | {_rate(s['effect_free_claimed'], s['effect_free'])} | "
                      f"{_rate(s['below_size_claimed'], s['below_size'])} | "
                      f"{_rate(s['delay_vs_lag']['right'], s['delay_vs_lag']['told'])} | "
