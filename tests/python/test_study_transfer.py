@@ -84,6 +84,10 @@ def test_quick_study_end_to_end_and_its_splits(tmp_path, monkeypatch):
             assert rows.max() > b.time[int(0.75 * b_rows[0])]
     assert n_ft == len(T.FRACTIONS)
     assert all(isinstance(f["fthd_kept_base"], bool) for f in run["fractions"])
+    # the record counts the fraction's rows, the sum of its blocks (they are not one range from row 0)
+    for f in run["fractions"]:
+        assert f["rows"] == sum(e - a for a, e in f["blocks"]) == f["fit_rows"] + f["select_rows"]
+        assert len(f["blocks"]) == T.FRACTION_BLOCKS and f["blocks"][-1][0] > 0
 
 
 @pytest.mark.parametrize("argv, option", [

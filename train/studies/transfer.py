@@ -220,7 +220,7 @@ def run_seed(seed: int, data: dict, v, opts: dict, out: Path, progress: bool = T
         checkpoint.save(ft_ckpt, d / f"fthd_f{round(100 * f):02d}.ckpt")
         sc_model, sc_ckpt = fit_ddm(part, v, cfg, d / f"scratch_f{round(100 * f):02d}.ckpt",
                                     f"{out / 'B.csv'} rows {rows_text}")
-        r = {"fraction": f, "rows": [0, len(part)], "blocks": ranges, "fit_rows": len(ft_train),
+        r = {"fraction": f, "rows": len(part), "blocks": ranges, "fit_rows": len(ft_train),
              "select_rows": len(ft_val),
              "fthd": scores(ft_model, ft_ckpt, data["b_test"]), "scratch": scores(sc_model, sc_ckpt, data["b_test"]),
              "fthd_steps": _steps(ft_ckpt), "scratch_steps": _steps(sc_ckpt), "fthd_kept_base": kept_base(ft_ckpt),
@@ -252,7 +252,7 @@ def summarise(runs: list[dict], fractions) -> dict:
            "fractions": []}
     for i, f in enumerate(fractions):
         rows = [r["fractions"][i] for r in runs]
-        fr = {"fraction": f, "rows": rows[0]["rows"][1]}
+        fr = {"fraction": f, "rows": rows[0]["rows"]}
         for arm in ("fthd", "scratch"):
             fr[arm] = {c: _stat([x[arm][c] for x in rows]) for c in CHANNELS}
             fr[arm]["any_bound"] = _stat([x[arm]["any_bound"] for x in rows])
