@@ -6,6 +6,11 @@ class DdynError(Exception):
     """A user-facing error (bad input file, unknown vehicle, mismatched artefact...)."""
 
 
+class CarLostError(DdynError):
+    """A simulated plant's driver lost the car: it left the track, spun or the integration diverged. The plant and
+    its inputs are sound; the driving was beyond that car's grip (a slower lap may well go round)."""
+
+
 class DataError(DdynError):
     """Bad data in a file: names the file, and where known the row and column, and what was expected.
 

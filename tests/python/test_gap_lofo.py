@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from ddyn.errors import DdynError
+from ddyn.errors import CarLostError, DdynError
 from ddyn.gap import calibration as CAL
 from ddyn.gap import limits as L
 from ddyn.gap.benchmark import lofo
@@ -187,6 +189,49 @@ def test_plan_varies_the_campaign_and_is_reproducible():
     assert all(c["magnitude"] != 0 for c in a if c["effect"] != "none" and c["track"] != "oval")
 
 
+def _log(seen: list, what):
+    """A stand-in for a plant's log that records what make_case_log drove it with."""
+    seen.append(what)
+    return SimpleNamespace(metadata={})
+
+
+def test_a_lost_car_is_driven_again_more_gently_and_the_log_says_so():
+    """A case whose driver loses the car is driven again at REDRIVE_GRIPS (a real plant: the CommonRoad std car,
+    driven at 1.3 of its grip, leaves Putnam about 15 s in; at 0.7 it goes round); a loss at every grip is raised
+    with each attempt named, and an error that is not a lost car is never retried."""
+    from ddyn.gap.benchmark import families as F
+
+    case = lofo.plan("commonroad-std", 8, 5)[0] | {"effect": "none", "track": "putnam", "duration": 30.0,
+                                                    "target_speed": 40.0}
+    grips = []
+
+    def brave(fam, track, fx, seed, settings, params):   # the first attempt drives at 1.3 of the grip
+        grips.append(settings.driver_grip)
+        return F.make_log(fam, track, fx, seed, replace(settings, driver_grip=settings.driver_grip or 1.3), params)
+
+    ds = lofo.make_case_log(case, brave)
+    assert grips == [None, lofo.REDRIVE_GRIPS[0]] and float(ds.metadata["driver_grip"]) == lofo.REDRIVE_GRIPS[0]
+    assert len(json.loads(ds.metadata["redriven"])) == 1 and "lost the CommonRoad car" in ds.metadata["redriven"]
+
+    def lost(fam, track, fx, seed, settings, params):
+        grips.append(settings.driver_grip)
+        raise CarLostError(f"spun at grip {settings.driver_grip}")
+
+    grips.clear()
+    with pytest.raises(CarLostError, match="grip default: spun at grip None; driven again at grip 0.7, 0.6: spun"):
+        lofo.make_case_log(case, lost)
+    assert grips == [None, *lofo.REDRIVE_GRIPS]
+
+    def broken(fam, track, fx, seed, settings, params):
+        grips.append(settings.driver_grip)
+        raise DdynError("unknown CommonRoad parameter set")
+
+    grips.clear()
+    with pytest.raises(DdynError, match="unknown CommonRoad parameter set"):
+        lofo.make_case_log(case, broken)
+    assert grips == [None]
+
+
 def test_road_tracks_change_the_track_and_nothing_else(monkeypatch):
     """`--tracks road`: every log not on the oval drives its own full-size random road course (road:SEED, the log's
     seed); every other draw of the campaign is the Putnam campaign's, so the two differ in the track alone."""
@@ -196,7 +241,7 @@ def test_road_tracks_change_the_track_and_nothing_else(monkeypatch):
         assert r["track"] == ("oval" if p["track"] == "oval" else f"road:{p['seed']}")
     assert len({r["track"] for r in road if r["track"] != "oval"}) == sum(r["track"] != "oval" for r in road)
     seen = []
-    monkeypatch.setattr(lofo.F, "make_log", lambda fam, track, fx, seed, settings, params: seen.append(track))
+    monkeypatch.setattr(lofo.F, "make_log", lambda fam, track, fx, seed, settings, params: _log(seen, track))
     lofo.make_case_log(road[0] if road[0]["track"] != "oval" else road[1])
     assert seen[0].name.startswith("random") and seen[0].name.endswith("x200") and 1000 < seen[0].length < 5000
     assert lofo.cache_name(road[0]) != lofo.cache_name(putnam[0])
@@ -213,7 +258,7 @@ def test_every_log_carries_roll_and_pitch_of_one_kind(monkeypatch):
     assert {c["roll_channel"] for c in cases} == set(lofo.CHANNEL_KINDS)
     assert {c["roll_channel"] for c in cases if c["effect"] == "grade"} >= {"imu", "map"}
     seen = []
-    monkeypatch.setattr(lofo.F, "make_log", lambda fam, track, fx, seed, settings, params: seen.append(settings))
+    monkeypatch.setattr(lofo.F, "make_log", lambda fam, track, fx, seed, settings, params: _log(seen, settings))
     for kind in lofo.CHANNEL_KINDS:
         lofo.make_case_log(cases[0] | {"roll_channel": kind, "pitch_channel": kind})
     assert [(st.roll_channel, st.pitch_channel) for st in seen] == [(k, k) for k in lofo.CHANNEL_KINDS]

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 
 from ddyn.plants import commonroad_st as CP
-from ddyn.errors import DdynError
+from ddyn.errors import CarLostError
 
 try:
     from vehiclemodels import vehicle_dynamics_mb as _mb_module
@@ -76,7 +76,7 @@ class MbModel:
             else:
                 f, kin = env.hook.call(_mb_module.vehicle_dynamics_mb, list(x), u, p, env.alpha_eff)
         except ArithmeticError as e:    # a spinning car reaches a wheel speed of zero (the package divides by it)
-            raise DdynError(f"the multi-body plant diverged (the car spun: vx {x[3]:.2f}, vy {x[10]:.2f} m/s): {e}")
+            raise CarLostError(f"the multi-body plant diverged (the car spun: vx {x[3]:.2f}, vy {x[10]:.2f} m/s): {e}")
         vx = x[3]
         v2 = vx * vx + x[10] * x[10]
         if env.downforce:

@@ -90,7 +90,7 @@ import numpy as np
 from ddyn.data import vehicle_ref
 from ddyn.data.dataset import Dataset
 from ddyn.data.simulate import BandNoise, driver_settings, speed_profile
-from ddyn.errors import DdynError
+from ddyn.errors import CarLostError, DdynError
 from ddyn.model.tracks import Track, load_track
 from ddyn.model.vehicle import Vehicle
 from ddyn.plants.commonroad_st import (PLANT_EFFECTS, LogSettings, PlantEffects, _command_at, bank_profile,
@@ -437,7 +437,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         k, log_row = divmod(i, n_sub)
         if log_row == 0 or i % n_dbw == 0:
             if not all(math.isfinite(a) for a in (X, Y, vx, vy, omega)):
-                raise DdynError(f"the MuJoCo plant diverged at t = {t:.2f} s")
+                raise CarLostError(f"the MuJoCo plant diverged at t = {t:.2f} s")
             s_arr, lat_arr = track.project(X, Y, s_hint=s_prev, window=window)
             s, lat = float(s_arr), float(lat_arr)
             s_prev = s
@@ -458,7 +458,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
             s_rows[k] = s
             wl, wr = track.half_widths(s)
             if max(lat - float(wl), -lat - float(wr)) > 0.5 * track.width:
-                raise DdynError(f"the driver lost the MuJoCo car at t = {t:.2f} s, s = {s:.0f} m "
+                raise CarLostError(f"the driver lost the MuJoCo car at t = {t:.2f} s, s = {s:.0f} m "
                                 f"(seed {seed}, effects {effects.active()}); try a lower target speed")
             # held over the sample: the road under the car and the tyres' wear change slowly
             if bank is not None:
@@ -547,6 +547,7 @@ def make_log(track: Track | str = "putnam", effects: PlantEffects = PlantEffects
         "dbw_period": repr(dbw),
         "track": track.name, "seed": str(seed), "noise_scale": repr(float(settings.noise_scale)),
         "noise_color": repr(float(settings.noise_color)), "target_speed": repr(float(settings.target_speed)),
+        "driver_grip": repr(float(ds_settings.grip)),
         "method": "rk4", "substeps": str(veh.rk4_substeps),
         "plant_effects": json.dumps(active),
         **vehicle_ref.metadata_for(veh),
