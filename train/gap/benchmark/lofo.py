@@ -239,7 +239,8 @@ def run_case(case: dict) -> dict:
     return {k: v for k, v in case.items() if k not in ("config", "cache")} | {
         "status": "ok", "true_magnitude": truth,
         "driver_grip": float(ds.metadata.get("driver_grip", "nan")),
-        "redriven": len(json.loads(ds.metadata.get("redriven", "[]"))), "rows": len(ds), "sample_time": float(ds.sample_time), "heldout_rows": d["split"]["heldout_rows"],
+        "redriven": len(json.loads(ds.metadata.get("redriven", "[]"))),
+        "rows": len(ds), "sample_time": float(ds.sample_time), "heldout_rows": d["split"]["heldout_rows"],
         "candidates_tried": len(d["candidates"]), "families": fams,
         "top": C.FAMILY.get(top["effect"], top["effect"]), "delta_bic_top": top["delta_bic"],
         "runner_up_gap": (d.get("runner_up") or {}).get("evidence_difference"),
