@@ -197,7 +197,7 @@ def _log(seen: list, what):
 
 def test_a_lost_car_is_driven_again_more_gently_and_the_log_says_so():
     """A case whose driver loses the car is driven again at REDRIVE_GRIPS (a real plant: the CommonRoad std car,
-    driven at 1.3 of its grip, leaves Putnam about 15 s in; at 0.7 it goes round); a loss at every grip is raised
+    driven at 1.3 of its grip, leaves Putnam within 30 s; at 0.7 it goes round); a loss at every grip is raised
     with each attempt named, and an error that is not a lost car is never retried."""
     from ddyn.gap.benchmark import families as F
 
