@@ -24,7 +24,7 @@ def case(orca, mobil, tmp_path_factory):
     return loop.run_case(orca, mobil, "steer_delay", 0.04, out / "case", ref, speeds=(0.6,), seconds=20.0), out
 
 
-def test_the_loop_drives_diagnoses_rebuilds_and_scores(case):
+def test_the_loop_drives_diagnoses_rebuilds_and_scores(case, orca, mobil):
     c, out = case
     assert c["reference"]["lap_completed"] and c["reference"]["violations"] == 0
     # scored on the median of the flying laps, the lap from rest kept beside it; the start from rest is the slower
@@ -33,6 +33,13 @@ def test_the_loop_drives_diagnoses_rebuilds_and_scores(case):
         assert len(r["lap_times"]) == loop.SCORED_LAPS == 4
         assert (r["lap_s"], r["standing_lap_s"]) == (sorted(r["lap_times"][1:])[1], r["lap_times"][0])
     assert c["reference"]["lap_s"] < c["reference"]["standing_lap_s"]
+    # every run drives the car's flying-lap line (the 1:43 car's own line is a standing start, 0.5 m/s at the line)
+    assert loop.LINE == "flying"
+    for k in ("reference", "case/before", "case/log_speed0.6", "case/rebuilt", "case/oracle"):
+        table = np.loadtxt(out / k / "raceline.csv", delimiter=",", skiprows=1)
+        want = sil.raceline_table(mobil, orca, speed_scale=0.6 if k.endswith("0.6") else None, line="flying")
+        assert np.allclose(table[:, :3], want[:, :3], rtol=0, atol=1e-6), k
+    assert sil.raceline_table(mobil, orca)[0, 2] < 0.5 * table[0, 2]     # not the car's own line, from 0.5 m/s
     # the nominal controller does not lap cleanly at full speed with the plant's 40 ms steering delay (it left the
     # track until the MPC's cost points were bounded by the car's reach, 09151bb: now a lap with 1 violation); the
     # oracle laps
@@ -245,6 +252,7 @@ def test_a_case_that_cannot_be_scored_is_recorded_and_the_study_goes_on(tmp_path
     args = parser.parse_args(["sil-loop", "--cases", "steer_delay=0.04,steer_delay=0.08", "--out", str(tmp_path)])
     assert loop._run(args) == 0
     doc = json.loads((tmp_path / "loop.json").read_text())
+    assert doc["line"] == loop.LINE == "flying"     # every run's line, recorded
     assert [c.get("error") for c in doc["cases"]][0] is None and "no speed drives 60 s" in doc["cases"][1]["error"]
     assert (doc["summary"]["steer_delay"]["cases"], doc["summary"]["steer_delay"]["not_scored"],
             doc["summary"]["steer_delay"]["within_1pct_of_oracle"]) == (2, 1, 1)
@@ -267,3 +275,14 @@ def test_centred_set_points_put_the_ramp_on_the_held_command():
     assert ramp_area == pytest.approx(np.sum(u)) and ramp_centre == pytest.approx(held_centre)
     before = np.r_[u[:1], u[:-1]]
     assert np.trapezoid(before * t, t) / np.trapezoid(before, t) == pytest.approx(held_centre + 0.5)
+
+
+def test_a_diagnosis_that_fails_says_why_in_one_line(tmp_path):
+    """The case's error is a cell of loop.md's table: the diagnosis's own one-line reason, not an empty tail of its
+    stdout (a 60 s log drive that crawled left 36 usable rows: "exited 2:" and nothing after it, until this)."""
+    bad = tmp_path / "user_log.csv"
+    bad.write_text("a,b\n1,2\n")
+    with pytest.raises(DdynError) as e:
+        loop.diagnose(bad, "orca_1_43", tmp_path / "d")
+    msg = str(e.value)
+    assert "\n" not in msg and "exited 2: " in msg and f"{bad}: unrecognised format" in msg
