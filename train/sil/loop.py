@@ -685,8 +685,10 @@ def _run(args: argparse.Namespace) -> int:
         track = open_track(tname, vehicle.name)
         if tname.startswith("random:"):
             from ddyn.control.mpc_tracks import optimum
-            # the car's line on a random track, computed once (out/racelines)
-            optimum(vehicle.name, track, flying=LINES[args.line])
+            from ddyn.control.raceline import default_flying
+            # the car's line on a random track, computed once (out/racelines); --line default: its own kind
+            flying = LINES[args.line]
+            optimum(vehicle.name, track, flying=default_flying(vehicle.name) if flying is None else flying)
         tdir = out / tname.replace(":", "_")
         m = _drive(vehicle, track, tdir / "reference", effects={}, seed=args.seed, line=args.line)
         ref = _row(m, tdir / "reference")
