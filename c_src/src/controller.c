@@ -217,6 +217,13 @@ static int degraded_config_ok(const ddyn_ctrl_degraded_config *d, double dt)
            d->speed_scale > 0.0 && d->speed_scale <= 1.0 && d->stale_extra_periods >= 0;
 }
 
+/* The MPC's horizon with a steering delay of n periods: cfg->mpc.horizon - n (ddyn/controller.h, "the
+ * plan ends where it would without the delay"); < 1 when the delay leaves no stage (refused). */
+static int plan_horizon(const ddyn_ctrl_config *cfg, int n_steer)
+{
+    return cfg->mpc.horizon - n_steer;
+}
+
 static int config_ok(const ddyn_ctrl_config *cfg, double dt)
 {
     const ddyn_ctrl_pid_config *g = &cfg->pid;
@@ -238,8 +245,8 @@ static int config_ok(const ddyn_ctrl_config *cfg, double dt)
         !(cfg->c_nominal[CM1] > 0.0) ||
         cfg->max_coeff_age < 0 || cfg->max_sensor_faults < 1 ||
         cfg->max_blind_steps < 1 || cfg->recovery_steps < 1 || cfg->max_plan_shift < 0 ||
-        cfg->max_plan_shift >= cfg->mpc.horizon) {
-        return 0;
+        cfg->max_plan_shift >= plan_horizon(cfg, steps[DDYN_CTRL_CH_STEERING])) {
+        return 0; /* also a horizon that the steering delay leaves shorter than one stage */
     }
     for (i = 0; i < NX; ++i) {
         if (!(cfg->p_max[i] > cfg->p0_diag[i])) {
@@ -260,6 +267,7 @@ static int config_ok(const ddyn_ctrl_config *cfg, double dt)
 ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, const ddyn_net_tables *tables,
                            const ddyn_ctrl_config *cfg, const double x0[DDYN_NX])
 {
+    ddyn_mpc_config mpc_cfg;
     ddyn_status s;
     if (ctl == NULL || model == NULL || cfg == NULL || x0 == NULL) {
         return DDYN_ERR_ARGUMENT;
@@ -283,13 +291,15 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     if (s != DDYN_OK) {
         return s;
     }
-    s = ddyn_mpc_init(&ctl->mpc, model, &cfg->mpc);
+    (void)ddyn_ctrl_delay_steps(&cfg->delay, model->sample_time, ctl->delay_steps); /* checked by config_ok */
+    mpc_cfg = cfg->mpc;
+    mpc_cfg.horizon = plan_horizon(cfg, ctl->delay_steps[DDYN_CTRL_CH_STEERING]);
+    s = ddyn_mpc_init(&ctl->mpc, model, &mpc_cfg);
     if (s != DDYN_OK) {
         return s;
     }
     ctl->cfg = *cfg;
     ctl->model = model;
-    (void)ddyn_ctrl_delay_steps(&cfg->delay, model->sample_time, ctl->delay_steps); /* checked by config_ok */
     ddyn_ctrl_delay_line_reset(&ctl->sent[0], 0.0); /* the actuators held since forever */
     ddyn_ctrl_delay_line_reset(&ctl->sent[1], 0.0);
     /* a shorter throttle delay is held back to the steering's (ddyn/controller.h): the queue holds u = 0 */
@@ -930,8 +940,8 @@ static int fix_pipe_throttle(ddyn_ctrl *ctl)
         (void)ddyn_mpc_fix_throttle(&ctl->mpc, 0, NULL);
         return 0;
     }
-    if (n > ctl->cfg.mpc.horizon - 1) {
-        n = ctl->cfg.mpc.horizon - 1;
+    if (n > ctl->mpc.cfg.horizon - 1) { /* the MPC's horizon: shortened by the steering delay */
+        n = ctl->mpc.cfg.horizon - 1;
     }
     for (k = 0; k < n; ++k) { /* n <= DDYN_CTRL_MAX_DELAY_STEPS */
         u[k] = ddyn_ctrl_delay_line_ago(&ctl->sent[DDYN_CTRL_CH_THROTTLE], nt - 1 - ns - k);

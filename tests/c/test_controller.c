@@ -1235,6 +1235,58 @@ static void run_delayed_plant(int period, int ds, int dthr, const ddyn_ctrl_outp
     memcpy(plant, next, sizeof next);
 }
 
+static void test_a_steering_delay_shortens_the_horizon_by_its_periods(void **state)
+{
+    /* issue 34: the plan ends where it would without the delay. With a steering delay of n periods the
+     * MPC's horizon is cfg.mpc.horizon - n (the config kept as given); a throttle delay alone keeps it;
+     * a config whose max_plan_shift the shortened horizon does not exceed is refused */
+    const double dt = model->sample_time;
+    const int h = cfg.mpc.horizon;
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double up[DDYN_MPC_NV];
+    int k;
+    (void)state;
+    cfg.delay.steering = 3.0 * dt;
+    start_on_circle(oracle_tables());
+    assert_int_equal(ctl.mpc.cfg.horizon, h - 3);
+    assert_int_equal(ctl.cfg.mpc.horizon, h);
+    for (k = 0; k < 5; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        run_delayed_plant(k, 3, 0, &out);
+    }
+    assert_int_equal(ddyn_mpc_plan_inputs(&ctl.mpc, up), h - 3);
+    assert_int_equal(ctl.plan_horizon, h - 3);
+    cfg.delay.steering = 0.0;
+    cfg.delay.throttle = 3.0 * dt;
+    start_on_circle(oracle_tables());
+    assert_int_equal(ctl.mpc.cfg.horizon, h);
+    /* the plan shift must stay inside the shortened horizon */
+    cfg.delay.throttle = 0.0;
+    cfg.delay.steering = 2.0 * dt;
+    cfg.mpc.horizon = 5;
+    cfg.max_plan_shift = 3;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.max_plan_shift = 2;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
+    assert_int_equal(ctl.mpc.cfg.horizon, 3);
+    /* a delay that leaves no stage is refused, not cut */
+    cfg.max_plan_shift = 0;
+    cfg.mpc.horizon = 2;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.mpc.horizon = 3;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
+    assert_int_equal(ctl.mpc.cfg.horizon, 1);
+    /* a longer throttle delay's known stages stop one short of the shortened horizon */
+    cfg.mpc.horizon = 6;
+    cfg.delay.throttle = 6.0 * dt; /* 4 periods after the steering's; the horizon is 4 */
+    start_on_circle(oracle_tables());
+    readings(&in, 0);
+    ddyn_ctrl_step(&ctl, &in, &out);
+    assert_int_equal(ctl.mpc.fix_n, 3);
+}
+
 static void test_the_filter_predicts_with_the_command_sent_delay_ago(void **state)
 {
     /* steering 3 periods, throttle 1: drive the delayed plant with readings, then two periods without
@@ -1730,6 +1782,7 @@ int main(void)
         cmocka_unit_test_setup(test_a_command_not_sent_is_predicted_held, setup),
         cmocka_unit_test_setup(test_delay_line_returns_the_command_sent_n_periods_ago_and_wraps, setup),
         cmocka_unit_test_setup(test_delay_above_the_compiled_maximum_is_refused_at_init, setup),
+        cmocka_unit_test_setup(test_a_steering_delay_shortens_the_horizon_by_its_periods, setup),
         cmocka_unit_test_setup(test_the_filter_predicts_with_the_command_sent_delay_ago, setup),
         cmocka_unit_test_setup(test_the_lag_step_is_the_exact_discretisation, setup),
         cmocka_unit_test_setup(test_a_bad_lag_is_refused_at_init, setup),
