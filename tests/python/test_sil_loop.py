@@ -48,7 +48,7 @@ def test_the_loop_drives_diagnoses_rebuilds_and_scores(case, orca, mobil):
     assert c["oracle"]["vs_reference_pct"] < 2.0
     # the log drive: slower, no violation, at least the asked driving time
     ld = c["log_drive"]["chosen"]
-    assert ld["speed_scale"] == 0.6 and ld["violations"] == 0 and ld["driven_s"] >= 20.0
+    assert ld["speed_scale"] == 0.6 and ld["violations"] == 0 and ld["driven_s"] >= 20.0 and ld["usable_s"] >= 20.0
     # the diagnosis ran with its defaults on the user's log; the rebuilt controller's configuration records it
     dg = c["diagnosis"]
     assert (out / "case" / "diagnosis" / "diagnosis.json").is_file() and dg["truth"] == 0.04
@@ -193,6 +193,36 @@ def test_a_bad_controller_log_is_one_line(tmp_path, orca):
         loop.user_log(tmp_path / "c.csv", orca.name, orca.sample_time)
     with pytest.raises(DdynError, match="unknown effect 'warp'"):
         loop.parse_cases("warp=1")
+
+
+def test_the_log_drive_needs_the_asked_seconds_of_usable_log(tmp_path, monkeypatch, orca, mobil):
+    """A drive that completes its laps crawling or on the safe command leaves the diagnosis too few rows: it is not
+    chosen, a slower drive with a violation is (random:301, an 80 ms steering delay, noise seed 2: 37 usable rows)."""
+    dt = orca.sample_time
+    # per speed scale: violations, rows at vx >= MIN_VX without the safe command, rows crawling, rows safe
+    plan = {0.6: (0, 40, 3000, 0), 0.5: (0, 1000, 100, 2000), 0.4: (1, 3200, 0, 10), 0.3: (0, 3300, 0, 0)}
+
+    def drive(vehicle, track, d, effects, speed_scale, laps, seed, road_bank, line):
+        viol, good, slow, safe = plan[speed_scale]
+        n = good + slow + safe
+        vx = np.r_[np.full(good, 1.0), np.full(slow, 0.1), np.full(safe, 1.0)]
+        d.mkdir(parents=True)
+        np.savetxt(d / "controller_log.csv", np.column_stack([np.arange(n), np.r_[np.zeros(good + slow), np.ones(safe)], vx]),
+                   delimiter=",", header="step,safe,vx", comments="")
+        return {"lap_times": [n * dt], "lap_completed": True, "violations": viol, "end_reason": "laps_completed",
+                "tracking_error": {"mean": 0.02}}
+
+    monkeypatch.setattr(loop, "_drive", drive)
+    got, d = loop.log_drive(orca, mobil, tmp_path, {"steer_delay": 0.08}, ref_lap=4.0, speeds=(0.6, 0.5, 0.4),
+                            seconds=60.0)
+    assert [t["usable_s"] for t in got["tried"]] == pytest.approx([40 * dt, 1000 * dt, 3200 * dt])
+    assert got["chosen"]["speed_scale"] == 0.4 and d == tmp_path / "log_speed0.4"
+    # a clean drive with enough usable log ends the search at once
+    got, d = loop.log_drive(orca, mobil, tmp_path / "b", {}, ref_lap=4.0, speeds=(0.3, 0.4), seconds=60.0)
+    assert got["chosen"]["speed_scale"] == 0.3 and len(got["tried"]) == 1
+    # none usable: one line that says how much each gave
+    with pytest.raises(DdynError, match=r"0.6: laps_completed, 0 violations, 1 s usable"):
+        loop.log_drive(orca, mobil, tmp_path / "c", {}, ref_lap=4.0, speeds=(0.6,), seconds=60.0)
 
 
 def test_the_summary_counts_targets_per_effect_and_takes_the_worst_lap():
