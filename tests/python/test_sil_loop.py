@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ddyn.errors import DdynError
-from ddyn.sil import loop
+from ddyn.sil import ins, loop
 from ddyn.sil import run as sil
 
 
@@ -83,18 +83,25 @@ def test_the_user_log_is_the_controller_estimate_and_the_set_points_sampled_cent
     raw = sil.read_csv(clog)
     k = int(np.flatnonzero(raw["step"] == ds.time[10] / orca.sample_time)[0])
     assert ds.column("vx")[10] == raw["vx"][k]
-    # vy from the track of the positions, not the filter's, turned by the inertial heading (the GNSS heading read
-    # every period here); against the plant's own (its trajectory.csv, the truth the loop never reads) within the
-    # noise: a wrong rotation or sign would be off by the car's speed
+    # vy from the GNSS/IMU smoother (the GNSS positions and the accelerometer, no vehicle model), not the filter's,
+    # turned by the inertial heading (the GNSS heading read every period here); against the plant's own (its
+    # trajectory.csv, the truth the loop never reads) within the noise: a wrong rotation or sign would be off by the
+    # car's speed; and closer than the track of the filter's positions (which carry the filter's nominal model)
+    assert "the GNSS/IMU smoother (ddyn.sil.ins) in" in ds.metadata["vy"]
     assert "the inertial heading (GNSS heading_meas and the yaw rate) in" in ds.metadata["vy"]
     keep = np.searchsorted(raw["step"], np.round(ds.time / orca.sample_time).astype(int))
     heading = loop.inertial_heading(raw["heading_meas"][keep], ds.column("omega"), ds.segment, orca.sample_time)
-    assert ds.column("vy") == pytest.approx(loop.track_lateral_velocity(
-        ds.column("x"), ds.column("y"), heading, ds.segment, orca.sample_time))
+    assert ds.column("vy") == pytest.approx(ins.body_lateral_velocity(
+        raw["gnss_x_meas"][keep], raw["gnss_y_meas"][keep], ds.extras["ax"], ds.extras["ay"], heading, ds.segment,
+        orca.sample_time))
     truth, _ = loop.plant_states_log(out / "case" / "user_log.csv", out / "case" / "log_speed0.6" / "trajectory.csv",
                                      out / "plant_states.csv")
     got = loop.vy_against_plant(out / "case" / "user_log.csv", truth, clog, orca.sample_time)
-    assert got["user_log"]["rms"] < 0.05 and abs(got["user_log"]["mean"]) < 0.01
+    assert got["user_log"]["rms"] < 0.01 and abs(got["user_log"]["mean"]) < 0.002
+    track = loop.track_lateral_velocity(ds.column("x"), ds.column("y"), heading, ds.segment, orca.sample_time)
+    from ddyn.data.importers import read_canonical
+    plant_vy = read_canonical(truth).column("vy")
+    assert np.sqrt(np.mean((ds.column("vy") - plant_vy) ** 2)) < 0.5 * np.sqrt(np.mean((track - plant_vy) ** 2))
     # the accelerometer's readings ride along as the log's ax, ay
     assert np.isfinite(raw["ay_meas"]).all() and ds.extras["ay"][10] == raw["ay_meas"][k]
     u = raw["steering_cmd"]
@@ -119,6 +126,8 @@ def test_the_user_log_takes_the_measured_yaw_rate_where_a_reading_came(tmp_path,
                                                 [f"{r},{m},nan" for r, m in zip(rows, meas)]) + "\n")
     old = loop.user_log(tmp_path / "old.csv", orca.name, orca.sample_time)
     assert np.all(old.column("omega") == 0.5) and "no yaw_rate_meas" in old.metadata["omega"]
+    # no GNSS or accelerometer readings: vy from the track of the filter's positions, and it says so
+    assert old.metadata["vy"].startswith("from the track of the filter's positions (the log has no GNSS")
     new = loop.user_log(tmp_path / "new.csv", orca.name, orca.sample_time)
     assert new.column("omega").tolist() == [0.40, 0.5, 0.60, 0.55, 0.5, 0.52]
     assert new.metadata["omega"].startswith("the IMU's yaw rate (yaw_rate_meas) in 4 of 6 rows")
