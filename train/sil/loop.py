@@ -64,12 +64,11 @@ SCORED_LAPS = 4
 # is a standing-start lap, and closed on itself it asks the car arriving at the finish at full speed to slow to the
 # start's 0.5 m/s (docs/tracks.md, section 6): the wrap's braking came late by up to a throttle delay and cost a
 # compensated 120 ms throttle delay 1-2.5 % of the flying lap, nearly all of it in the first tenth of the lap.
-# Chosen on ETHZMobil and random:303-305 (not the study's held-out random:301, :302), the oracle controller for
+# Chosen on ETHZMobil and random:303-305 (not the study's held-out random:301, :302) with the oracle controller for
 # each case of the study (steering delays 40/60/80 ms, throttle delays 60/100/120 ms, lags 50/100 ms), noise
-# seeds 1 and 2: clean and within 2 % of the car without the effect in 62 of 64 runs on the flying line (the
-# throttle delays and lags within -0.5..+0.4 %; random:304 at seed 2 left the track with 60 and 80 ms steering
-# delays, its flying line 4 % faster than its standing one), 58 of 64 on the standing line (throttle delays up
-# to +1.6 %, ETHZMobil's 100 ms lag +2.8 % and off the track, its 60-80 ms steering delays with violations).
+# seeds 1 and 2 (`ddyn study sil-oracle [--line default]`, results/sil_oracle.json): clean and within 2 % of the
+# car without the effect in 64 of 64 runs on the flying line, 60 of 64 on the standing line (ETHZMobil's 80 ms
+# steering delay and 100 ms lag over 2 %, the lag off the track at seed 2).
 LINE = "flying"
 # the rebuilt run's targets (issue 34), each a yes per case in rebuilt.targets and a count in the summary
 TARGETS = ("clean_within_2pct_of_reference", "clean_within_2pct_of_reference_standing", "diagnosis_first_within_15pct",
