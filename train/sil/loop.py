@@ -93,8 +93,8 @@ def user_log(controller_log: Path, vehicle_name: str, sample_time: float, min_vx
     Measured (`ddyn study sil-loop`, ETHZMobil, random:301 and :302, the plant's delays and lags fitted alone):
     the set-point of the period before (a ramp half a period behind the held command) read throttle delays and
     steering lags about 10 ms short (a 60 ms throttle delay 46 ms; row k's own set-point would lead by as much);
-    centred (and vy from the positions' track), at noise seed 1 the steering delays are -1 to +11 %, the
-    throttle delays -9 to +6 % and the steering lags -15 to -1 % (loop.json's alone_error_pct).
+    centred (and vy from the GNSS/IMU smoother), at noise seed 1 the steering delays are +1 to +13 %, the
+    throttle delays -12 to +7 % and the steering lags -5 to +4 % (loop.json's alone_error_pct).
     Rows with the safe command or slower than min_vx are dropped; each gap starts a segment. track_name: the
     track driven, as the log's `track` metadata (what a user's log of a known track carries)."""
     from ddyn.data.dataset import Dataset
@@ -157,7 +157,7 @@ def lateral_velocity_channel(c: dict, keep: np.ndarray, states: np.ndarray, head
     positions and the accelerometer, no vehicle model) where the log has both, else the track of the filter's
     positions (track_lateral_velocity; an older SIL log). Measured on the study's logs (the log drives of ETHZMobil
     with 50 and 100 ms steering lags): the filter's positions gave vy 0.017 m/s RMS off the plant's, the smoother
-    0.005; on random:301 with a 100 ms lag that took the lag fitted alone from -17 % to within a few per cent."""
+    0.005; on random:301 with a 100 ms lag that took the lag fitted alone from -17 % to -3 %."""
     from ddyn.sil import ins
 
     have = all(k in c for k in ("gnss_x_meas", "gnss_y_meas"))
