@@ -708,8 +708,21 @@ def bank_line(c: dict) -> str:
     return out
 
 
-def _run(args: argparse.Namespace) -> int:
+def open_track_for_line(vehicle, tname: str, line: str):
+    """The track, with the car's line on it made ready: on a random track the line is computed once (out/racelines;
+    `line` default: the car's own kind, flying: its flying-lap line)."""
     from ddyn.model.track_files import open_track
+
+    track = open_track(tname, vehicle.name)
+    if tname.startswith("random:"):
+        from ddyn.control.mpc_tracks import optimum
+        from ddyn.control.raceline import default_flying
+        flying = LINES[line]
+        optimum(vehicle.name, track, flying=default_flying(vehicle.name) if flying is None else flying)
+    return track
+
+
+def _run(args: argparse.Namespace) -> int:
     from ddyn.model.vehicle import load as load_vehicle
 
     vehicle = load_vehicle(args.vehicle)
@@ -718,13 +731,7 @@ def _run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     results = []
     for tname in args.tracks.split(","):
-        track = open_track(tname, vehicle.name)
-        if tname.startswith("random:"):
-            from ddyn.control.mpc_tracks import optimum
-            from ddyn.control.raceline import default_flying
-            # the car's line on a random track, computed once (out/racelines); --line default: its own kind
-            flying = LINES[args.line]
-            optimum(vehicle.name, track, flying=default_flying(vehicle.name) if flying is None else flying)
+        track = open_track_for_line(vehicle, tname, args.line)
         tdir = out / tname.replace(":", "_")
         m = _drive(vehicle, track, tdir / "reference", effects={}, seed=args.seed, line=args.line)
         ref = _row(m, tdir / "reference")

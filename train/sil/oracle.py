@@ -25,14 +25,7 @@ WITHIN_PCT = 2.0   # the loop's target: the flying lap within 2 % of the car wit
 
 def run_track(vehicle, tname: str, cases: list[tuple[str, float]], seed: int, line: str, out: Path) -> list[dict]:
     """The reference (no effect) and one oracle run per case on one track at one noise seed."""
-    from ddyn.model.track_files import open_track
-
-    track = open_track(tname, vehicle.name)
-    if tname.startswith("random:"):
-        from ddyn.control.mpc_tracks import optimum
-        from ddyn.control.raceline import default_flying
-        flying = LINES[line]
-        optimum(vehicle.name, track, flying=default_flying(vehicle.name) if flying is None else flying)
+    track = loop.open_track_for_line(vehicle, tname, line)
     tdir = out / f"seed{seed}" / tname.replace(":", "_")
     ref = loop._row(loop._drive(vehicle, track, tdir / "reference", effects={}, seed=seed, line=line),
                     tdir / "reference")
