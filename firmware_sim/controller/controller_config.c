@@ -160,7 +160,8 @@ static const key_spec KEYS[] = {
      "CSV x,y,speed,width_left,width_right[,bank] (header line optional), 4 .. 1024 rows, closed loop; the 6th "
      "column (rad) with control.bank true only"},
     {"mpc", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE, "overrides of the MPC's defaults (docs/mpc.md)"},
-    {"mpc.horizon", K_INT, MPC(horizon), 0, 0, 1, DDYN_MPC_MAX_HORIZON, 0, NULL, NONE, "stages"},
+    {"mpc.horizon", K_INT, MPC(horizon), 0, 0, 1, DDYN_MPC_MAX_HORIZON, 0, NULL, NONE,
+     "stages (with a steering delay of n periods the MPC plans n fewer: ddyn/controller.h)"},
     {"mpc.q_pos", K_NUMBERS, MPC(q_pos), 0, 2, 0.0, 1e12, 0, NULL, NONE, "weights of the x and y error"},
     {"mpc.q_terminal_scale", K_NUMBER, MPC(q_terminal_scale), 0, 0, 0.0, 1e12, 0, NULL, NONE,
      "last stage's position weight factor"},
