@@ -217,6 +217,18 @@ static int degraded_config_ok(const ddyn_ctrl_degraded_config *d, double dt)
            d->speed_scale > 0.0 && d->speed_scale <= 1.0 && d->stale_extra_periods >= 0;
 }
 
+void ddyn_ctrl_mass_scale(double c[DDYN_NC], double mass_offset)
+{
+    static const int idx[DDYN_CTRL_MASS_SCALED_COUNT] = DDYN_CTRL_MASS_SCALED;
+    int i;
+    if (mass_offset == 0.0) {
+        return; /* bit-identical without it */
+    }
+    for (i = 0; i < DDYN_CTRL_MASS_SCALED_COUNT; ++i) {
+        c[idx[i]] /= 1.0 + mass_offset;
+    }
+}
+
 /* The MPC's horizon with a steering delay of n periods: cfg->mpc.horizon - n (ddyn/controller.h, "the
  * plan ends where it would without the delay"); < 1 when the delay leaves no stage (refused). */
 static int plan_horizon(const ddyn_ctrl_config *cfg, int n_steer)
@@ -229,9 +241,11 @@ static int config_ok(const ddyn_ctrl_config *cfg, double dt)
     const ddyn_ctrl_pid_config *g = &cfg->pid;
     int i, k, steps[NU];
     if (!degraded_config_ok(&cfg->degraded, dt) || ddyn_ctrl_delay_steps(&cfg->delay, dt, steps) != DDYN_OK ||
-        !(ddyn_ctrl_lag_decay(cfg->lag.steering, dt) < 1.0)) {
+        !(ddyn_ctrl_lag_decay(cfg->lag.steering, dt) < 1.0) || !(cfg->mass_offset >= DDYN_CTRL_MASS_OFFSET_MIN) ||
+        !(cfg->mass_offset <= DDYN_CTRL_MASS_OFFSET_MAX)) {
         return 0; /* a delay above the compiled maximum is refused, not cut; a negative, non-finite lag, or
-                     one so long that it does not decay in a period (its inversion would divide by 0) */
+                     one so long that it does not decay in a period (its inversion would divide by 0); a mass
+                     offset out of its range (also NaN) */
     }
     if ((unsigned)cfg->coeff_source >= (unsigned)DDYN_CTRL_SOURCE_COUNT ||
         (unsigned)cfg->throttle_mode >= (unsigned)DDYN_CTRL_THROTTLE_MODE_COUNT ||
@@ -311,6 +325,9 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     ctl->lag_cmd = ctl->lag_act = ctl->lag_cmd_next = ctl->lag_act_next = x0[STEERING];
     memcpy(ctl->coeffs, cfg->coeff_source == DDYN_CTRL_SOURCE_FIXED ? cfg->c_fixed : cfg->c_nominal,
            sizeof ctl->coeffs);
+    ddyn_ctrl_mass_scale(ctl->coeffs, cfg->mass_offset);
+    /* a heavier car drives the line's path at 1 / sqrt(1 + offset) of its speeds (ddyn/controller.h) */
+    ctl->mass_speed_scale = cfg->mass_offset > 0.0 ? 1.0 / sqrt(1.0 + cfg->mass_offset) : 1.0;
     ctl->last_good_age = -1;
     ctl->bank_hint = -1;
     memcpy(ctl->x_prev, x0, sizeof ctl->x_prev);
@@ -413,8 +430,8 @@ static int history_in_range(const ddyn_ctrl *ctl)
     return 1;
 }
 
-/* Step 2: the coefficients of this period, with their fallbacks. */
-static ddyn_ctrl_status choose_coefficients(ddyn_ctrl *ctl)
+/* Step 2: the coefficients of this period, with their fallbacks (as the source gives them). */
+static ddyn_ctrl_status choose_source_coefficients(ddyn_ctrl *ctl)
 {
     ddyn_ctrl_status st = DDYN_CTRL_OK;
     double c[NC];
@@ -447,6 +464,15 @@ static ddyn_ctrl_status choose_coefficients(ddyn_ctrl *ctl)
         memcpy(ctl->coeffs, ctl->cfg.c_nominal, sizeof ctl->coeffs);
         st |= DDYN_CTRL_COEFF_NOMINAL;
     }
+    return st;
+}
+
+/* Step 2, then the known mass offset on whichever set was chosen (the last good set is kept as the
+ * network gave it: scaled once, here) */
+static ddyn_ctrl_status choose_coefficients(ddyn_ctrl *ctl)
+{
+    const ddyn_ctrl_status st = choose_source_coefficients(ctl);
+    ddyn_ctrl_mass_scale(ctl->coeffs, ctl->cfg.mass_offset);
     return st;
 }
 
@@ -583,7 +609,7 @@ static ddyn_ctrl_status update_degraded(ddyn_ctrl *ctl, const ddyn_ctrl_input *i
     for (k = 0; k < NU; ++k) {
         ctl->mpc.cfg.r_rate[k] = ctl->cfg.mpc.r_rate[k] * (ctl->degraded ? d->rate_weight_scale : 1.0);
     }
-    ctl->mpc.track.speed_scale = ctl->degraded ? d->speed_scale : 1.0;
+    ctl->mpc.track.speed_scale = (ctl->degraded ? d->speed_scale : 1.0) * ctl->mass_speed_scale;
     if (ctl->degraded) {
         st |= DDYN_CTRL_BUS_DEGRADED;
         ctl->degraded_periods = saturating_increment(ctl->degraded_periods);

@@ -46,12 +46,14 @@ typedef struct {
     int have_pid[4];
     double delay[2];                    /* control.delay.{steering,throttle}, s (0 = none) */
     double lag[1];                      /* control.lag.steering: the steering lag's time constant, s (0 = none) */
+    double mass_offset;                 /* control.mass_offset: the car's mass is (1 + it) times the model's */
     int bank;                           /* control.bank: the raceline's 6th column is the road's bank (rad) */
     /* effects: what the configuration was made from (`ddyn sil effects`, issue 34); "" = not recorded */
     char effects_diagnosis[DDYN_APP_PATH_LEN]; /* effects.diagnosis: the diagnosis.json (recorded, not read) */
     char effects_sha256[65];            /* effects.diagnosis_sha256: its sha256 */
     double effects_delay[2];            /* effects.delay.{steering,throttle}: the delays it gave, s */
     double effects_lag[1];              /* effects.lag.steering: the steering lag it gave, s */
+    double effects_mass_offset;         /* effects.mass_offset: the mass offset it gave */
     int effects_bank;                   /* effects.bank: whether it gave the road's bank (control.bank must match) */
     double effects_bank_peak;           /* effects.bank_peak: the largest |bank| (rad) of the column it gave */
     char effects_bank_from[DDYN_APP_PATH_LEN]; /* effects.bank_from: which bank it is (recorded, not read) */

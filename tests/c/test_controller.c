@@ -1509,6 +1509,92 @@ static void test_a_longer_throttle_delay_is_known_in_the_first_stages(void **sta
     }
 }
 
+/* ---- mass offset (ddyn_ctrl_config.mass_offset) ---- */
+
+static void test_the_mass_scaled_coefficients_are_the_heavier_car(void **state)
+{
+    /* issue 34: the coefficients scaled for a mass (1 + offset) give the rigid body of that mass: dvx and
+     * dvy's force parts divided by (1 + offset), domega (Iz unchanged) and the kinematics as before */
+    const double x[DDYN_NX] = {1.0, -0.5, 0.3, 2.1, -0.12, 1.4, 0.35, 0.08};
+    const double u[DDYN_NU] = {0.5, -0.2};
+    const double offsets[3] = {0.2, -0.3, 1.0};
+    double c[DDYN_NC], raw[DDYN_NX], heavy[DDYN_NX];
+    int i, k;
+    (void)state;
+    assert_int_equal(ddyn_model_derivatives(model, x, u, C_TRUE, raw, &plant_work), DDYN_OK);
+    for (k = 0; k < 3; ++k) {
+        const double m = 1.0 + offsets[k];
+        memcpy(c, C_TRUE, sizeof c);
+        ddyn_ctrl_mass_scale(c, offsets[k]);
+        assert_int_equal(ddyn_model_derivatives(model, x, u, c, heavy, &plant_work), DDYN_OK);
+        assert_true(fabs((heavy[3] - x[4] * x[5]) - (raw[3] - x[4] * x[5]) / m) < 1e-12);
+        assert_true(fabs((heavy[4] + x[3] * x[5]) - (raw[4] + x[3] * x[5]) / m) < 1e-12);
+        assert_true(fabs(heavy[5] - raw[5]) < 1e-12 * fabs(raw[5]) + 1e-15);
+        for (i = 0; i < 3; ++i) {
+            assert_true(heavy[i] == raw[i]); /* positions and heading: kinematics */
+        }
+        /* the test is not blind: every force part is there (here -0.07, 5.0 m/s^2 and 30.7 rad/s^2) */
+        assert_true(fabs(raw[3] - x[4] * x[5]) > 0.01 && fabs(raw[4] + x[3] * x[5]) > 1.0 && fabs(raw[5]) > 1.0);
+    }
+    memcpy(c, C_TRUE, sizeof c);
+    ddyn_ctrl_mass_scale(c, 0.0);
+    assert_memory_equal(c, C_TRUE, sizeof c); /* none: bit-identical */
+}
+
+static void test_the_controller_uses_the_mass_scaled_coefficients_and_refuses_a_bad_offset(void **state)
+{
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double want[DDYN_NC];
+    int k;
+    (void)state;
+    /* the fixed set, scaled from the start and every period */
+    cfg.mass_offset = 0.25;
+    cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED;
+    memcpy(cfg.c_fixed, C_TRUE, sizeof C_TRUE);
+    memcpy(want, C_TRUE, sizeof want);
+    ddyn_ctrl_mass_scale(want, 0.25);
+    start_on_circle(oracle_tables());
+    assert_memory_equal(ctl.coeffs, want, sizeof want);
+    for (k = 0; k < 3; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_memory_equal(out.coeffs, want, sizeof want);
+        /* the heavier car's line: the reference speeds times 1 / sqrt(1.25) */
+        assert_true(fabs(ctl.mpc.track.speed_scale - 1.0 / sqrt(1.25)) < 1e-15);
+    }
+    /* a lighter car keeps the line's speeds */
+    cfg.mass_offset = -0.2;
+    start_on_circle(oracle_tables());
+    readings(&in, 0);
+    ddyn_ctrl_step(&ctl, &in, &out);
+    assert_true(ctl.mpc.track.speed_scale == 1.0);
+    cfg.mass_offset = 0.25;
+    /* the network's: scaled once, its last good set kept as it gave it */
+    cfg.coeff_source = DDYN_CTRL_SOURCE_NETWORK;
+    start_on_circle(&ddyn_net_weights);
+    for (k = 0; k < 12; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+    }
+    assert_int_equal(ctl.last_good_age, 0);
+    memcpy(want, ctl.last_good, sizeof want);
+    ddyn_ctrl_mass_scale(want, 0.25);
+    assert_memory_equal(out.coeffs, want, sizeof want);
+    assert_true(out.coeffs[16] < ctl.last_good[16]);
+    /* out of range (also NaN): refused */
+    cfg.mass_offset = DDYN_CTRL_MASS_OFFSET_MIN - 1e-9;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.mass_offset = 1.0 + 1e-9;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.mass_offset = NAN;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.mass_offset = DDYN_CTRL_MASS_OFFSET_MAX;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
+    cfg.mass_offset = DDYN_CTRL_MASS_OFFSET_MIN;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
+}
+
 /* ---- steering lag (ddyn_ctrl_lag_config) ---- */
 
 static void test_the_lag_step_is_the_exact_discretisation(void **state)
@@ -1784,6 +1870,8 @@ int main(void)
         cmocka_unit_test_setup(test_delay_above_the_compiled_maximum_is_refused_at_init, setup),
         cmocka_unit_test_setup(test_a_steering_delay_shortens_the_horizon_by_its_periods, setup),
         cmocka_unit_test_setup(test_the_filter_predicts_with_the_command_sent_delay_ago, setup),
+        cmocka_unit_test_setup(test_the_mass_scaled_coefficients_are_the_heavier_car, setup),
+        cmocka_unit_test_setup(test_the_controller_uses_the_mass_scaled_coefficients_and_refuses_a_bad_offset, setup),
         cmocka_unit_test_setup(test_the_lag_step_is_the_exact_discretisation, setup),
         cmocka_unit_test_setup(test_a_bad_lag_is_refused_at_init, setup),
         cmocka_unit_test_setup(test_the_filter_and_history_use_the_acting_steering_of_the_lag, setup),

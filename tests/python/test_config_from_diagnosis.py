@@ -1,6 +1,7 @@
 """From a diagnosis to the controller's configuration (issue 34 item 2; ddyn.sil.effects,
 `ddyn sil run --effects-from D [--config-only]`): steer_delay becomes control.delay.steering, throttle_delay
-control.delay.throttle, steer_lag control.lag.steering (issue 34 item 1), every other claimed effect is named and not applied, bad input is one line
+control.delay.throttle, steer_lag control.lag.steering, mass_offset control.mass_offset (issue 34 item 1), every other
+claimed effect is named and not applied, bad input is one line
 naming the file and the key, and the controller refuses a configuration whose control.delay or control.lag was
 edited after it was made from the diagnosis (controller.json `effects`)."""
 from __future__ import annotations
@@ -39,9 +40,10 @@ def test_a_steering_delay_becomes_control_delay_steering(tmp_path):
     assert fx.sha256 == hashlib.sha256((d / "diagnosis.json").read_bytes()).hexdigest()
     cfg = apply_to_config({"vehicle": "orca_1_43", "control": {"period": 0.02}}, fx)
     assert cfg["control"] == {"period": 0.02, "delay": {"steering": 0.041, "throttle": 0.0},
-                              "lag": {"steering": 0.0}}
+                              "lag": {"steering": 0.0}, "mass_offset": 0.0}
     assert cfg["effects"] == {"diagnosis": str((d / "diagnosis.json").resolve()), "diagnosis_sha256": fx.sha256,
-                              "delay": {"steering": 0.041, "throttle": 0.0}, "lag": {"steering": 0.0}}
+                              "delay": {"steering": 0.041, "throttle": 0.0}, "lag": {"steering": 0.0},
+                              "mass_offset": 0.0}
     # the file itself works as well as its folder
     assert controller_effects(d / "diagnosis.json").delays == {"steer": 0.041}
 
@@ -49,10 +51,10 @@ def test_a_steering_delay_becomes_control_delay_steering(tmp_path):
 def test_a_steering_lag_becomes_control_lag_steering(tmp_path):
     """A claimed steer_lag (without steer_delay) is the controller's control.lag.steering: its tau fitted alone
     when the diagnosis has it (not rounded to periods: a time constant), else the joint one."""
-    d = _diagnosis(tmp_path / "D", ["steer_lag", "mass_offset"], {"steer_lag": 0.0365, "mass_offset": 0.08})
+    d = _diagnosis(tmp_path / "D", ["steer_lag", "downforce"], {"steer_lag": 0.0365, "downforce": 0.08})
     fx = controller_effects(d, period=0.02)
     assert fx.lag == {"steer": 0.0365} and fx.delays == {} and fx.applied == ["steer_lag"]
-    assert fx.not_applied == ["mass_offset: not in the runtime (issue 34)"]
+    assert fx.not_applied == ["downforce: not in the runtime (issue 34)"]
     assert fx.lines()[0].startswith("steer_lag: applied as control.lag.steering = 0.0365 s (joint fit)")
     raw = json.loads((d / "diagnosis.json").read_text())
     raw["candidates"] = [{"effect": "steer_lag", "params": {"tau": 0.051}}]
@@ -71,27 +73,76 @@ def test_a_steering_lag_becomes_control_lag_steering(tmp_path):
 
 
 def test_unsupported_effects_are_named_not_applied(tmp_path):
-    d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "mass_offset"],
-                   {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "mass_offset": 0.1})
+    d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "downforce"],
+                   {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "downforce": 0.1})
     fx = controller_effects(d)
     assert fx.delays == {"steer": 0.02, "throttle": 0.1} and fx.applied == ["steer_delay", "throttle_delay"]
     assert fx.lag == {}
     # selected beside steer_delay the lag is not applied (the delay fitted alone carries the response)
     assert fx.not_applied[0].startswith("steer_lag: found 0.06, not applied: selected with steer_delay")
-    assert fx.not_applied[1] == "mass_offset: not in the runtime (issue 34)" and len(fx.not_applied) == 2
+    assert fx.not_applied[1] == "downforce: not in the runtime (issue 34)" and len(fx.not_applied) == 2
     # a bank (bank_angle, bank_profile) is applied, the roll channel's named: test_sil_bank_effects.py
     nothing = controller_effects(_diagnosis(tmp_path / "E", []))
     assert nothing.delays == {} and nothing.applied == [] and nothing.not_applied == []
+
+
+def test_a_mass_offset_becomes_control_mass_offset_and_an_edited_one_is_refused(tmp_path):
+    """A claimed mass_offset is the controller's control.mass_offset (the joint fit's fraction, not the one fitted
+    alone); one outside the controller's [-0.5, 1] is named and not applied; the controller accepts the file made
+    from it and refuses it with control.mass_offset edited, naming effects.mass_offset."""
+    d = _diagnosis(tmp_path / "D", ["mass_offset", "steer_lag"], {"mass_offset": 0.12, "steer_lag": 0.03})
+    raw = json.loads((d / "diagnosis.json").read_text())
+    raw["candidates"] = [{"effect": "mass_offset", "params": {"fraction": 0.15}}]
+    (d / "diagnosis.json").write_text(json.dumps(raw))
+    fx = controller_effects(d, period=0.02)
+    assert fx.mass_offset == 0.12 and fx.applied == ["mass_offset", "steer_lag"] and fx.not_applied == []
+    assert fx.applied_estimates["mass_offset"] == {"alone": 0.15, "joint": 0.12, "written": 0.12}
+    assert "mass_offset: applied as control.mass_offset = 0.12 (joint fit; fitted alone 0.15)" in fx.lines()
+    cfg = apply_to_config({"vehicle": "orca_1_43", "control": {"period": 0.02}}, fx)
+    assert cfg["control"]["mass_offset"] == 0.12 and cfg["effects"]["mass_offset"] == 0.12
+    bins = sil.build_binaries(None)
+    orca = load_vehicle("orca_1_43")
+    spec = sil.SilSpec.true_car(orca, load_track("ethzMobil"), controller_lag=fx.lag,
+                                controller_mass_offset=fx.mass_offset, effects_from=fx.summary())
+    path = sil.write_controller_files(spec, sil.raceline_table(spec.track, orca), tmp_path, str(tmp_path))
+    written = json.loads(path.read_text())
+    assert written["control"]["mass_offset"] == 0.12 and written["effects"]["mass_offset"] == 0.12
+
+    def check(c):
+        path.write_text(json.dumps(c))
+        return subprocess.run([str(bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
+
+    ok = check(written)
+    assert ok.returncode == 0, ok.stderr
+    written["control"]["mass_offset"] = 0.3
+    bad = check(written)
+    assert bad.returncode == 2 and "effects.mass_offset" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    del written["effects"]
+    for value in (-0.6, 1.5, "heavy"):
+        written["control"]["mass_offset"] = value
+        bad = check(written)
+        assert bad.returncode == 2 and "control.mass_offset" in bad.stderr, value
+    # outside the range: named, not applied
+    raw["model"]["effects"][0]["params"]["fraction"] = -0.7
+    (d / "diagnosis.json").write_text(json.dumps(raw))
+    fx = controller_effects(d)
+    assert fx.mass_offset == 0.0 and fx.applied == ["steer_lag"]
+    assert fx.not_applied == ["mass_offset: found -0.7, not applied: outside the controller's control.mass_offset "
+                              "range [-0.5, 1]"]
+    # the command line: the same range, and not beside --effects-from
+    assert main(["sil", "run", "--controller-mass-offset", "2", "--config-only", "--out", str(tmp_path / "x")]) == 2
+    assert main(["sil", "run", "--effects-from", str(d), "--controller-mass-offset", "0.1", "--config-only",
+                 "--out", str(tmp_path / "x")]) == 2
 
 
 def test_a_throttle_delay_becomes_control_delay_throttle(tmp_path):
     """A claimed throttle_delay is the controller's control.delay.throttle: fitted alone when the diagnosis has
     it, to the nearest whole control period (87 ms acts as 4 periods of 20 ms, 0.08 s), beside the steering delay
     when both are claimed; the record carries it, so the controller checks it like the steering's."""
-    d = _diagnosis(tmp_path / "D", ["throttle_delay", "mass_offset"], {"throttle_delay": 0.066, "mass_offset": 0.1})
+    d = _diagnosis(tmp_path / "D", ["throttle_delay", "downforce"], {"throttle_delay": 0.066, "downforce": 0.1})
     fx = controller_effects(d)
     assert fx.delays == {"throttle": 0.066} and fx.applied == ["throttle_delay"] and fx.lag == {}
-    assert fx.not_applied == ["mass_offset: not in the runtime (issue 34)"]
+    assert fx.not_applied == ["downforce: not in the runtime (issue 34)"]
     raw = json.loads((d / "diagnosis.json").read_text())
     raw["candidates"] = [{"effect": "throttle_delay", "params": {"delay": 0.087}}]
     (d / "diagnosis.json").write_text(json.dumps(raw))

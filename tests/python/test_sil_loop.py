@@ -242,18 +242,20 @@ def test_the_summary_counts_targets_per_effect_and_takes_the_worst_lap():
         r["targets"] = dict.fromkeys(loop.TARGETS, False)
         r["targets"] |= {"clean_within_2pct_of_reference": completed and violations == 0 and (vs_ref or 9) <= 2,
                          "within_1pct_of_oracle": vs_oracle is not None and abs(vs_oracle) <= 1}
-        return {"effect": effect, "diagnosis": {"first_is_the_effect": first}, "rebuilt": r}
+        before = {"lap_completed": True, "violations": 0 if effect == "none" else 2}
+        return {"effect": effect, "diagnosis": {"first_is_the_effect": first}, "rebuilt": r, "before": before}
 
     failed = {"track": "ethzMobil", "effect": "steer_delay", "size": 0.08, "reference": {}, "error": "no log drive"}
     s = loop.summarise([case("steer_delay", True, True, 0, 0.8, 0.0), case("steer_delay", False, True, 3, 140.0, -2.5),
                         case("steer_lag", True, True, 0, 2.9, 1.0), case("none", False, True, 0, 0.1, None),
                         case("throttle_delay", True, False, 1, None, None), failed])
-    assert s["steer_delay"] == {"cases": 3, "not_scored": 1, "first_is_the_effect": 1, "clean": 1,
+    assert s["steer_delay"] == {"cases": 3, "not_scored": 1, "first_is_the_effect": 1, "before_clean": 0, "clean": 1,
                                 **dict.fromkeys(loop.TARGETS, 0), "clean_within_2pct_of_reference": 1,
                                 "within_1pct_of_oracle": 1, "worst_vs_reference_pct": 140.0,
                                 "worst_vs_oracle_pct": -2.5}
     assert s["effects"]["cases"] == 5 and s["effects"]["clean"] == 2 and s["effects"]["first_is_the_effect"] == 3
     assert s["throttle_delay"]["worst_vs_reference_pct"] is None and s["none"]["cases"] == 1
+    assert s["none"]["before_clean"] == 1
 
 
 def test_a_run_is_scored_on_the_median_of_its_flying_laps(tmp_path):

@@ -2,7 +2,8 @@
 
 `ddyn gap diagnose ... --out D` writes D/diagnosis.json; its `selected` effects (`model.effects`: each with its
 `params`) are what the diagnosis claims. The controller's runtime carries actuation delays and a steering lag
-(controller.json `control.delay`, `control.lag`; ddyn/controller.h), so:
+(controller.json `control.delay`, `control.lag`), a mass offset (`control.mass_offset`) and a road bank
+(ddyn/controller.h), so:
 
     steer_delay     -> control.delay.steering: its `delay` fitted alone (the diagnosis's candidate of that name),
                        to the nearest whole control period when the period is known
@@ -20,7 +21,11 @@
                        line: not applied, or a DdynError naming the key when it is another track)
     bank_from_roll  -> not applied, named: diagnosis.json carries the gain and the roll channel's check, not the
                        log's roll along the track, which a column along the raceline would need
-    anything else   -> not applied, named: "mass_offset: not in the runtime (issue 34)"
+    mass_offset     -> control.mass_offset: its `fraction` of the joint fit (as the bank's: fitted alone, the
+                       refitted nominal takes up part of it); the controller scales its coefficients for that
+                       mass and the line's speeds (ddyn/controller.h); one outside the controller's [-0.5, 1] is
+                       named and not applied
+    anything else   -> not applied, named: "downforce: not in the runtime (issue 34)"
 
 The configuration records where its delays, lag and bank came from (`effects`: the diagnosis's path, the sha256 of
 its diagnosis.json, the delays and the lag it gave, and with a bank `bank` true, `bank_peak` the column's largest
@@ -70,6 +75,7 @@ NOT_WITH = {"steer_lag": "steer_delay"}
 DELAY_MAX_S = 1.0   # the configuration's range of control.delay and control.lag (controller_config.c)
 BANK = ("bank_angle", "bank_profile", "bank_from_roll")   # the bank family (one at most is selected)
 BANK_MAX_RAD = math.radians(45.0)   # the controller refuses a bank column reaching 45 degrees (DDYN_MPC_MAX_BANK)
+MASS_OFFSET_RANGE = (-0.5, 1.0)     # control.mass_offset's range (DDYN_CTRL_MASS_OFFSET_MIN/MAX)
 
 
 @dataclass
@@ -87,6 +93,7 @@ class ControllerEffects:
     estimates: dict[str, float] = field(default_factory=dict)   # each selected effect's main parameter (joint fit)
     applied_estimates: dict[str, dict] = field(default_factory=dict)  # per applied effect: alone, joint, written
     bank: dict | None = None   # the diagnosed bank (_bank): effect, kind constant/profile, angle or profile, track
+    mass_offset: float = 0.0   # the mass offset (control.mass_offset; 0: none)
 
     def record(self, bank_column=None) -> dict:
         """controller.json's `effects` section (the controller checks control.delay against `delay`, control.lag
@@ -98,7 +105,8 @@ class ControllerEffects:
         """For sil_metrics.json and the study (and SilSpec.effects_from: what the configuration is made from)."""
         return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256, "selected": self.selected,
                 "estimates": self.estimates, "applied_estimates": self.applied_estimates, "applied": self.applied, "not_applied": self.not_applied,
-                "controller_delays": dict(self.delays), "controller_lag": dict(self.lag), "bank": self.bank}
+                "controller_delays": dict(self.delays), "controller_lag": dict(self.lag),
+                "controller_mass_offset": self.mass_offset, "bank": self.bank}
 
     def lines(self) -> list[str]:
         def how(e):
@@ -109,6 +117,10 @@ class ControllerEffects:
             return f" ({src}{per})"
         out = [f"{e}: applied as {APPLIED[e][2]} = {getattr(self, APPLIED[e][0])[APPLIED[e][1]]:.4g} s{how(e)}"
                for e in self.applied if e in APPLIED]
+        if "mass_offset" in self.applied:
+            alone = self.applied_estimates.get("mass_offset", {}).get("alone")
+            out.append(f"mass_offset: applied as control.mass_offset = {self.mass_offset:.4g} (joint fit"
+                       + (f"; fitted alone {alone:.4g}" if alone is not None else "") + ")")
         if self.bank is not None:
             out.append(f"{self.bank['effect']}: applied as control.bank = true, raceline.csv's bank column "
                        f"{bank_from(self.bank)}")
@@ -121,7 +133,8 @@ def record(summary: dict, bank_column=None) -> dict:
     rec = {"diagnosis": summary["diagnosis"], "diagnosis_sha256": summary["diagnosis_sha256"],
            "delay": {"steering": float(summary["controller_delays"].get("steer", 0.0)),
                      "throttle": float(summary["controller_delays"].get("throttle", 0.0))},
-           "lag": {"steering": float(summary["controller_lag"].get("steer", 0.0))}}
+           "lag": {"steering": float(summary["controller_lag"].get("steer", 0.0))},
+           "mass_offset": float(summary.get("controller_mass_offset", 0.0))}
     bank = summary.get("bank")
     if bank is not None:
         if bank_column is None:
@@ -327,6 +340,19 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
                                 f"{config_key.rsplit('.', 1)[0]}'s 0..{DELAY_MAX_S:g} s")
             getattr(fx, what)[key] = value
             fx.applied.append(name)
+        elif name == "mass_offset":
+            # the joint fit's (as the bank's), not the one fitted alone: alone, against the refitted nominal, the
+            # nominal's own refit takes up part of a mass offset (on ETHZMobil's logs of `ddyn study sil-loop`
+            # with -10 % and +20 % in the plant: alone -0.148 and +0.115, joint -0.111 and +0.159)
+            alone = _alone(path, d, name)
+            est = value
+            fx.applied_estimates[name] = {"alone": alone, "joint": fx.estimates[name], "written": est}
+            if MASS_OFFSET_RANGE[0] <= est <= MASS_OFFSET_RANGE[1]:
+                fx.mass_offset = est
+                fx.applied.append(name)
+            else:
+                fx.not_applied.append(f"mass_offset: found {est:.4g}, not applied: outside the controller's "
+                                      f"control.mass_offset range [{MASS_OFFSET_RANGE[0]:g}, {MASS_OFFSET_RANGE[1]:g}]")
         else:
             fx.not_applied.append(f"{name}: not in the runtime (issue 34)")
     return fx
@@ -343,6 +369,7 @@ def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None) -> dict:
     rec = fx.record(bank_column)
     control["delay"] = dict(rec["delay"])
     control["lag"] = dict(rec["lag"])
+    control["mass_offset"] = rec["mass_offset"]
     if fx.bank is not None:
         control["bank"] = True
     elif control.get("bank"):

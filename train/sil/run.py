@@ -231,6 +231,8 @@ class SilSpec:
                                                # s: {"steer": .., "throttle": ..} (control.delay; none: {})
     controller_lag: dict = field(default_factory=dict)  # the steering lag the controller compensates, s (the
                                                # time constant): {"steer": ..} (control.lag; none: {})
+    controller_mass_offset: float = 0.0        # the mass offset the controller knows (control.mass_offset: the
+                                               # car's mass is (1 + it) times the model's; 0: none)
     effects_from: dict | None = None           # the diagnosis the delays came from (ddyn.sil.effects
                                                # ControllerEffects.summary()): controller.json `effects`
     road_bank: bool = True                     # a track with its own banking (Track.bank: the oval) banks the
@@ -440,6 +442,8 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         raise DdynError(f"controller lag: unknown {', '.join(sorted(unknown))}; expected steer")
     if any(float(d) != 0.0 for d in spec.controller_lag.values()):
         control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
+    if spec.controller_mass_offset != 0.0:
+        control["mass_offset"] = float(spec.controller_mass_offset)
     bank = controller_bank_column(spec, table)
     if bank is not None:  # the road's bank along the raceline (raceline.csv's 6th column)
         control["bank"] = True
@@ -449,6 +453,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         control["delay"] = {"steering": float(spec.controller_delays.get("steer", 0.0)),
                             "throttle": float(spec.controller_delays.get("throttle", 0.0))}
         control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
+        control["mass_offset"] = float(spec.controller_mass_offset)
     dims = {"gnss_position": 2, "heading": 1, "yaw_rate": 1, "acceleration": 2, "wheel_speed": 2, "steering": 1}
     can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS), "cycle_ms": frame_cycles_ms(v)}
     if key_file:
@@ -483,7 +488,8 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     if spec.effects_from is not None:
         from ddyn.sil.effects import record
         cfg["effects"] = record(spec.effects_from, bank) | {"delay": dict(control["delay"]),
-                                                             "lag": dict(control["lag"])}
+                                                             "lag": dict(control["lag"]),
+                                                             "mass_offset": control["mass_offset"]}
     mpc = mpc_section(v.name)
     if mpc:
         cfg["mpc"] = mpc
@@ -992,7 +998,8 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "end_reason": pm["end_reason"], "tracking_error": tracking_error(traj, table),
         "controller": None, "plant": pm, "run": run,
         "effects": spec.effects, "faults": spec.faults, "controller_delays": spec.controller_delays,
-        "controller_lag": spec.controller_lag, "controller_effects": spec.effects_from,
+        "controller_lag": spec.controller_lag, "controller_mass_offset": spec.controller_mass_offset,
+        "controller_effects": spec.effects_from,
         "road_bank": bool(pm.get("road_bank", False)),
         # the controller's bank: the track's own (--controller-bank) or a diagnosis's (--effects-from D)
         "controller_bank": spec.controller_bank or (spec.effects_from or {}).get("bank") is not None,
@@ -1244,13 +1251,19 @@ def _run(args: argparse.Namespace) -> int:
         fixed = coefficients_from(args.coeffs, vehicle)
     delays, effects_from = parse_controller_delays(args.controller_delays), None
     lag = parse_controller_lag(args.controller_lag)
+    from ddyn.sil.effects import MASS_OFFSET_RANGE
+    mass = args.controller_mass_offset
+    if not MASS_OFFSET_RANGE[0] <= mass <= MASS_OFFSET_RANGE[1]:
+        raise DdynError(f"--controller-mass-offset: {mass:g} is outside [{MASS_OFFSET_RANGE[0]:g}, "
+                        f"{MASS_OFFSET_RANGE[1]:g}] (the controller's control.mass_offset)")
     if args.effects_from:
         from ddyn.sil.effects import controller_effects
-        if delays or lag or args.controller_bank:
-            raise DdynError("--effects-from and --controller-delays/--controller-lag/--controller-bank: give one (the "
-                            "diagnosis sets the delays, the lag and the bank)")
+        if delays or lag or args.controller_bank or mass:
+            raise DdynError("--effects-from and --controller-delays/--controller-lag/--controller-bank/"
+                            "--controller-mass-offset: give one (the diagnosis sets the delays, the lag, the mass "
+                            "offset and the bank)")
         fx = controller_effects(args.effects_from, vehicle.sample_time)
-        delays, lag, effects_from = dict(fx.delays), dict(fx.lag), fx.summary()
+        delays, lag, mass, effects_from = dict(fx.delays), dict(fx.lag), fx.mass_offset, fx.summary()
         for line in fx.lines() or ["nothing to apply"]:
             print(f"sil: effects from {args.effects_from}: {line}")
     spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
@@ -1260,8 +1273,8 @@ def _run(args: argparse.Namespace) -> int:
                    realtime=args.realtime, max_time=args.max_time, seed=args.seed, throttle=args.throttle,
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
                    forged_steering=args.inject_forged_steering,
-                   controller_delays=delays, controller_lag=lag, effects_from=effects_from,
-                   road_bank=not args.flat_road, controller_bank=args.controller_bank)
+                   controller_delays=delays, controller_lag=lag, controller_mass_offset=mass,
+                   effects_from=effects_from, road_bank=not args.flat_road, controller_bank=args.controller_bank)
     if args.config_only:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -1269,8 +1282,8 @@ def _run(args: argparse.Namespace) -> int:
         path = write_controller_files(spec, table, out, str(out.resolve()))
         control = json.loads(path.read_text())["control"]
         print(f"sil: wrote {path} and {out / RACELINE_CSV} (control.delay {control.get('delay', 'none')}, "
-              f"control.lag {control.get('lag', 'none')}, control.bank {control.get('bank', False)}); not driven "
-              "(--config-only)")
+              f"control.lag {control.get('lag', 'none')}, control.mass_offset {control.get('mass_offset', 0)}, "
+              f"control.bank {control.get('bank', False)}); not driven (--config-only)")
         return 0
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
@@ -1334,12 +1347,16 @@ def register(subparsers) -> None:
                         "steering's first-order lag behind its set-point (controller.json control.lag): its filter "
                         "predicts with the acting steering, its MPC plans from it and its first command inverts the "
                         "lag; e.g. with --effects steer_lag=0.05 give steer=0.05 (default: none)")
+    p.add_argument("--controller-mass-offset", metavar="F", type=float, default=0.0,
+                   help="the mass offset the controller knows: the car's mass is (1 + F) times the model's "
+                        "(controller.json control.mass_offset, in [-0.5, 1]): its filter, pipe and MPC use the "
+                        "coefficients scaled for that mass; e.g. with --effects mass_offset=0.1 give 0.1 (default: 0)")
     p.add_argument("--effects-from", metavar="D", default=None,
                    help="the controller's actuation delays, steering lag and road bank from a diagnosis (`ddyn gap "
                         "diagnose --out D`: the folder or its diagnosis.json): steer_delay -> control.delay.steering, "
                         "throttle_delay -> control.delay.throttle, steer_lag -> control.lag.steering, bank_angle or "
                         "bank_profile -> control.bank and raceline.csv's bank column (the profile at each row's track "
-                        "position), every other effect named and not applied; recorded in controller.json (effects: "
+                        "position), mass_offset -> control.mass_offset, every other effect named and not applied; recorded in controller.json (effects: "
                         "path, sha256; the controller refuses the file if control.delay, control.lag or the bank is "
                         "edited) and sil_metrics.json")
     p.add_argument("--controller-bank", action="store_true",

@@ -223,6 +223,29 @@ double ddyn_ctrl_delay_line_ago(const ddyn_ctrl_delay_line *d, int n);
  * one or one that rounds to more than DDYN_CTRL_MAX_DELAY_STEPS periods. */
 ddyn_status ddyn_ctrl_delay_steps(const ddyn_ctrl_delay_config *cfg, double dt, int steps[DDYN_NU]);
 
+/* A known MASS OFFSET (the SIL plant's mass_offset, a diagnosis's mass_offset): the car's mass is
+ * (1 + mass_offset) times the model's, its yaw inertia and axle distances unchanged. The model's forces
+ * are linear in the coefficients DDYN_CTRL_MASS_SCALED (each axle's Pacejka D and K; Cm1, Cm2, Cr0, Cd)
+ * for the drivetrain of the papers (and the power-limited one), and the rigid body divides them by the
+ * mass and the yaw moment by Iz; so the coefficients with those and Iz divided by (1 + mass_offset) are
+ * exactly the car with that mass: dvx and dvy's force parts scaled, domega unchanged (the SIL plant's
+ * mass_offset, train/model/effects.py). The controller applies it to every coefficient set it uses
+ * (fixed, the network's, the last good, the nominal) before the filter, the pipe and the MPC; the
+ * accelerometer's model, force / mass, then reads the heavier car too. Not exact for a drivetrain with
+ * a known brake gain (the "powertrain" forms: its braking force is a constant of the generated model,
+ * not scaled). Range [-0.5, 1]; 0 (the default) leaves the coefficients bit-identical.
+ * The LINE: every acceleration the heavier car can make (its tyres', its drivetrain's, its drag's) is
+ * 1 / (1 + offset) of the model's, so on the line's path its fastest speeds are the line's times
+ * 1 / sqrt(1 + offset) (v^2 = a / curvature in the turns, v^2 changing by 2 a ds on the straights): with
+ * a positive offset the MPC's reference speed is scaled by that (times the degraded mode's scale). A
+ * lighter car keeps the line's speeds (the line was made for the model's car; not driven faster). */
+#define DDYN_CTRL_MASS_SCALED {2, 5, 8, 11, 12, 13, 14, 15, 16}
+#define DDYN_CTRL_MASS_SCALED_COUNT 9
+#define DDYN_CTRL_MASS_OFFSET_MIN (-0.5)
+#define DDYN_CTRL_MASS_OFFSET_MAX 1.0
+/* c scaled in place for a mass (1 + mass_offset) times the model's (above). */
+void ddyn_ctrl_mass_scale(double c[DDYN_NC], double mass_offset);
+
 /* A known first-order STEERING LAG (docs/sil.md "Steering lag"; the SIL plant's steer_lag): the steering
  * angle acting on the car follows the set-point acting (the one sent, after the steering delay) as
  *   d(delta)/dt = (delta_cmd - delta) / tau,
@@ -291,6 +314,7 @@ typedef struct {
     ddyn_ctrl_degraded_config degraded; /* degraded-bus mode (above) */
     ddyn_ctrl_delay_config delay; /* known actuation delays (above; default 0: none) */
     ddyn_ctrl_lag_config lag;     /* known steering lag (above; default 0: none) */
+    double mass_offset;           /* known mass offset (DDYN_CTRL_MASS_SCALED; default 0: none) */
     ddyn_mpc_config mpc;    /* the MPC's configuration (its bounds also define the safe command) */
 } ddyn_ctrl_config;
 
@@ -374,6 +398,7 @@ typedef struct {
     double lag_decay;
     double lag_cmd, lag_act, lag_cmd_next, lag_act_next;
     int bank_hint; /* the road's bank: the raceline segment of its last lookup (-1: search every one) */
+    double mass_speed_scale; /* the line's speeds for the known mass offset (1: none or a lighter car) */
     int initialised;
 } ddyn_ctrl;
 
