@@ -87,8 +87,8 @@ def test_unsupported_effects_are_named_not_applied(tmp_path):
 
 
 def test_a_mass_offset_becomes_control_mass_offset_and_an_edited_one_is_refused(tmp_path):
-    """A claimed mass_offset is the controller's control.mass_offset (the joint fit's fraction, not the one fitted
-    alone); one outside the controller's [-0.5, 1] is named and not applied; the controller accepts the file made
+    """A mass_offset named first is the controller's control.mass_offset (the joint fit's fraction, not the one fitted
+    alone); one named after another effect, or outside the controller's [-0.5, 1], is named and not applied; the controller accepts the file made
     from it and refuses it with control.mass_offset edited, naming effects.mass_offset."""
     d = _diagnosis(tmp_path / "D", ["mass_offset", "steer_lag"], {"mass_offset": 0.12, "steer_lag": 0.03})
     raw = json.loads((d / "diagnosis.json").read_text())
@@ -129,6 +129,12 @@ def test_a_mass_offset_becomes_control_mass_offset_and_an_edited_one_is_refused(
     assert fx.mass_offset == 0.0 and fx.applied == ["steer_lag"]
     assert fx.not_applied == ["mass_offset: found -0.7, not applied: outside the controller's control.mass_offset "
                               "range [-0.5, 1]"]
+    # named after another effect: not applied
+    fx = controller_effects(_diagnosis(tmp_path / "E", ["steer_delay", "mass_offset"],
+                                       {"steer_delay": 0.06, "mass_offset": -0.11}))
+    assert fx.mass_offset == 0.0 and fx.applied == ["steer_delay"]
+    assert fx.not_applied == ["mass_offset: found -0.11, not applied: named after steer_delay (a mass offset is "
+                              "applied only when named first)"]
     # the command line: the same range, and not beside --effects-from
     assert main(["sil", "run", "--controller-mass-offset", "2", "--config-only", "--out", str(tmp_path / "x")]) == 2
     assert main(["sil", "run", "--effects-from", str(d), "--controller-mass-offset", "0.1", "--config-only",
