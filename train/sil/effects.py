@@ -27,10 +27,11 @@
                        effect, or outside the controller's [-0.5, 1], it is named and not applied
     anything else   -> not applied, named: "downforce: not in the runtime (issue 34)"
 
-The configuration records where its delays, lag and bank came from (`effects`: the diagnosis's path, the sha256 of
-its diagnosis.json, the delays and the lag it gave, and with a bank `bank` true, `bank_peak` the column's largest
+The configuration records where its delays, lag, mass offset and bank came from (`effects`: the diagnosis's path, the
+sha256 of its diagnosis.json, the delays, the lag and the mass offset it gave, and with a bank `bank` true, `bank_peak` the column's largest
 |bank| and `bank_from` a line saying which effect); the controller refuses a file whose control.delay differs from
-the recorded `effects.delay`, control.lag from `effects.lag`, control.bank from `effects.bank`, or whose raceline's
+the recorded `effects.delay`, control.lag from `effects.lag`, control.mass_offset from `effects.mass_offset`,
+control.bank from `effects.bank`, or whose raceline's
 bank column does not peak at `effects.bank_peak` (firmware_sim/controller/controller_config.c), as it refuses a
 network built for another checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
 `apply_to_config` puts the same sections into another configuration (a car's; a diagnosed bank's column, made by
@@ -365,8 +366,8 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
 
 
 def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None) -> dict:
-    """A controller configuration (docs/deploy.md) with fx's delays in control.delay, its lag in control.lag,
-    control.bank (true with a diagnosed bank, whose column, bank_column(), the caller writes into the raceline)
+    """A controller configuration (docs/deploy.md) with fx's delays in control.delay, its lag in control.lag, its
+    mass offset in control.mass_offset, control.bank (true with a diagnosed bank, whose column, bank_column(), the caller writes into the raceline)
     and the record in `effects`; every other key as it was."""
     out = json.loads(json.dumps(cfg))
     control = out.setdefault("control", {})
