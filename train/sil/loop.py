@@ -718,13 +718,10 @@ def open_track_for_line(vehicle, tname: str, line: str):
     """The track, with the car's line on it made ready: on a random track the line is computed once (out/racelines;
     `line` default: the car's own kind, flying: its flying-lap line)."""
     from ddyn.model.track_files import open_track
+    from ddyn.sil.run import make_random_track_line
 
     track = open_track(tname, vehicle.name)
-    if tname.startswith("random:"):
-        from ddyn.control.mpc_tracks import optimum
-        from ddyn.control.raceline import default_flying
-        flying = LINES[line]
-        optimum(vehicle.name, track, flying=default_flying(vehicle.name) if flying is None else flying)
+    make_random_track_line(vehicle, track, tname, line)
     return track
 
 

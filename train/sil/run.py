@@ -1233,9 +1233,23 @@ def run_sil(spec: SilSpec, out: Path, export_dir: Path | None, where: str = "aut
     return metrics
 
 
+def make_random_track_line(vehicle, track, tname: str, line: str | None) -> None:
+    """On a random track (`random:SEED`), the car's line of that kind computed once (out/racelines; None or
+    "default": its own kind, "flying" / "standing": that lap's). Other tracks carry their lines."""
+    if not tname.startswith("random:"):
+        return
+    from ddyn.control.mpc_tracks import optimum
+    from ddyn.control.raceline import LINES, default_flying
+    flying = LINES[line or "default"]
+    optimum(vehicle.name, track, flying=default_flying(vehicle.name) if flying is None else flying)
+
+
 def _run(args: argparse.Namespace) -> int:
     vehicle = load_vehicle(args.vehicle)
     track = open_track(args.track, vehicle.name)
+    if args.line == "flying":
+        # a random track's flying line made on demand, as the studies do (its own line is the track's)
+        make_random_track_line(vehicle, track, args.track, args.line)
     export_dir = None
     fixed = None
     checkpoint_hash = None
@@ -1316,7 +1330,8 @@ def add_common(p: argparse.ArgumentParser) -> None:
                         "vehicle's)")
     p.add_argument("--line", choices=("default", "flying", "standing"), default=None,
                    help="the racing line: the vehicle's own (default), or its flying-lap line (for --laps > 1: the "
-                        "laps after the first start at speed) or standing-start line")
+                        "laps after the first start at speed; on a random:SEED track made once when missing) or "
+                        "standing-start line")
     p.add_argument("--realtime", type=float, default=0.0,
                    help="pace the plant at this multiple of real time (default 0: lock-step with the controller)")
     p.add_argument("--max-time", type=float, default=None, help="simulated seconds before giving up")
