@@ -76,7 +76,11 @@ def smooth_segment(px, py, ax, ay, psi, dt: float) -> tuple[np.ndarray, np.ndarr
     I6 = np.eye(6)
     xf, Pf = np.zeros((n, 6)), np.zeros((n, 6, 6))
     xp, Pp, Fs = np.zeros((n, 6)), np.zeros((n, 6, 6)), np.zeros((n, 6, 6))
-    qb = BIAS_WALK ** 2 * dt   # the offset's random walk over a period
+    # the process noise, the same every period: the reading's white noise held over a period, the offset's walk
+    G = np.vstack([0.5 * dt * dt * np.eye(2), dt * np.eye(2)])
+    Q = np.zeros((6, 6))
+    Q[:4, :4] = (G @ G.T) * (sa ** 2)
+    Q[4:, 4:] = np.eye(2) * BIAS_WALK ** 2 * dt
     for k in range(n):
         if k > 0:
             R = rot[k - 1]
@@ -84,15 +88,11 @@ def smooth_segment(px, py, ax, ay, psi, dt: float) -> tuple[np.ndarray, np.ndarr
             F[0:2, 2:4] = dt * np.eye(2)
             F[0:2, 4:6] = 0.5 * dt * dt * R
             F[2:4, 4:6] = dt * R
-            G = np.vstack([0.5 * dt * dt * np.eye(2), dt * np.eye(2)])   # the reading's noise held over a period
             x = F @ x
             # the readings are samples of a continuous acceleration: linear between two rows (held at the earlier
-            # one, vy came out 4 ms late against the positions and the yaw rate, and steering delays fitted long)
+            # one, vy came out a few ms late against the positions and the yaw rate, and steering delays fitted long)
             x[0:2] += dt * dt * (a_w[k - 1] / 3.0 + a_w[k] / 6.0)
             x[2:4] += 0.5 * dt * (a_w[k - 1] + a_w[k])
-            Q = np.zeros((6, 6))
-            Q[:4, :4] = (G @ G.T) * (sa ** 2)
-            Q[4:, 4:] = np.eye(2) * qb
             P = F @ P @ F.T + Q
             Fs[k] = F
         xp[k], Pp[k] = x, P

@@ -1365,7 +1365,8 @@ def register(subparsers) -> None:
     p.add_argument("--controller-mass-offset", metavar="F", type=float, default=0.0,
                    help="the mass offset the controller knows: the car's mass is (1 + F) times the model's "
                         "(controller.json control.mass_offset, in [-0.5, 1]): its filter, pipe and MPC use the "
-                        "coefficients scaled for that mass; e.g. with --effects mass_offset=0.1 give 0.1 (default: 0)")
+                        "coefficients scaled for that mass, and with F > 0 the line's speeds times 1 / sqrt(1 + F); "
+                        "e.g. with --effects mass_offset=0.1 give 0.1 (default: 0)")
     p.add_argument("--effects-from", metavar="D", default=None,
                    help="the controller's actuation delays, steering lag and road bank from a diagnosis (`ddyn gap "
                         "diagnose --out D`: the folder or its diagnosis.json): steer_delay -> control.delay.steering, "
