@@ -242,10 +242,11 @@ static int config_ok(const ddyn_ctrl_config *cfg, double dt)
     int i, k, steps[NU];
     if (!degraded_config_ok(&cfg->degraded, dt) || ddyn_ctrl_delay_steps(&cfg->delay, dt, steps) != DDYN_OK ||
         !(ddyn_ctrl_lag_decay(cfg->lag.steering, dt) < 1.0) || !(cfg->mass_offset >= DDYN_CTRL_MASS_OFFSET_MIN) ||
-        !(cfg->mass_offset <= DDYN_CTRL_MASS_OFFSET_MAX)) {
+        !(cfg->mass_offset <= DDYN_CTRL_MASS_OFFSET_MAX) || !(cfg->downforce >= 0.0) ||
+        !(cfg->downforce <= DDYN_MODEL_DOWNFORCE_MAX)) {
         return 0; /* a delay above the compiled maximum is refused, not cut; a negative, non-finite lag, or
                      one so long that it does not decay in a period (its inversion would divide by 0); a mass
-                     offset out of its range (also NaN) */
+                     offset or a downforce out of its range (also NaN) */
     }
     if ((unsigned)cfg->coeff_source >= (unsigned)DDYN_CTRL_SOURCE_COUNT ||
         (unsigned)cfg->throttle_mode >= (unsigned)DDYN_CTRL_THROTTLE_MODE_COUNT ||
@@ -309,6 +310,9 @@ ddyn_status ddyn_ctrl_init(ddyn_ctrl *ctl, const ddyn_vehicle_model *model, cons
     mpc_cfg = cfg->mpc;
     mpc_cfg.horizon = plan_horizon(cfg, ctl->delay_steps[DDYN_CTRL_CH_STEERING]);
     s = ddyn_mpc_init(&ctl->mpc, model, &mpc_cfg);
+    if (s == DDYN_OK) {
+        s = ddyn_mpc_set_downforce(&ctl->mpc, cfg->downforce); /* in range: config_ok */
+    }
     if (s != DDYN_OK) {
         return s;
     }
@@ -360,10 +364,23 @@ static double bank_at(ddyn_ctrl *ctl, const double x[NX])
     return ctl->mpc.track.have_bank ? ddyn_mpc_bank_at(&ctl->mpc, x[0], x[1], &ctl->bank_hint) : 0.0;
 }
 
+/* The coefficients at x's speed: ctl->coeffs with the known downforce's tyre load (ddyn_model_downforce)
+ * in buf, or ctl->coeffs itself without one. Every evaluation of the vehicle's model uses these. */
+static const double *coeffs_at(const ddyn_ctrl *ctl, const double x[NX], double buf[NC])
+{
+    if (ctl->cfg.downforce == 0.0) {
+        return ctl->coeffs;
+    }
+    ddyn_model_downforce(ctl->coeffs, ctl->cfg.downforce, x[3], buf);
+    return buf;
+}
+
 /* The filter's model step (cfg.ekf_disc) with the road's bank at x's position (ddyn_model_add_bank) */
 static ddyn_status model_step(ddyn_ctrl *ctl, const double x[NX], const double u[NU], double x_next[NX])
 {
-    ddyn_status s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, x, u, ctl->coeffs, x_next, &ctl->ekf.work);
+    double c_at[NC];
+    ddyn_status s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, x, u, coeffs_at(ctl, x, c_at), x_next,
+                                    &ctl->ekf.work);
     if (s == DDYN_OK && ctl->mpc.track.have_bank) {
         ddyn_model_add_bank(bank_at(ctl, x), ctl->model->sample_time, x, x_next);
     }
@@ -525,10 +542,10 @@ static int covariance_ok(const ddyn_ctrl *ctl)
  * the gate (then the update is undone: x and P are restored). 0: fused, 1: refused, 2: gated. */
 static int fuse(ddyn_ctrl *ctl, int k, const double *z, const double *r)
 {
-    double x[NX], P[NX * NX], nis = 0.0;
+    double x[NX], P[NX * NX], nis = 0.0, c_at[NC];
     memcpy(x, ctl->ekf.x, sizeof x);
     memcpy(P, ctl->ekf.P, sizeof P);
-    if (ddyn_ekf_update(&ctl->ekf, (ddyn_meas_kind)k, z, r, ctl->coeffs, &nis) != DDYN_OK) {
+    if (ddyn_ekf_update(&ctl->ekf, (ddyn_meas_kind)k, z, r, coeffs_at(ctl, x, c_at), &nis) != DDYN_OK) {
         return 1; /* the filter is left unchanged by a refused update */
     }
     if (!(nis <= ctl->cfg.nis_gate)) {
@@ -643,7 +660,7 @@ static int state_at_age(const ddyn_ctrl *ctl, const double x_now[NX], double age
  * that long (the first periods) the reading is fused as it is. */
 static int age_reading(ddyn_ctrl *ctl, int k, const double *z, double age, double *z_out)
 {
-    double x_then[NX], h_now[DDYN_MEAS_MAX_DIM], h_then[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX];
+    double x_then[NX], h_now[DDYN_MEAS_MAX_DIM], h_then[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX], c_at[NC];
     int i, m = ddyn_meas_dim((ddyn_meas_kind)k);
     if (!(age > 0.0)) {
         memcpy(z_out, z, (size_t)m * sizeof *z);
@@ -657,10 +674,10 @@ static int age_reading(ddyn_ctrl *ctl, int k, const double *z, double age, doubl
         memcpy(z_out, z, (size_t)m * sizeof *z);
         return 1;
     }
-    if (ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, ctl->ekf.x, ctl->coeffs, h_now, H, &ctl->ekf.work) !=
-            DDYN_OK ||
-        ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_then, ctl->coeffs, h_then, H, &ctl->ekf.work) !=
-            DDYN_OK) {
+    if (ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, ctl->ekf.x, coeffs_at(ctl, ctl->ekf.x, c_at), h_now, H,
+                           &ctl->ekf.work) != DDYN_OK ||
+        ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_then, coeffs_at(ctl, x_then, c_at), h_then, H,
+                           &ctl->ekf.work) != DDYN_OK) {
         return 0;
     }
     for (i = 0; i < m; ++i) {
@@ -699,7 +716,8 @@ static void predict_latency(ddyn_ctrl *ctl, const double x_start[NX], double lat
     h = latency / (double)n;
     for (j = 0; j < n; ++j) {
         static const double u_hold[NU] = {0.0, 0.0};
-        if (ddyn_model_derivatives(ctl->model, x, u_hold, ctl->coeffs, xdot, &ctl->ekf.work) != DDYN_OK ||
+        double c_at[NC];
+        if (ddyn_model_derivatives(ctl->model, x, u_hold, coeffs_at(ctl, x, c_at), xdot, &ctl->ekf.work) != DDYN_OK ||
             !ddyn_all_finite(xdot, NX)) {
             memcpy(x, x_start, NX * sizeof *x); /* the model failed: the start as it is */
             return;
@@ -736,8 +754,9 @@ static int reanchor(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
         const ddyn_ctrl_reading *r = &in->reading[k];
         const int m = ddyn_meas_dim((ddyn_meas_kind)k);
         const int have = r->valid && ddyn_all_finite(r->z, m);
-        double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX];
-        if (ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_now, ctl->coeffs, h, H, &ctl->ekf.work) != DDYN_OK) {
+        double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX], c_at[NC];
+        if (ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_now, coeffs_at(ctl, x_now, c_at), h, H,
+                               &ctl->ekf.work) != DDYN_OK) {
             continue;
         }
         for (i = 0; i < m; ++i) {
@@ -781,8 +800,9 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
     const double r_var_scale = ctl->degraded ? ctl->cfg.degraded.r_scale * ctl->cfg.degraded.r_scale : 1.0;
     int k, i, fused = 0, diverged = 0, restart;
     unsigned reacquire = 0u; /* sensors whose repeated restart this is (bit k) */
+    double c_at[NC];         /* the coefficients at the predicted period's start speed (downforce) */
     ctl->ekf.bank = bank_at(ctl, ctl->ekf.x); /* the road's bank where the predicted period starts */
-    if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_acting, ctl->coeffs) != DDYN_OK) {
+    if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_acting, coeffs_at(ctl, ctl->ekf.x, c_at)) != DDYN_OK) {
         diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
     }
     if (ctl->started && ctl->blind_steps >= ctl->cfg.max_sensor_faults && reanchor(ctl, in)) {
@@ -843,11 +863,12 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
         int widen[NX] = {0};
         memcpy(x_restart, x, sizeof x_restart);
         for (k = 0; k < DDYN_MEAS_COUNT; ++k) {
-            double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX];
+            double h[DDYN_MEAS_MAX_DIM], H[DDYN_MEAS_MAX_DIM * NX], c_at_restart[NC];
             const int m = ddyn_meas_dim((ddyn_meas_kind)k);
             int j;
             if (!(reacquire & (1u << k)) ||
-                ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_restart, ctl->coeffs, h, H, &ctl->ekf.work) != DDYN_OK) {
+                ddyn_model_measure(ctl->model, (ddyn_meas_kind)k, x_restart, coeffs_at(ctl, x_restart, c_at_restart),
+                                   h, H, &ctl->ekf.work) != DDYN_OK) {
                 continue;
             }
             for (j = 0; j < NX; ++j) {

@@ -165,6 +165,20 @@ ddyn_status ddyn_model_measure(const ddyn_vehicle_model *model, ddyn_meas_kind k
     return evaluate(model->meas[kind], x, c, NULL, out, len, work);
 }
 
+void ddyn_model_downforce(const double c[DDYN_NC], double k, double vx, double out[DDYN_NC])
+{
+    double scale;
+    if (out != c) {
+        memcpy(out, c, DDYN_NC * sizeof *c);
+    }
+    if (k == 0.0) {
+        return; /* bit-identical without it */
+    }
+    scale = 1.0 + k * vx * vx;
+    out[DDYN_MODEL_DF_INDEX] *= scale;
+    out[DDYN_MODEL_DR_INDEX] *= scale;
+}
+
 double ddyn_model_bank_accel(double bank) { return DDYN_GRAVITY * sin(bank); }
 
 void ddyn_model_add_bank(double bank, double dt, const double x[DDYN_NX], double x_next[DDYN_NX])

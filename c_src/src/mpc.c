@@ -117,6 +117,15 @@ ddyn_status ddyn_mpc_set_coefficients(ddyn_mpc *mpc, const double c[DDYN_NC])
     return DDYN_OK;
 }
 
+ddyn_status ddyn_mpc_set_downforce(ddyn_mpc *mpc, double k)
+{
+    if (mpc == NULL || !(k >= 0.0) || !(k <= DDYN_MODEL_DOWNFORCE_MAX)) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    mpc->downforce = k;
+    return DDYN_OK;
+}
+
 ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const double *y, const double *speed,
                                const double *width_left, const double *width_right)
 {
@@ -337,13 +346,15 @@ static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, doub
                            double *B)
 {
     ddyn_status st;
+    double c_at[DDYN_NC]; /* the coefficients at x's speed (downforce; mpc->c's copy without it) */
+    ddyn_model_downforce(mpc->c, mpc->downforce, x[3], c_at);
     if (mpc->cfg.prediction == DDYN_MPC_PRED_RK4_SINGLE) {
         double out[DDYN_NX * (1 + DDYN_NX + DDYN_NU)];
         double *res[3];
         const double *arg[4];
         arg[0] = x;
         arg[1] = u;
-        arg[2] = mpc->c;
+        arg[2] = c_at;
         arg[3] = &bank; /* the road's bank over this step (0: flat) */
         res[0] = out;
         res[1] = out + DDYN_NX;
@@ -363,11 +374,11 @@ static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, doub
     }
     {
         ddyn_discretisation disc = mpc->cfg.prediction == DDYN_MPC_PRED_EULER ? DDYN_DISC_EULER : DDYN_DISC_RK4;
-        st = ddyn_model_step(mpc->model, disc, x, u, mpc->c, x_next, &mpc->model_work);
+        st = ddyn_model_step(mpc->model, disc, x, u, c_at, x_next, &mpc->model_work);
         if (st != DDYN_OK || A == NULL) {
             return st;
         }
-        return ddyn_model_step_jacobians(mpc->model, disc, x, u, mpc->c, A, B, NULL, &mpc->model_work);
+        return ddyn_model_step_jacobians(mpc->model, disc, x, u, c_at, A, B, NULL, &mpc->model_work);
     }
 }
 
@@ -445,10 +456,11 @@ static void sensitivities(ddyn_mpc *mpc)
  * so the value at x0's speed bounds what the car gains over the horizon. */
 static double launch_accel(ddyn_mpc *mpc, const double x0[DDYN_NX])
 {
-    double x[DDYN_NX] = {0.0}, u[DDYN_NU] = {0.0}, xdot[DDYN_NX];
+    double x[DDYN_NX] = {0.0}, u[DDYN_NU] = {0.0}, xdot[DDYN_NX], c_at[DDYN_NC];
     x[3] = x0[3] > 0.0 ? x0[3] : 0.0;
     x[6] = mpc->cfg.state_hi[0];
-    if (ddyn_model_derivatives(mpc->model, x, u, mpc->c, xdot, &mpc->model_work) != DDYN_OK ||
+    ddyn_model_downforce(mpc->c, mpc->downforce, x[3], c_at);
+    if (ddyn_model_derivatives(mpc->model, x, u, c_at, xdot, &mpc->model_work) != DDYN_OK ||
         !isfinite(xdot[3]) || !(xdot[3] > 0.0)) {
         return 0.0;
     }

@@ -113,15 +113,20 @@ static const key_spec KEYS[] = {
      0, NULL, NONE,
      "known mass offset: the car's mass is (1 + it) times the model's; the filter, the pipe and the MPC use the "
      "coefficients scaled for it (default 0: none; ddyn/controller.h)"},
+    {"control.downforce", K_NUMBER, OFF(downforce), 0, 0, 0.0, DDYN_MODEL_DOWNFORCE_MAX, 0, NULL, NONE,
+     "known downforce k, s^2/m^2: the tyres' peak forces are 1 + k vx^2 times the model's; the filter, the pipe "
+     "and each MPC stage use the coefficients of their own speed, the line's speeds are not raised (default 0: "
+     "none; ddyn/controller.h)"},
     {"control.bank", K_BOOL, OFF(bank), 0, 0, 0, 0, 0, NULL, NONE,
      "false (default): a flat road; true: the raceline's 6th column is the road's bank (rad, + tilting the road "
      "so that gravity pulls to the left; |bank| < 45 deg) at each point, and the filter and the MPC predict with "
      "its lateral gravity g sin(bank) at their track positions (issue 34; ddyn/controller.h ddyn_ctrl_set_bank)"},
     {"effects", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE,
-     "the diagnosis the actuation delays, the steering lag, the mass offset and the road's bank come from (`ddyn "
-     "sil run --effects-from D`, docs/sil.md); a file whose control.delay differs from effects.delay, control.lag "
-     "from effects.lag, control.mass_offset from effects.mass_offset, or control.bank from effects.bank (or the "
-     "raceline's bank column from effects.bank_peak) is refused"},
+     "the diagnosis the actuation delays, the steering lag, the mass offset, the downforce and the road's bank come "
+     "from (`ddyn sil run --effects-from D`, docs/sil.md); a file whose control.delay differs from effects.delay, "
+     "control.lag from effects.lag, control.mass_offset from effects.mass_offset, control.downforce from "
+     "effects.downforce, or control.bank from effects.bank (or the raceline's bank column from effects.bank_peak) "
+     "is refused"},
     {"effects.diagnosis", K_STRING, OFF(effects_diagnosis), FSZ(effects_diagnosis), 0, 0, 0, 0, NULL, NONE,
      "the diagnosis.json the effects were taken from (recorded, not read; default none)"},
     {"effects.diagnosis_sha256", K_HASH, OFF(effects_sha256), FSZ(effects_sha256), 0, 0, 0, 0, NULL, NONE,
@@ -132,6 +137,8 @@ static const key_spec KEYS[] = {
      "the steering lag (s) the diagnosis gave the controller (default 0)"},
     {"effects.mass_offset", K_NUMBER, OFF(effects_mass_offset), 0, 0, DDYN_CTRL_MASS_OFFSET_MIN,
      DDYN_CTRL_MASS_OFFSET_MAX, 0, NULL, NONE, "the mass offset the diagnosis gave the controller (default 0)"},
+    {"effects.downforce", K_NUMBER, OFF(effects_downforce), 0, 0, 0.0, DDYN_MODEL_DOWNFORCE_MAX, 0, NULL, NONE,
+     "the downforce k (s^2/m^2) the diagnosis gave the controller (default 0)"},
     {"effects.bank", K_BOOL, OFF(effects_bank), 0, 0, 0, 0, 0, NULL, NONE,
      "whether the diagnosis gave the controller the road's bank (raceline.csv's 6th column; default false); with "
      "a sha256 given, control.bank must equal it"},
@@ -686,6 +693,13 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
                   c->effects_mass_offset, c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
                   c->effects_sha256, c->mass_offset);
     }
+    if (ok && c->effects_sha256[0] != '\0' && fabs(c->effects_downforce - c->downforce) > 1e-15) {
+        ok = fail(&p, "effects.downforce",
+                  "%g from diagnosis %s (sha256 %.12s...), but control.downforce is %g: remake the file (`ddyn sil "
+                  "run --effects-from D --config-only`) instead of editing it",
+                  c->effects_downforce, c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
+                  c->effects_sha256, c->downforce);
+    }
     if (ok && c->effects_sha256[0] != '\0' && c->effects_bank != c->bank) {
         /* a bank the diagnosis did not give (the track's true one, say), or one it gave and the file dropped */
         ok = fail(&p, "effects.bank",
@@ -792,6 +806,7 @@ ddyn_status ddyn_app_node_init(ddyn_sil_node *node, const ddyn_app_config *c, co
     cfg.delay.throttle = c->delay[1];
     cfg.lag.steering = c->lag[0];
     cfg.mass_offset = c->mass_offset;
+    cfg.downforce = c->downforce;
     {
         int steps[DDYN_NU];
         if (ddyn_ctrl_delay_steps(&cfg.delay, model->sample_time, steps) != DDYN_OK) {

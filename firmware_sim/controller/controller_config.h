@@ -47,6 +47,7 @@ typedef struct {
     double delay[2];                    /* control.delay.{steering,throttle}, s (0 = none) */
     double lag[1];                      /* control.lag.steering: the steering lag's time constant, s (0 = none) */
     double mass_offset;                 /* control.mass_offset: the car's mass is (1 + it) times the model's */
+    double downforce;                   /* control.downforce: k, s^2/m^2 (tyre peaks times 1 + k vx^2) */
     int bank;                           /* control.bank: the raceline's 6th column is the road's bank (rad) */
     /* effects: what the configuration was made from (`ddyn sil effects`, issue 34); "" = not recorded */
     char effects_diagnosis[DDYN_APP_PATH_LEN]; /* effects.diagnosis: the diagnosis.json (recorded, not read) */
@@ -54,6 +55,7 @@ typedef struct {
     double effects_delay[2];            /* effects.delay.{steering,throttle}: the delays it gave, s */
     double effects_lag[1];              /* effects.lag.steering: the steering lag it gave, s */
     double effects_mass_offset;         /* effects.mass_offset: the mass offset it gave */
+    double effects_downforce;           /* effects.downforce: the downforce it gave */
     int effects_bank;                   /* effects.bank: whether it gave the road's bank (control.bank must match) */
     double effects_bank_peak;           /* effects.bank_peak: the largest |bank| (rad) of the column it gave */
     char effects_bank_from[DDYN_APP_PATH_LEN]; /* effects.bank_from: which bank it is (recorded, not read) */

@@ -17,8 +17,9 @@ Plant::Plant(const ddyn_vehicle_model* model, const Coeffs& coeffs, const Actuat
     : model_(model), c_(coeffs), limits_(limits), fx_(effects), h_(substep) {
   if (model_ == nullptr) throw std::invalid_argument("plant: no vehicle model");
   if (!(h_ > 0.0)) throw std::invalid_argument("plant: sub-step must be positive");
-  if (fx_.steer_delay < 0 || fx_.throttle_delay < 0 || fx_.steer_lag < 0 || fx_.mass_offset <= -1.0)
-    throw std::invalid_argument("plant: delays and lag must be >= 0 and mass_offset > -1");
+  if (fx_.steer_delay < 0 || fx_.throttle_delay < 0 || fx_.steer_lag < 0 || fx_.mass_offset <= -1.0 ||
+      !(fx_.downforce >= 0.0 && std::isfinite(fx_.downforce)))
+    throw std::invalid_argument("plant: delays, lag and downforce must be >= 0 and mass_offset > -1");
   if (!c_.allFinite()) throw std::invalid_argument("plant: non-finite coefficients");
 }
 
@@ -58,7 +59,10 @@ double Plant::delayed(double delay, bool steering) const {
 
 State Plant::derivative(const State& x, const Eigen::Vector2d& u) {
   State xd;
-  const ddyn_status st = ddyn_model_derivatives(model_, x.data(), u.data(), c_.data(), xd.data(), &work_);
+  // downforce: the tyre peaks of the state's own speed (ddyn_model_downforce; a copy of c_ without it)
+  Coeffs c_at;
+  ddyn_model_downforce(c_.data(), fx_.downforce, x[kVx], c_at.data());
+  const ddyn_status st = ddyn_model_derivatives(model_, x.data(), u.data(), c_at.data(), xd.data(), &work_);
   if (st != DDYN_OK) throw std::runtime_error(std::string("plant: model evaluation failed: ") + ddyn_status_name(st));
   if (fx_.mass_offset != 0.0) {
     // dvx = Fx/m + vy omega, dvy = Fy/m - vx omega: only the force part scales with 1/m

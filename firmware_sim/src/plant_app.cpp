@@ -79,9 +79,10 @@ PlantAppConfig PlantAppConfig::from_json(const nlohmann::json& j) {
       else if (it.key() == "throttle_delay") c.effects.throttle_delay = v;
       else if (it.key() == "steer_lag") c.effects.steer_lag = v;
       else if (it.key() == "mass_offset") c.effects.mass_offset = v;
+      else if (it.key() == "downforce") c.effects.downforce = v;
       else if (it.key() == "yaw_rate_bias") c.effects.yaw_rate_bias = v;
       else throw std::runtime_error("config: effect '" + it.key() + "' is not offered by the plant "
-                                    "(steer_delay, throttle_delay, steer_lag, mass_offset, yaw_rate_bias)");
+                                    "(steer_delay, throttle_delay, steer_lag, mass_offset, downforce, yaw_rate_bias)");
     }
   }
   get_if(j, "substep", c.substep);
@@ -464,6 +465,7 @@ nlohmann::json PlantApp::metrics() const {
                {"stale", auth_ ? auth_->stale() : 0L}};
   j["effects"] = {{"steer_delay", cfg_.effects.steer_delay}, {"throttle_delay", cfg_.effects.throttle_delay},
                   {"steer_lag", cfg_.effects.steer_lag}, {"mass_offset", cfg_.effects.mass_offset},
+                  {"downforce", cfg_.effects.downforce},
                   {"yaw_rate_bias", cfg_.effects.yaw_rate_bias}};
   j["road_bank"] = !cfg_.road_bank.empty();
   j["footprint"] = {{"length", cfg_.footprint.length}, {"width", cfg_.footprint.width}};

@@ -126,6 +126,30 @@ TEST(Plant, MassOffsetScalesTheForcesOnly) {
   EXPECT_DOUBLE_EQ(db[fsim::kX], da[fsim::kX]);
 }
 
+// Downforce: the derivative is the model's with the tyre peaks of the state's own speed, and zero is none
+TEST(Plant, DownforceScalesTheTyrePeaksAtTheStatesSpeed) {
+  fsim::PlantEffects df;
+  df.downforce = 0.05;
+  Plant a = orca(), b = orca(df);
+  State x = moving(2.0);
+  x[fsim::kVy] = 0.1;
+  x[fsim::kOmega] = 1.0;
+  x[fsim::kThrottle] = 0.4;
+  x[fsim::kSteer] = 0.1;
+  const Eigen::Vector2d u(0.0, 0.0);
+  fsim::Coeffs c = fsim_test::orca_true();
+  c[DDYN_MODEL_DF_INDEX] *= 1.0 + 0.05 * 4.0;
+  c[DDYN_MODEL_DR_INDEX] *= 1.0 + 0.05 * 4.0;
+  State want;
+  ddyn_model_work work;
+  ASSERT_EQ(ddyn_model_derivatives(&ddyn_model_orca_1_43, x.data(), u.data(), c.data(), want.data(), &work), DDYN_OK);
+  const State db = b.derivative(x, u), da = a.derivative(x, u);
+  for (int i = 0; i < DDYN_NX; ++i) EXPECT_NEAR(db[i], want[i], 1e-12 * (1.0 + std::abs(want[i])));
+  EXPECT_GT(std::abs(db[fsim::kOmega] - da[fsim::kOmega]), 0.1);  // not blind: more grip, more yaw moment
+  df.downforce = -1e-3;
+  EXPECT_THROW(orca(df), std::invalid_argument);
+}
+
 // The road's bank adds g sin(bank) to dvy and nothing else (train/model/effects.py bank_angle, + to the left)
 TEST(Plant, RoadBankAddsLateralGravity) {
   Plant p = orca();

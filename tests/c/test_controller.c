@@ -1595,6 +1595,52 @@ static void test_the_controller_uses_the_mass_scaled_coefficients_and_refuses_a_
     assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
 }
 
+/* ---- downforce (ddyn_ctrl_config.downforce) ---- */
+
+static void test_the_controller_evaluates_its_model_at_the_downforce_of_its_speed(void **state)
+{
+    /* issue 34: with a known downforce the MPC is given it, the filter predicts with the coefficients of its
+     * own speed (D_f, D_r times 1 + k vx^2), the coefficients it reports stay the set it was given */
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double expect[DDYN_NX], plain[DDYN_NX], c_at[DDYN_NC];
+    const double k_df = 0.3;
+    int k, i;
+    (void)state;
+    cfg.coeff_source = DDYN_CTRL_SOURCE_FIXED;
+    memcpy(cfg.c_fixed, C_TRUE, sizeof C_TRUE);
+    cfg.downforce = k_df;
+    start_on_circle(oracle_tables());
+    assert_true(ctl.mpc.downforce == k_df);
+    for (k = 0; k < 5; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_false(out.status & DDYN_CTRL_SAFE_COMMAND);
+        assert_memory_equal(out.coeffs, C_TRUE, sizeof C_TRUE); /* reported as given */
+        /* the preparation's step (the filter's model step): the coefficients of the filter's speed */
+        assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK);
+        ddyn_model_downforce(C_TRUE, k_df, ctl.ekf.x[3], c_at);
+        assert_int_equal(ddyn_model_step(model, cfg.ekf_disc, ctl.ekf.x, ctl.u_acting, c_at, expect, &plant_work),
+                         DDYN_OK);
+        assert_int_equal(ddyn_model_step(model, cfg.ekf_disc, ctl.ekf.x, ctl.u_acting, C_TRUE, plain, &plant_work),
+                         DDYN_OK);
+        for (i = 0; i < DDYN_NX; ++i) {
+            assert_true(fabs(ctl.mpc.prep_x0[i] - expect[i]) < 1e-14 * (1.0 + fabs(expect[i])));
+        }
+        assert_true(fabs(plain[5] - expect[5]) > 1e-6); /* not blind: the extra grip turns the car harder */
+        run(&in, &out);
+    }
+    /* out of range (also NaN): refused */
+    cfg.downforce = -1e-9;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.downforce = DDYN_MODEL_DOWNFORCE_MAX + 1e-9;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.downforce = NAN;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_ERR_ARGUMENT);
+    cfg.downforce = DDYN_MODEL_DOWNFORCE_MAX;
+    assert_int_equal(ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, plant), DDYN_OK);
+}
+
 /* ---- steering lag (ddyn_ctrl_lag_config) ---- */
 
 static void test_the_lag_step_is_the_exact_discretisation(void **state)
@@ -1872,6 +1918,7 @@ int main(void)
         cmocka_unit_test_setup(test_the_filter_predicts_with_the_command_sent_delay_ago, setup),
         cmocka_unit_test_setup(test_the_mass_scaled_coefficients_are_the_heavier_car, setup),
         cmocka_unit_test_setup(test_the_controller_uses_the_mass_scaled_coefficients_and_refuses_a_bad_offset, setup),
+        cmocka_unit_test_setup(test_the_controller_evaluates_its_model_at_the_downforce_of_its_speed, setup),
         cmocka_unit_test_setup(test_the_lag_step_is_the_exact_discretisation, setup),
         cmocka_unit_test_setup(test_a_bad_lag_is_refused_at_init, setup),
         cmocka_unit_test_setup(test_the_filter_and_history_use_the_acting_steering_of_the_lag, setup),

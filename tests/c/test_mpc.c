@@ -969,6 +969,74 @@ static void test_bank_table_lookup_and_refusals(void **state)
     assert_int_equal(ddyn_mpc_set_bank(&other, bank), DDYN_ERR_ARGUMENT);
 }
 
+/* the downforce's derivative from the Python model: ddyn.model.effects.derivatives (EffectSet(downforce=k), no
+ * other effect) at the state and inputs of the bank's test, numpy float64 */
+static const double DOWNFORCE_CASES[3] = {0.0, 0.05, 0.3};
+static const double DOWNFORCE_PY_XDOT[3][DDYN_NX] = {
+    {1.5268618555740394, 0.7541172813249943, 1.2, 0.666103544295634, -2.508701605473515, 79.23100537334926, 0.5, -0.8},
+    {1.5268618555740394, 0.7541172813249943, 1.2, 0.6573090405766787, -2.5811440992646713, 90.77148356596814, 0.5,
+     -0.8},
+    {1.5268618555740394, 0.7541172813249943, 1.2, 0.6133365219819027, -2.9433565682204508, 148.47387452906244, 0.5,
+     -0.8}};
+
+static void test_downforce_matches_the_python_model_and_each_stage_uses_its_speed(void **state)
+{
+    const double x[DDYN_NX] = {0.3, -0.2, 0.4, 1.7, 0.1, 1.2, 0.4, 0.1}, u[DDYN_NU] = {0.5, -0.8};
+    double c_at[DDYN_NC], xdot[DDYN_NX], x0[DDYN_NX], uc[DDYN_NU], out[DDYN_NX * 11], in_place[DDYN_NC];
+    static ddyn_model_work work;
+    const double bank = 0.0;
+    const double *arg[4];
+    double *res[3];
+    ddyn_mpc_info info;
+    int k, i, differs = 0;
+    (void)state;
+    for (k = 0; k < 3; ++k) {
+        ddyn_model_downforce(C, DOWNFORCE_CASES[k], x[3], c_at);
+        assert_int_equal(ddyn_model_derivatives(&ddyn_model_orca_1_43, x, u, c_at, xdot, &work), DDYN_OK);
+        for (i = 0; i < DDYN_NX; ++i) {
+            assert_true(fabs(xdot[i] - DOWNFORCE_PY_XDOT[k][i]) < 1e-12 * (1.0 + fabs(xdot[i])));
+        }
+    }
+    ddyn_model_downforce(C, 0.0, 3.0, c_at);
+    assert_memory_equal(c_at, C, sizeof c_at); /* none: bit-identical */
+    memcpy(in_place, C, sizeof in_place);
+    ddyn_model_downforce(in_place, 0.3, 2.0, in_place);
+    assert_true(in_place[DDYN_MODEL_DF_INDEX] == C[DDYN_MODEL_DF_INDEX] * 2.2 &&
+                in_place[DDYN_MODEL_DR_INDEX] == C[DDYN_MODEL_DR_INDEX] * 2.2 && in_place[0] == C[0]);
+    /* the MPC: each stage of the linearisation is the generated step with the coefficients of its own speed */
+    ring_mpc(30);
+    assert_true(mpc.downforce == 0.0);
+    assert_int_equal(ddyn_mpc_set_downforce(&mpc, 0.3), DDYN_OK);
+    ring_start(x0);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, uc, &info), DDYN_OK);
+    for (k = 0; k < mpc.cfg.horizon; ++k) {
+        const double *xk = mpc.x_lin + k * DDYN_NX;
+        ddyn_model_downforce(C, 0.3, xk[3], c_at);
+        arg[0] = xk;
+        arg[1] = mpc.u_lin + k * DDYN_NU;
+        arg[2] = c_at;
+        arg[3] = &bank;
+        res[0] = out;
+        res[1] = out + DDYN_NX;
+        res[2] = out + DDYN_NX * 9;
+        assert_int_equal(mpc.mpc_step(arg, res, work.iw, work.w, 0), 0);
+        for (i = 0; i < DDYN_NX; ++i) {
+            assert_true(out[i] == mpc.x_lin[(k + 1) * DDYN_NX + i]);
+        }
+        arg[2] = C; /* not blind: the plain coefficients give another stage */
+        assert_int_equal(mpc.mpc_step(arg, res, work.iw, work.w, 0), 0);
+        differs += fabs(out[5] - mpc.x_lin[(k + 1) * DDYN_NX + 5]) > 1e-6;
+    }
+    assert_int_equal(differs, mpc.cfg.horizon);
+    /* refusals keep the value */
+    assert_int_equal(ddyn_mpc_set_downforce(&mpc, -1e-9), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_set_downforce(&mpc, DDYN_MODEL_DOWNFORCE_MAX + 1e-9), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_set_downforce(&mpc, NAN), DDYN_ERR_ARGUMENT);
+    assert_int_equal(ddyn_mpc_set_downforce(NULL, 0.1), DDYN_ERR_ARGUMENT);
+    assert_true(mpc.downforce == 0.3);
+    assert_int_equal(ddyn_mpc_set_downforce(&mpc, DDYN_MODEL_DOWNFORCE_MAX), DDYN_OK);
+}
+
 static void test_closed_loop_stays_on_the_ring(void **state)
 {
     /* 2 s on the ring with the true coefficients: inside the room (0.15 m) all the way, every solve
@@ -1175,6 +1243,7 @@ int main(void)
         cmocka_unit_test(test_cost_points_run_no_faster_than_the_car_can_reach),
         cmocka_unit_test(test_bank_gravity_term_matches_the_python_model),
         cmocka_unit_test(test_bank_table_lookup_and_refusals),
+        cmocka_unit_test(test_downforce_matches_the_python_model_and_each_stage_uses_its_speed),
         cmocka_unit_test(test_plan_inputs_need_no_simulation),
         cmocka_unit_test(test_prepare_then_feedback_is_the_real_time_iteration),
     };

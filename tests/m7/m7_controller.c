@@ -62,6 +62,10 @@
 #ifndef M7_MASS_OFFSET
 #define M7_MASS_OFFSET 0.2 /* pass 6's known mass offset (ddyn/controller.h) */
 #endif
+#ifndef M7_DOWNFORCE
+#define M7_DOWNFORCE 0.03 /* pass 6's known downforce, s^2/m^2: every model evaluation scales the tyre peaks at its
+                             own speed (ddyn_model_downforce; 1.27 times the load at 3 m/s) */
+#endif
 #ifndef M7_DELAY_STEPS
 #define M7_DELAY_STEPS 300 /* pass 6 (cold path with the delays at the maximum) replays this many, per variant */
 #define M7_LAG_S 0.1       /* pass 6's steering lag (s): the lag runs in the filter's period, through the whole
@@ -247,6 +251,7 @@ static int controller_init(double qp_tolerance, int max_delay)
         cfg.delay.throttle = DDYN_CTRL_MAX_DELAY_STEPS * model->sample_time;
         cfg.lag.steering = M7_LAG_S;
         cfg.mass_offset = M7_MASS_OFFSET; /* its coefficients scaled every period, the line's speeds scaled */
+        cfg.downforce = M7_DOWNFORCE;
     }
 #ifdef M7_QP_CAP /* exploring other caps (docs/m7.md); pass 1 then no longer matches the recording */
     cfg.mpc.qp_max_iterations = M7_QP_CAP;
@@ -709,6 +714,7 @@ int main(void)
             kv("delay_pass_steer_lag_ms", (unsigned long)(1000.0 * M7_LAG_S + 0.5));
             kv("delay_pass_bank_mrad", (unsigned long)(1000.0 * M7_BANK_RAD + 0.5));
             kv("delay_pass_mass_offset_permille", (unsigned long)(1000.0 * M7_MASS_OFFSET + 0.5));
+            kv("delay_pass_downforce_e4", (unsigned long)(1e4 * M7_DOWNFORCE + 0.5));
             kv("delay_pass_periods_cold_start", (unsigned long)cold);
             kv("delay_pass_insn_per_step_median", (unsigned long)median_of(insn, delay_steps));
             kv("delay_pass_variant_insn_per_step_max", (unsigned long)worst_v);
@@ -717,8 +723,9 @@ int main(void)
             worst_delay_with_auth = worst_v_auth > worst_delay_with_auth ? worst_v_auth : worst_delay_with_auth;
             if (ctl.delay_steps[DDYN_CTRL_CH_STEERING] != (variant == 1 ? DDYN_CTRL_MAX_DELAY_STEPS : 0) ||
                 ctl.delay_steps[DDYN_CTRL_CH_THROTTLE] != DDYN_CTRL_MAX_DELAY_STEPS || cold == 0 ||
-                !(ctl.lag_decay > 0.0) || !ctl.mpc.track.have_bank || !(ctl.mass_speed_scale < 1.0)) {
-                m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum, the lag, the bank and the mass offset\n");
+                !(ctl.lag_decay > 0.0) || !ctl.mpc.track.have_bank || !(ctl.mass_speed_scale < 1.0) ||
+                !(ctl.mpc.downforce > 0.0)) {
+                m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum, the lag, the bank, the mass offset and the downforce\n");
                 fail = 1;
             }
         }

@@ -317,6 +317,10 @@ typedef struct {
     ddyn_ctrl_delay_config delay; /* known actuation delays (above; default 0: none) */
     ddyn_ctrl_lag_config lag;     /* known steering lag (above; default 0: none) */
     double mass_offset;           /* known mass offset (DDYN_CTRL_MASS_SCALED; default 0: none) */
+    double downforce;             /* known downforce k (s^2/m^2, 0..DDYN_MODEL_DOWNFORCE_MAX; default 0: none):
+                                     the filter, the pipe and each MPC stage use the coefficients of their
+                                     own state's speed, D_f and D_r times 1 + k vx^2 (ddyn_model_downforce),
+                                     after the mass offset; the line's speeds are not raised */
     ddyn_mpc_config mpc;    /* the MPC's configuration (its bounds also define the safe command) */
 } ddyn_ctrl_config;
 

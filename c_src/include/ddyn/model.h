@@ -75,6 +75,16 @@ ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_disc
 double ddyn_model_bank_accel(double bank);
 void ddyn_model_add_bank(double bank, double dt, const double x[DDYN_NX], double x_next[DDYN_NX]);
 
+/* Downforce (issue 34): the tyres' peak forces D_f, D_r (coefficients 2 and 8) scaled by 1 + k vx^2, the
+ * term of train/model/effects.py (downforce, k in s^2/m^2) and of the SIL plant. The generated model has
+ * no such term: the runtime evaluates it with the coefficients of the state's own speed, out = c with
+ * those two scaled at vx (the filter's, the pipe's and each MPC stage's own state; the Jacobians then
+ * lack d(scale)/dvx, a second-order term of the linearisation). k = 0 copies c bit-identically. */
+#define DDYN_MODEL_DF_INDEX 2
+#define DDYN_MODEL_DR_INDEX 8
+#define DDYN_MODEL_DOWNFORCE_MAX 0.5 /* s^2/m^2: doubles the tyre load at 1.4 m/s (a 1:43 car's range) */
+void ddyn_model_downforce(const double c[DDYN_NC], double k, double vx, double out[DDYN_NC]);
+
 /* Continuous-time derivative xdot = f(x, u, c). */
 /* 1 when v[0..n) holds no NaN or inf: the NaN/inf guard every runtime module uses on its inputs.
  * Under -ffast-math (-ffinite-math-only) the compiler may assume no NaN or inf exists and fold

@@ -132,6 +132,7 @@ typedef struct {
     ddyn_mpc_config cfg;
     double c[DDYN_NC];          /* coefficients the prediction uses (ddyn_mpc_set_coefficients) */
     int have_coefficients;
+    double downforce;           /* s^2/m^2 (ddyn_mpc_set_downforce; 0: none) */
     ddyn_mpc_track track;
     int have_warm_start;        /* u_plan holds a plan from the previous solve (shifted) */
     int last_index;             /* raceline segment found last time: local search from here */
@@ -178,6 +179,13 @@ ddyn_status ddyn_mpc_init(ddyn_mpc *mpc, const ddyn_vehicle_model *model, const 
  * every control period with the guard network's estimate. Non-finite -> DDYN_ERR_NONFINITE_INPUT
  * and the previous coefficients are kept. Nothing is regenerated: they are plain parameters. */
 ddyn_status ddyn_mpc_set_coefficients(ddyn_mpc *mpc, const double c[DDYN_NC]);
+
+/* A known downforce k (s^2/m^2, 0 <= k <= DDYN_MODEL_DOWNFORCE_MAX, issue 34): each prediction stage steps
+ * the model with the coefficients of its own linearisation speed, D_f and D_r times 1 + k vx^2
+ * (ddyn_model_downforce), and so does the launch bound of the references. 0 (the default): none. Out of
+ * range (also NaN) -> DDYN_ERR_ARGUMENT, the previous value kept. The line's speeds are not raised: the
+ * line was made for the car without it. */
+ddyn_status ddyn_mpc_set_downforce(ddyn_mpc *mpc, double k);
 
 /* The closed raceline: n points (4..DDYN_MPC_MAX_TRACK_POINTS, no repeated end point), the
  * reference speed at each (> 0) and the usable room from each point to the left and right track

@@ -11,11 +11,13 @@
 //   steer_lag                    first-order lag (tau) between the set-point and the steering servo's target
 //   mass_offset                  the true mass is m (1 + fraction): the generated accelerations' force
 //                                part is scaled by 1 / (1 + fraction) (Iz, lf, lr unchanged)
+//   downforce                    k (s^2/m^2): the tyres' peak forces D_f, D_r times 1 + k vx^2 at the
+//                                state's own speed (ddyn_model_downforce)
 //   yaw_rate_bias                the gyro reads omega + bias (sensor side: see sensors.hpp)
 // The road's bank (set_road_bank, the world's, not an effect: the track's own banking at the car's
 // track position, PlantApp's road_bank) adds the lateral gravity g sin(bank) to dvy (+ to the left), as
 // train/model/effects.py's bank_angle and ddyn.plants.commonroad_st define it.
-// The others of train/model/effects.py (grade, downforce, combined slip, tyre relaxation and wear)
+// The others of train/model/effects.py (grade, combined slip, tyre relaxation and wear)
 // change the tyre or gravity terms inside the model and would need generated C; not offered.
 #pragma once
 
@@ -42,6 +44,7 @@ struct PlantEffects {
   double throttle_delay = 0.0;  // s
   double steer_lag = 0.0;       // s (time constant)
   double mass_offset = 0.0;     // fraction
+  double downforce = 0.0;       // s^2/m^2
   double yaw_rate_bias = 0.0;   // rad/s (applied by the sensors)
 };
 
@@ -69,7 +72,8 @@ class Plant {
   const Coeffs& coeffs() const { return c_; }
   const ActuatorLimits& limits() const { return limits_; }
   const PlantEffects& effects() const { return fx_; }
-  // continuous-time derivative of the true plant (the generated model plus the mass offset and the bank)
+  // continuous-time derivative of the true plant (the generated model plus the downforce, the mass offset
+  // and the bank)
   State derivative(const State& x, const Eigen::Vector2d& u);
   // set-points the actuators currently chase (after delay and lag)
   double throttle_target() const { return throttle_target_; }
