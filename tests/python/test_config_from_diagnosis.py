@@ -40,10 +40,10 @@ def test_a_steering_delay_becomes_control_delay_steering(tmp_path):
     assert fx.sha256 == hashlib.sha256((d / "diagnosis.json").read_bytes()).hexdigest()
     cfg = apply_to_config({"vehicle": "orca_1_43", "control": {"period": 0.02}}, fx)
     assert cfg["control"] == {"period": 0.02, "delay": {"steering": 0.041, "throttle": 0.0},
-                              "lag": {"steering": 0.0}, "mass_offset": 0.0}
+                              "lag": {"steering": 0.0}, "mass_offset": 0.0, "downforce": 0.0}
     assert cfg["effects"] == {"diagnosis": str((d / "diagnosis.json").resolve()), "diagnosis_sha256": fx.sha256,
                               "delay": {"steering": 0.041, "throttle": 0.0}, "lag": {"steering": 0.0},
-                              "mass_offset": 0.0}
+                              "mass_offset": 0.0, "downforce": 0.0}
     # the file itself works as well as its folder
     assert controller_effects(d / "diagnosis.json").delays == {"steer": 0.041}
 
@@ -54,7 +54,8 @@ def test_a_steering_lag_becomes_control_lag_steering(tmp_path):
     d = _diagnosis(tmp_path / "D", ["steer_lag", "downforce"], {"steer_lag": 0.0365, "downforce": 0.08})
     fx = controller_effects(d, period=0.02)
     assert fx.lag == {"steer": 0.0365} and fx.delays == {} and fx.applied == ["steer_lag"]
-    assert fx.not_applied == ["downforce: not in the runtime (issue 34)"]
+    assert fx.not_applied == ["downforce: found 0.08, not applied: named after steer_lag (a downforce is applied "
+                              "only when named first)"]
     assert fx.lines()[0].startswith("steer_lag: applied as control.lag.steering = 0.0365 s (joint fit)")
     raw = json.loads((d / "diagnosis.json").read_text())
     raw["candidates"] = [{"effect": "steer_lag", "params": {"tau": 0.051}}]
@@ -73,14 +74,14 @@ def test_a_steering_lag_becomes_control_lag_steering(tmp_path):
 
 
 def test_unsupported_effects_are_named_not_applied(tmp_path):
-    d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "downforce"],
-                   {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "downforce": 0.1})
+    d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "grade"],
+                   {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "grade": 0.05})
     fx = controller_effects(d)
     assert fx.delays == {"steer": 0.02, "throttle": 0.1} and fx.applied == ["steer_delay", "throttle_delay"]
     assert fx.lag == {}
     # selected beside steer_delay the lag is not applied (the delay fitted alone carries the response)
     assert fx.not_applied[0].startswith("steer_lag: found 0.06, not applied: selected with steer_delay")
-    assert fx.not_applied[1] == "downforce: not in the runtime (issue 34)" and len(fx.not_applied) == 2
+    assert fx.not_applied[1] == "grade: not in the runtime (issue 34)" and len(fx.not_applied) == 2
     # a bank (bank_angle, bank_profile) is applied, the roll channel's named: test_sil_bank_effects.py
     nothing = controller_effects(_diagnosis(tmp_path / "E", []))
     assert nothing.delays == {} and nothing.applied == [] and nothing.not_applied == []
@@ -141,6 +142,51 @@ def test_a_mass_offset_becomes_control_mass_offset_and_an_edited_one_is_refused(
                  "--out", str(tmp_path / "x")]) == 2
 
 
+def test_a_downforce_named_first_becomes_control_downforce_and_an_edited_one_is_refused(tmp_path):
+    """A downforce named first is the controller's control.downforce (its k of the joint fit); named after another
+    effect or outside [0, 0.5] it is named and not applied; the controller accepts the file made from it and
+    refuses it with control.downforce edited, naming effects.downforce, or out of range."""
+    d = _diagnosis(tmp_path / "D", ["downforce", "steer_delay"], {"downforce": 0.021, "steer_delay": 0.04})
+    fx = controller_effects(d, period=0.02)
+    assert fx.downforce == 0.021 and fx.applied == ["downforce", "steer_delay"] and fx.not_applied == []
+    assert "downforce: applied as control.downforce = 0.021 (joint fit)" in fx.lines()
+    cfg = apply_to_config({"vehicle": "orca_1_43", "control": {"period": 0.02}}, fx)
+    assert cfg["control"]["downforce"] == 0.021 and cfg["effects"]["downforce"] == 0.021
+    bins = sil.build_binaries(None)
+    orca = load_vehicle("orca_1_43")
+    spec = sil.SilSpec.true_car(orca, load_track("ethzMobil"), controller_delays=fx.delays,
+                                controller_downforce=fx.downforce, effects_from=fx.summary())
+    path = sil.write_controller_files(spec, sil.raceline_table(spec.track, orca), tmp_path, str(tmp_path))
+    written = json.loads(path.read_text())
+    assert written["control"]["downforce"] == 0.021 and written["effects"]["downforce"] == 0.021
+
+    def check(c):
+        path.write_text(json.dumps(c))
+        return subprocess.run([str(bins / "ddyn_controller"), "--check", str(path)], capture_output=True, text=True)
+
+    ok = check(written)
+    assert ok.returncode == 0, ok.stderr
+    written["control"]["downforce"] = 0.05
+    bad = check(written)
+    assert bad.returncode == 2 and "effects.downforce" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    del written["effects"]
+    for value in (-0.01, 0.6, "lots"):
+        written["control"]["downforce"] = value
+        bad = check(written)
+        assert bad.returncode == 2 and "control.downforce" in bad.stderr, value
+    # outside the range, or named second: named, not applied
+    fx = controller_effects(_diagnosis(tmp_path / "E", ["downforce"], {"downforce": 0.8}))
+    assert fx.downforce == 0.0 and fx.applied == []
+    assert fx.not_applied == ["downforce: found 0.8, not applied: outside the controller's control.downforce range "
+                              "[0, 0.5]"]
+    fx = controller_effects(_diagnosis(tmp_path / "F", ["steer_lag", "downforce"], {"downforce": 0.02}))
+    assert fx.downforce == 0.0 and fx.applied == ["steer_lag"]
+    # the command line: the same range, and not beside --effects-from
+    assert main(["sil", "run", "--controller-downforce", "0.7", "--config-only", "--out", str(tmp_path / "x")]) == 2
+    assert main(["sil", "run", "--effects-from", str(d), "--controller-downforce", "0.1", "--config-only",
+                 "--out", str(tmp_path / "x")]) == 2
+
+
 def test_a_throttle_delay_becomes_control_delay_throttle(tmp_path):
     """A claimed throttle_delay is the controller's control.delay.throttle: fitted alone when the diagnosis has
     it, to the nearest whole control period (87 ms acts as 4 periods of 20 ms, 0.08 s), beside the steering delay
@@ -148,7 +194,8 @@ def test_a_throttle_delay_becomes_control_delay_throttle(tmp_path):
     d = _diagnosis(tmp_path / "D", ["throttle_delay", "downforce"], {"throttle_delay": 0.066, "downforce": 0.1})
     fx = controller_effects(d)
     assert fx.delays == {"throttle": 0.066} and fx.applied == ["throttle_delay"] and fx.lag == {}
-    assert fx.not_applied == ["downforce: not in the runtime (issue 34)"]
+    assert fx.not_applied == ["downforce: found 0.1, not applied: named after throttle_delay (a downforce is "
+                              "applied only when named first)"]
     raw = json.loads((d / "diagnosis.json").read_text())
     raw["candidates"] = [{"effect": "throttle_delay", "params": {"delay": 0.087}}]
     (d / "diagnosis.json").write_text(json.dumps(raw))

@@ -70,3 +70,24 @@ def test_a_told_mass_offset_laps_clean_where_the_nominal_controller_leaves_the_t
     cfg = json.loads((out / "seed1" / "random_304" / "mass_offset_0.2" / "controller.json").read_text())
     assert cfg["control"]["mass_offset"] == 0.2
     assert r["clean"] and 7.0 < r["vs_reference_pct"] < 11.0
+
+
+def test_a_told_downforce_laps_clean_where_the_nominal_controller_leaves_the_track(tmp_path):
+    """ETHZMobil with downforce in the plant (k = 0.04 s^2/m^2: 1.36 times the tyre load at 3 m/s; noise seed 1):
+    the nominal controller, expecting less grip than the car has, leaves the track; told the downforce (every model
+    evaluation at the tyre load of its own speed, ddyn_model_downforce) it laps clean and no slower than the car
+    without it."""
+    sil.build_binaries(None)
+    assert main(["sil", "run", "--where", "inprocess", "--coeffs", "true", "--line", "flying", "--laps", "4",
+                 "--effects", "downforce=0.04", "--out", str(tmp_path / "nominal")]) == 0
+    nominal = json.loads((tmp_path / "nominal" / "sil_metrics.json").read_text())
+    assert "downforce" not in json.loads((tmp_path / "nominal" / "controller.json").read_text())["control"]
+    assert nominal["plant"]["effects"]["downforce"] == 0.04      # the plant drove it
+    assert not (nominal["lap_completed"] and nominal["violations"] == 0)
+    out = tmp_path / "told"
+    assert main(["study", "sil-oracle", "--tracks", "ethzMobil", "--cases", "downforce=0.04", "--seeds", "1",
+                 "--out", str(out)]) == 0
+    r = json.loads((out / "oracle.json").read_text())["runs"][0]
+    cfg = json.loads((out / "seed1" / "ethzMobil" / "downforce_0.04" / "controller.json").read_text())
+    assert cfg["control"]["downforce"] == 0.04
+    assert r["clean"] and r["vs_reference_pct"] < 0.0

@@ -2,8 +2,8 @@
 
 `ddyn gap diagnose ... --out D` writes D/diagnosis.json; its `selected` effects (`model.effects`: each with its
 `params`) are what the diagnosis claims. The controller's runtime carries actuation delays and a steering lag
-(controller.json `control.delay`, `control.lag`), a mass offset (`control.mass_offset`) and a road bank
-(ddyn/controller.h), so:
+(controller.json `control.delay`, `control.lag`), a mass offset (`control.mass_offset`), a downforce
+(`control.downforce`) and a road bank (ddyn/controller.h), so:
 
     steer_delay     -> control.delay.steering: its `delay` fitted alone (the diagnosis's candidate of that name),
                        to the nearest whole control period when the period is known
@@ -25,13 +25,16 @@
                        fitted alone, the refitted nominal takes up part of it); the controller scales its
                        coefficients for that mass and the line's speeds (ddyn/controller.h); named after another
                        effect, or outside the controller's [-0.5, 1], it is named and not applied
-    anything else   -> not applied, named: "downforce: not in the runtime (issue 34)"
+    downforce       -> control.downforce, when named first: its `k` of the joint fit (s^2/m^2), as the mass
+                       offset's (both are families a systematic mismatch of the whole nominal pays as, so a
+                       second or third one is not trusted); outside the controller's [0, 0.5] named, not applied
+    anything else   -> not applied, named: "grade: not in the runtime (issue 34)"
 
-The configuration records where its delays, lag, mass offset and bank came from (`effects`: the diagnosis's path, the
-sha256 of its diagnosis.json, the delays, the lag and the mass offset it gave, and with a bank `bank` true, `bank_peak` the column's largest
+The configuration records where its delays, lag, mass offset, downforce and bank came from (`effects`: the diagnosis's
+path, the sha256 of its diagnosis.json, the delays, the lag, the mass offset and the downforce it gave, and with a bank `bank` true, `bank_peak` the column's largest
 |bank| and `bank_from` a line saying which effect); the controller refuses a file whose control.delay differs from
 the recorded `effects.delay`, control.lag from `effects.lag`, control.mass_offset from `effects.mass_offset`,
-control.bank from `effects.bank`, or whose raceline's
+control.downforce from `effects.downforce`, control.bank from `effects.bank`, or whose raceline's
 bank column does not peak at `effects.bank_peak` (firmware_sim/controller/controller_config.c), as it refuses a
 network built for another checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
 `apply_to_config` puts the same sections into another configuration (a car's; a diagnosed bank's column, made by
@@ -77,6 +80,9 @@ DELAY_MAX_S = 1.0   # the configuration's range of control.delay and control.lag
 BANK = ("bank_angle", "bank_profile", "bank_from_roll")   # the bank family (one at most is selected)
 BANK_MAX_RAD = math.radians(45.0)   # the controller refuses a bank column reaching 45 degrees (DDYN_MPC_MAX_BANK)
 MASS_OFFSET_RANGE = (-0.5, 1.0)     # control.mass_offset's range (DDYN_CTRL_MASS_OFFSET_MIN/MAX)
+DOWNFORCE_RANGE = (0.0, 0.5)        # control.downforce's range, s^2/m^2 (0..DDYN_MODEL_DOWNFORCE_MAX)
+# nominal-wide families: applied only when named first (see mass_offset in controller_effects)
+FIRST_ONLY = {"mass_offset": ("mass_offset", MASS_OFFSET_RANGE), "downforce": ("downforce", DOWNFORCE_RANGE)}
 
 
 @dataclass
@@ -95,6 +101,7 @@ class ControllerEffects:
     applied_estimates: dict[str, dict] = field(default_factory=dict)  # per applied effect: alone, joint, written
     bank: dict | None = None   # the diagnosed bank (_bank): effect, kind constant/profile, angle or profile, track
     mass_offset: float = 0.0   # the mass offset (control.mass_offset; 0: none)
+    downforce: float = 0.0     # the downforce k, s^2/m^2 (control.downforce; 0: none)
 
     def record(self, bank_column=None) -> dict:
         """controller.json's `effects` section (the controller checks control.delay against `delay`, control.lag
@@ -107,7 +114,8 @@ class ControllerEffects:
         return {"diagnosis": self.diagnosis, "diagnosis_sha256": self.sha256, "selected": self.selected,
                 "estimates": self.estimates, "applied_estimates": self.applied_estimates, "applied": self.applied, "not_applied": self.not_applied,
                 "controller_delays": dict(self.delays), "controller_lag": dict(self.lag),
-                "controller_mass_offset": self.mass_offset, "bank": self.bank}
+                "controller_mass_offset": self.mass_offset, "controller_downforce": self.downforce,
+                "bank": self.bank}
 
     def lines(self) -> list[str]:
         def how(e):
@@ -118,10 +126,11 @@ class ControllerEffects:
             return f" ({src}{per})"
         out = [f"{e}: applied as {APPLIED[e][2]} = {getattr(self, APPLIED[e][0])[APPLIED[e][1]]:.4g} s{how(e)}"
                for e in self.applied if e in APPLIED]
-        if "mass_offset" in self.applied:
-            alone = self.applied_estimates.get("mass_offset", {}).get("alone")
-            out.append(f"mass_offset: applied as control.mass_offset = {self.mass_offset:.4g} (joint fit"
-                       + (f"; fitted alone {alone:.4g}" if alone is not None else "") + ")")
+        for name in FIRST_ONLY:
+            if name in self.applied:
+                alone = self.applied_estimates.get(name, {}).get("alone")
+                out.append(f"{name}: applied as control.{name} = {getattr(self, name):.4g} (joint fit"
+                           + (f"; fitted alone {alone:.4g}" if alone is not None else "") + ")")
         if self.bank is not None:
             out.append(f"{self.bank['effect']}: applied as control.bank = true, raceline.csv's bank column "
                        f"{bank_from(self.bank)}")
@@ -135,7 +144,8 @@ def record(summary: dict, bank_column=None) -> dict:
            "delay": {"steering": float(summary["controller_delays"].get("steer", 0.0)),
                      "throttle": float(summary["controller_delays"].get("throttle", 0.0))},
            "lag": {"steering": float(summary["controller_lag"].get("steer", 0.0))},
-           "mass_offset": float(summary.get("controller_mass_offset", 0.0))}
+           "mass_offset": float(summary.get("controller_mass_offset", 0.0)),
+           "downforce": float(summary.get("controller_downforce", 0.0))}
     bank = summary.get("bank")
     if bank is not None:
         if bank_column is None:
@@ -341,25 +351,27 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
                                 f"{config_key.rsplit('.', 1)[0]}'s 0..{DELAY_MAX_S:g} s")
             getattr(fx, what)[key] = value
             fx.applied.append(name)
-        elif name == "mass_offset":
+        elif name in FIRST_ONLY:
             # the joint fit's (as the bank's), not the one fitted alone: alone, against the refitted nominal, the
             # nominal's own refit takes up part of a mass offset (on ETHZMobil's logs of `ddyn study sil-loop`
             # with -10 % and +20 % in the plant: alone -0.148 and +0.115, joint -0.111 and +0.159)
+            attr, (lo, hi) = FIRST_ONLY[name]
             alone = _alone(path, d, name)
             est = value
             fx.applied_estimates[name] = {"alone": alone, "joint": fx.estimates[name], "written": est}
             if i > 0:
                 # named after another effect: on ETHZMobil's logs of the loop (effect-free, steering and throttle
                 # delays, lags at seeds 1 and 2, mass offsets at seed 1) a mass offset named second or third was a
-                # false claim in 9 of 10 cases (the tenth: the +10 % offset, after a 2.5 ms lag)
-                fx.not_applied.append(f"mass_offset: found {est:.4g}, not applied: named after {d['selected'][0]} "
-                                      "(a mass offset is applied only when named first)")
-            elif MASS_OFFSET_RANGE[0] <= est <= MASS_OFFSET_RANGE[1]:
-                fx.mass_offset = est
+                # false claim in 9 of 10 cases (the tenth: the +10 % offset, after a 2.5 ms lag); a downforce, the
+                # other family a mismatch of the whole nominal pays as, is held to the same rule
+                fx.not_applied.append(f"{name}: found {est:.4g}, not applied: named after {d['selected'][0]} "
+                                      f"(a {name.replace('_', ' ')} is applied only when named first)")
+            elif lo <= est <= hi:
+                setattr(fx, attr, est)
                 fx.applied.append(name)
             else:
-                fx.not_applied.append(f"mass_offset: found {est:.4g}, not applied: outside the controller's "
-                                      f"control.mass_offset range [{MASS_OFFSET_RANGE[0]:g}, {MASS_OFFSET_RANGE[1]:g}]")
+                fx.not_applied.append(f"{name}: found {est:.4g}, not applied: outside the controller's "
+                                      f"control.{name} range [{lo:g}, {hi:g}]")
         else:
             fx.not_applied.append(f"{name}: not in the runtime (issue 34)")
     return fx
@@ -367,7 +379,7 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
 
 def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None) -> dict:
     """A controller configuration (docs/deploy.md) with fx's delays in control.delay, its lag in control.lag, its
-    mass offset in control.mass_offset, control.bank (true with a diagnosed bank, whose column, bank_column(), the caller writes into the raceline)
+    mass offset in control.mass_offset, its downforce in control.downforce, control.bank (true with a diagnosed bank, whose column, bank_column(), the caller writes into the raceline)
     and the record in `effects`; every other key as it was."""
     out = json.loads(json.dumps(cfg))
     control = out.setdefault("control", {})
@@ -377,6 +389,7 @@ def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None) -> dict:
     control["delay"] = dict(rec["delay"])
     control["lag"] = dict(rec["lag"])
     control["mass_offset"] = rec["mass_offset"]
+    control["downforce"] = rec["downforce"]
     if fx.bank is not None:
         control["bank"] = True
     elif control.get("bank"):

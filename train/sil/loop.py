@@ -51,7 +51,7 @@ LOG_SECONDS = 60.0
 MIN_VX = 0.3        # m/s: rows slower than this (the standing start) are left out of the user's log
 # the plant effect -> (the controller's compensation: delays or lag, its key) that is its oracle
 ORACLE = {"steer_delay": ("delays", "steer"), "throttle_delay": ("delays", "throttle"), "steer_lag": ("lag", "steer"),
-          "mass_offset": ("mass", None), "road_bank": ("bank", None)}
+          "mass_offset": ("mass", None), "downforce": ("downforce", None), "road_bank": ("bank", None)}
 # Every scored run (reference, before, rebuilt, oracle) drives this many laps and is scored on the median of the
 # flying laps (all but the first): from rest an input delay costs its own length whatever compensates it (100 ms
 # of throttle delay is 2.5 % of a 4 s lap), which is the start's, not the compensation's. The standing lap is kept
@@ -289,7 +289,8 @@ def write_user_log(controller_log: Path, out: Path, vehicle_name: str, sample_ti
 # ---------------------------------------------------------------------------------------------- runs
 
 def _drive(vehicle, track, out: Path, *, effects: dict, delays: dict | None = None, lag: dict | None = None,
-           mass_offset: float = 0.0, effects_from: dict | None = None, speed_scale: float | None = None,
+           mass_offset: float = 0.0, downforce: float = 0.0, effects_from: dict | None = None,
+           speed_scale: float | None = None,
            laps: int = SCORED_LAPS, seed: int = 1, road_bank: bool = False, controller_bank: bool = False,
            line: str = LINE) -> dict:
     """One in-process SIL run. road_bank: the track's own bank in the plant (a case of it; else a banked track is
@@ -299,7 +300,8 @@ def _drive(vehicle, track, out: Path, *, effects: dict, delays: dict | None = No
 
     spec = SilSpec.true_car(vehicle, track, laps=laps, effects=dict(effects), speed_scale=speed_scale, seed=seed,
                             controller_delays=dict(delays or {}), controller_lag=dict(lag or {}),
-                            controller_mass_offset=float(mass_offset), effects_from=effects_from,
+                            controller_mass_offset=float(mass_offset), controller_downforce=float(downforce),
+                            effects_from=effects_from,
                             road_bank=road_bank, controller_bank=controller_bank, line=line)
     with contextlib.redirect_stdout(io.StringIO()):
         m = run_sil(spec, out, None, where="inprocess")
@@ -515,12 +517,12 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
     cfx = controller_effects(out / "diagnosis", vehicle.sample_time)
     case["rebuilt_effects"] = cfx.summary()
     m = _drive(vehicle, track, out / "rebuilt", effects=fx, delays=cfx.delays, lag=cfx.lag, mass_offset=cfx.mass_offset,
-               effects_from=cfx.summary(), seed=seed, road_bank=banked, line=line)
+               downforce=cfx.downforce, effects_from=cfx.summary(), seed=seed, road_bank=banked, line=line)
     case["rebuilt"] = _row(m, out / "rebuilt")
     if effect in ORACLE:
         what, key = ORACLE[effect]
         told = {"delays": {"delays": {key: size}}, "lag": {"lag": {key: size}}, "mass": {"mass_offset": size},
-                "bank": {"controller_bank": True}}[what]
+                "downforce": {"downforce": size}, "bank": {"controller_bank": True}}[what]
         m = _drive(vehicle, track, out / "oracle", effects=fx, seed=seed, road_bank=banked, line=line, **told)
         case["oracle"] = _row(m, out / "oracle")
     sd = case["diagnosis"]["steer_delay_candidate_s"]
@@ -600,7 +602,8 @@ def plant_states_case(vehicle, track, out: Path, drive_dir: Path, seed: int, lin
     d = diagnose(log, vehicle.name, out / "diagnosis_plant_states")
     cfx = controller_effects(out / "diagnosis_plant_states", vehicle.sample_time)
     m = _drive(vehicle, track, out / "rebuilt_plant_states", effects={}, delays=cfx.delays, lag=cfx.lag,
-               mass_offset=cfx.mass_offset, effects_from=cfx.summary(), seed=seed, road_bank=True, line=line)
+               mass_offset=cfx.mass_offset, downforce=cfx.downforce, effects_from=cfx.summary(), seed=seed,
+               road_bank=True, line=line)
     return {"what": "not the loop's answer: the log drive's rows with the plant's true states in place of the "
                     "controller's estimates (what a log with another state estimate, a car's INS, would hold at best)",
             "time_shift_s": shift,
@@ -671,9 +674,11 @@ def markdown(cases: list[dict]) -> str:
         ld = c["log_drive"]["chosen"]
         bank = c["rebuilt_effects"].get("bank")
         mass = c["rebuilt_effects"].get("controller_mass_offset", 0.0)
+        downforce = c["rebuilt_effects"].get("controller_downforce", 0.0)
         written = ", ".join([f"{k} {v:.4g} s" for k, v in c["rebuilt_effects"]["controller_delays"].items()] +
                             [f"lag {k} {v:.4g} s" for k, v in c["rebuilt_effects"].get("controller_lag", {}).items()] +
                             ([f"mass offset {mass:+.3g}"] if mass else []) +
+                            ([f"downforce {downforce:.3g}"] if downforce else []) +
                             ([f"bank ({bank['effect']}, peak {math.degrees(bank['peak']):.3g} deg)"] if bank else []))
         applied = written or ("nothing (" + "; ".join(c["rebuilt_effects"]["not_applied"]) + ")"
                               if c["rebuilt_effects"]["not_applied"] else "nothing")

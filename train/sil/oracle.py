@@ -32,7 +32,8 @@ def run_track(vehicle, tname: str, cases: list[tuple[str, float]], seed: int, li
     rows = []
     for effect, size in cases:
         what, key = loop.ORACLE[effect]
-        told = {"delays": {"delays": {key: size}}, "lag": {"lag": {key: size}}, "mass": {"mass_offset": size}}[what]
+        told = {"delays": {"delays": {key: size}}, "lag": {"lag": {key: size}}, "mass": {"mass_offset": size},
+                "downforce": {"downforce": size}}[what]
         d = tdir / f"{effect}_{size:g}"
         r = loop._row(loop._drive(vehicle, track, d, effects={effect: size}, seed=seed, line=line, **told), d)
         clean = bool(r["lap_completed"] and r["violations"] == 0)

@@ -52,7 +52,7 @@ from ddyn.paths import REPO, shared_data_dir
 
 # Plant-side effects (firmware_sim/include/fsim/plant.hpp); the other effects of train/model/effects.py
 # change the tyre or gravity terms inside the model and are not offered by the plant.
-PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "yaw_rate_bias")
+PLANT_EFFECTS = ("steer_delay", "throttle_delay", "steer_lag", "mass_offset", "downforce", "yaw_rate_bias")
 # The car's footprint (length, width), m: the MPC's (train/control/mpc_setup.py).
 from ddyn.model.vehicle import FOOTPRINT  # noqa: E402
 
@@ -233,6 +233,8 @@ class SilSpec:
                                                # time constant): {"steer": ..} (control.lag; none: {})
     controller_mass_offset: float = 0.0        # the mass offset the controller knows (control.mass_offset: the
                                                # car's mass is (1 + it) times the model's; 0: none)
+    controller_downforce: float = 0.0          # the downforce k the controller knows (control.downforce, s^2/m^2:
+                                               # the tyre peaks 1 + k vx^2 times the model's; 0: none)
     effects_from: dict | None = None           # the diagnosis the delays came from (ddyn.sil.effects
                                                # ControllerEffects.summary()): controller.json `effects`
     road_bank: bool = True                     # a track with its own banking (Track.bank: the oval) banks the
@@ -444,6 +446,8 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
     if spec.controller_mass_offset != 0.0:
         control["mass_offset"] = float(spec.controller_mass_offset)
+    if spec.controller_downforce != 0.0:
+        control["downforce"] = float(spec.controller_downforce)
     bank = controller_bank_column(spec, table)
     if bank is not None:  # the road's bank along the raceline (raceline.csv's 6th column)
         control["bank"] = True
@@ -454,6 +458,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
                             "throttle": float(spec.controller_delays.get("throttle", 0.0))}
         control["lag"] = {"steering": float(spec.controller_lag.get("steer", 0.0))}
         control["mass_offset"] = float(spec.controller_mass_offset)
+        control["downforce"] = float(spec.controller_downforce)
     dims = {"gnss_position": 2, "heading": 1, "yaw_rate": 1, "acceleration": 2, "wheel_speed": 2, "steering": 1}
     can_cfg: dict = {"interface": can, "stale_periods": dict(FRAME_STALE_PERIODS), "cycle_ms": frame_cycles_ms(v)}
     if key_file:
@@ -489,7 +494,8 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
         from ddyn.sil.effects import record
         cfg["effects"] = record(spec.effects_from, bank) | {"delay": dict(control["delay"]),
                                                              "lag": dict(control["lag"]),
-                                                             "mass_offset": control["mass_offset"]}
+                                                             "mass_offset": control["mass_offset"],
+                                                             "downforce": control["downforce"]}
     mpc = mpc_section(v.name)
     if mpc:
         cfg["mpc"] = mpc
@@ -999,6 +1005,7 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "controller": None, "plant": pm, "run": run,
         "effects": spec.effects, "faults": spec.faults, "controller_delays": spec.controller_delays,
         "controller_lag": spec.controller_lag, "controller_mass_offset": spec.controller_mass_offset,
+        "controller_downforce": spec.controller_downforce,
         "controller_effects": spec.effects_from,
         "road_bank": bool(pm.get("road_bank", False)),
         # the controller's bank: the track's own (--controller-bank) or a diagnosis's (--effects-from D)
@@ -1265,19 +1272,23 @@ def _run(args: argparse.Namespace) -> int:
         fixed = coefficients_from(args.coeffs, vehicle)
     delays, effects_from = parse_controller_delays(args.controller_delays), None
     lag = parse_controller_lag(args.controller_lag)
-    from ddyn.sil.effects import MASS_OFFSET_RANGE
-    mass = args.controller_mass_offset
+    from ddyn.sil.effects import DOWNFORCE_RANGE, MASS_OFFSET_RANGE
+    mass, downforce = args.controller_mass_offset, args.controller_downforce
     if not MASS_OFFSET_RANGE[0] <= mass <= MASS_OFFSET_RANGE[1]:
         raise DdynError(f"--controller-mass-offset: {mass:g} is outside [{MASS_OFFSET_RANGE[0]:g}, "
                         f"{MASS_OFFSET_RANGE[1]:g}] (the controller's control.mass_offset)")
+    if not DOWNFORCE_RANGE[0] <= downforce <= DOWNFORCE_RANGE[1]:
+        raise DdynError(f"--controller-downforce: {downforce:g} is outside [{DOWNFORCE_RANGE[0]:g}, "
+                        f"{DOWNFORCE_RANGE[1]:g}] (the controller's control.downforce, s^2/m^2)")
     if args.effects_from:
         from ddyn.sil.effects import controller_effects
-        if delays or lag or args.controller_bank or mass:
+        if delays or lag or args.controller_bank or mass or downforce:
             raise DdynError("--effects-from and --controller-delays/--controller-lag/--controller-bank/"
-                            "--controller-mass-offset: give one (the diagnosis sets the delays, the lag, the mass "
-                            "offset and the bank)")
+                            "--controller-mass-offset/--controller-downforce: give one (the diagnosis sets the "
+                            "delays, the lag, the mass offset, the downforce and the bank)")
         fx = controller_effects(args.effects_from, vehicle.sample_time)
         delays, lag, mass, effects_from = dict(fx.delays), dict(fx.lag), fx.mass_offset, fx.summary()
+        downforce = fx.downforce
         for line in fx.lines() or ["nothing to apply"]:
             print(f"sil: effects from {args.effects_from}: {line}")
     spec = SilSpec(vehicle=vehicle, track=track, coeffs_plant=vehicle.true_vector(), coeffs_controller=fixed,
@@ -1288,7 +1299,7 @@ def _run(args: argparse.Namespace) -> int:
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
                    forged_steering=args.inject_forged_steering,
                    controller_delays=delays, controller_lag=lag, controller_mass_offset=mass,
-                   effects_from=effects_from, road_bank=not args.flat_road, controller_bank=args.controller_bank)
+                   controller_downforce=downforce, effects_from=effects_from, road_bank=not args.flat_road, controller_bank=args.controller_bank)
     if args.config_only:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -1297,6 +1308,7 @@ def _run(args: argparse.Namespace) -> int:
         control = json.loads(path.read_text())["control"]
         print(f"sil: wrote {path} and {out / RACELINE_CSV} (control.delay {control.get('delay', 'none')}, "
               f"control.lag {control.get('lag', 'none')}, control.mass_offset {control.get('mass_offset', 0)}, "
+              f"control.downforce {control.get('downforce', 0)}, "
               f"control.bank {control.get('bank', False)}); not driven (--config-only)")
         return 0
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
@@ -1367,12 +1379,18 @@ def register(subparsers) -> None:
                         "(controller.json control.mass_offset, in [-0.5, 1]): its filter, pipe and MPC use the "
                         "coefficients scaled for that mass, and with F > 0 the line's speeds times 1 / sqrt(1 + F); "
                         "e.g. with --effects mass_offset=0.1 give 0.1 (default: 0)")
+    p.add_argument("--controller-downforce", metavar="K", type=float, default=0.0,
+                   help="the downforce the controller knows, s^2/m^2: the tyres' peak forces are 1 + K vx^2 times "
+                        "the model's (controller.json control.downforce, in [0, 0.5]): its filter, pipe and MPC "
+                        "stages use the coefficients of their own speed; the line's speeds are not raised; e.g. "
+                        "with --effects downforce=0.02 give 0.02 (default: 0)")
     p.add_argument("--effects-from", metavar="D", default=None,
                    help="the controller's actuation delays, steering lag and road bank from a diagnosis (`ddyn gap "
                         "diagnose --out D`: the folder or its diagnosis.json): steer_delay -> control.delay.steering, "
                         "throttle_delay -> control.delay.throttle, steer_lag -> control.lag.steering, bank_angle or "
                         "bank_profile -> control.bank and raceline.csv's bank column (the profile at each row's track "
-                        "position), mass_offset -> control.mass_offset, every other effect named and not applied; recorded in controller.json (effects: "
+                        "position), mass_offset -> control.mass_offset and downforce -> control.downforce (each "
+                        "when named first), every other effect named and not applied; recorded in controller.json (effects: "
                         "path, sha256; the controller refuses the file if control.delay, control.lag or the bank is "
                         "edited) and sil_metrics.json")
     p.add_argument("--controller-bank", action="store_true",
