@@ -1,10 +1,11 @@
 """`ddyn codegen model`, MPC part: the MPC's prediction step and each vehicle's input limits.
 
-c_src/generated/ddyn_mpc_model.c/.h  ddyn_<vehicle>_mpc_step(x, u, c, bank) -> x_next, A, B: one RK4 step
+c_src/generated/ddyn_mpc_model.c/.h  ddyn_<vehicle>_mpc_step(x, u, c, road) -> x_next, A, B: one RK4 step
     over the whole sample time (a single sub-step) with its Jacobians wrt x and u, in one function.
-    bank (rad, held over the step): the road's bank at the stage's track position, its lateral gravity
-    g sin(bank) on dvy (+ to the left) from ddyn.model.effects.derivatives (Aux.bank, no other effect),
-    the term the Python model carries; 0 is the flat road's step (issue 34: a bank-aware controller).
+    road = (bank, grade) (rad, held over the step): the road at the stage's track position, the bank's
+    lateral gravity g sin(bank) on dvy (+ to the left) and the grade's longitudinal -g sin(grade) on dvx
+    (+ uphill) from ddyn.model.effects.derivatives (Aux.bank, Aux.grade, no other effect), the terms the
+    Python model carries; (0, 0) is the flat road's step (issue 34: a bank- and grade-aware controller).
     Why: the plant's RK4 Jacobian function (4 sub-steps, and dx/dc, which the MPC does not need)
     costs ~9 us per call, 20 of them per MPC step; the single-step one is 4x cheaper and stays
     within ~0.5 mm of the 4-sub-step RK4 over 10 steps at the 1:43 car's racing speeds (Euler at the
@@ -28,11 +29,11 @@ from ddyn.model.vehicle import Vehicle
 MPC_RK4_SUBSTEPS = 1
 
 
-def mpc_step_expr(x, u, c, bank, v: Vehicle):
-    """The MPC's step: RK4 of the model with the road's bank (ddyn.model.effects, no other effect)."""
+def mpc_step_expr(x, u, c, road, v: Vehicle):
+    """The MPC's step: RK4 of the model on the road (bank, grade) (ddyn.model.effects, no other effect)."""
     ns = mathns.get("casadi")
     uu, cc = tuple(u[i] for i in range(N_INPUT)), tuple(c[i] for i in range(N_COEFF))
-    fx, aux = effects.EffectSet(), effects.Aux(bank=bank)
+    fx, aux = effects.EffectSet(), effects.Aux(bank=road[0], grade=road[1])
 
     def f(s):
         return effects.derivatives(ns, s, uu, cc, v.known, fx, aux)
@@ -43,11 +44,11 @@ def mpc_step_expr(x, u, c, bank, v: Vehicle):
 
 def mpc_step_function(v: Vehicle) -> ca.Function:
     x, u, c = backends.casadi_symbols()
-    bank = ca.SX.sym("bank")
-    nxt = mpc_step_expr(x, u, c, bank, v)
-    return ca.Function(f"ddyn_{v.name}_mpc_step", [x, u, c, bank],
+    road = ca.SX.sym("road", 2)   # (bank, grade)
+    nxt = mpc_step_expr(x, u, c, road, v)
+    return ca.Function(f"ddyn_{v.name}_mpc_step", [x, u, c, road],
                        [nxt, ca.densify(ca.jacobian(nxt, x)), ca.densify(ca.jacobian(nxt, u))],
-                       ["x", "u", "c", "bank"], ["x_next", "A", "B"])
+                       ["x", "u", "c", "road"], ["x_next", "A", "B"])
 
 
 def generate_step(vehicles: list[Vehicle], out: Path, banner, options: dict) -> tuple[list[Path], list[ca.Function]]:
@@ -61,7 +62,7 @@ def generate_step(vehicles: list[Vehicle], out: Path, banner, options: dict) -> 
         for ext in (".c", ".h"):
             text = (Path(tmp) / f"ddyn_mpc_model{ext}").read_text()
             target = Path(out) / f"ddyn_mpc_model{ext}"
-            what = ("The MPC's prediction step: single-step RK4, the road's bank an input (ddyn.model.effects), "
+            what = ("The MPC's prediction step: single-step RK4, the road's bank and grade an input (ddyn.model.effects), "
                     "Jacobians wrt x, u.")
             target.write_text(banner(what, vehicles) + text)
             written.append(target)

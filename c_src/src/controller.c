@@ -358,10 +358,25 @@ ddyn_status ddyn_ctrl_set_bank(ddyn_ctrl *ctl, const double *bank)
     return ddyn_mpc_set_bank(&ctl->mpc, bank);
 }
 
-/* The road's bank at x's position (0 without a profile): the raceline's bank table at its projection */
-static double bank_at(ddyn_ctrl *ctl, const double x[NX])
+ddyn_status ddyn_ctrl_set_grade(ddyn_ctrl *ctl, const double *grade)
 {
-    return ctl->mpc.track.have_bank ? ddyn_mpc_bank_at(&ctl->mpc, x[0], x[1], &ctl->bank_hint) : 0.0;
+    if (ctl == NULL || !ctl->initialised) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    ctl->bank_hint = -1;
+    return ddyn_mpc_set_grade(&ctl->mpc, grade);
+}
+
+/* The road at x's position, road[0] the bank and road[1] the grade (each 0 without its profile): the
+ * raceline's tables at its projection. 0: neither profile (nothing to add). */
+static int road_at(ddyn_ctrl *ctl, const double x[NX], double road[2])
+{
+    road[0] = road[1] = 0.0;
+    if (!ctl->mpc.track.have_bank && !ctl->mpc.track.have_grade) {
+        return 0;
+    }
+    ddyn_mpc_road_at(&ctl->mpc, x[0], x[1], &ctl->bank_hint, road);
+    return 1;
 }
 
 /* The coefficients at x's speed: ctl->coeffs with the known downforce's tyre load (ddyn_model_downforce)
@@ -375,14 +390,16 @@ static const double *coeffs_at(const ddyn_ctrl *ctl, const double x[NX], double 
     return buf;
 }
 
-/* The filter's model step (cfg.ekf_disc) with the road's bank at x's position (ddyn_model_add_bank) */
+/* The filter's model step (cfg.ekf_disc) with the road's bank and grade at x's position (ddyn_model_add_bank,
+ * ddyn_model_add_grade) */
 static ddyn_status model_step(ddyn_ctrl *ctl, const double x[NX], const double u[NU], double x_next[NX])
 {
-    double c_at[NC];
+    double c_at[NC], road[2];
     ddyn_status s = ddyn_model_step(ctl->model, ctl->cfg.ekf_disc, x, u, coeffs_at(ctl, x, c_at), x_next,
                                     &ctl->ekf.work);
-    if (s == DDYN_OK && ctl->mpc.track.have_bank) {
-        ddyn_model_add_bank(bank_at(ctl, x), ctl->model->sample_time, x, x_next);
+    if (s == DDYN_OK && road_at(ctl, x, road)) {
+        ddyn_model_add_bank(road[0], ctl->model->sample_time, x, x_next);
+        ddyn_model_add_grade(road[1], ctl->model->sample_time, x, x_next);
     }
     return s;
 }
@@ -801,7 +818,10 @@ static ddyn_ctrl_status estimate(ddyn_ctrl *ctl, const ddyn_ctrl_input *in)
     int k, i, fused = 0, diverged = 0, restart;
     unsigned reacquire = 0u; /* sensors whose repeated restart this is (bit k) */
     double c_at[NC];         /* the coefficients at the predicted period's start speed (downforce) */
-    ctl->ekf.bank = bank_at(ctl, ctl->ekf.x); /* the road's bank where the predicted period starts */
+    double road[2];          /* the road's bank and grade where the predicted period starts */
+    (void)road_at(ctl, ctl->ekf.x, road);
+    ctl->ekf.bank = road[0];
+    ctl->ekf.grade = road[1];
     if (ctl->started && ddyn_ekf_predict(&ctl->ekf, ctl->u_acting, coeffs_at(ctl, ctl->ekf.x, c_at)) != DDYN_OK) {
         diverged = 1; /* the model step failed (e.g. non-finite): the filter state is unchanged */
     }

@@ -105,6 +105,7 @@ ddyn_status ddyn_ekf_predict(ddyn_ekf *ekf, const double u[DDYN_NU], const doubl
         return s;
     }
     ddyn_model_add_bank(ekf->bank, ekf->model->sample_time, ekf->x, xn); /* constant over x: A unchanged */
+    ddyn_model_add_grade(ekf->grade, ekf->model->sample_time, ekf->x, xn);
     s = ddyn_model_step_jacobians(ekf->model, ekf->disc, ekf->x, u, c, A, NULL, NULL, &ekf->work);
     if (s != DDYN_OK) {
         return s;

@@ -181,6 +181,21 @@ void ddyn_model_downforce(const double c[DDYN_NC], double k, double vx, double o
 
 double ddyn_model_bank_accel(double bank) { return DDYN_GRAVITY * sin(bank); }
 
+double ddyn_model_grade_accel(double grade) { return -DDYN_GRAVITY * sin(grade); }
+
+void ddyn_model_add_grade(double grade, double dt, const double x[DDYN_NX], double x_next[DDYN_NX])
+{
+    double a, h;
+    if (x == NULL || x_next == NULL || grade == 0.0) {
+        return;
+    }
+    a = ddyn_model_grade_accel(grade);
+    h = 0.5 * a * dt * dt;
+    x_next[0] += h * cos(x[2]); /* along the heading */
+    x_next[1] += h * sin(x[2]);
+    x_next[3] += a * dt;
+}
+
 void ddyn_model_add_bank(double bank, double dt, const double x[DDYN_NX], double x_next[DDYN_NX])
 {
     double a, h;

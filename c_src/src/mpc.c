@@ -162,38 +162,51 @@ ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const doub
     t->speed_scale = 1.0;
     t->have_bank = 0;
     memset(t->bank, 0, sizeof t->bank);
+    t->have_grade = 0;
+    memset(t->grade, 0, sizeof t->grade);
+    ddyn_mpc_reset(mpc);
+    return DDYN_OK;
+}
+
+/* a road profile (the bank's, the grade's) along the track set last: |v| < max at every point, or NULL: none */
+static ddyn_status set_profile(ddyn_mpc *mpc, const double *v, double max, double *table, int *have)
+{
+    int i;
+    if (mpc == NULL || mpc->cfg.prediction != DDYN_MPC_PRED_RK4_SINGLE) {
+        return DDYN_ERR_ARGUMENT;
+    }
+    if (mpc->track.n < 4) {
+        return DDYN_ERR_NOT_READY;
+    }
+    if (v != NULL) {
+        if (!ddyn_all_finite(v, mpc->track.n)) {
+            return DDYN_ERR_NONFINITE_INPUT;
+        }
+        for (i = 0; i < mpc->track.n; ++i) {
+            if (!(fabs(v[i]) < max)) {
+                return DDYN_ERR_ARGUMENT;
+            }
+        }
+        memcpy(table, v, (size_t)mpc->track.n * sizeof *v);
+        *have = 1;
+    } else {
+        memset(table, 0, DDYN_MPC_MAX_TRACK_POINTS * sizeof *table);
+        *have = 0;
+    }
     ddyn_mpc_reset(mpc);
     return DDYN_OK;
 }
 
 ddyn_status ddyn_mpc_set_bank(ddyn_mpc *mpc, const double *bank)
 {
-    ddyn_mpc_track *t;
-    int i;
-    if (mpc == NULL || mpc->cfg.prediction != DDYN_MPC_PRED_RK4_SINGLE) {
-        return DDYN_ERR_ARGUMENT;
-    }
-    t = &mpc->track;
-    if (t->n < 4) {
-        return DDYN_ERR_NOT_READY;
-    }
-    if (bank != NULL) {
-        if (!ddyn_all_finite(bank, t->n)) {
-            return DDYN_ERR_NONFINITE_INPUT;
-        }
-        for (i = 0; i < t->n; ++i) {
-            if (!(fabs(bank[i]) < DDYN_MPC_MAX_BANK)) {
-                return DDYN_ERR_ARGUMENT;
-            }
-        }
-        memcpy(t->bank, bank, (size_t)t->n * sizeof *bank);
-        t->have_bank = 1;
-    } else {
-        memset(t->bank, 0, sizeof t->bank);
-        t->have_bank = 0;
-    }
-    ddyn_mpc_reset(mpc);
-    return DDYN_OK;
+    return mpc == NULL ? DDYN_ERR_ARGUMENT
+                       : set_profile(mpc, bank, DDYN_MPC_MAX_BANK, mpc->track.bank, &mpc->track.have_bank);
+}
+
+ddyn_status ddyn_mpc_set_grade(ddyn_mpc *mpc, const double *grade)
+{
+    return mpc == NULL ? DDYN_ERR_ARGUMENT
+                       : set_profile(mpc, grade, DDYN_MPC_MAX_GRADE, mpc->track.grade, &mpc->track.have_grade);
 }
 
 ddyn_status ddyn_mpc_fix_throttle(ddyn_mpc *mpc, int n, const double *dthrottle)
@@ -306,35 +319,57 @@ static void advance(const ddyn_mpc_track *t, int *i, double *u, double ds)
     }
 }
 
-double ddyn_mpc_track_bank(const ddyn_mpc_track *t, int i, double u)
+/* a profile's value at segment i, parameter u (linear between the points; 0 out of range) */
+static double profile_at(const ddyn_mpc_track *t, const double *table, int i, double u)
 {
     int j;
-    if (t == NULL || !t->have_bank || i < 0 || i >= t->n || !(u >= 0.0 && u <= 1.0)) {
+    if (i < 0 || i >= t->n || !(u >= 0.0 && u <= 1.0)) {
         return 0.0;
     }
     j = i + 1 < t->n ? i + 1 : 0;
-    return t->bank[i] + u * (t->bank[j] - t->bank[i]);
+    return table[i] + u * (table[j] - table[i]);
 }
 
-/* the bank at the projection of (px, py), searched +-window segments around *hint (all when < 0) */
-static double bank_lookup(const ddyn_mpc *mpc, double px, double py, int *hint, int window)
+double ddyn_mpc_track_bank(const ddyn_mpc_track *t, int i, double u)
+{
+    return t == NULL || !t->have_bank ? 0.0 : profile_at(t, t->bank, i, u);
+}
+
+double ddyn_mpc_track_grade(const ddyn_mpc_track *t, int i, double u)
+{
+    return t == NULL || !t->have_grade ? 0.0 : profile_at(t, t->grade, i, u);
+}
+
+/* the road (bank, grade) at the projection of (px, py), searched +-window segments around *hint (all when < 0);
+ * one projection for both, none without a profile */
+static void road_lookup(const ddyn_mpc *mpc, double px, double py, int *hint, int window, double road[2])
 {
     int i, h;
     double u;
-    if (mpc == NULL || !mpc->track.have_bank || mpc->track.n < 4 || !isfinite(px) || !isfinite(py)) {
-        return 0.0;
+    road[0] = road[1] = 0.0;
+    if (mpc == NULL || !(mpc->track.have_bank || mpc->track.have_grade) || mpc->track.n < 4 || !isfinite(px) ||
+        !isfinite(py)) {
+        return;
     }
     h = hint != NULL && *hint >= 0 && *hint < mpc->track.n ? *hint : -1;
     i = project(&mpc->track, px, py, h, window, &u);
     if (hint != NULL) {
         *hint = i;
     }
-    return ddyn_mpc_track_bank(&mpc->track, i, u);
+    road[0] = ddyn_mpc_track_bank(&mpc->track, i, u);
+    road[1] = ddyn_mpc_track_grade(&mpc->track, i, u);
+}
+
+void ddyn_mpc_road_at(const ddyn_mpc *mpc, double px, double py, int *hint, double road[2])
+{
+    road_lookup(mpc, px, py, hint, DDYN_MPC_BANK_WINDOW, road);
 }
 
 double ddyn_mpc_bank_at(const ddyn_mpc *mpc, double px, double py, int *hint)
 {
-    return bank_lookup(mpc, px, py, hint, DDYN_MPC_BANK_WINDOW);
+    double road[2];
+    road_lookup(mpc, px, py, hint, DDYN_MPC_BANK_WINDOW, road);
+    return road[0];
 }
 
 /* ---- one real-time iteration --------------------------------------------------------------- */
@@ -342,8 +377,8 @@ double ddyn_mpc_bank_at(const ddyn_mpc *mpc, double px, double py, int *hint)
 static double clip(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 
 /* One prediction step x_next = f(x, u) and, when A is not NULL, its Jacobians A, B. */
-static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, double bank, double *x_next, double *A,
-                           double *B)
+static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, const double road[2], double *x_next,
+                           double *A, double *B)
 {
     ddyn_status st;
     double c_at[DDYN_NC]; /* the coefficients at x's speed (downforce; mpc->c's copy without it) */
@@ -355,7 +390,7 @@ static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, doub
         arg[0] = x;
         arg[1] = u;
         arg[2] = c_at;
-        arg[3] = &bank; /* the road's bank over this step (0: flat) */
+        arg[3] = road; /* the road's bank and grade over this step (0, 0: flat and level) */
         res[0] = out;
         res[1] = out + DDYN_NX;
         res[2] = out + DDYN_NX * (1 + DDYN_NX);
@@ -405,12 +440,13 @@ static ddyn_status linearise(ddyn_mpc *mpc, const double x0[DDYN_NX], int hold, 
     memcpy(mpc->x_lin, x0, DDYN_NX * sizeof(double));
     hint = mpc->last_index;
     for (k = 0; k < h; ++k) {
-        /* the bank at this stage's own track position: its predicted position projected on the raceline */
+        /* the road at this stage's own track position: its predicted position projected on the raceline */
         const double *xk = mpc->x_lin + k * DDYN_NX;
-        mpc->stage_bank[k] = mpc->track.have_bank
-                                 ? bank_lookup(mpc, xk[0], xk[1], &hint, k == 0 ? LOCAL_WINDOW : STAGE_WINDOW)
-                                 : 0.0;
-        st = predict(mpc, xk, mpc->u_lin + k * DDYN_NU, mpc->stage_bank[k], mpc->x_lin + (k + 1) * DDYN_NX,
+        double road[2];
+        road_lookup(mpc, xk[0], xk[1], &hint, k == 0 ? LOCAL_WINDOW : STAGE_WINDOW, road);
+        mpc->stage_bank[k] = road[0];
+        mpc->stage_grade[k] = road[1];
+        st = predict(mpc, xk, mpc->u_lin + k * DDYN_NU, road, mpc->x_lin + (k + 1) * DDYN_NX,
                      mpc->A + k * DDYN_NX * DDYN_NX, mpc->B + k * DDYN_NX * DDYN_NU);
         if (st != DDYN_OK) {
             return st;
@@ -966,7 +1002,8 @@ int ddyn_mpc_plan(ddyn_mpc *mpc, double *x_plan, double *u_plan)
     }
     h = mpc->cfg.horizon;
     for (k = 0; k < h; ++k) {
-        if (predict(mpc, mpc->x_plan + k * DDYN_NX, mpc->u_plan + k * DDYN_NU, mpc->stage_bank[k],
+        const double road[2] = {mpc->stage_bank[k], mpc->stage_grade[k]};
+        if (predict(mpc, mpc->x_plan + k * DDYN_NX, mpc->u_plan + k * DDYN_NU, road,
                     mpc->x_plan + (k + 1) * DDYN_NX, NULL, NULL) != DDYN_OK) {
             return 0;
         }

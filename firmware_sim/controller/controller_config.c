@@ -121,6 +121,11 @@ static const key_spec KEYS[] = {
      "false (default): a flat road; true: the raceline's 6th column is the road's bank (rad, + tilting the road "
      "so that gravity pulls to the left; |bank| < 45 deg) at each point, and the filter and the MPC predict with "
      "its lateral gravity g sin(bank) at their track positions (issue 34; ddyn/controller.h ddyn_ctrl_set_bank)"},
+    {"control.grade", K_BOOL, OFF(grade), 0, 0, 0, 0, 0, NULL, NONE,
+     "false (default): a level road; true: the raceline's next column (the 6th, the 7th after a bank) is the road's "
+     "grade (rad, + uphill in the direction of travel; |grade| < 20 deg) at each point, and the filter and the MPC "
+     "predict with its longitudinal gravity -g sin(grade) at their track positions (issue 34; ddyn/controller.h "
+     "ddyn_ctrl_set_grade)"},
     {"effects", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE,
      "the diagnosis the actuation delays, the steering lag, the mass offset, the downforce and the road's bank come "
      "from (`ddyn sil run --effects-from D`, docs/sil.md); a file whose control.delay differs from effects.delay, "
@@ -144,6 +149,12 @@ static const key_spec KEYS[] = {
      "a sha256 given, control.bank must equal it"},
     {"effects.bank_peak", K_NUMBER, OFF(effects_bank_peak), 0, 0, 0.0, 1.0, 0, NULL, NONE,
      "the largest |bank| (rad) of the bank column the diagnosis gave; with effects.bank, the raceline's column "
+     "must have it (default 0)"},
+    {"effects.grade", K_BOOL, OFF(effects_grade), 0, 0, 0, 0, 0, NULL, NONE,
+     "whether the diagnosis gave the controller the road's grade (the raceline's grade column; default false); "
+     "with a sha256 given, control.grade must equal it"},
+    {"effects.grade_peak", K_NUMBER, OFF(effects_grade_peak), 0, 0, 0.0, 1.0, 0, NULL, NONE,
+     "the largest |grade| (rad) of the grade column the diagnosis gave; with effects.grade, the raceline's column "
      "must have it (default 0)"},
     {"effects.bank_from", K_STRING, OFF(effects_bank_from), FSZ(effects_bank_from), 0, 0, 0, 0, NULL, NONE,
      "which bank the diagnosis gave: its effect and the column it made (recorded, not read; default none)"},
@@ -170,8 +181,8 @@ static const key_spec KEYS[] = {
     {"filter.sensor_std.steering", K_NUMBERS, R_STD(DDYN_MEAS_STEERING), 0, 1, 0.0, 1e6, 0, NULL, NONE,
      "steering angle (rad)"},
     {"raceline", K_FILE, OFF(raceline), FSZ(raceline), 0, 0, 0, 1, NULL, NONE,
-     "CSV x,y,speed,width_left,width_right[,bank] (header line optional), 4 .. 1024 rows, closed loop; the 6th "
-     "column (rad) with control.bank true only"},
+     "CSV x,y,speed,width_left,width_right[,bank][,grade] (header line optional), 4 .. 1024 rows, closed loop; "
+     "the bank column (rad) with control.bank true only, the grade column (rad) with control.grade true only"},
     {"mpc", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE, "overrides of the MPC's defaults (docs/mpc.md)"},
     {"mpc.horizon", K_INT, MPC(horizon), 0, 0, 1, DDYN_MPC_MAX_HORIZON, 0, NULL, NONE,
      "stages (with a steering delay of n periods the MPC plans n fewer: ddyn/controller.h)"},
@@ -493,41 +504,50 @@ static int walk(parse_ctx *p, const cJSON *obj, const char *prefix)
 /* a bank column made from a diagnosis (effects.bank) must be the one it made: its largest |bank| recorded in
  * effects.bank_peak (written exactly: the CSV's and the JSON's numbers round-trip), so a raceline swapped for
  * another bank (the track's true one) is refused as an edited control.bank is */
-static int check_bank_peak(parse_ctx *p)
+static int check_peak(parse_ctx *p, int given, const double *column, double recorded, const char *key,
+                      const char *what)
 {
     const ddyn_app_config *c = p->c;
     double peak = 0.0;
     int i;
-    if (c->effects_sha256[0] == '\0' || !c->effects_bank) {
+    if (c->effects_sha256[0] == '\0' || !given) {
         return 1;
     }
     for (i = 0; i < c->n_track; ++i) {
-        peak = fmax(peak, fabs(c->track[5][i]));
+        peak = fmax(peak, fabs(column[i]));
     }
-    if (fabs(peak - c->effects_bank_peak) > 1e-9) {
-        return fail(p, "effects.bank_peak",
-                    "%.9g rad from diagnosis %s (sha256 %.12s...), but %s's bank column peaks at %.9g rad: remake "
+    if (fabs(peak - recorded) > 1e-9) {
+        return fail(p, key,
+                    "%.9g rad from diagnosis %s (sha256 %.12s...), but %s's %s column peaks at %.9g rad: remake "
                     "the file (`ddyn sil run --effects-from D --config-only`) instead of editing it",
-                    c->effects_bank_peak, c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
-                    c->effects_sha256, c->raceline, peak);
+                    recorded, c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)", c->effects_sha256,
+                    c->raceline, what, peak);
     }
     return 1;
 }
 
-/* the raceline CSV: rows x, y, speed, width_left, width_right and, with control.bank, the bank */
+static int check_bank_peak(parse_ctx *p)
+{
+    const ddyn_app_config *c = p->c;
+    return check_peak(p, c->effects_bank, c->track[5], c->effects_bank_peak, "effects.bank_peak", "bank") &&
+           check_peak(p, c->effects_grade, c->track[6], c->effects_grade_peak, "effects.grade_peak", "grade");
+}
+
+/* the raceline CSV: rows x, y, speed, width_left, width_right and, with control.bank, the bank, then with
+ * control.grade, the grade */
 static int read_raceline(parse_ctx *p)
 {
     ddyn_app_config *c = p->c;
     FILE *in = fopen(c->raceline, "r");
     char line[512];
     int lineno = 0, k;
-    const int cols = c->bank ? 6 : 5;
+    const int cols = 5 + (c->bank ? 1 : 0) + (c->grade ? 1 : 0), grade_col = c->bank ? 6 : 5;
     if (in == NULL) {
         return fail(p, "raceline", "cannot read %s: %s", c->raceline, strerror(errno));
     }
     c->n_track = 0;
     while (fgets(line, sizeof line, in) != NULL) {
-        double row[6];
+        double row[7];
         char *s = line, *end;
         lineno += 1;
         while (*s == ' ' || *s == '\t') ++s;
@@ -538,9 +558,13 @@ static int read_raceline(parse_ctx *p)
             row[k] = strtod(s, &end);
             if (end == s || !isfinite(row[k])) {
                 fclose(in);
-                if (k == 5) {
+                if (k == 5 && c->bank) {
                     return fail(p, "control.bank", "true, but %s line %d has no finite 6th column (the bank, rad)",
                                 c->raceline, lineno);
+                }
+                if (k == grade_col && c->grade) {
+                    return fail(p, "control.grade", "true, but %s line %d has no finite %s column (the grade, rad)",
+                                c->raceline, lineno, grade_col == 5 ? "6th" : "7th");
                 }
                 return fail(p, "raceline", "%s line %d: expected 5 numbers x,y,speed,width_left,width_right",
                             c->raceline, lineno);
@@ -553,9 +577,13 @@ static int read_raceline(parse_ctx *p)
             fclose(in);
             (void)strtod(b, &e); /* exactly one more number: a bank column */
             while (e != NULL && e != b && (*e == ' ' || *e == '\t' || *e == '\r')) ++e;
-            if (!c->bank && *s == ',' && e != NULL && e != b && (*e == '\n' || *e == '\0')) {
+            if (!c->bank && !c->grade && *s == ',' && e != NULL && e != b && (*e == '\n' || *e == '\0')) {
                 return fail(p, "control.bank", "false, but %s line %d has a 6th column (a bank): set control.bank "
                             "true or drop the column", c->raceline, lineno);
+            }
+            if (!c->grade && *s == ',' && e != NULL && e != b && (*e == '\n' || *e == '\0')) {
+                return fail(p, "control.grade", "false, but %s line %d has a 7th column (a grade after the bank): set "
+                            "control.grade true or drop the column", c->raceline, lineno);
             }
             return fail(p, "raceline", "%s line %d: more than %d columns", c->raceline, lineno, cols);
         }
@@ -568,14 +596,21 @@ static int read_raceline(parse_ctx *p)
             return fail(p, "control.bank", "%s line %d: bank %g rad, beyond +-%.4g rad (45 degrees)", c->raceline,
                         lineno, row[5], DDYN_MPC_MAX_BANK);
         }
+        if (c->grade && !(fabs(row[grade_col]) < DDYN_MPC_MAX_GRADE)) {
+            fclose(in);
+            return fail(p, "control.grade", "%s line %d: grade %g rad, beyond +-%.4g rad (20 degrees)", c->raceline,
+                        lineno, row[grade_col], DDYN_MPC_MAX_GRADE);
+        }
         if (c->n_track >= DDYN_MPC_MAX_TRACK_POINTS) {
             fclose(in);
             return fail(p, "raceline", "%s: more than %d points (the MPC's table)", c->raceline,
                         DDYN_MPC_MAX_TRACK_POINTS);
         }
-        for (k = 0; k < 6; ++k) {
-            c->track[k][c->n_track] = k < cols ? row[k] : 0.0;
+        for (k = 0; k < 5; ++k) {
+            c->track[k][c->n_track] = row[k];
         }
+        c->track[5][c->n_track] = c->bank ? row[5] : 0.0;
+        c->track[6][c->n_track] = c->grade ? row[grade_col] : 0.0;
         c->n_track += 1;
     }
     fclose(in);
@@ -699,6 +734,13 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
                   "run --effects-from D --config-only`) instead of editing it",
                   c->effects_downforce, c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
                   c->effects_sha256, c->downforce);
+    }
+    if (ok && c->effects_sha256[0] != '\0' && c->effects_grade != c->grade) {
+        ok = fail(&p, "effects.grade",
+                  "%s from diagnosis %s (sha256 %.12s...), but control.grade is %s: remake the file (`ddyn sil run "
+                  "--effects-from D --config-only`) instead of editing it",
+                  c->effects_grade ? "true" : "false", c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
+                  c->effects_sha256, c->grade ? "true" : "false");
     }
     if (ok && c->effects_sha256[0] != '\0' && c->effects_bank != c->bank) {
         /* a bank the diagnosis did not give (the track's true one, say), or one it gave and the file dropped */
@@ -855,6 +897,9 @@ ddyn_status ddyn_app_node_init(ddyn_sil_node *node, const ddyn_app_config *c, co
     }
     if (st == DDYN_OK && c->bank) {
         st = ddyn_ctrl_set_bank(&node->ctl, c->track[5]); /* the road's bank along the raceline */
+    }
+    if (st == DDYN_OK && c->grade) {
+        st = ddyn_ctrl_set_grade(&node->ctl, c->track[6]); /* the road's grade along the raceline */
     }
     if (st == DDYN_OK) {
         /* frame authentication: can.key_file, else $DDYN_DBW_KEY_FILE, else off */

@@ -49,6 +49,7 @@ typedef struct {
     double mass_offset;                 /* control.mass_offset: the car's mass is (1 + it) times the model's */
     double downforce;                   /* control.downforce: k, s^2/m^2 (tyre peaks times 1 + k vx^2) */
     int bank;                           /* control.bank: the raceline's 6th column is the road's bank (rad) */
+    int grade;                          /* control.grade: the raceline's next column is the road's grade (rad) */
     /* effects: what the configuration was made from (`ddyn sil effects`, issue 34); "" = not recorded */
     char effects_diagnosis[DDYN_APP_PATH_LEN]; /* effects.diagnosis: the diagnosis.json (recorded, not read) */
     char effects_sha256[65];            /* effects.diagnosis_sha256: its sha256 */
@@ -59,6 +60,8 @@ typedef struct {
     int effects_bank;                   /* effects.bank: whether it gave the road's bank (control.bank must match) */
     double effects_bank_peak;           /* effects.bank_peak: the largest |bank| (rad) of the column it gave */
     char effects_bank_from[DDYN_APP_PATH_LEN]; /* effects.bank_from: which bank it is (recorded, not read) */
+    int effects_grade;                  /* effects.grade: whether it gave the road's grade (control.grade must match) */
+    double effects_grade_peak;          /* effects.grade_peak: the largest |grade| (rad) of the column it gave */
     int prepare;                        /* control.prepare: RTI split (ddyn_ctrl_prepare after each command) */
     long max_steps;                     /* control.max_steps */
     /* filter */
@@ -68,7 +71,8 @@ typedef struct {
     /* track */
     char raceline[DDYN_APP_PATH_LEN];   /* raceline: CSV file x,y,speed,width_left,width_right[,bank] */
     int n_track;
-    double track[6][DDYN_MPC_MAX_TRACK_POINTS]; /* the columns; track[5]: the bank (0 without control.bank) */
+    double track[7][DDYN_MPC_MAX_TRACK_POINTS]; /* the columns; track[5]: the bank (0 without control.bank),
+                                                   track[6]: the grade (0 without control.grade) */
     /* MPC overrides (unset: ddyn_ctrl_default_config's) */
     ddyn_mpc_config mpc;                /* mpc.* */
     /* telemetry and outputs */

@@ -73,6 +73,8 @@ State Plant::derivative(const State& x, const Eigen::Vector2d& u) {
   }
   // the road's bank: lateral gravity (train/model/effects.py G, + to the left)
   if (road_bank_ != 0.0) xd[kVy] += kGravity * std::sin(road_bank_);
+  // the road's grade: longitudinal gravity (train/model/effects.py G, + uphill slows the car)
+  if (road_grade_ != 0.0) xd[kVx] -= kGravity * std::sin(road_grade_);
   return xd;
 }
 

@@ -94,6 +94,12 @@ PlantAppConfig PlantAppConfig::from_json(const nlohmann::json& j) {
       if (!std::isfinite(b) || std::fabs(b) >= 1.5707963267948966)
         throw std::runtime_error("config: road_bank must hold finite angles within +-pi/2 rad");
   }
+  if (j.contains("road_grade")) {
+    c.road_grade = j.at("road_grade").get<std::vector<double>>();
+    for (double g : c.road_grade)
+      if (!std::isfinite(g) || std::fabs(g) >= 1.5707963267948966)
+        throw std::runtime_error("config: road_grade must hold finite angles within +-pi/2 rad");
+  }
   if (j.contains("footprint")) {
     c.footprint.length = j.at("footprint").at("length").get<double>();
     c.footprint.width = j.at("footprint").at("width").get<double>();
@@ -157,6 +163,9 @@ PlantApp::PlantApp(const PlantAppConfig& cfg, Bus& bus)
       fault_rng_(cfg.seed * 7919u + 17u) {
   if (!cfg.road_bank.empty() && static_cast<int>(cfg.road_bank.size()) != track_.center().size())
     throw std::runtime_error("config: road_bank has " + std::to_string(cfg.road_bank.size()) +
+                             " values, the track's centre line " + std::to_string(track_.center().size()) + " points");
+  if (!cfg.road_grade.empty() && static_cast<int>(cfg.road_grade.size()) != track_.center().size())
+    throw std::runtime_error("config: road_grade has " + std::to_string(cfg.road_grade.size()) +
                              " values, the track's centre line " + std::to_string(track_.center().size()) + " points");
   plant_.reset(cfg.start, 0.0);
   if (!cfg.resume.empty()) restore(cfg.resume);
@@ -335,6 +344,7 @@ bool PlantApp::step() {
   plant_.set_hold(out.hold);
   // 3. physics (the road's bank at the car's track position, held over the sub-step)
   if (!cfg_.road_bank.empty()) plant_.set_road_bank(track_.interpolate(cfg_.road_bank, monitor_.s()));
+  if (!cfg_.road_grade.empty()) plant_.set_road_grade(track_.interpolate(cfg_.road_grade, monitor_.s()));
   plant_.advance(cfg_.substep);
   const double t1 = plant_.time();
   const State& x = plant_.state();
@@ -468,6 +478,7 @@ nlohmann::json PlantApp::metrics() const {
                   {"downforce", cfg_.effects.downforce},
                   {"yaw_rate_bias", cfg_.effects.yaw_rate_bias}};
   j["road_bank"] = !cfg_.road_bank.empty();
+  j["road_grade"] = !cfg_.road_grade.empty();
   j["footprint"] = {{"length", cfg_.footprint.length}, {"width", cfg_.footprint.width}};
   return j;
 }

@@ -167,6 +167,23 @@ TEST(Plant, RoadBankAddsLateralGravity) {
   }
 }
 
+// The road's grade adds -g sin(grade) to dvx and nothing else (train/model/effects.py grade, + uphill)
+TEST(Plant, RoadGradeAddsLongitudinalGravity) {
+  Plant p = orca();
+  State x = moving(1.5);
+  x[fsim::kVy] = 0.05;
+  x[fsim::kOmega] = 0.8;
+  x[fsim::kSteer] = 0.1;
+  const Eigen::Vector2d u(0.2, -0.3);
+  const State level = p.derivative(x, u);
+  p.set_road_grade(0.1);
+  EXPECT_EQ(p.road_grade(), 0.1);
+  const State uphill = p.derivative(x, u);
+  for (int i = 0; i < DDYN_NX; ++i) {
+    EXPECT_NEAR(uphill[i] - level[i], i == fsim::kVx ? -9.81 * std::sin(0.1) : 0.0, 1e-12) << i;
+  }
+}
+
 TEST(Plant, RejectsBadConfiguration) {
   EXPECT_THROW(Plant(nullptr, fsim_test::orca_true(), {}, {}, 1e-3), std::invalid_argument);
   EXPECT_THROW(Plant(&ddyn_model_orca_1_43, fsim_test::orca_true(), {}, {}, 0.0), std::invalid_argument);

@@ -1876,6 +1876,49 @@ static void test_the_filter_and_the_preparation_predict_with_the_bank(void **sta
     assert_true(ctl.ekf.bank == 0.0);
 }
 
+static void test_the_filter_and_the_preparation_predict_with_the_grade(void **state)
+{
+    /* control.grade (issue 34): with a profile (here beside a bank) the filter predicts with the grade at its
+     * position and the preparation's step adds the same longitudinal gravity (ddyn_model_add_grade) */
+    static double grade[TRACK_N], bank[TRACK_N];
+    static ddyn_ctrl other;
+    ddyn_ctrl_output out;
+    ddyn_ctrl_input in;
+    double expect[DDYN_NX];
+    int k, i;
+    (void)state;
+    for (i = 0; i < TRACK_N; ++i) {
+        grade[i] = -0.08;
+        bank[i] = 0.1;
+    }
+    memset(&other, 0, sizeof other);
+    assert_int_equal(ddyn_ctrl_set_grade(&other, grade), DDYN_ERR_ARGUMENT); /* not initialised */
+    assert_int_equal(ddyn_ctrl_set_grade(&ctl, grade), DDYN_OK);
+    assert_int_equal(ddyn_ctrl_set_bank(&ctl, bank), DDYN_OK);
+    for (k = 0; k < 5; ++k) {
+        readings(&in, k);
+        ddyn_ctrl_step(&ctl, &in, &out);
+        assert_true(ctl.ekf.grade == -0.08 && ctl.ekf.bank == 0.1); /* where the predicted period starts */
+        assert_false(out.status & DDYN_CTRL_SAFE_COMMAND);
+        assert_int_equal(ddyn_ctrl_prepare(&ctl), DDYN_OK);
+        assert_int_equal(ddyn_model_step(model, cfg.ekf_disc, ctl.ekf.x, ctl.u_acting, ctl.coeffs, expect, &plant_work),
+                         DDYN_OK);
+        ddyn_model_add_bank(0.1, model->sample_time, ctl.ekf.x, expect);
+        ddyn_model_add_grade(-0.08, model->sample_time, ctl.ekf.x, expect);
+        for (i = 0; i < DDYN_NX; ++i) {
+            assert_true(fabs(ctl.mpc.prep_x0[i] - expect[i]) < 1e-14 * (1.0 + fabs(expect[i])));
+        }
+        for (i = 0; i < ctl.mpc.cfg.horizon; ++i) {
+            assert_true(fabs(ctl.mpc.stage_grade[i] + 0.08) < 1e-15); /* every stage predicts on the grade */
+        }
+        run(&in, &out);
+    }
+    assert_int_equal(ddyn_ctrl_set_grade(&ctl, NULL), DDYN_OK);
+    readings(&in, 5);
+    ddyn_ctrl_step(&ctl, &in, &out);
+    assert_true(ctl.ekf.grade == 0.0 && ctl.ekf.bank == 0.1);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -1927,6 +1970,7 @@ int main(void)
         cmocka_unit_test_setup(test_the_mpc_plans_from_the_state_after_the_pipe, setup),
         cmocka_unit_test_setup(test_the_preparation_plans_from_the_same_delayed_state, setup),
         cmocka_unit_test_setup(test_the_filter_and_the_preparation_predict_with_the_bank, setup),
+        cmocka_unit_test_setup(test_the_filter_and_the_preparation_predict_with_the_grade, setup),
     };
     return cmocka_run_group_tests_name("controller", tests, NULL, NULL);
 }

@@ -817,7 +817,8 @@ static void test_generated_prediction_step_jacobians_and_integrators(void **stat
     double out[DDYN_NX * 11], xp[DDYN_NX], xm[DDYN_NX], scratch[DDYN_NX * 10];
     static ddyn_model_work work;
     const double *arg[4];
-    double *res[3], flat = 0.0;
+    double *res[3];
+    const double flat[2] = {0.0, 0.0};
     int i, j;
     (void)state;
     while (row < DDYN_MPC_LIMITS_COUNT - 1 && strcmp(ddyn_mpc_limits[row].name, "orca_1_43") != 0) ++row;
@@ -826,7 +827,7 @@ static void test_generated_prediction_step_jacobians_and_integrators(void **stat
     arg[0] = x;
     arg[1] = u;
     arg[2] = C;
-    arg[3] = &flat; /* the road's bank: a flat road */
+    arg[3] = flat; /* the road (bank, grade): flat and level */
     res[0] = out;
     res[1] = out + DDYN_NX;
     res[2] = out + DDYN_NX * 9;
@@ -888,10 +889,11 @@ static void test_bank_gravity_term_matches_the_python_model(void **state)
     (void)state;
     while (row < DDYN_MPC_LIMITS_COUNT - 1 && strcmp(ddyn_mpc_limits[row].name, "orca_1_43") != 0) ++row;
     for (k = 0; k < 3; ++k) {
+        const double road[2] = {BANK_CASES[k], 0.0}; /* the generated step's road input: bank, grade */
         arg[0] = x;
         arg[1] = u;
         arg[2] = C;
-        arg[3] = &BANK_CASES[k];
+        arg[3] = road;
         res[0] = out;
         res[1] = out + DDYN_NX;
         res[2] = out + DDYN_NX * 9;
@@ -913,6 +915,96 @@ static void test_bank_gravity_term_matches_the_python_model(void **state)
         ddyn_model_add_bank(0.0, dt, x, xn); /* a flat road: untouched */
         for (i = 0; i < DDYN_NX; ++i) assert_true(xn[i] == 0.0);
     }
+}
+
+/* the grade's step from the Python model (Aux.grade, and with the bank's 0.3 rad beside it), as BANK_PY_NEXT */
+static const double GRADE_CASES[3][2] = {{0.0, 0.1}, {0.0, -0.15}, {0.3, 0.1}};
+static const double GRADE_PY_NEXT[3][DDYN_NX] = {
+    {0.3304580021143153, -0.18494587202816118, 0.4347930437881701, 1.694546402204692, 0.04490673652030404,
+     2.026789687615091, 0.41000000000000003, 0.084},
+    {0.3309027435026256, -0.184747789695697, 0.43490384040872315, 1.743124552972295, 0.04450307582774595,
+     2.0470901042985465, 0.41000000000000003, 0.084},
+    {0.330277006535652, -0.18451332760484235, 0.4348891996249318, 1.6962227999541504, 0.08637707332138933,
+     2.042429791145262, 0.41000000000000003, 0.084}};
+
+static void test_grade_gravity_term_matches_the_python_model(void **state)
+{
+    /* the generated step's road input (bank, grade) and the runtime's grade term, against the Python model */
+    int row = 0, k, i;
+    double x[DDYN_NX] = {0.3, -0.2, 0.4, 1.7, 0.1, 1.2, 0.4, 0.1}, u[DDYN_NU] = {0.5, -0.8};
+    double out[DDYN_NX * 11];
+    static ddyn_model_work work;
+    const double *arg[4];
+    double *res[3];
+    (void)state;
+    while (row < DDYN_MPC_LIMITS_COUNT - 1 && strcmp(ddyn_mpc_limits[row].name, "orca_1_43") != 0) ++row;
+    for (k = 0; k < 3; ++k) {
+        arg[0] = x;
+        arg[1] = u;
+        arg[2] = C;
+        arg[3] = GRADE_CASES[k];
+        res[0] = out;
+        res[1] = out + DDYN_NX;
+        res[2] = out + DDYN_NX * 9;
+        assert_int_equal(ddyn_mpc_limits[row].step(arg, res, work.iw, work.w, 0), 0);
+        for (i = 0; i < DDYN_NX; ++i) {
+            assert_true(fabs(out[i] - GRADE_PY_NEXT[k][i]) < 1e-12);
+        }
+    }
+    assert_true(fabs(ddyn_model_grade_accel(0.1) - (-0.9793658173053843)) < 1e-12); /* -G sin(grade) */
+    {
+        /* the filter's term: a constant longitudinal acceleration over dt, along x's heading */
+        double xn[DDYN_NX] = {0}, a = ddyn_model_grade_accel(-0.15), dt = 0.02;
+        assert_true(a > 1.4); /* downhill: the car gains speed */
+        ddyn_model_add_grade(-0.15, dt, x, xn);
+        assert_true(fabs(xn[3] - a * dt) < 1e-15);
+        assert_true(fabs(xn[0] - 0.5 * a * dt * dt * cos(x[2])) < 1e-15);
+        assert_true(fabs(xn[1] - 0.5 * a * dt * dt * sin(x[2])) < 1e-15);
+        assert_true(xn[2] == 0.0 && xn[4] == 0.0 && xn[5] == 0.0 && xn[6] == 0.0 && xn[7] == 0.0);
+        memset(xn, 0, sizeof xn);
+        ddyn_model_add_grade(0.0, dt, x, xn); /* a level road: untouched */
+        for (i = 0; i < DDYN_NX; ++i) assert_true(xn[i] == 0.0);
+    }
+}
+
+static void test_grade_table_lookup_and_refusals(void **state)
+{
+    /* the ring with a grade falling with the angle beside a constant bank: one projection reads both, each stage
+     * predicts with both at its own position; a bad grade is refused and leaves the profile */
+    static double grade[RING], bank[RING];
+    double x0[DDYN_NX], u[DDYN_NU], road[2];
+    ddyn_mpc_info info;
+    int i, hint = -1;
+    (void)state;
+    for (i = 0; i < RING; ++i) {
+        grade[i] = -0.2 * i / RING;
+        bank[i] = 0.1;
+    }
+    ring_mpc(30);
+    assert_false(mpc.track.have_grade);
+    assert_int_equal(ddyn_mpc_set_grade(&mpc, grade), DDYN_OK);
+    assert_true(mpc.track.have_grade && !mpc.track.have_bank);
+    assert_true(fabs(ddyn_mpc_track_grade(&mpc.track, 10, 0.25) + 0.2 * 10.25 / RING) < 1e-15);
+    ddyn_mpc_road_at(&mpc, RADIUS, 0.0, &hint, road);
+    assert_true(road[0] == 0.0 && fabs(road[1]) < 1e-12); /* no bank profile: flat; the grade at point 0 */
+    assert_int_equal(ddyn_mpc_set_bank(&mpc, bank), DDYN_OK);
+    ring_start(x0);
+    assert_int_equal(ddyn_mpc_solve(&mpc, x0, u, &info), DDYN_OK);
+    for (i = 0; i < mpc.cfg.horizon; ++i) {
+        const double *xk = mpc.x_lin + i * DDYN_NX;
+        ddyn_mpc_road_at(&mpc, xk[0], xk[1], NULL, road);
+        assert_true(fabs(mpc.stage_grade[i] - road[1]) < 1e-12 && fabs(mpc.stage_bank[i] - 0.1) < 1e-12);
+    }
+    assert_true(mpc.stage_grade[mpc.cfg.horizon - 1] < mpc.stage_grade[0]); /* counter-clockwise: falling */
+    grade[7] = 0.35;
+    assert_int_equal(ddyn_mpc_set_grade(&mpc, grade), DDYN_ERR_ARGUMENT);
+    grade[7] = NAN;
+    assert_int_equal(ddyn_mpc_set_grade(&mpc, grade), DDYN_ERR_NONFINITE_INPUT);
+    assert_true(mpc.track.have_grade && fabs(mpc.track.grade[7] + 0.2 * 7 / RING) < 1e-15);
+    assert_int_equal(ddyn_mpc_set_grade(&mpc, NULL), DDYN_OK);
+    assert_false(mpc.track.have_grade);
+    assert_true(mpc.track.have_bank); /* the bank's profile is its own */
+    assert_int_equal(ddyn_mpc_set_grade(NULL, grade), DDYN_ERR_ARGUMENT);
 }
 
 static void test_bank_table_lookup_and_refusals(void **state)
@@ -984,7 +1076,7 @@ static void test_downforce_matches_the_python_model_and_each_stage_uses_its_spee
     const double x[DDYN_NX] = {0.3, -0.2, 0.4, 1.7, 0.1, 1.2, 0.4, 0.1}, u[DDYN_NU] = {0.5, -0.8};
     double c_at[DDYN_NC], xdot[DDYN_NX], x0[DDYN_NX], uc[DDYN_NU], out[DDYN_NX * 11], in_place[DDYN_NC];
     static ddyn_model_work work;
-    const double bank = 0.0;
+    const double road[2] = {0.0, 0.0};
     const double *arg[4];
     double *res[3];
     ddyn_mpc_info info;
@@ -1015,7 +1107,7 @@ static void test_downforce_matches_the_python_model_and_each_stage_uses_its_spee
         arg[0] = xk;
         arg[1] = mpc.u_lin + k * DDYN_NU;
         arg[2] = c_at;
-        arg[3] = &bank;
+        arg[3] = road;
         res[0] = out;
         res[1] = out + DDYN_NX;
         res[2] = out + DDYN_NX * 9;
@@ -1243,6 +1335,8 @@ int main(void)
         cmocka_unit_test(test_cost_points_run_no_faster_than_the_car_can_reach),
         cmocka_unit_test(test_bank_gravity_term_matches_the_python_model),
         cmocka_unit_test(test_bank_table_lookup_and_refusals),
+        cmocka_unit_test(test_grade_gravity_term_matches_the_python_model),
+        cmocka_unit_test(test_grade_table_lookup_and_refusals),
         cmocka_unit_test(test_downforce_matches_the_python_model_and_each_stage_uses_its_speed),
         cmocka_unit_test(test_plan_inputs_need_no_simulation),
         cmocka_unit_test(test_prepare_then_feedback_is_the_real_time_iteration),

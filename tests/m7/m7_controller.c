@@ -73,6 +73,8 @@
 #define M7_BANK_RAD 0.35   /* pass 6's road bank (issue 34): a profile along the raceline swinging +-0.35 rad (20
                               degrees, the banked oval's turns) twice a lap; the MPC looks up each stage's bank, the
                               filter and every step through the pipe theirs (ddyn_ctrl_set_bank) */
+#define M7_GRADE_RAD 0.05  /* pass 6's road grade (issue 34): +-0.05 rad, three hills a lap, looked up with the bank in
+                              one projection per stage (ddyn_ctrl_set_grade) */
 #endif
 #ifndef M7_COLD_STEPS
 #define M7_COLD_STEPS 5000 /* pass 4 replays min(this, the segment's periods) */
@@ -88,7 +90,7 @@ extern uint32_t __stack_bottom, __stack_top;
 
 static ddyn_ctrl ctl;
 static uint32_t insn[5000], sorted[5000];
-static double track_col[6][DDYN_MPC_MAX_TRACK_POINTS]; /* the columns and the bank (pass 6) */
+static double track_col[7][DDYN_MPC_MAX_TRACK_POINTS]; /* the columns, the bank and the grade (pass 6) */
 
 /* ---- console output without stdio (semihosting SYS_WRITE0) ---- */
 static char line[160];
@@ -263,11 +265,13 @@ static int controller_init(double qp_tolerance, int max_delay)
     }
     for (i = 0; i < m7_seg_track_n; ++i) {
         track_col[5][i] = M7_BANK_RAD * sin(4.0 * 3.14159265358979323846 * i / m7_seg_track_n);
+        track_col[6][i] = M7_GRADE_RAD * sin(6.0 * 3.14159265358979323846 * i / m7_seg_track_n);
     }
     return ddyn_ctrl_init(&ctl, model, &ddyn_net_weights, &cfg, m7_seg_x0) == DDYN_OK &&
            ddyn_ctrl_set_track(&ctl, m7_seg_track_n, track_col[0], track_col[1], track_col[2], track_col[3],
                                track_col[4]) == DDYN_OK &&
-           (!max_delay || ddyn_ctrl_set_bank(&ctl, track_col[5]) == DDYN_OK);
+           (!max_delay || (ddyn_ctrl_set_bank(&ctl, track_col[5]) == DDYN_OK &&
+                           ddyn_ctrl_set_grade(&ctl, track_col[6]) == DDYN_OK));
 }
 
 static void input_of(const m7_seg_period *p, ddyn_ctrl_input *in)
@@ -713,6 +717,7 @@ int main(void)
             kv("delay_pass_horizon", (unsigned long)ctl.mpc.cfg.horizon);
             kv("delay_pass_steer_lag_ms", (unsigned long)(1000.0 * M7_LAG_S + 0.5));
             kv("delay_pass_bank_mrad", (unsigned long)(1000.0 * M7_BANK_RAD + 0.5));
+            kv("delay_pass_grade_mrad", (unsigned long)(1000.0 * M7_GRADE_RAD + 0.5));
             kv("delay_pass_mass_offset_permille", (unsigned long)(1000.0 * M7_MASS_OFFSET + 0.5));
             kv("delay_pass_downforce_e4", (unsigned long)(1e4 * M7_DOWNFORCE + 0.5));
             kv("delay_pass_periods_cold_start", (unsigned long)cold);
@@ -723,9 +728,9 @@ int main(void)
             worst_delay_with_auth = worst_v_auth > worst_delay_with_auth ? worst_v_auth : worst_delay_with_auth;
             if (ctl.delay_steps[DDYN_CTRL_CH_STEERING] != (variant == 1 ? DDYN_CTRL_MAX_DELAY_STEPS : 0) ||
                 ctl.delay_steps[DDYN_CTRL_CH_THROTTLE] != DDYN_CTRL_MAX_DELAY_STEPS || cold == 0 ||
-                !(ctl.lag_decay > 0.0) || !ctl.mpc.track.have_bank || !(ctl.mass_speed_scale < 1.0) ||
+                !(ctl.lag_decay > 0.0) || !ctl.mpc.track.have_bank || !ctl.mpc.track.have_grade || !(ctl.mass_speed_scale < 1.0) ||
                 !(ctl.mpc.downforce > 0.0)) {
-                m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum, the lag, the bank, the mass offset and the downforce\n");
+                m7_puts("m7: FAIL: pass 6 did not run the cold path with the delays at the maximum, the lag, the bank, the grade, the mass offset and the downforce\n");
                 fail = 1;
             }
         }

@@ -427,11 +427,18 @@ ddyn_status ddyn_ctrl_set_track(ddyn_ctrl *ctl, int n, const double *x, const do
 /* The road's bank along the raceline (issue 34; controller.json control.bank): bank[i] (rad, + tilting the
  * road so that gravity pulls to the left) at each point of the track set last, in the MPC's fixed-size
  * table (ddyn_mpc_set_bank: |bank| < DDYN_MPC_MAX_BANK, single-step RK4 prediction). With it the MPC
- * predicts each stage with the bank at that stage's track position (the generated step's bank input),
+ * predicts each stage with the bank at that stage's track position (the generated step's road input (bank, grade)),
  * and the filter's prediction, the preparation's and the pipe's steps add the bank's lateral gravity
  * at the state's position (ddyn_model_add_bank; the position projected on the raceline). NULL: a flat
  * road (the default: the controller as before, bit-identical). Call after ddyn_ctrl_set_track. */
 ddyn_status ddyn_ctrl_set_bank(ddyn_ctrl *ctl, const double *bank);
+
+/* The road's grade along the raceline (issue 34; controller.json control.grade): grade[i] (rad, + uphill in the
+ * direction of travel, |grade| < DDYN_MPC_MAX_GRADE) at each point of the track set last, as the bank's: the MPC
+ * predicts each stage with the grade at its track position (ddyn_mpc_set_grade), the filter's prediction, the
+ * preparation's and the pipe's steps add its longitudinal gravity at the state's position
+ * (ddyn_model_add_grade). NULL: a level road. Refusals as ddyn_ctrl_set_bank's. */
+ddyn_status ddyn_ctrl_set_grade(ddyn_ctrl *ctl, const double *grade);
 
 /* One control period: readings in, command out. Returns out->status (also when out is NULL:
  * DDYN_CTRL_ERR_ARGUMENT). in may hold no valid reading at all. */

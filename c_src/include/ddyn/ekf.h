@@ -27,6 +27,8 @@ typedef struct {
     double q[DDYN_NX];           /* process noise variance per step */
     double bank;                 /* rad: the road's bank over the next prediction (ddyn_model_add_bank;
                                     0 after init: flat); the caller sets it before ddyn_ekf_predict */
+    double grade;                /* rad: the road's grade over the next prediction (ddyn_model_add_grade;
+                                    0 after init: level); set like bank */
     ddyn_model_work work;
 } ddyn_ekf;
 

@@ -74,6 +74,11 @@ ddyn_status ddyn_model_step_jacobians(const ddyn_vehicle_model *model, ddyn_disc
 #define DDYN_GRAVITY 9.81
 double ddyn_model_bank_accel(double bank);
 void ddyn_model_add_bank(double bank, double dt, const double x[DDYN_NX], double x_next[DDYN_NX]);
+/* The road's grade (issue 34): its longitudinal gravity -g sin(grade) (m/s^2, + uphill: dvx), the term of
+ * train/model/effects.py (grade); added to a vehicle step's x_next as the bank's is (dvx = a dt, the position
+ * a dt^2 / 2 along x's heading). */
+double ddyn_model_grade_accel(double grade);
+void ddyn_model_add_grade(double grade, double dt, const double x[DDYN_NX], double x_next[DDYN_NX]);
 
 /* Downforce (issue 34): the tyres' peak forces D_f, D_r (coefficients 2 and 8) scaled by 1 + k vx^2, the
  * term of train/model/effects.py (downforce, k in s^2/m^2) and of the SIL plant. The generated model has

@@ -110,6 +110,10 @@ typedef struct {
      * gravity pulls to the left of the direction of travel) at each point; have_bank 0: a flat road */
     double bank[DDYN_MPC_MAX_TRACK_POINTS];
     int have_bank;
+    /* the road's grade profile (issue 34, ddyn_mpc_set_grade): the grade (rad, + uphill in the direction of
+     * travel) at each point; have_grade 0: a level road */
+    double grade[DDYN_MPC_MAX_TRACK_POINTS];
+    int have_grade;
 } ddyn_mpc_track;
 
 /* What one solve did. */
@@ -153,6 +157,7 @@ typedef struct {
     double prep_x0[DDYN_NX];
     double ref_tangent[(DDYN_MPC_MAX_HORIZON + 1) * 2]; /* raceline tangent at each stage's cost point */
     double stage_bank[DDYN_MPC_MAX_HORIZON]; /* the bank each stage's prediction used (0 without a profile) */
+    double stage_grade[DDYN_MPC_MAX_HORIZON]; /* the grade each stage's prediction used (0 without a profile) */
     double phi[2 * DDYN_MPC_MAX_HORIZON * DDYN_NX];
     int prepared;               /* 1 between a preparation and its feedback */
     int prep_hold;
@@ -196,13 +201,27 @@ ddyn_status ddyn_mpc_set_track(ddyn_mpc *mpc, int n, const double *x, const doub
 
 /* The road's bank along the raceline (issue 34): bank[i] (rad, |bank| < DDYN_MPC_MAX_BANK, finite) at each
  * point of the track set last (n values, as ddyn_mpc_set_track's). Each prediction stage then steps the
- * generated model with the lateral gravity g sin(bank) (ddyn_<vehicle>_mpc_step's bank input, the term of
+ * generated model with the lateral gravity g sin(bank) (ddyn_<vehicle>_mpc_step's road input (bank, grade), the term of
  * train/model/effects.py) at the bank of its own track position: the projection of the stage's
  * predicted position on the raceline, linear between the points. bank NULL: back to a flat road. Only
  * with the single-step RK4 prediction (the generated step carries the term), else DDYN_ERR_ARGUMENT;
  * DDYN_ERR_NOT_READY without a track; a refused profile leaves the previous one. Clears the warm start. */
 #define DDYN_MPC_MAX_BANK 0.7853981633974483 /* 45 degrees */
 ddyn_status ddyn_mpc_set_bank(ddyn_mpc *mpc, const double *bank);
+
+/* The road's grade along the raceline (issue 34): grade[i] (rad, + uphill in the direction of travel,
+ * |grade| < DDYN_MPC_MAX_GRADE, finite) at each point, as ddyn_mpc_set_bank's bank: each prediction stage steps
+ * the generated model with the longitudinal gravity -g sin(grade) (the generated step's road input, the term of
+ * train/model/effects.py's grade) at its own track position. The same refusals; clears the warm start. */
+#define DDYN_MPC_MAX_GRADE 0.3490658503988659 /* 20 degrees: a 36 % slope */
+ddyn_status ddyn_mpc_set_grade(ddyn_mpc *mpc, const double *grade);
+
+/* The grade profile at segment i, parameter u (as ddyn_mpc_track_bank). */
+double ddyn_mpc_track_grade(const ddyn_mpc_track *t, int i, double u);
+
+/* The road at the projection of (px, py) on the raceline, one search for both: road[0] the bank, road[1] the
+ * grade (each 0 without its profile); *hint as ddyn_mpc_bank_at's. */
+void ddyn_mpc_road_at(const ddyn_mpc *mpc, double px, double py, int *hint, double road[2]);
 
 /* The bank profile at segment i (0..n-1), parameter u in [0, 1] (linear between the points; 0 without a
  * profile or out-of-range arguments). */

@@ -16,7 +16,9 @@
 //   yaw_rate_bias                the gyro reads omega + bias (sensor side: see sensors.hpp)
 // The road's bank (set_road_bank, the world's, not an effect: the track's own banking at the car's
 // track position, PlantApp's road_bank) adds the lateral gravity g sin(bank) to dvy (+ to the left), as
-// train/model/effects.py's bank_angle and ddyn.plants.commonroad_st define it.
+// train/model/effects.py's bank_angle and ddyn.plants.commonroad_st define it. The road's grade
+// (set_road_grade, likewise the world's: PlantApp's road_grade) adds the longitudinal gravity -g sin(grade)
+// to dvx (+ uphill), as train/model/effects.py's grade.
 // The others of train/model/effects.py (grade, combined slip, tyre relaxation and wear)
 // change the tyre or gravity terms inside the model and would need generated C; not offered.
 #pragma once
@@ -65,6 +67,9 @@ class Plant {
   // the road's bank (rad, + tilting the road so that gravity pulls to the left) from now on
   void set_road_bank(double bank) { road_bank_ = bank; }
   double road_bank() const { return road_bank_; }
+  // the road's grade (rad, + uphill in the direction of travel) from now on
+  void set_road_grade(double grade) { road_grade_ = grade; }
+  double road_grade() const { return road_grade_; }
 
   const State& state() const { return x_; }
   double time() const { return t_; }
@@ -97,6 +102,7 @@ class Plant {
   double throttle_target_ = 0.0, steer_lagged_ = 0.0;
   bool held_ = false;
   double road_bank_ = 0.0;
+  double road_grade_ = 0.0;
   ddyn_model_work work_{};
 };
 

@@ -37,6 +37,9 @@ struct PlantAppConfig {
   // the road's bank per centre-line point of the track (rad, + to the left; "road_bank"): the plant
   // drives with g sin(bank) at the car's track position; empty: a flat road
   std::vector<double> road_bank;
+  // the road's grade per centre-line point (rad, + uphill in the direction of travel; "road_grade"): the
+  // plant drives with -g sin(grade) at the car's track position; empty: a level road
+  std::vector<double> road_grade;
   Footprint footprint;
   State start = State::Zero();
   int laps = 1;
