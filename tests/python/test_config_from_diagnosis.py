@@ -74,14 +74,14 @@ def test_a_steering_lag_becomes_control_lag_steering(tmp_path):
 
 
 def test_unsupported_effects_are_named_not_applied(tmp_path):
-    d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "grade"],
-                   {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "grade": 0.05})
+    d = _diagnosis(tmp_path / "D", ["steer_lag", "steer_delay", "throttle_delay", "tire_wear"],
+                   {"steer_lag": 0.06, "steer_delay": 0.02, "throttle_delay": 0.1, "tire_wear": 0.05})
     fx = controller_effects(d)
     assert fx.delays == {"steer": 0.02, "throttle": 0.1} and fx.applied == ["steer_delay", "throttle_delay"]
     assert fx.lag == {}
     # selected beside steer_delay the lag is not applied (the delay fitted alone carries the response)
     assert fx.not_applied[0].startswith("steer_lag: found 0.06, not applied: selected with steer_delay")
-    assert fx.not_applied[1] == "grade: not in the runtime (issue 34)" and len(fx.not_applied) == 2
+    assert fx.not_applied[1] == "tire_wear: not in the runtime" and len(fx.not_applied) == 2
     # a bank (bank_angle, bank_profile) is applied, the roll channel's named: test_sil_bank_effects.py
     nothing = controller_effects(_diagnosis(tmp_path / "E", []))
     assert nothing.delays == {} and nothing.applied == [] and nothing.not_applied == []

@@ -28,7 +28,12 @@
     downforce       -> control.downforce, when named first: its `k` of the joint fit (s^2/m^2), as the mass
                        offset's (both are families a systematic mismatch of the whole nominal pays as, so a
                        second or third one is not trusted); outside the controller's [0, 0.5] named, not applied
-    anything else   -> not applied, named: "grade: not in the runtime (issue 34)"
+    grade, grade_profile, grade_from_pitch
+                    -> as the bank's: control.grade true and the raceline's grade column (the constant, or the profile
+                       at each row's track position); the pitch channel's gain named, not applied
+    a delay beyond the runtime's 6 control periods (DDYN_CTRL_MAX_DELAY_STEPS, with the period known) -> named, not
+                       applied (the controller would refuse the whole configuration)
+    anything else   -> not applied, named: "tire_wear: not in the runtime"
 
 The configuration records where its delays, lag, mass offset, downforce and bank came from (`effects`: the diagnosis's
 path, the sha256 of its diagnosis.json, the delays, the lag, the mass offset and the downforce it gave, and with a bank `bank` true, `bank_peak` the column's largest
@@ -77,8 +82,15 @@ APPLIED = {"steer_delay": ("delays", "steer", "control.delay.steering"),
 # an applied effect left out when another is selected beside it (the joint fit splits one response between them)
 NOT_WITH = {"steer_lag": "steer_delay"}
 DELAY_MAX_S = 1.0   # the configuration's range of control.delay and control.lag (controller_config.c)
+# the runtime's compiled maximum delay in control periods (DDYN_CTRL_MAX_DELAY_STEPS, ddyn/controller.h): a longer
+# one is named and not applied (the controller would refuse the whole configuration)
+MAX_DELAY_PERIODS = 6
 BANK = ("bank_angle", "bank_profile", "bank_from_roll")   # the bank family (one at most is selected)
 BANK_MAX_RAD = math.radians(45.0)   # the controller refuses a bank column reaching 45 degrees (DDYN_MPC_MAX_BANK)
+GRADE = ("grade", "grade_profile", "grade_from_pitch")    # the grade family, mapped as the bank's
+GRADE_MAX_RAD = math.radians(20.0)  # the controller refuses a grade column reaching 20 degrees (DDYN_MPC_MAX_GRADE)
+# each road family: its members, (constant, profile, channel), the controller's limit and that limit in words
+ROAD = {"bank": (BANK, BANK_MAX_RAD, "45 degrees"), "grade": (GRADE, GRADE_MAX_RAD, "20 degrees")}
 MASS_OFFSET_RANGE = (-0.5, 1.0)     # control.mass_offset's range (DDYN_CTRL_MASS_OFFSET_MIN/MAX)
 DOWNFORCE_RANGE = (0.0, 0.5)        # control.downforce's range, s^2/m^2 (0..DDYN_MODEL_DOWNFORCE_MAX)
 # nominal-wide families: applied only when named first (see mass_offset in controller_effects)
@@ -99,15 +111,16 @@ class ControllerEffects:
     selected: list[str] = field(default_factory=list)
     estimates: dict[str, float] = field(default_factory=dict)   # each selected effect's main parameter (joint fit)
     applied_estimates: dict[str, dict] = field(default_factory=dict)  # per applied effect: alone, joint, written
-    bank: dict | None = None   # the diagnosed bank (_bank): effect, kind constant/profile, angle or profile, track
+    bank: dict | None = None   # the diagnosed bank (_road): effect, kind constant/profile, angle or profile, track
+    grade: dict | None = None  # the diagnosed grade (_road), as the bank
     mass_offset: float = 0.0   # the mass offset (control.mass_offset; 0: none)
     downforce: float = 0.0     # the downforce k, s^2/m^2 (control.downforce; 0: none)
 
-    def record(self, bank_column=None) -> dict:
+    def record(self, bank_column=None, grade_column=None) -> dict:
         """controller.json's `effects` section (the controller checks control.delay against `delay`, control.lag
         against `lag`, control.bank against `bank` and the raceline's bank column against `bank_peak`).
         bank_column: the column made from self.bank (bank_column()); the bank keys only with a bank."""
-        return record(self.summary(), bank_column)
+        return record(self.summary(), bank_column, grade_column)
 
     def summary(self) -> dict:
         """For sil_metrics.json and the study (and SilSpec.effects_from: what the configuration is made from)."""
@@ -115,7 +128,7 @@ class ControllerEffects:
                 "estimates": self.estimates, "applied_estimates": self.applied_estimates, "applied": self.applied, "not_applied": self.not_applied,
                 "controller_delays": dict(self.delays), "controller_lag": dict(self.lag),
                 "controller_mass_offset": self.mass_offset, "controller_downforce": self.downforce,
-                "bank": self.bank}
+                "bank": self.bank, "grade": self.grade}
 
     def lines(self) -> list[str]:
         def how(e):
@@ -134,12 +147,15 @@ class ControllerEffects:
         if self.bank is not None:
             out.append(f"{self.bank['effect']}: applied as control.bank = true, raceline.csv's bank column "
                        f"{bank_from(self.bank)}")
+        if self.grade is not None:
+            out.append(f"{self.grade['effect']}: applied as control.grade = true, raceline.csv's grade column "
+                       f"{bank_from(self.grade)}")
         return out + self.not_applied
 
 
-def record(summary: dict, bank_column=None) -> dict:
+def record(summary: dict, bank_column=None, grade_column=None) -> dict:
     """controller.json's `effects` section from a ControllerEffects.summary() (what SilSpec.effects_from holds)
-    and, when the summary has a bank, the bank column made from it."""
+    and, when the summary has a bank (a grade), the bank (grade) column made from it."""
     rec = {"diagnosis": summary["diagnosis"], "diagnosis_sha256": summary["diagnosis_sha256"],
            "delay": {"steering": float(summary["controller_delays"].get("steer", 0.0)),
                      "throttle": float(summary["controller_delays"].get("throttle", 0.0))},
@@ -155,11 +171,18 @@ def record(summary: dict, bank_column=None) -> dict:
         # the largest |bank| of the column as written: the controller compares it with the column it reads
         rec |= {"bank": True, "bank_peak": float(np.max(np.abs(np.asarray(bank_column, float)))),
                 "bank_from": f"{bank['effect']}: {bank_from(bank)}"}
+    grade = summary.get("grade")
+    if grade is not None:
+        if grade_column is None:
+            raise DdynError(f"{summary['diagnosis']}: {grade['effect']}: a diagnosed grade is raceline.csv's grade "
+                            "column: make it with the raceline (ddyn.sil.effects.grade_column; `ddyn sil run "
+                            "--effects-from D --config-only` writes both)")
+        rec |= {"grade": True, "grade_peak": float(np.max(np.abs(np.asarray(grade_column, float))))}
     return rec
 
 
 def bank_from(bank: dict) -> str:
-    """One line: which bank the column is."""
+    """One line: which bank (or grade) the column is."""
     if bank["kind"] == "constant":
         return f"the constant {bank['angle']:.4g} rad ({math.degrees(bank['angle']):.3g} deg) on every row"
     p = bank["profile"]
@@ -249,19 +272,22 @@ def _profile_track(position_from: str) -> str | None:
     return position_from[len("track "):].split(",", 1)[0].strip() or None
 
 
-def _bank(path: Path, d: dict, name: str) -> tuple[dict | None, str | None]:
-    """(the diagnosed bank to apply, or None with the one-line reason it is not applied)."""
+def _road(path: Path, d: dict, name: str, kind: str = "bank") -> tuple[dict | None, str | None]:
+    """(the diagnosed bank (kind "bank") or grade ("grade") to apply, or None with the one-line reason it is not
+    applied)."""
+    (constant, _, channel), limit, words = ROAD[kind]
     i = _effect_index(path, d, name)
     e = d["model"]["effects"][i]
     value = _estimate(path, d, name)
-    if name == "bank_from_roll":
-        return None, (f"bank_from_roll: found gain {value:.4g}, not applied: diagnosis.json carries the gain and the "
-                      "roll channel's check, not the log's roll along the track, which a bank column along the "
-                      "raceline needs")
-    if name == "bank_angle":
-        if not abs(value) < BANK_MAX_RAD:
+    if name == channel:
+        what = "roll" if kind == "bank" else "pitch"
+        return None, (f"{name}: found gain {value:.4g}, not applied: diagnosis.json carries the gain and the "
+                      f"{what} channel's check, not the log's {what} along the track, which a {kind} column along "
+                      "the raceline needs")
+    if name == constant:
+        if not abs(value) < limit:
             raise DdynError(f"{path}: model.effects[{i}].params.angle: {value:g} rad, beyond the controller's "
-                            f"+-{BANK_MAX_RAD:.4g} rad (45 degrees)")
+                            f"+-{limit:.4g} rad ({words})")
         return {"effect": name, "kind": "constant", "angle": value, "peak": value, "index": i}, None
     key = f"model.effects[{i}].profile"
     prof = e.get("profile")
@@ -272,9 +298,9 @@ def _bank(path: Path, d: dict, name: str) -> tuple[dict | None, str | None]:
     angle = _numbers(path, f"{key}.angle_rad", prof.get("angle_rad"), len(knots))
     if any(b <= a for a, b in zip(knots, knots[1:])):
         raise DdynError(f"{path}: {key}.knots_m: expected ascending positions")
-    if max(abs(a) for a in angle) >= BANK_MAX_RAD:
+    if max(abs(a) for a in angle) >= limit:
         raise DdynError(f"{path}: {key}.angle_rad: reaches {max(abs(a) for a in angle):g} rad, beyond the "
-                        f"controller's +-{BANK_MAX_RAD:.4g} rad (45 degrees)")
+                        f"controller's +-{limit:.4g} rad ({words})")
     length = prof.get("periodic_length_m")
     if length is not None and not (isinstance(length, (int, float)) and not isinstance(length, bool)
                                    and math.isfinite(length) and length > knots[-1]):
@@ -285,7 +311,7 @@ def _bank(path: Path, d: dict, name: str) -> tuple[dict | None, str | None]:
         raise DdynError(f"{path}: {key}.position_from: expected where the positions come from, got {where!r}")
     track = _profile_track(where)
     if track is None or length is None:
-        return None, (f"bank_profile: peak {value:.4g} rad, not applied: its positions are {where!r}, not a "
+        return None, (f"{name}: peak {value:.4g} rad, not applied: its positions are {where!r}, not a "
                       "track's, so the raceline's rows cannot be placed on them (diagnose with the track known: "
                       "the log's `track` metadata or --track)")
     return {"effect": name, "kind": "profile", "peak": value, "index": i, "track": track,
@@ -293,12 +319,13 @@ def _bank(path: Path, d: dict, name: str) -> tuple[dict | None, str | None]:
                         "position_from": where}}, None
 
 
-def bank_column(summary: dict, track, table: np.ndarray) -> np.ndarray:
-    """raceline.csv's bank column (rad per row) from the diagnosed bank of a ControllerEffects.summary(): the
-    constant on every row, or the profile at each row's position (the row projected on the track's centre line,
-    as the diagnosis placed its log's rows; evaluated by the diagnosis's own ddyn.gap.candidates.profile_at). A
-    profile fitted on another track (or another lap length) is refused, naming the key."""
-    bank = summary["bank"]
+def bank_column(summary: dict, track, table: np.ndarray, kind: str = "bank") -> np.ndarray:
+    """raceline.csv's bank column (rad per row) from the diagnosed bank of a ControllerEffects.summary() (kind
+    "grade": its grade column from the diagnosed grade): the constant on every row, or the profile at each row's
+    position (the row projected on the track's centre line, as the diagnosis placed its log's rows; evaluated by
+    the diagnosis's own ddyn.gap.candidates.profile_at). A profile fitted on another track (or another lap length)
+    is refused, naming the key."""
+    bank = summary[kind]
     path = summary["diagnosis"]
     if bank["kind"] == "constant":
         return np.full(len(table), float(bank["angle"]))
@@ -312,6 +339,11 @@ def bank_column(summary: dict, track, table: np.ndarray) -> np.ndarray:
                         f"{track.name!r} is {float(track.length):g} m long")
     s, _ = track.project(table[:, 0], table[:, 1])
     return np.asarray(profile_at(prof, s), float)
+
+
+def grade_column(summary: dict, track, table: np.ndarray) -> np.ndarray:
+    """raceline.csv's grade column from the diagnosed grade (as bank_column's)."""
+    return bank_column(summary, track, table, "grade")
 
 
 def controller_effects(where: str | Path, period: float | None = None) -> ControllerEffects:
@@ -332,9 +364,11 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
         if name in APPLIED and NOT_WITH.get(name) in d["selected"]:
             fx.not_applied.append(f"{name}: found {value:.4g}, not applied: selected with {NOT_WITH[name]}, whose "
                                   f"fit alone carries the response the two split")
-        elif name in BANK:
-            fx.bank, why = _bank(path, d, name)
-            if fx.bank is None:
+        elif name in BANK or name in GRADE:
+            kind = "bank" if name in BANK else "grade"
+            road, why = _road(path, d, name, kind)
+            setattr(fx, kind, road)
+            if road is None:
                 fx.not_applied.append(why)
             else:
                 fx.applied.append(name)
@@ -349,6 +383,12 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
             if not 0.0 <= value <= DELAY_MAX_S:
                 raise DdynError(f"{path}: model.effects: {name} {MAIN_PARAM[name]} = {value:g} s is outside "
                                 f"{config_key.rsplit('.', 1)[0]}'s 0..{DELAY_MAX_S:g} s")
+            if what == "delays" and period is not None and value > MAX_DELAY_PERIODS * period * (1.0 + 1e-9):
+                # seen: a false 0.18 s throttle delay on a graded random:302 log stopped the rebuilt controller
+                fx.not_applied.append(f"{name}: found {est:.4g} s, not applied: beyond the runtime's "
+                                      f"{MAX_DELAY_PERIODS} control periods ({MAX_DELAY_PERIODS * period:g} s; "
+                                      "DDYN_CTRL_MAX_DELAY_STEPS)")
+                continue
             getattr(fx, what)[key] = value
             fx.applied.append(name)
         elif name in FIRST_ONLY:
@@ -373,11 +413,11 @@ def controller_effects(where: str | Path, period: float | None = None) -> Contro
                 fx.not_applied.append(f"{name}: found {est:.4g}, not applied: outside the controller's "
                                       f"control.{name} range [{lo:g}, {hi:g}]")
         else:
-            fx.not_applied.append(f"{name}: not in the runtime (issue 34)")
+            fx.not_applied.append(f"{name}: not in the runtime")
     return fx
 
 
-def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None) -> dict:
+def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None, grade_column=None) -> dict:
     """A controller configuration (docs/deploy.md) with fx's delays in control.delay, its lag in control.lag, its
     mass offset in control.mass_offset, its downforce in control.downforce, control.bank (true with a diagnosed bank, whose column, bank_column(), the caller writes into the raceline)
     and the record in `effects`; every other key as it was."""
@@ -385,7 +425,7 @@ def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None) -> dict:
     control = out.setdefault("control", {})
     if not isinstance(control, dict):
         raise DdynError("control: expected an object")
-    rec = fx.record(bank_column)
+    rec = fx.record(bank_column, grade_column)
     control["delay"] = dict(rec["delay"])
     control["lag"] = dict(rec["lag"])
     control["mass_offset"] = rec["mass_offset"]
@@ -396,5 +436,10 @@ def apply_to_config(cfg: dict, fx: ControllerEffects, bank_column=None) -> dict:
         # the controller refuses a bank its effects do not record; dropping the car's own would change its drive
         raise DdynError("control.bank: true in the configuration, but the diagnosis gives no bank: remove the bank "
                         "(control.bank and the raceline's 6th column) first, or diagnose a log that finds it")
+    if fx.grade is not None:
+        control["grade"] = True
+    elif control.get("grade"):
+        raise DdynError("control.grade: true in the configuration, but the diagnosis gives no grade: remove the grade "
+                        "(control.grade and the raceline's grade column) first, or diagnose a log that finds it")
     out["effects"] = rec
     return out

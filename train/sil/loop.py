@@ -51,7 +51,8 @@ LOG_SECONDS = 60.0
 MIN_VX = 0.3        # m/s: rows slower than this (the standing start) are left out of the user's log
 # the plant effect -> (the controller's compensation: delays or lag, its key) that is its oracle
 ORACLE = {"steer_delay": ("delays", "steer"), "throttle_delay": ("delays", "throttle"), "steer_lag": ("lag", "steer"),
-          "mass_offset": ("mass", None), "downforce": ("downforce", None), "road_bank": ("bank", None)}
+          "mass_offset": ("mass", None), "downforce": ("downforce", None), "road_bank": ("bank", None),
+          "road_grade": ("grade", None)}
 # Every scored run (reference, before, rebuilt, oracle) drives this many laps and is scored on the median of the
 # flying laps (all but the first): from rest an input delay costs its own length whatever compensates it (100 ms
 # of throttle delay is 2.5 % of a 4 s lap), which is the start's, not the compensation's. The standing lap is kept
@@ -75,6 +76,10 @@ TARGETS = ("clean_within_2pct_of_reference", "clean_within_2pct_of_reference_sta
            "diagnosis_first_within_15pct_alone", "within_1pct_of_oracle")
 ROAD_BANK = "road_bank"   # the case of the track's own bank in the plant (size 1: the track's profile as it is)
 BANK_CANDIDATES = ("bank_profile", "bank_angle", "bank_from_roll")
+# the case of a road with hills (size: the grade's amplitude, rad; ddyn.model.road_grade.graded), every run of the
+# case on the graded track
+ROAD_GRADE = "road_grade"
+GRADE_CANDIDATES = ("grade_profile", "grade", "grade_from_pitch")
 
 
 # ---------------------------------------------------------------------------------------------- the user's log
@@ -292,7 +297,7 @@ def _drive(vehicle, track, out: Path, *, effects: dict, delays: dict | None = No
            mass_offset: float = 0.0, downforce: float = 0.0, effects_from: dict | None = None,
            speed_scale: float | None = None,
            laps: int = SCORED_LAPS, seed: int = 1, road_bank: bool = False, controller_bank: bool = False,
-           line: str = LINE) -> dict:
+           controller_grade: bool = False, line: str = LINE) -> dict:
     """One in-process SIL run. road_bank: the track's own bank in the plant (a case of it; else a banked track is
     driven flat); controller_bank: the controller told the track's bank (the oracle); line: the racing line
     (`ddyn sil run --line`)."""
@@ -302,7 +307,8 @@ def _drive(vehicle, track, out: Path, *, effects: dict, delays: dict | None = No
                             controller_delays=dict(delays or {}), controller_lag=dict(lag or {}),
                             controller_mass_offset=float(mass_offset), controller_downforce=float(downforce),
                             effects_from=effects_from,
-                            road_bank=road_bank, controller_bank=controller_bank, line=line)
+                            road_bank=road_bank, controller_bank=controller_bank,
+                            controller_grade=controller_grade, line=line)
     with contextlib.redirect_stdout(io.StringIO()):
         m = run_sil(spec, out, None, where="inprocess")
     return m
@@ -481,13 +487,17 @@ def bank_found(d: dict, track, banked: bool = True) -> dict:
 def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, seed: int = 1,
              speeds=LOG_SPEEDS, seconds: float = LOG_SECONDS, line: str = LINE) -> dict:
     banked = effect == ROAD_BANK
+    if effect == ROAD_GRADE:   # the road's hills: every run of the case on the graded track (the plant drives them)
+        from ddyn.model.road_grade import graded
+        track = graded(track, size)
     if banked and getattr(track, "bank", None) is None:
         raise DdynError(f"--cases {ROAD_BANK}: track {track.name!r} has no bank of its own (the banked oval: oval)")
     if banked and size != 1.0:
         raise DdynError(f"--cases {ROAD_BANK}={size:g}: the track's bank is driven as it is: give {ROAD_BANK}=1")
-    fx = {} if effect in ("none", ROAD_BANK) else {effect: size}
+    fx = {} if effect in ("none", ROAD_BANK, ROAD_GRADE) else {effect: size}
     case = {"track": track.name, "effect": effect, "size": size, "reference": ref,
             "plant_road": "the track's own bank" if banked else
+            (track.grade_source if effect == ROAD_GRADE else None) or
             ("flat (the track's bank taken out: --flat-road)" if getattr(track, "bank", None) is not None
              else "flat")}
     t0 = time.time()
@@ -500,15 +510,16 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
     diag = diagnose(log, vehicle.name, out / "diagnosis")
     first_is = ((not diag["selected"]) if effect == "none" else
                 bool(diag["selected"]) and (diag["selected"][0] in BANK_CANDIDATES if banked
+                                            else diag["selected"][0] in GRADE_CANDIDATES if effect == ROAD_GRADE
                                             else diag["selected"][0] == effect))
     case["diagnosis"] = _first(diag) | {"path": str(out / "diagnosis"), "truth": size, "first_is_the_effect": first_is,
                                         "selected_text": ", ".join(diag["selected"]) or "none"}
     if getattr(track, "bank", None) is not None:
         case["diagnosis"]["bank"] = bank_found(diag, track, banked)
-    if case["diagnosis"]["first_is_the_effect"] and effect not in ("none", ROAD_BANK):
+    if case["diagnosis"]["first_is_the_effect"] and effect not in ("none", ROAD_BANK, ROAD_GRADE):
         case["diagnosis"]["error_pct"] = 100.0 * (case["diagnosis"]["first_estimate"] - size) / size
     alone = next((c for c in diag.get("candidates", []) if c["effect"] == effect), None)
-    if alone is not None and effect not in ("none", ROAD_BANK):
+    if alone is not None and effect not in ("none", ROAD_BANK, ROAD_GRADE):
         # the plant effect's candidate fitted alone: the estimate the rebuild writes (ddyn.sil.effects), where the
         # joint fit shares one response among the selected effects
         v = float(next(iter(alone["params"].values())))
@@ -522,7 +533,8 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
     if effect in ORACLE:
         what, key = ORACLE[effect]
         told = {"delays": {"delays": {key: size}}, "lag": {"lag": {key: size}}, "mass": {"mass_offset": size},
-                "downforce": {"downforce": size}, "bank": {"controller_bank": True}}[what]
+                "downforce": {"downforce": size}, "bank": {"controller_bank": True},
+                "grade": {"controller_grade": True}}[what]
         m = _drive(vehicle, track, out / "oracle", effects=fx, seed=seed, road_bank=banked, line=line, **told)
         case["oracle"] = _row(m, out / "oracle")
     sd = case["diagnosis"]["steer_delay_candidate_s"]
@@ -567,7 +579,7 @@ def run_case(vehicle, track, effect: str, size: float, out: Path, ref: dict, see
 
 
 def summarise(cases: list[dict]) -> dict:
-    """Per plant effect (and over every effect but none and road_bank: "effects"), how many cases the nominal
+    """Per plant effect (and over every effect but none, road_bank and road_grade: "effects"), how many cases the nominal
     controller drove clean before (before_clean), how many meet each of the rebuilt run's targets, and the worst
     rebuilt lap against the car without the effect and against the
     oracle (flying laps, %; None when no rebuilt lap completed). A case that could not be scored (its `error`)
@@ -575,7 +587,7 @@ def summarise(cases: list[dict]) -> dict:
     groups: dict[str, list[dict]] = {}
     for c in cases:
         groups.setdefault(c["effect"], []).append(c)
-        if c["effect"] not in ("none", ROAD_BANK):
+        if c["effect"] not in ("none", ROAD_BANK, ROAD_GRADE):
             groups.setdefault("effects", []).append(c)
     out = {}
     for name, cs in groups.items():
@@ -639,9 +651,9 @@ def parse_cases(text: str) -> list[tuple[str, float]]:
         if "=" not in item:
             raise DdynError(f"--cases: expected effect=SIZE, got {item!r}")
         k, v = item.split("=", 1)
-        if k not in PLANT_EFFECTS + ("none", ROAD_BANK):
+        if k not in PLANT_EFFECTS + ("none", ROAD_BANK, ROAD_GRADE):
             raise DdynError(f"--cases: unknown effect {k!r}; expected one of "
-                            f"{', '.join(PLANT_EFFECTS + (ROAD_BANK, 'none'))}")
+                            f"{', '.join(PLANT_EFFECTS + (ROAD_BANK, ROAD_GRADE, 'none'))}")
         try:
             out.append((k, float(v)))
         except ValueError:
@@ -673,13 +685,15 @@ def markdown(cases: list[dict]) -> str:
         sd = (f"{dg['alone_estimate']:.4g} ({dg['alone_error_pct']:+.0f} %)" if "alone_estimate" in dg else "-")
         ld = c["log_drive"]["chosen"]
         bank = c["rebuilt_effects"].get("bank")
+        grade = c["rebuilt_effects"].get("grade")
         mass = c["rebuilt_effects"].get("controller_mass_offset", 0.0)
         downforce = c["rebuilt_effects"].get("controller_downforce", 0.0)
         written = ", ".join([f"{k} {v:.4g} s" for k, v in c["rebuilt_effects"]["controller_delays"].items()] +
                             [f"lag {k} {v:.4g} s" for k, v in c["rebuilt_effects"].get("controller_lag", {}).items()] +
                             ([f"mass offset {mass:+.3g}"] if mass else []) +
                             ([f"downforce {downforce:.3g}"] if downforce else []) +
-                            ([f"bank ({bank['effect']}, peak {math.degrees(bank['peak']):.3g} deg)"] if bank else []))
+                            ([f"bank ({bank['effect']}, peak {math.degrees(bank['peak']):.3g} deg)"] if bank else []) +
+                            ([f"grade ({grade['effect']}, peak {math.degrees(grade['peak']):.3g} deg)"] if grade else []))
         applied = written or ("nothing (" + "; ".join(c["rebuilt_effects"]["not_applied"]) + ")"
                               if c["rebuilt_effects"]["not_applied"] else "nothing")
         lines.append(f"| {c['track']} | {c['effect']} {c['size']:g} | {ld['speed_scale']:g}, {ld['driven_s']:.1f} s, "

@@ -33,9 +33,13 @@ def run_track(vehicle, tname: str, cases: list[tuple[str, float]], seed: int, li
     for effect, size in cases:
         what, key = loop.ORACLE[effect]
         told = {"delays": {"delays": {key: size}}, "lag": {"lag": {key: size}}, "mass": {"mass_offset": size},
-                "downforce": {"downforce": size}}[what]
+                "downforce": {"downforce": size}, "grade": {"controller_grade": True}}[what]
         d = tdir / f"{effect}_{size:g}"
-        r = loop._row(loop._drive(vehicle, track, d, effects={effect: size}, seed=seed, line=line, **told), d)
+        if effect == loop.ROAD_GRADE:   # the road's hills (the world's): the graded track, no plant effect
+            from ddyn.model.road_grade import graded
+            r = loop._row(loop._drive(vehicle, graded(track, size), d, effects={}, seed=seed, line=line, **told), d)
+        else:
+            r = loop._row(loop._drive(vehicle, track, d, effects={effect: size}, seed=seed, line=line, **told), d)
         clean = bool(r["lap_completed"] and r["violations"] == 0)
         vs = 100.0 * (r["lap_s"] / ref["lap_s"] - 1.0) if clean and ref["lap_completed"] and ref["lap_s"] else None
         rows.append({"track": track.name, "seed": seed, "effect": effect, "size": size, "reference": ref,

@@ -241,6 +241,10 @@ class SilSpec:
                                                # plant's road (plant.json road_bank); False: driven flat
     controller_bank: bool = False              # the controller knows the road's bank (control.bank: the track's
                                                # own profile along the raceline, raceline.csv's 6th column)
+    road_grade: bool = True                    # a track with its own grade (Track.grade: ddyn.model.road_grade)
+                                               # grades the plant's road (plant.json road_grade); False: level
+    controller_grade: bool = False             # the controller knows the road's grade (control.grade: the track's
+                                               # own profile along the raceline, raceline.csv's grade column)
 
     @classmethod
     def true_car(cls, vehicle: Vehicle, track: Track, **settings) -> "SilSpec":
@@ -314,6 +318,9 @@ def plant_config(spec: SilSpec, track_dir: str, out_dir: str, table: np.ndarray 
     bank = getattr(spec.track, "bank", None)
     if spec.road_bank and bank is not None:  # the world's banking, per centre-line point (the plant's track files)
         cfg["road_bank"] = [float(b) for b in bank]
+    grade = getattr(spec.track, "grade", None)
+    if spec.road_grade and grade is not None:  # the world's grade, per centre-line point
+        cfg["road_grade"] = [float(g) for g in grade]
     if "restart_plant" in f:
         cfg["crash_at"] = float(f["restart_plant"])
     if key_file:  # frame authentication: the plant signs its frames and applies only verified commands
@@ -357,14 +364,14 @@ CONTROLLER_CONFIG = "controller.json"
 RACELINE_CSV = "raceline.csv"
 
 
-def raceline_csv(table: np.ndarray, bank: np.ndarray | None = None) -> str:
-    """The raceline file ddyn_controller reads (`raceline` key): x, y, speed, width_left, width_right, and with
-    a bank (control.bank) the road's bank (rad) at each row as a 6th column."""
-    if bank is None:
-        rows = ["x,y,speed,width_left,width_right"] + [",".join(repr(float(c)) for c in row) for row in table]
-    else:
-        rows = ["x,y,speed,width_left,width_right,bank"] + [
-            ",".join(repr(float(c)) for c in (*row, b)) for row, b in zip(table, bank)]
+def raceline_csv(table: np.ndarray, bank: np.ndarray | None = None, grade: np.ndarray | None = None) -> str:
+    """The raceline file ddyn_controller reads (`raceline` key): x, y, speed, width_left, width_right, with a bank
+    (control.bank) the road's bank (rad) at each row as a 6th column, then with a grade (control.grade) the road's
+    grade (rad) as the next."""
+    extra = [(name, col) for name, col in (("bank", bank), ("grade", grade)) if col is not None]
+    head = ",".join(["x,y,speed,width_left,width_right"] + [name for name, _ in extra])
+    rows = [head] + [",".join(repr(float(c)) for c in (*row, *(col[i] for _, col in extra)))
+                     for i, row in enumerate(table)]
     return "\n".join(rows) + "\n"
 
 
@@ -377,6 +384,30 @@ def raceline_bank(track: Track, table: np.ndarray) -> np.ndarray:
                         "(Track.bank; the banked oval: --track oval)")
     s, _ = track.project(table[:, 0], table[:, 1])
     return np.asarray(bank_at(track, s), float)
+
+
+def raceline_grade(track: Track, table: np.ndarray) -> np.ndarray:
+    """The track's own grade (rad, ddyn.model.road_grade.grade_at) at each raceline row: at the row's projection on
+    the centre line. A track without a grade profile is refused (control.grade would be a level table)."""
+    from ddyn.model.road_grade import grade_at
+    if getattr(track, "grade", None) is None:
+        raise DdynError(f"the controller's grade (control.grade): track {track.name!r} has no grade profile "
+                        "(Track.grade: --road-grade A)")
+    s, _ = track.project(table[:, 0], table[:, 1])
+    return np.asarray(grade_at(track, s), float)
+
+
+def controller_grade_column(spec: SilSpec, table: np.ndarray) -> np.ndarray | None:
+    """raceline.csv's grade column (rad per row): the diagnosed grade (effects_from's, ddyn.sil.effects.grade_column),
+    the track's own (controller_grade: the oracle), or None (a level road); both asked for is refused, as the
+    bank's."""
+    if spec.effects_from is not None and spec.controller_grade:
+        raise DdynError("--controller-grade with --effects-from D: give one (the diagnosis sets the controller's "
+                        "grade, and the controller refuses a grade its recorded effects do not give)")
+    if (spec.effects_from or {}).get("grade") is not None:
+        from ddyn.sil.effects import grade_column
+        return grade_column(spec.effects_from, spec.track, table)
+    return raceline_grade(spec.track, table) if spec.controller_grade else None
 
 
 def controller_bank_column(spec: SilSpec, table: np.ndarray) -> np.ndarray | None:
@@ -451,6 +482,9 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     bank = controller_bank_column(spec, table)
     if bank is not None:  # the road's bank along the raceline (raceline.csv's 6th column)
         control["bank"] = True
+    grade = controller_grade_column(spec, table)
+    if grade is not None:  # the road's grade along the raceline (raceline.csv's next column)
+        control["grade"] = True
     if spec.effects_from is not None:
         # recorded from the diagnosis (ddyn.sil.effects): the controller refuses the file if control.delay,
         # control.lag or control.bank differs (or the bank column's peak)
@@ -492,7 +526,7 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
     }
     if spec.effects_from is not None:
         from ddyn.sil.effects import record
-        cfg["effects"] = record(spec.effects_from, bank) | {"delay": dict(control["delay"]),
+        cfg["effects"] = record(spec.effects_from, bank, grade) | {"delay": dict(control["delay"]),
                                                              "lag": dict(control["lag"]),
                                                              "mass_offset": control["mass_offset"],
                                                              "downforce": control["downforce"]}
@@ -505,7 +539,8 @@ def controller_config(spec: SilSpec, out_dir: str, can: str = "vcan0", lcm_url: 
 def write_controller_files(spec: SilSpec, table: np.ndarray, work: Path, out_dir: str, lcm_url: str = "",
                            key_file: str | None = None) -> Path:
     """controller.json and raceline.csv into the run's folder; the configuration's path."""
-    (work / RACELINE_CSV).write_text(raceline_csv(table, controller_bank_column(spec, table)))
+    (work / RACELINE_CSV).write_text(raceline_csv(table, controller_bank_column(spec, table),
+                                                  controller_grade_column(spec, table)))
     path = work / CONTROLLER_CONFIG
     path.write_text(json.dumps(controller_config(spec, out_dir, lcm_url=lcm_url, table=table, key_file=key_file),
                                indent=1) + "\n")
@@ -1012,6 +1047,8 @@ def summarise(work: Path, spec: SilSpec, table: np.ndarray, run: dict) -> dict:
         "controller_bank": spec.controller_bank or (spec.effects_from or {}).get("bank") is not None,
         "controller_bank_from": ("track" if spec.controller_bank else
                                  "diagnosis" if (spec.effects_from or {}).get("bank") is not None else None),
+        "road_grade": bool(pm.get("road_grade", False)),
+        "controller_grade": spec.controller_grade or (spec.effects_from or {}).get("grade") is not None,
         "coefficients": "fixed" if spec.coeffs_controller is not None else "network",
         "throttle": spec.throttle, "pid_gains": list(spec.pid_gains) if spec.pid_gains is not None else "default",
         # frame authentication: the plant's DBW unit's counts (commands accepted; forged, replayed, stale
@@ -1254,6 +1291,9 @@ def make_random_track_line(vehicle, track, tname: str, line: str | None) -> None
 def _run(args: argparse.Namespace) -> int:
     vehicle = load_vehicle(args.vehicle)
     track = open_track(args.track, vehicle.name)
+    if args.road_grade is not None:
+        from ddyn.model.road_grade import graded
+        track = graded(track, args.road_grade)
     if args.line == "flying":
         # a random track's flying line made on demand, as the studies do (its own line is the track's)
         make_random_track_line(vehicle, track, args.track, args.line)
@@ -1299,7 +1339,8 @@ def _run(args: argparse.Namespace) -> int:
                    pid_gains=args.pid_gains, checkpoint_hash=checkpoint_hash, pacing=args.pacing, auth=args.auth,
                    forged_steering=args.inject_forged_steering,
                    controller_delays=delays, controller_lag=lag, controller_mass_offset=mass,
-                   controller_downforce=downforce, effects_from=effects_from, road_bank=not args.flat_road, controller_bank=args.controller_bank)
+                   controller_downforce=downforce, effects_from=effects_from, road_bank=not args.flat_road, controller_bank=args.controller_bank,
+                   controller_grade=args.controller_grade)
     if args.config_only:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -1309,7 +1350,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"sil: wrote {path} and {out / RACELINE_CSV} (control.delay {control.get('delay', 'none')}, "
               f"control.lag {control.get('lag', 'none')}, control.mass_offset {control.get('mass_offset', 0)}, "
               f"control.downforce {control.get('downforce', 0)}, "
-              f"control.bank {control.get('bank', False)}); not driven (--config-only)")
+              f"control.bank {control.get('bank', False)}, control.grade {control.get('grade', False)}); not driven "
+              "(--config-only)")
         return 0
     m = run_sil(spec, Path(args.out), export_dir, where=args.where, kvm=args.kvm, timeout=args.timeout)
     laps = ", ".join(f"{t:.3f} s" for t in m["lap_times"]) or "none"
@@ -1398,6 +1440,15 @@ def register(subparsers) -> None:
                         "profile (--track oval) at each raceline point, raceline.csv's 6th column; its filter and "
                         "MPC predict with the lateral gravity g sin(bank) at their track positions (default: off, "
                         "a flat road)")
+    p.add_argument("--road-grade", metavar="A", type=float, default=None,
+                   help="give the track hills: the road's grade (rad, + uphill) is A sin(2 pi 2 s / L) along the lap "
+                        "(ddyn.model.road_grade; 0 < A <= 0.3), the world's, driven by the plant (plant.json "
+                        "road_grade) (default: a level road)")
+    p.add_argument("--controller-grade", action="store_true",
+                   help="the controller knows the road's grade (controller.json control.grade): the track's own "
+                        "grade profile (--road-grade) at each raceline point, raceline.csv's grade column; its filter "
+                        "and MPC predict with the longitudinal gravity -g sin(grade) at their track positions "
+                        "(default: off, a level road)")
     p.add_argument("--flat-road", action="store_true",
                    help="drive a banked track (--track oval) flat: the plant without the track's own bank (default: "
                         "a track with a bank profile banks the plant's road, plant.json road_bank)")
