@@ -496,11 +496,14 @@ static double launch_accel(ddyn_mpc *mpc, const double x0[DDYN_NX])
     x[3] = x0[3] > 0.0 ? x0[3] : 0.0;
     x[6] = mpc->cfg.state_hi[0];
     ddyn_model_downforce(mpc->c, mpc->downforce, x[3], c_at);
-    if (ddyn_model_derivatives(mpc->model, x, u, c_at, xdot, &mpc->model_work) != DDYN_OK ||
-        !isfinite(xdot[3]) || !(xdot[3] > 0.0)) {
+    if (ddyn_model_derivatives(mpc->model, x, u, c_at, xdot, &mpc->model_work) != DDYN_OK || !isfinite(xdot[3])) {
         return 0.0;
     }
-    return xdot[3];
+    /* on a grade, gravity at x0's position (linearise's first stage) speeds the car up or holds it back: a
+     * downhill start bounded by the level road's rate held the cost points behind a car the told prediction
+     * saw pass them (random:304, 0.05 rad hills: the QP at its cap, the car spun) */
+    xdot[3] += ddyn_model_grade_accel(mpc->stage_grade[0]);
+    return xdot[3] > 0.0 ? xdot[3] : 0.0;
 }
 
 /* cost references along the raceline's speed profile, and track half-planes at the projections of

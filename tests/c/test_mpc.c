@@ -131,6 +131,25 @@ static void test_cost_points_run_no_faster_than_the_car_can_reach(void **state)
     }
     assert_true(reach < 0.8 * 3.0 * h * dt);
     assert_true(fabs(ring_arc_to_stage(h) - reach) < 1e-3 * reach);
+    {
+        /* on a grade the reachable distance takes gravity at x0's position: downhill further, uphill less far
+         * (the level road's rate held the cost points behind a car descending a hill) */
+        static double grade[RING];
+        const double grades[2] = {-0.1, 0.05};
+        int j, i;
+        for (j = 0; j < 2; ++j) {
+            double a = accel + ddyn_model_grade_accel(grades[j]), r = 0.0;
+            for (i = 0; i < RING; ++i) grade[i] = grades[j];
+            assert_int_equal(ddyn_mpc_set_grade(&mpc, grade), DDYN_OK);
+            assert_int_equal(ddyn_mpc_prepare(&mpc, x0), DDYN_OK);
+            for (k = 0; k < h; ++k) {
+                r += fmin(3.0, 0.1 + a * (k + 1) * dt) * dt;
+            }
+            assert_true(j == 0 ? r > 1.1 * reach : r < 0.95 * reach); /* not blind: the grade moves it */
+            assert_true(fabs(ring_arc_to_stage(h) - r) < 1e-3 * r);
+        }
+        assert_int_equal(ddyn_mpc_set_grade(&mpc, NULL), DDYN_OK);
+    }
 }
 
 static void test_prepare_then_feedback_is_the_real_time_iteration(void **state)
