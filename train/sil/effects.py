@@ -3,7 +3,7 @@
 `ddyn gap diagnose ... --out D` writes D/diagnosis.json; its `selected` effects (`model.effects`: each with its
 `params`) are what the diagnosis claims. The controller's runtime carries actuation delays and a steering lag
 (controller.json `control.delay`, `control.lag`), a mass offset (`control.mass_offset`), a downforce
-(`control.downforce`) and a road bank (ddyn/controller.h), so:
+(`control.downforce`) and the road's bank and grade (`control.bank`, `control.grade`; ddyn/controller.h), so:
 
     steer_delay     -> control.delay.steering: its `delay` fitted alone (the diagnosis's candidate of that name),
                        to the nearest whole control period when the period is known
@@ -39,8 +39,8 @@ The configuration records where its delays, lag, mass offset, downforce and bank
 path, the sha256 of its diagnosis.json, the delays, the lag, the mass offset and the downforce it gave, and with a bank `bank` true, `bank_peak` the column's largest
 |bank| and `bank_from` a line saying which effect); the controller refuses a file whose control.delay differs from
 the recorded `effects.delay`, control.lag from `effects.lag`, control.mass_offset from `effects.mass_offset`,
-control.downforce from `effects.downforce`, control.bank from `effects.bank`, or whose raceline's
-bank column does not peak at `effects.bank_peak` (firmware_sim/controller/controller_config.c), as it refuses a
+control.downforce from `effects.downforce`, control.bank from `effects.bank`, control.grade from `effects.grade`,
+or whose raceline's bank (grade) column does not peak at `effects.bank_peak` (`effects.grade_peak`) (firmware_sim/controller/controller_config.c), as it refuses a
 network built for another checkpoint. `ddyn sil run --effects-from D [--config-only]` writes (and drives) the SIL's controller.json with it;
 `apply_to_config` puts the same sections into another configuration (a car's; a diagnosed bank's column, made by
 `bank_column`, into its raceline by the caller).

@@ -1322,10 +1322,11 @@ def _run(args: argparse.Namespace) -> int:
                         f"{DOWNFORCE_RANGE[1]:g}] (the controller's control.downforce, s^2/m^2)")
     if args.effects_from:
         from ddyn.sil.effects import controller_effects
-        if delays or lag or args.controller_bank or mass or downforce:
+        if delays or lag or args.controller_bank or args.controller_grade or mass or downforce:
             raise DdynError("--effects-from and --controller-delays/--controller-lag/--controller-bank/"
-                            "--controller-mass-offset/--controller-downforce: give one (the diagnosis sets the "
-                            "delays, the lag, the mass offset, the downforce and the bank)")
+                            "--controller-grade/--controller-mass-offset/--controller-downforce: give one (the "
+                            "diagnosis sets the delays, the lag, the mass offset, the downforce, the bank and the "
+                            "grade)")
         fx = controller_effects(args.effects_from, vehicle.sample_time)
         delays, lag, mass, effects_from = dict(fx.delays), dict(fx.lag), fx.mass_offset, fx.summary()
         downforce = fx.downforce
@@ -1431,7 +1432,8 @@ def register(subparsers) -> None:
                         "diagnose --out D`: the folder or its diagnosis.json): steer_delay -> control.delay.steering, "
                         "throttle_delay -> control.delay.throttle, steer_lag -> control.lag.steering, bank_angle or "
                         "bank_profile -> control.bank and raceline.csv's bank column (the profile at each row's track "
-                        "position), mass_offset -> control.mass_offset and downforce -> control.downforce (each "
+                        "position), grade or grade_profile -> control.grade and the grade column likewise, "
+                        "mass_offset -> control.mass_offset and downforce -> control.downforce (each "
                         "when named first), every other effect named and not applied; recorded in controller.json (effects: "
                         "path, sha256; the controller refuses the file if control.delay, control.lag or the bank is "
                         "edited) and sil_metrics.json")
