@@ -486,6 +486,8 @@ static void sensitivities(ddyn_mpc *mpc)
     }
 }
 
+#define DDYN_MPC_MIN_LAUNCH_ACCEL 1e-6 /* m/s^2: a car that cannot gain speed here (a steep hill) */
+
 /* How fast the car can gain speed from x0: the prediction model's dvx/dt at full throttle, driving straight
  * (vy = omega = steering = 0), with the coefficients the prediction uses; 0 when the model gives no finite
  * positive value (then the references follow the line's speed alone). The acceleration falls with speed (drag),
@@ -496,14 +498,16 @@ static double launch_accel(ddyn_mpc *mpc, const double x0[DDYN_NX])
     x[3] = x0[3] > 0.0 ? x0[3] : 0.0;
     x[6] = mpc->cfg.state_hi[0];
     ddyn_model_downforce(mpc->c, mpc->downforce, x[3], c_at);
-    if (ddyn_model_derivatives(mpc->model, x, u, c_at, xdot, &mpc->model_work) != DDYN_OK || !isfinite(xdot[3])) {
+    if (ddyn_model_derivatives(mpc->model, x, u, c_at, xdot, &mpc->model_work) != DDYN_OK || !isfinite(xdot[3]) ||
+        !(xdot[3] > 0.0)) {
         return 0.0;
     }
     /* on a grade, gravity at x0's position (linearise's first stage) speeds the car up or holds it back: a
      * downhill start bounded by the level road's rate held the cost points behind a car the told prediction
-     * saw pass them (random:304, 0.05 rad hills: the QP at its cap, the car spun) */
+     * saw pass them (random:304, 0.05 rad hills: the QP at its cap, the car spun). A hill steeper than the
+     * car can climb at this speed holds the cost points at its speed (a tiny rate), not unbounded at the line's */
     xdot[3] += ddyn_model_grade_accel(mpc->stage_grade[0]);
-    return xdot[3] > 0.0 ? xdot[3] : 0.0;
+    return xdot[3] > DDYN_MPC_MIN_LAUNCH_ACCEL ? xdot[3] : DDYN_MPC_MIN_LAUNCH_ACCEL;
 }
 
 /* cost references along the raceline's speed profile, and track half-planes at the projections of

@@ -148,7 +148,18 @@ static void test_cost_points_run_no_faster_than_the_car_can_reach(void **state)
             assert_true(j == 0 ? r > 1.1 * reach : r < 0.95 * reach); /* not blind: the grade moves it */
             assert_true(fabs(ring_arc_to_stage(h) - r) < 1e-3 * r);
         }
+        /* a hill steeper than the car can climb at its speed: the cost points stay at its speed, not run
+         * ahead at the line's (4.5 m/s here, the car at 3.4 m/s: the level road's 0.98 m/s^2 at full throttle
+         * against 1.9 m/s^2 of gravity) */
+        for (i = 0; i < RING; ++i) grade[i] = 0.2;
+        ring_speeds(4.5, 0.0);
+        assert_int_equal(ddyn_mpc_set_grade(&mpc, grade), DDYN_OK);
+        x0[3] = 3.4;
+        assert_int_equal(ddyn_mpc_prepare(&mpc, x0), DDYN_OK);
+        assert_true(fabs(ring_arc_to_stage(h) - 3.4 * h * dt) < 1e-3 * 3.4 * h * dt);
         assert_int_equal(ddyn_mpc_set_grade(&mpc, NULL), DDYN_OK);
+        assert_int_equal(ddyn_mpc_prepare(&mpc, x0), DDYN_OK); /* level: it can reach more than 3.4 m/s */
+        assert_true(ring_arc_to_stage(h) > 1.05 * 3.4 * h * dt);
     }
 }
 
