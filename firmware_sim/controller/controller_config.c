@@ -127,11 +127,11 @@ static const key_spec KEYS[] = {
      "predict with its longitudinal gravity -g sin(grade) at their track positions (issue 34; ddyn/controller.h "
      "ddyn_ctrl_set_grade)"},
     {"effects", K_SECTION, 0, 0, 0, 0, 0, 0, NULL, NONE,
-     "the diagnosis the actuation delays, the steering lag, the mass offset, the downforce and the road's bank come "
-     "from (`ddyn sil run --effects-from D`, docs/sil.md); a file whose control.delay differs from effects.delay, "
-     "control.lag from effects.lag, control.mass_offset from effects.mass_offset, control.downforce from "
-     "effects.downforce, or control.bank from effects.bank (or the raceline's bank column from effects.bank_peak) "
-     "is refused"},
+     "the diagnosis the actuation delays, the steering lag, the mass offset, the downforce and the road's bank and "
+     "grade come from (`ddyn sil run --effects-from D`, docs/sil.md); a file whose control.delay differs from "
+     "effects.delay, control.lag from effects.lag, control.mass_offset from effects.mass_offset, control.downforce "
+     "from effects.downforce, control.bank from effects.bank, control.grade from effects.grade (or the raceline's "
+     "bank or grade column from effects.bank_peak, effects.grade_peak) is refused"},
     {"effects.diagnosis", K_STRING, OFF(effects_diagnosis), FSZ(effects_diagnosis), 0, 0, 0, 0, NULL, NONE,
      "the diagnosis.json the effects were taken from (recorded, not read; default none)"},
     {"effects.diagnosis_sha256", K_HASH, OFF(effects_sha256), FSZ(effects_sha256), 0, 0, 0, 0, NULL, NONE,
@@ -501,9 +501,10 @@ static int walk(parse_ctx *p, const cJSON *obj, const char *prefix)
     return 1;
 }
 
-/* a bank column made from a diagnosis (effects.bank) must be the one it made: its largest |bank| recorded in
- * effects.bank_peak (written exactly: the CSV's and the JSON's numbers round-trip), so a raceline swapped for
- * another bank (the track's true one) is refused as an edited control.bank is */
+/* a bank (grade) column made from a diagnosis (effects.bank, effects.grade) must be the one it made: its largest
+ * |value| recorded in effects.bank_peak (effects.grade_peak; written exactly: the CSV's and the JSON's numbers
+ * round-trip), so a raceline swapped for another bank (the track's true one) is refused as an edited control.bank
+ * is */
 static int check_peak(parse_ctx *p, int given, const double *column, double recorded, const char *key,
                       const char *what)
 {
@@ -526,7 +527,7 @@ static int check_peak(parse_ctx *p, int given, const double *column, double reco
     return 1;
 }
 
-static int check_bank_peak(parse_ctx *p)
+static int check_column_peaks(parse_ctx *p)
 {
     const ddyn_app_config *c = p->c;
     return check_peak(p, c->effects_bank, c->track[5], c->effects_bank_peak, "effects.bank_peak", "bank") &&
@@ -728,7 +729,7 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
                   c->effects_mass_offset, c->effects_diagnosis[0] ? c->effects_diagnosis : "(unnamed)",
                   c->effects_sha256, c->mass_offset);
     }
-    if (ok && c->effects_sha256[0] != '\0' && fabs(c->effects_downforce - c->downforce) > 1e-15) {
+    if (ok && c->effects_sha256[0] != '\0' && fabs(c->effects_downforce - c->downforce) > 1e-12) {
         ok = fail(&p, "effects.downforce",
                   "%g from diagnosis %s (sha256 %.12s...), but control.downforce is %g: remake the file (`ddyn sil "
                   "run --effects-from D --config-only`) instead of editing it",
@@ -770,7 +771,7 @@ int ddyn_app_config_parse(const char *text, const char *base_dir, const char *na
         ok = read_raceline(&p);
     }
     if (ok) {
-        ok = check_bank_peak(&p);
+        ok = check_column_peaks(&p);
     }
     return ok;
 }
