@@ -258,6 +258,23 @@ def test_the_summary_counts_targets_per_effect_and_takes_the_worst_lap():
     assert s["none"]["before_clean"] == 1
 
 
+def test_a_rebuilt_lap_with_violations_meets_no_lap_target():
+    """Within 1 % of the oracle's time but off the track (the downforce loop's rebuilt laps) is not a lap within 1 %
+    of the oracle; clean, the same times meet it; the diagnosis's targets follow its own numbers."""
+    dg = {"first_is_the_effect": True, "error_pct": 12.0, "alone_error_pct": -16.0}
+    clean = {"lap_completed": True, "violations": 0, "vs_reference_pct": 1.5, "standing_vs_reference_pct": 2.5,
+             "vs_oracle_pct": -0.6}
+    t = loop.rebuilt_targets(dg, clean)
+    assert tuple(t) == loop.TARGETS
+    assert t == {"clean_within_2pct_of_reference": True, "clean_within_2pct_of_reference_standing": False,
+                 "diagnosis_first_within_15pct": True, "diagnosis_first_within_15pct_alone": False,
+                 "within_1pct_of_oracle": True}
+    off = loop.rebuilt_targets(dg, dict(clean, violations=3))
+    assert not off["within_1pct_of_oracle"] and not off["clean_within_2pct_of_reference"]
+    assert off["diagnosis_first_within_15pct"]
+    assert not loop.rebuilt_targets(dict(dg, first_is_the_effect=False), clean)["diagnosis_first_within_15pct"]
+
+
 def test_a_run_is_scored_on_the_median_of_its_flying_laps(tmp_path):
     """One slow flying lap (the closed loop's chaos: a lap 9 % slow among laps within 0.1 %) does not move the
     score; the standing lap is kept apart; an unfinished run has no score; a one-lap run scores its one lap."""
