@@ -383,11 +383,7 @@ static int road_at(ddyn_ctrl *ctl, const double x[NX], double road[2])
  * in buf, or ctl->coeffs itself without one. Every evaluation of the vehicle's model uses these. */
 static const double *coeffs_at(const ddyn_ctrl *ctl, const double x[NX], double buf[NC])
 {
-    if (ctl->cfg.downforce == 0.0) {
-        return ctl->coeffs;
-    }
-    ddyn_model_downforce(ctl->coeffs, ctl->cfg.downforce, x[3], buf);
-    return buf;
+    return ddyn_model_coeffs_at(ctl->coeffs, ctl->cfg.downforce, x[3], buf);
 }
 
 /* The filter's model step (cfg.ekf_disc) with the road's bank and grade at x's position (ddyn_model_add_bank,

@@ -179,32 +179,40 @@ void ddyn_model_downforce(const double c[DDYN_NC], double k, double vx, double o
     out[DDYN_MODEL_DR_INDEX] *= scale;
 }
 
+const double *ddyn_model_coeffs_at(const double c[DDYN_NC], double k, double vx, double buf[DDYN_NC])
+{
+    if (k == 0.0) {
+        return c; /* no copy on the hot path without a downforce */
+    }
+    ddyn_model_downforce(c, k, vx, buf);
+    return buf;
+}
+
 double ddyn_model_bank_accel(double bank) { return DDYN_GRAVITY * sin(bank); }
 
 double ddyn_model_grade_accel(double grade) { return -DDYN_GRAVITY * sin(grade); }
 
+/* a body-frame acceleration (along, left of the heading), held over dt, added to a step's x_next exactly */
+static void add_body_accel(double a_along, double a_left, double dt, const double x[DDYN_NX],
+                           double x_next[DDYN_NX])
+{
+    const double c = cos(x[2]), s = sin(x[2]), h_along = 0.5 * a_along * dt * dt, h_left = 0.5 * a_left * dt * dt;
+    x_next[0] += h_along * c - h_left * s; /* the heading (c, s), its left normal (-s, c) */
+    x_next[1] += h_along * s + h_left * c;
+    x_next[3] += a_along * dt;
+    x_next[4] += a_left * dt;
+}
+
 void ddyn_model_add_grade(double grade, double dt, const double x[DDYN_NX], double x_next[DDYN_NX])
 {
-    double a, h;
-    if (x == NULL || x_next == NULL || grade == 0.0) {
-        return;
+    if (x != NULL && x_next != NULL && grade != 0.0) {
+        add_body_accel(ddyn_model_grade_accel(grade), 0.0, dt, x, x_next);
     }
-    a = ddyn_model_grade_accel(grade);
-    h = 0.5 * a * dt * dt;
-    x_next[0] += h * cos(x[2]); /* along the heading */
-    x_next[1] += h * sin(x[2]);
-    x_next[3] += a * dt;
 }
 
 void ddyn_model_add_bank(double bank, double dt, const double x[DDYN_NX], double x_next[DDYN_NX])
 {
-    double a, h;
-    if (x == NULL || x_next == NULL || bank == 0.0) {
-        return;
+    if (x != NULL && x_next != NULL && bank != 0.0) {
+        add_body_accel(0.0, ddyn_model_bank_accel(bank), dt, x, x_next);
     }
-    a = ddyn_model_bank_accel(bank);
-    h = 0.5 * a * dt * dt;
-    x_next[0] -= h * sin(x[2]); /* the left normal of yaw: (-sin, cos) */
-    x_next[1] += h * cos(x[2]);
-    x_next[4] += a * dt;
 }

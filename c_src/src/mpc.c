@@ -381,8 +381,8 @@ static ddyn_status predict(ddyn_mpc *mpc, const double *x, const double *u, cons
                            double *A, double *B)
 {
     ddyn_status st;
-    double c_at[DDYN_NC]; /* the coefficients at x's speed (downforce; mpc->c's copy without it) */
-    ddyn_model_downforce(mpc->c, mpc->downforce, x[3], c_at);
+    double buf[DDYN_NC];
+    const double *c_at = ddyn_model_coeffs_at(mpc->c, mpc->downforce, x[3], buf); /* at x's speed (downforce) */
     if (mpc->cfg.prediction == DDYN_MPC_PRED_RK4_SINGLE) {
         double out[DDYN_NX * (1 + DDYN_NX + DDYN_NU)];
         double *res[3];
@@ -494,11 +494,10 @@ static void sensitivities(ddyn_mpc *mpc)
  * so the value at x0's speed bounds what the car gains over the horizon. */
 static double launch_accel(ddyn_mpc *mpc, const double x0[DDYN_NX])
 {
-    double x[DDYN_NX] = {0.0}, u[DDYN_NU] = {0.0}, xdot[DDYN_NX], c_at[DDYN_NC];
+    double x[DDYN_NX] = {0.0}, u[DDYN_NU] = {0.0}, xdot[DDYN_NX], buf[DDYN_NC];
     x[3] = x0[3] > 0.0 ? x0[3] : 0.0;
     x[6] = mpc->cfg.state_hi[0];
-    ddyn_model_downforce(mpc->c, mpc->downforce, x[3], c_at);
-    if (ddyn_model_derivatives(mpc->model, x, u, c_at, xdot, &mpc->model_work) != DDYN_OK || !isfinite(xdot[3]) ||
+    if (ddyn_model_derivatives(mpc->model, x, u, ddyn_model_coeffs_at(mpc->c, mpc->downforce, x[3], buf), xdot, &mpc->model_work) != DDYN_OK || !isfinite(xdot[3]) ||
         !(xdot[3] > 0.0)) {
         return 0.0;
     }

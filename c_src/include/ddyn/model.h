@@ -89,6 +89,9 @@ void ddyn_model_add_grade(double grade, double dt, const double x[DDYN_NX], doub
 #define DDYN_MODEL_DR_INDEX 8
 #define DDYN_MODEL_DOWNFORCE_MAX 0.5 /* s^2/m^2: doubles the tyre load at 1.4 m/s (a 1:43 car's range) */
 void ddyn_model_downforce(const double c[DDYN_NC], double k, double vx, double out[DDYN_NC]);
+/* The coefficients to evaluate the model with at speed vx: c itself without a downforce (k = 0, no copy), else
+ * ddyn_model_downforce's into buf. */
+const double *ddyn_model_coeffs_at(const double c[DDYN_NC], double k, double vx, double buf[DDYN_NC]);
 
 /* Continuous-time derivative xdot = f(x, u, c). */
 /* 1 when v[0..n) holds no NaN or inf: the NaN/inf guard every runtime module uses on its inputs.
