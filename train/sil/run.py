@@ -375,26 +375,25 @@ def raceline_csv(table: np.ndarray, bank: np.ndarray | None = None, grade: np.nd
     return "\n".join(rows) + "\n"
 
 
-def raceline_bank(track: Track, table: np.ndarray) -> np.ndarray:
-    """The track's own bank (rad, ddyn.model.track_oval.bank_at) at each raceline row: at the row's projection on
-    the centre line. A track without a bank profile is refused (control.bank would be a flat table)."""
-    from ddyn.model.track_oval import bank_at
-    if getattr(track, "bank", None) is None:
-        raise DdynError(f"the controller's bank (control.bank): track {track.name!r} has no bank profile "
-                        "(Track.bank; the banked oval: --track oval)")
+def _road_column(track: Track, table: np.ndarray, name: str, how: str) -> np.ndarray:
+    """The track's own road profile `name` (Track.bank or Track.grade, rad per centre-line point) at each raceline
+    row: at the row's projection on the centre line. A track without it is refused (the column would be flat)."""
+    values = getattr(track, name, None)
+    if values is None:
+        raise DdynError(f"the controller's {name} (control.{name}): track {track.name!r} has no {name} profile "
+                        f"({how})")
     s, _ = track.project(table[:, 0], table[:, 1])
-    return np.asarray(bank_at(track, s), float)
+    return np.asarray(track.interpolate(np.asarray(values, float), s), float)
+
+
+def raceline_bank(track: Track, table: np.ndarray) -> np.ndarray:
+    """The track's own bank at each raceline row (ddyn.model.track_oval.bank_at's values)."""
+    return _road_column(track, table, "bank", "Track.bank; the banked oval: --track oval")
 
 
 def raceline_grade(track: Track, table: np.ndarray) -> np.ndarray:
-    """The track's own grade (rad, ddyn.model.road_grade.grade_at) at each raceline row: at the row's projection on
-    the centre line. A track without a grade profile is refused (control.grade would be a level table)."""
-    from ddyn.model.road_grade import grade_at
-    if getattr(track, "grade", None) is None:
-        raise DdynError(f"the controller's grade (control.grade): track {track.name!r} has no grade profile "
-                        "(Track.grade: --road-grade A)")
-    s, _ = track.project(table[:, 0], table[:, 1])
-    return np.asarray(grade_at(track, s), float)
+    """The track's own grade at each raceline row (ddyn.model.road_grade.grade_at's values)."""
+    return _road_column(track, table, "grade", "Track.grade: --road-grade A")
 
 
 def controller_grade_column(spec: SilSpec, table: np.ndarray) -> np.ndarray | None:
