@@ -29,6 +29,7 @@ FIT_MODES = ("one-step", "smoothed", "output-error", "mixed")
 # furthest from the truth on the CommonRoad plant's sweeps, docs/gap.md)
 ONE_STEP_IN_MIXED = ("steer_delay",)
 EVIDENCE_MODES = ("one-step", "multistep", "endpoint")
+EVIDENCE_ROWS = ("independent", "effective")
 MULTISTEP_DEFAULT_STEPS = 25
 # the key of detection limits for every effect without an entry of its own ({"*": None}: only the effects a
 # calibration measured a threshold for are ever claimed)
@@ -105,6 +106,12 @@ class DiagnosisConfig:
     # What the held-out evidence scores: "one-step", "multistep[:N]" or "endpoint[:N]" rollouts (uncalibrated
     # experiments for slow longitudinal effects).
     evidence: str = "one-step"
+    # How many rows the one-step evidence counts per channel (EVIDENCE_ROWS): "independent", every held-out row
+    # (the plain BIC); "effective", each channel's rows times (1 - r) / (1 + r), r the lag-1 autocorrelation of the
+    # refitted nominal's held-out residuals (ddyn.gap.problem.Problem.set_row_weight): coloured noise and slow
+    # drifts make neighbouring rows alike, and counted as independent they give a spurious candidate evidence
+    # that grows with the log.
+    evidence_rows: str = "independent"
     # The mass_offset candidate scales the yaw inertia with the mass (a heavier car with load-proportional tyre
     # forces: with Df, Dr refitted it changes only the longitudinal response).
     mass_inertia: bool = False
@@ -222,6 +229,8 @@ def _validate(c: DiagnosisConfig) -> None:
         raise DdynError(f"hold: expected true, false, \"steps\" or \"estimate\", got {c.hold!r}")
     parse_fit_spec(c.fit) if isinstance(c.fit, str) else _bad("fit", c.fit, "a string")
     parse_evidence_spec(c.evidence) if isinstance(c.evidence, str) else _bad("evidence", c.evidence, "a string")
+    if c.evidence_rows not in EVIDENCE_ROWS:
+        _bad("evidence_rows", c.evidence_rows, " or ".join(f'"{m}"' for m in EVIDENCE_ROWS))
     if not isinstance(c.mass_inertia, bool):
         _bad("mass_inertia", c.mass_inertia, "true or false")
     _number("steer_servo", c.steer_servo, 0.0, 1.0)

@@ -201,13 +201,15 @@ def gains(prob, base_rho, families, candidates=()) -> dict:
     return out
 
 
-def limit(size: float, g, n: int, margin: float, dk: int = 1, m: int = 1) -> float | None:
-    """The smallest t * size with -n sum ln(1 + t^2 g) + dk ln n + 2 ln m <= -margin; None: beyond LIMIT_CAP."""
+def limit(size: float, g, n: int, margin: float, dk: int = 1, m: int = 1, weight=1.0) -> float | None:
+    """The smallest t * size with -n sum w ln(1 + t^2 g) + dk ln n + 2 ln m <= -margin; None: beyond LIMIT_CAP.
+    weight: the effective rows per held-out row of each channel (Problem.row_weight), as the evidence counts them."""
     g = np.maximum(np.asarray(g, float), 0.0)
+    w = np.broadcast_to(np.asarray(weight, float), g.shape)
     need = margin + dk * math.log(max(n, 2)) + 2.0 * math.log(max(m, 1))
 
     def gain(t):
-        return float(n * np.sum(np.log1p(t * t * g)))
+        return float(n * np.sum(w * np.log1p(t * t * g)))
 
     if gain(LIMIT_CAP) < need:
         return None
@@ -228,10 +230,10 @@ def log_limits(prob, base_rho, families, margins: dict, m: int, levels: dict | N
     levels = levels or {}
     out = {}
     for fam, (size, g, g_profile, form) in gains(prob, base_rho, families, candidates).items():
-        lim = limit(size, g, n, margins[fam], 1, m)
+        lim = limit(size, g, n, margins[fam], 1, m, prob.row_weight)
         bound_by = form
         if g_profile is not None and lim is not None:
-            lim_p = limit(size, g_profile, n, margins[fam], 1, m)
+            lim_p = limit(size, g_profile, n, margins[fam], 1, m, prob.row_weight)
             lim, bound_by = (None, "coverage") if lim_p is None else (max(lim, lim_p), "coverage" if lim_p > lim
                                                                       else bound_by)
         if fam in levels:

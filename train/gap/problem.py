@@ -178,6 +178,7 @@ class Problem:
         self.ev_steps, self.ev_starts = 0, np.zeros(0, int)     # the multi-step evidence (set_evidence)
         self.ev_endpoint = False
         self.refit = tuple(refit)
+        self.row_weight = np.ones(3)     # effective rows per held-out row, per channel (set_row_weight)
         self.refit_idx = [COEFF_NAMES.index(n) for n in self.refit]
         vx = np.abs(ds.states[k, 3])
         self.layout: C.Layout | None = None    # track positions for profile candidates (set by diagnose)
@@ -238,7 +239,26 @@ class Problem:
     def loglik(self, rss: np.ndarray, n: int) -> float:
         """Gaussian log-likelihood with per-channel variances concentrated out (constants dropped); rss (3,) or,
         for the multi-step evidence, (steps, 3): a variance per horizon step and channel (n: windows)."""
-        return float(-0.5 * n * np.sum(np.log(rss / n + self.floor ** 2)))
+        w = self.row_weight if np.ndim(rss) == 1 else 1.0
+        return float(-0.5 * n * np.sum(w * np.log(rss / n + self.floor ** 2)))
+
+    def set_row_weight(self, res: np.ndarray) -> None:
+        """Count each channel's held-out rows as (1 - r) / (1 + r) independent ones, r the lag-1 autocorrelation
+        of `res` (the refitted nominal's held-out one-step residuals, (n, 3)) clipped to [0, MAX_ROW_CORRELATION]:
+        the effective sample size of an AR(1) series. Why: the extended BIC counts every row as independent, but
+        coloured sensor noise and slow unmodelled drifts make neighbouring rows' errors alike, and a candidate that
+        follows the noise's persistence (a mass offset trading vx for a slower yaw response) then gains evidence
+        in proportion to the log's length. The fitted values' uncertainty already uses the same long-run variance
+        factor. Weights are set once per log, so every hypothesis is scored on the same count."""
+        r = np.asarray(res, float)
+        out = np.ones(r.shape[1])
+        for i in range(r.shape[1]):
+            a, b = r[:-1, i], r[1:, i]
+            den = math.sqrt(float(np.dot(a - a.mean(), a - a.mean()) * np.dot(b - b.mean(), b - b.mean())))
+            rho = float(np.dot(a - a.mean(), b - b.mean())) / den if den > 0 else 0.0
+            rho = min(max(rho, 0.0), MAX_ROW_CORRELATION)
+            out[i] = (1.0 - rho) / (1.0 + rho)
+        self.row_weight = out
 
     def set_evidence(self, steps: int, endpoint: bool = False) -> None:
         """The multi-step evidence's windows: every `steps`-th held-out row starts a rollout of `steps` steps
@@ -264,6 +284,10 @@ class Problem:
         truth = np.stack([self.target[s + j + 1] for j in range(n)])
         return np.sum((truth - pred) ** 2, axis=1)
 
+
+
+# the largest lag-1 residual correlation set_row_weight uses: 0.99 keeps at least 1/199 of the rows
+MAX_ROW_CORRELATION = 0.99
 
 
 def _starts(prob: Problem, rows: np.ndarray, steps: int, max_starts: int) -> np.ndarray:

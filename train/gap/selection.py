@@ -145,6 +145,8 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
     before = heldout_summary(prob, {}, np.zeros(nr), starts, steps)
     base_fit = fit(prob, ())
     base = heldout_summary(prob, {}, base_fit.rho, starts, steps)
+    if cfg.evidence_rows == "effective":     # every hypothesis's evidence counts the same effective rows
+        prob.set_row_weight(base["res"])
 
     def evaluate(f: Fit, ref: dict, m: int, dk: int = 1) -> dict:
         h = heldout_summary(prob, f.values, f.rho, starts, steps)
@@ -375,6 +377,8 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
                    "mixed:" + ",".join(prob.one_step_in_mixed),
                    "criterion": "held-out extended BIC: dBIC = -2 dLL + dk ln(n_heldout) + 2 ln(candidates in the "
                                 "round) < 0, greedy",
+                   "evidence_rows": {"mode": cfg.evidence_rows,
+                                     "weight_per_channel": _chan(prob.row_weight)},
                    "evidence": (f"{prob.evidence_name}: dLL of {prob.ev_steps}-step open-loop rollouts from "
                                 f"{len(prob.ev_starts)} non-overlapping held-out windows "
                                 + ("(only each window's last step, a variance per channel; the penalty counts windows)"
