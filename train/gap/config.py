@@ -111,7 +111,7 @@ class DiagnosisConfig:
     # refitted nominal's held-out residuals (ddyn.gap.problem.Problem.set_row_weight): coloured noise and slow
     # drifts make neighbouring rows alike, and counted as independent they give a spurious candidate evidence
     # that grows with the log.
-    evidence_rows: str = "independent"
+    evidence_rows: str = "effective"
     # The mass_offset candidate scales the yaw inertia with the mass (a heavier car with load-proportional tyre
     # forces: with Df, Dr refitted it changes only the longitudinal response).
     mass_inertia: bool = False
