@@ -103,3 +103,16 @@ def test_a_real_delay_is_still_found_under_coloured_noise(delayed_log):
     d = _diagnose(_with_noise(delayed_log, 0.9, seed=3), "effective")
     assert d["selected"] == ["throttle_delay"]
     assert d["candidates"][0]["params"]["delay"] == pytest.approx(0.04, abs=0.01)
+
+
+def test_a_claim_stopped_by_its_family_margin_says_so_not_that_it_is_below_its_limit(delayed_log):
+    """The 40 ms delay is above its decision level (half the 40 ms that matters) but its family's margin per
+    held-out row is set beyond its evidence: the verdict names the margin, not a detection limit it clears."""
+    d = SEL.diagnose(delayed_log, P.nominal_from_vehicle(ORCA, delayed_log), candidates=("throttle_delay",),
+                     max_effects=1, max_starts=50, decision_levels={"throttle_delay": 0.5},
+                     family_margins_per_row={"throttle_delay": 10.0})
+    assert d["selected"] == [] and d["below_limit"]["blocked_by"] == "margin"
+    assert "short of the dBIC" in d["verdict"] and "below its detection limit" not in d["verdict"]
+    low = SEL.diagnose(delayed_log, P.nominal_from_vehicle(ORCA, delayed_log), candidates=("throttle_delay",),
+                       max_effects=1, max_starts=50, decision_levels={"throttle_delay": 3.0})
+    assert low["below_limit"]["blocked_by"] == "level" and "below its detection limit" in low["verdict"]

@@ -250,8 +250,8 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
         edge = pays and at_bound(name, main_value, prob.ctx)
         size = C.magnitude(name, main_value, prob.layout)      # a channel candidate: the angle it reads
         has_level, level = level_of(name)
-        weak = pays and not edge and ((has_level and (level is None or abs(size) < level))
-                                      or not dbic < -claim_margin(C.FAMILY[name]))
+        short_of_level = has_level and (level is None or abs(size) < level)
+        weak = pays and not edge and (short_of_level or not dbic < -claim_margin(C.FAMILY[name]))
         # under detection limits a claim must also be a choice the data make: a first effect whose runner-up of
         # another family is within AMBIGUITY_DBIC of it is reported, not claimed (on the four calibration sweeps at
         # their margin every such first effect lay below its threshold, and 4 of the 7 were the wrong one)
@@ -267,8 +267,11 @@ def diagnose(ds: Dataset, nominal: Nominal, config: DiagnosisConfig | None = Non
         if edge and unexplained is None:
             unexplained = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic}
         if weak and below_limit is None:
+            # what stops the claim: the estimate's size (its decision level) or the evidence (its family's margin)
             below_limit = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
-                           "limit": level, **({"magnitude": size} if name in C.ROLL_OF else {})}
+                           "limit": level, "blocked_by": "level" if short_of_level else "margin",
+                           "claim_margin": claim_margin(C.FAMILY[name]),
+                           **({"magnitude": size} if name in C.ROLL_OF else {})}
         if tie and not_told_apart is None:
             not_told_apart = {"effect": name, "params": {C.MAIN_PARAM[name]: main_value}, "delta_bic": dbic,
                               "rival": runner_up["effect"], "rival_params": runner_up["params"],
@@ -408,8 +411,11 @@ def _limit_of(name: str, limits: dict | None):
 
 def _below_limit_verdict(b: dict) -> str:
     (pn, pv), = b["params"].items()
-    limit = ("not reliably identified in the calibration (or not calibrated)" if b["limit"] is None
-             else f"below its detection limit {b['limit']:.4g}")
+    if b.get("blocked_by") == "margin":      # big enough, but its evidence is short of its family's margin
+        limit = f"short of the dBIC -{b['claim_margin']:.1f} a {C.FAMILY[b['effect']].replace('_', ' ')} must pay here"
+    else:
+        limit = ("not reliably identified in the calibration (or not calibrated)" if b["limit"] is None
+                 else f"below its detection limit {b['limit']:.4g}")
     size = (f" (a {C.FAMILY[b['effect']].replace('_', ' ')} of {b['magnitude']:.4g} rad at the channel's largest "
             "reading)" if "magnitude" in b else "")
     return (f"{b['effect']} pays on the held-out data (dBIC {b['delta_bic']:.1f}) with {pn} = {pv:.4g}{size}, "
