@@ -1,5 +1,6 @@
 """ddyn.gap: the evidence counts effective rows (DiagnosisConfig.evidence_rows), so coloured sensor noise does not
-pay a spurious effect that a white-noise log of the same car would not."""
+pay a spurious effect that a white-noise log of the same car would not; and a claim that is stopped says by what
+(its decision level or its family's evidence margin)."""
 from __future__ import annotations
 
 import dataclasses

@@ -34,7 +34,4 @@ def graded(track: Track, amplitude: float, waves: int = WAVES) -> Track:
 
 def grade_at(track: Track, s) -> np.ndarray:
     """The track's own grade (rad) at arc lengths s; zero on a level track."""
-    grade = getattr(track, "grade", None)
-    if grade is None:
-        return np.zeros(np.shape(s))
-    return track.interpolate(np.asarray(grade, float), s)
+    return track.road_profile_at("grade", s)

@@ -94,7 +94,4 @@ def oval_track(straight: float = STRAIGHT, radius: float = RADIUS, bank_turns_de
 
 def bank_at(track: Track, s) -> np.ndarray:
     """The track's own bank (rad) at arc lengths s; zero on a track without banking."""
-    bank = getattr(track, "bank", None)
-    if bank is None:
-        return np.zeros(np.shape(s))
-    return track.interpolate(np.asarray(bank, float), s)
+    return track.road_profile_at("bank", s)

@@ -260,6 +260,14 @@ class Track:
         i, t = self._locate(s)
         return values[i] * (1.0 - t) + values[(i + 1) % self.n] * t
 
+    def road_profile_at(self, name: str, s) -> np.ndarray:
+        """The track's own per-centre-point road profile `name` ("bank", "grade"; rad) at arc lengths s; zero when
+        the track has none (a level, unbanked track)."""
+        values = getattr(self, name, None)
+        if values is None:
+            return np.zeros(np.shape(s))
+        return self.interpolate(np.asarray(values, float), s)
+
     def position(self, s):
         """Centre-line point (x, y) at arc length s (wraps around)."""
         i, t = self._locate(s)
