@@ -155,3 +155,73 @@ def test_transfer_compare_counts_beyond_the_seed_spread(tmp_path):
         (tmp_path / folder / "transfer" / "results.json").write_text(json.dumps({"summary": summary}))
     lines, tally = compare(tmp_path / "old", tmp_path / "new")
     assert tally == {"better": 15, "within": 0, "worse": 0} and len(lines) == 3
+
+
+def test_transfer_compare_finds_the_common_studies_and_counts_own_figures_when_asked(tmp_path):
+    """Candidate folders of any study names: only those both hold are compared; --own adds the own-track figures, so
+    a candidate that carries to the other track by fitting its own worse shows it."""
+    from ddyn.studies.transfer_compare import compare, main
+
+    r = lambda m: {"mean": m, "min": m, "max": m}  # noqa: E731
+    figs = lambda m: {c: r(m) for c in ("vx", "vy", "omega", "ade", "fde")}  # noqa: E731
+    for folder, own, other in (("base", 1.0, 2.0), ("cand", 3.0, 1.0)):
+        for study in ("mb_fwd", "mb_swap"):
+            (tmp_path / folder / study).mkdir(parents=True)
+            summary = {"own": figs(own), "other": figs(other), "fractions": []}
+            (tmp_path / folder / study / "results.json").write_text(json.dumps({"summary": summary}))
+    (tmp_path / "cand" / "only_here").mkdir()
+    (tmp_path / "cand" / "only_here" / "results.json").write_text(json.dumps({"summary": {}}))
+    lines, tally = compare(tmp_path / "base", tmp_path / "cand")
+    assert tally == {"better": 10, "within": 0, "worse": 0} and len(lines) == 2
+    lines, tally = compare(tmp_path / "base", tmp_path / "cand", own=True)
+    assert tally == {"better": 10, "within": 0, "worse": 10} and len(lines) == 4
+    with pytest.raises(SystemExit):
+        main([str(tmp_path / "base"), str(tmp_path / "nowhere")])
+
+
+def test_candidate_settings_and_ranges_are_checked_and_recorded(tmp_path, monkeypatch):
+    """--set KEY=VALUE reaches every training's config over the av21 profile, --ranges the guard the model trains
+    with, --no-finetune leaves the FTHD fractions out; each is recorded in results.json."""
+    from ddyn.studies import transfer as T
+
+    seen = []
+    real_train = T.train
+
+    def spy_train(ds, v, cfg, progress=True, validation=None):
+        seen.append((cfg, dict(v.ranges)))
+        return real_train(ds, v, cfg, progress=progress, validation=validation)
+
+    monkeypatch.setattr(T, "train", spy_train)
+    ranges = tmp_path / "peak.json"
+    ranges.write_text(json.dumps({"coefficients": {"Df": [4000.0, 8000.0]}}))
+    out = tmp_path / "t"
+    args = _args(["--quick", "--quiet", "--no-finetune", "--set", "guard_prior=0.01", "--set", "tau=2",
+                  "--ranges", str(ranges), "--out", str(out)])
+    assert args.func(args) == 0
+    assert len(seen) == 1                       # the A model only: no fine-tuning, no model from scratch
+    cfg, used = seen[0]
+    assert cfg.guard_prior == 0.01 and cfg.tau == 2 and used["Df"] == (4000.0, 8000.0)
+    res = json.loads((out / "results.json").read_text())
+    assert res["settings"]["sets"] == {"guard_prior": 0.01, "tau": 2}
+    assert res["settings"]["train"]["origin"]["guard_prior"] == "--guard-prior"
+    assert res["settings"]["ranges"]["changed"]["Df"]["used"] == [4000.0, 8000.0]
+    assert res["summary"]["fractions"] == [] and "--no-finetune" in (out / "results.md").read_text()
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--set", "foo=1"], "unknown key 'foo'"),
+    (["--set", "guard_prior=-1"], "--set guard_prior"),
+    (["--set", "seed=3"], "--seeds"),
+    (["--set", "tau"], "KEY=VALUE"),
+    (["--set", "tau=2", "--set", "tau=3"], "given twice"),
+    (["--set", "kind=dpm", "--set", "guard_prior=0.1"], "--set"),
+    (["--no-finetune", "--fractions", "0.1"], "--no-finetune"),
+    (["--ranges", "/no/such/ranges.json"], "/no/such/ranges.json"),
+    (["--set", "kind=dpm", "--ranges", "/no/such/ranges.json"], "--ranges"),
+])
+def test_bad_candidate_settings_are_one_line_errors(argv, words, tmp_path):
+    from ddyn.studies import transfer as T
+
+    with pytest.raises(DdynError) as e:
+        T.options(_args([*argv, "--out", str(tmp_path / "x")]))
+    assert words in str(e.value) and "\n" not in str(e.value)

@@ -68,11 +68,13 @@ def _unknown(path: str, where: str, key: str, known: tuple[str, ...]) -> DdynErr
     return DdynError(f"{path}: unknown key {where}{key!r}{hint}; expected one of {', '.join(known)}")
 
 
-def _check_setting(path: str, key: str, value):
+def check_setting(path: str, key: str, value):
     """One setting's value, checked alone against its TrainConfig field: the type of the built-in default, then
-    TrainConfig's own range checks; a DdynError names the file and the key."""
+    TrainConfig's own range checks; a DdynError names the file (or the option) and the key."""
+    if key not in SETTING_NAMES:
+        raise _unknown(path, "settings." if path.endswith(".json") else "", key, SETTING_NAMES)
     default = getattr(TrainConfig(), key)
-    where = f"{path}: settings.{key}"
+    where = f"{path}: settings.{key}" if path.endswith(".json") else f"{path} {key}"
     if isinstance(default, str):
         if not isinstance(value, str):
             raise DdynError(f"{where} must be a string, got {_short(value)}")
@@ -115,7 +117,7 @@ def parse(text: str, path: str, vehicle_name: str) -> TrainingProfile:
         for name in table:
             if name not in SETTING_NAMES:
                 raise _unknown(path, f"{key}.", name, SETTING_NAMES)
-    checked = {k: _check_setting(path, k, v) for k, v in settings.items()}
+    checked = {k: check_setting(path, k, v) for k, v in settings.items()}
     for name, note in sources.items():
         if name not in settings:
             raise DdynError(f"{path}: sources.{name} notes a setting the profile does not set")

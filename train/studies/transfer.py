@@ -47,6 +47,7 @@ from ddyn.data.dataset import Dataset, write_canonical
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint, training_profile
 from ddyn.learn.evaluate import evaluate, public
+from ddyn.learn.guard_ranges import read_ranges, with_ranges
 from ddyn.learn.finetune import FinetuneConfig, FitConfig, finetune, fraction_of, split_by_time
 from ddyn.learn.training import train
 from ddyn.model import vehicle as vehicle_mod
@@ -128,9 +129,32 @@ def splits(a: Dataset, b: Dataset) -> dict:
 # ---------------------------------------------------------------------------------------------
 # models
 
-def train_config(seed: int, epochs: int | None, lbfgs: int | None):
-    """Today's `ddyn train --vehicle av21` settings (its training profile), the budget flags over them."""
-    flags = {"seed": seed}
+def parse_sets(items) -> dict:
+    """--set KEY=VALUE ... as {TrainConfig field: value}, each value checked as a training profile's setting is
+    (training_profile.check_setting: its type, then TrainConfig's own range check). A candidate setting for
+    selection by transfer (issue 36 item 1); the seed and the budget have their own flags."""
+    out = {}
+    for item in items or ():
+        key, sep, text = str(item).partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or not key:
+            raise DdynError(f"--set: expected KEY=VALUE, got {item!r}")
+        if key in ("seed", "epochs", "lbfgs_iterations"):
+            raise DdynError(f"--set {key}: use --seeds, --epochs or --lbfgs-iterations")
+        if key in out:
+            raise DdynError(f"--set {key}: given twice")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        out[key] = training_profile.check_setting("--set", key, value)
+    return out
+
+
+def train_config(seed: int, epochs: int | None, lbfgs: int | None, sets: dict | None = None):
+    """Today's `ddyn train --vehicle av21` settings (its training profile), the --set values and the budget flags
+    over them."""
+    flags = {**(sets or {}), "seed": seed}
     if epochs is not None:
         flags["epochs"] = epochs
     if lbfgs is not None:
@@ -196,7 +220,7 @@ def run_seed(seed: int, data: dict, v, opts: dict, out: Path, progress: bool = T
     d = out / f"seed{seed}"
     d.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    cfg = train_config(seed, opts["epochs"], opts["lbfgs"]).config
+    cfg = train_config(seed, opts["epochs"], opts["lbfgs"], opts["sets"]).config
     base_path = d / "a_model.ckpt"
     model, ckpt = fit_ddm(data["a_train"], v, cfg, base_path, f"{out / 'A.csv'} rows {data['rows']['a_train']}")
     own, other = scores(model, ckpt, data["a_test"]), scores(model, ckpt, data["b_test"])
@@ -295,7 +319,8 @@ def markdown(res: dict) -> str:
                   f"vx {t['vx_range'][0]:.0f}-{t['vx_range'][1]:.0f} m/s, |vy| p95 {t['vy_p95']:.2f} max "
                   f"{t['vy_max']:.2f} m/s, |vx omega| p95 {t['ay_p95']:.1f} max {t['ay_max']:.1f} m/s^2)"
                   for k, t in (("A", ta), ("B", tb))) + f". Model vehicle "
-              f"{res['vehicle']}; training settings: `ddyn train --vehicle av21`'s ({st['train']['origin_text']}). "
+              f"{res['vehicle']}; training settings: `ddyn train --vehicle av21`'s ({st['train']['origin_text']})"
+              + (f"; guard ranges from {st['ranges']['file']}" if st.get("ranges") else "") + ". "
               f"FTHD: {st['finetune_text']}. Seeds {', '.join(map(str, res['seeds']))} (training seeds; the logs are "
               f"the same): each cell is the mean" + (" (min-max over the seeds)." if n > 1 else "."), "",
               "Trained on A's first 80 %, tested on A's last 20 % (own track) and on B's last 20 % (other track):", "",
@@ -309,8 +334,11 @@ def markdown(res: dict) -> str:
     lines += ["", f"Ratio target (every seed, every channel <= {RATIO_TARGET:g}): **{'met' if t['met'] else 'NOT met'}**"
               f" (" + ", ".join(f"{c} {'yes' if ok else 'no'}" for c, ok in t["per_channel"].items()) + "). "
               f"Samples with a coefficient on a guard bound: own {100 * s['any_bound']['own']['mean']:.0f} %, other "
-              f"{100 * s['any_bound']['other']['mean']:.0f} %.", "",
-              "FTHD path: the A model fine-tuned on "
+              f"{100 * s['any_bound']['other']['mean']:.0f} %.", ""]
+    if not s["fractions"]:
+        lines += ["No FTHD fractions (--no-finetune).", "", f"Study time {res['seconds']:.0f} s.", ""]
+        return "\n".join(lines) + "\n"
+    lines += ["FTHD path: the A model fine-tuned on "
               + ("the first rows of" if res["settings"].get("fraction_blocks", 1) == 1
                  else f"{res['settings']['fraction_blocks']} blocks spread over")
               + " B's training part, beside a DDM trained on the same rows from scratch (same settings as the A "
@@ -372,6 +400,10 @@ def options(args) -> dict:
     if not 18.0 <= o["speed"] <= 30.0:
         raise DdynError(f"--speed must lie in 18-30 m/s (the AV-21-class logs of the gap study: 18-27), got {o['speed']}")
     fr = tuple(args.fractions) if args.fractions else FRACTIONS
+    if args.no_finetune:
+        if args.fractions:
+            raise DdynError("--no-finetune and --fractions: give one of them")
+        fr = ()
     for f in fr:
         if not (math.isfinite(f) and 0 < f <= 1):
             raise DdynError(f"--fractions: each must lie in (0, 1], got {f}")
@@ -387,16 +419,26 @@ def options(args) -> dict:
         raise DdynError(f"--noise-scale must lie in 0-5 (times the nominal's sensor noise), got {o['noise']}")
     if not (math.isfinite(o["road_scale"]) and 50.0 <= o["road_scale"] <= 500.0):
         raise DdynError(f"--road-scale must lie in 50-500 (random tracks are 8-18 m long), got {o['road_scale']}")
-    # the train settings themselves (epochs, lbfgs) through TrainConfig's own checks
+    o["sets"] = parse_sets(args.set)
+    # the train settings themselves (epochs, lbfgs, --set) through TrainConfig's own checks, together
     try:
         train_config(0, o["epochs"], o["lbfgs"])
     except DdynError as e:
         raise DdynError(f"--epochs/--lbfgs-iterations: {e}") from None
+    try:
+        train_config(0, o["epochs"], o["lbfgs"], o["sets"])
+    except DdynError as e:
+        raise DdynError(f"--set: {e}") from None
     o["vehicle"] = args.vehicle or default_vehicle(args.family)
     try:
         vehicle_mod.load(o["vehicle"])
     except DdynError as e:
         raise DdynError(f"--vehicle: {e}") from None
+    o["ranges"] = args.ranges
+    if o["ranges"] is not None:
+        if o["sets"].get("kind", "ddm") != "ddm":
+            raise DdynError("--ranges sets the Physics Guard's ranges: DDM only (not with --set kind=dpm)")
+        read_ranges(o["ranges"])        # a DdynError names the file and the key
     return o
 
 
@@ -410,6 +452,9 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     v = vehicle_mod.load(o["vehicle"])
+    ranges_record = None
+    if o["ranges"] is not None:
+        v, ranges_record = with_ranges(v, o["ranges"])
     road = road_course(o["road_seed"], o["road_scale"])
     cache = out / "logs"
     recs = []
@@ -435,7 +480,7 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
     data = {"a": a, "b": b, **splits(a, b)}
     runs = [run_seed(s, data, v, o, out, progress) for s in o["seeds"]]
-    resolved = train_config(o["seeds"][0], o["epochs"], o["lbfgs"])
+    resolved = train_config(o["seeds"][0], o["epochs"], o["lbfgs"], o["sets"])
     cfg = asdict(resolved.config)
     cfg.pop("seed")
     origin = {k: src for k, src in resolved.origin.items() if k != "seed"}
@@ -457,7 +502,8 @@ def run(o: dict, out: Path, progress: bool = True) -> dict:
                      "finetune_text": f"freeze fraction {fc.freeze_fraction}, lambda1 {fc.lambda1}, lambda2 "
                                       f"{fc.lambda2}, {fc.fit.adam_steps} Adam + {fc.fit.lbfgs_iterations} L-BFGS "
                                       f"steps, lr {fc.fit.lr}",
-                     "fractions": list(o["fractions"]), "fraction_blocks": o["blocks"]},
+                     "fractions": list(o["fractions"]), "fraction_blocks": o["blocks"],
+                     "sets": dict(o["sets"]), "ranges": ranges_record},
         "runs": runs,
         "summary": summarise(runs, o["fractions"]),
         "seconds": time.perf_counter() - t0,
@@ -513,9 +559,17 @@ def register(subparsers) -> None:
     p.add_argument("--seeds", type=int, nargs="+", help="training seeds (default 0 1 2; quick 0)")
     p.add_argument("--fractions", type=float, nargs="+", help="shares of B's training part for fine-tuning "
                                                               "(default 0.05 0.1 0.2)")
+    p.add_argument("--no-finetune", action="store_true",
+                   help="only the model trained on A, scored on both tracks (no FTHD fractions): a candidate "
+                        "setting's transfer alone")
     p.add_argument("--fraction-blocks", type=int, default=FRACTION_BLOCKS,
                    help="each fine-tuning fraction as this many equal blocks spread evenly over B's training part "
                         "(1: its first rows; default %(default)s)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="a training setting over the av21 profile's (a TrainConfig field, e.g. guard_prior=0.01, "
+                        "kind=dpm); repeatable; recorded in results.json (settings.sets)")
+    p.add_argument("--ranges", help="guard ranges file in place of the model vehicle's, as `ddyn train --ranges` "
+                                    "takes ({\"Df\": [lo, hi], ...}); recorded with its sha256")
     p.add_argument("--epochs", type=int, help="Adam epochs of every DDM training (default: the av21 profile's)")
     p.add_argument("--lbfgs-iterations", type=int, help="L-BFGS iterations of every DDM training (default: the "
                                                         "av21 profile's)")
