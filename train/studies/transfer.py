@@ -27,6 +27,11 @@ seed:
             fifth of its own fraction's rows (as `ddyn finetune --data PART` and `ddyn train --data PART` split):
             B's last 20 % is only scored, never used to fit or select.
 
+Selection by transfer (issue 36 item 1): --set KEY=VALUE (TrainConfig fields over the profile), --ranges FILE (guard
+ranges) and --vehicle make a candidate setting; --no-finetune scores its A model alone. `python -m
+ddyn.studies.transfer_compare BASE CAND --own` compares two such runs against the seed spread
+(results/ddm_transfer_selection.json).
+
 The A model never sees B before fine-tuning; no row of B's last 20 % enters any fit (the test checks both from the
 datasets each fit receives). Writes DIR/results.json, DIR/results.md, the logs as canonical CSV (DIR/A.csv,
 DIR/B.csv) and per seed the checkpoints (`ddyn evaluate` reads them).
@@ -47,8 +52,8 @@ from ddyn.data.dataset import Dataset, write_canonical
 from ddyn.errors import DdynError
 from ddyn.learn import checkpoint, training_profile
 from ddyn.learn.evaluate import evaluate, public
-from ddyn.learn.guard_ranges import read_ranges, with_ranges
 from ddyn.learn.finetune import FinetuneConfig, FitConfig, finetune, fraction_of, split_by_time
+from ddyn.learn.guard_ranges import read_ranges, with_ranges
 from ddyn.learn.training import train
 from ddyn.model import vehicle as vehicle_mod
 from ddyn.model.track_random import ROAD_SCALE, ROAD_WIDTH, road_course
