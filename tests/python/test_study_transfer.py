@@ -225,3 +225,41 @@ def test_bad_candidate_settings_are_one_line_errors(argv, words, tmp_path):
     with pytest.raises(DdynError) as e:
         T.options(_args([*argv, "--out", str(tmp_path / "x")]))
     assert words in str(e.value) and "\n" not in str(e.value)
+
+
+def test_transfer_compare_pools_runs_of_other_seeds_and_refuses_a_mixed_study(tmp_path):
+    """`defaults,more/defaults`: the runs of both folders are one study's seeds, summarised again (the worse verdict of
+    three seeds can go away with five); a repeated seed or other settings are refused in one line."""
+    from ddyn.errors import DdynError
+    from ddyn.studies import transfer as T
+    from ddyn.studies.transfer_compare import compare, main
+
+    def write(folder, seeds_values, vehicle="av21"):
+        runs = []
+        for seed, own_omega in seeds_values:
+            m = {c: 1.0 for c in T.CHANNELS} | {"omega": own_omega, "any_bound": 0.0}
+            runs.append({"seed": seed, "base": {"own": m, "other": dict(m), "b_all": dict(m),
+                                                "ratio": {c: 1.0 for c in T.CHANNELS}}, "fractions": []})
+        d = tmp_path / folder / "mb_fwd"
+        d.mkdir(parents=True)
+        res = {"family": "commonroad-mb", "vehicle": vehicle, "duration": 180.0, "speed": 24.0, "swap": False,
+               "noise_scale": 0.0, "settings": {"sets": {}, "ranges": None, "fractions": []}, "runs": runs,
+               "summary": T.summarise(runs, ())}
+        (d / "results.json").write_text(json.dumps(res))
+
+    write("base", [(0, 1.0), (1, 1.1), (2, 1.2)])
+    write("base_more", [(3, 1.3), (4, 2.0)])
+    write("cand", [(0, 1.5), (1, 1.6), (2, 1.7)])
+    write("cand_more", [(3, 0.9), (4, 1.0)])
+    _, three = compare(tmp_path / "base", tmp_path / "cand", own=True)
+    assert three["worse"] == 2                               # omega, own and other, on three seeds
+    _, five = compare(f"{tmp_path / 'base'},{tmp_path / 'base_more'}", f"{tmp_path / 'cand'},{tmp_path / 'cand_more'}",
+                      own=True)
+    assert five == {"better": 0, "within": 10, "worse": 0}   # seeds 0-4: the ranges overlap
+    with pytest.raises(DdynError, match="seed"):
+        compare(f"{tmp_path / 'base'},{tmp_path / 'base'}", tmp_path / "cand")
+    write("other_car", [(5, 1.0)], vehicle="av21_power")
+    with pytest.raises(DdynError, match="vehicle"):
+        compare(f"{tmp_path / 'base'},{tmp_path / 'other_car'}", tmp_path / "cand")
+    with pytest.raises(SystemExit):
+        main([f"{tmp_path / 'base'},{tmp_path / 'base'}", str(tmp_path / "cand")])

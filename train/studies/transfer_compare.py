@@ -7,6 +7,9 @@ from scratch at each fraction, on vx, vy, omega, ADE, FDE: NEW's seed mean again
 better (worse) beyond the seed spread when NEW's mean lies below (above) OLD's whole range and OLD's mean outside
 NEW's. With --own the same model on its own track's last 20 % (A own) counts too: a candidate setting that carries
 to the other track by fitting its own worse is not better (issue 36: neither error worse than the defaults').
+OLD or NEW may name several folders joined by commas (e.g. `defaults,more/defaults`): each study's runs are pooled
+over them (the same study with other training seeds, as `--seeds 3 4` adds to `--seeds 0 1 2`) and summarised
+again; the settings must agree and no seed may repeat.
 
 How docs/learning.md's "Inputs held to the trained range" tally was made: OLD from the six commands run at cf44030
 (before the inputs were held), NEW from the same commands at 2714169 or later. A measurement for the docs, not a test.
@@ -29,19 +32,53 @@ def verdict(old: dict, new: dict) -> str:
     return "within"
 
 
-def common_studies(old_dir: Path, new_dir: Path) -> list[str]:
-    """The study folders (each with a results.json) both hold, by name."""
+# what must agree between runs pooled into one study (the seeds differ)
+POOLED_KEYS = ("family", "vehicle", "duration", "speed", "swap", "noise_scale")
+
+
+def _dirs(d) -> list[Path]:
+    return [Path(x) for x in str(d).split(",")] if not isinstance(d, (list, tuple)) else [Path(x) for x in d]
+
+
+def common_studies(old_dir, new_dir) -> list[str]:
+    """The study folders (each with a results.json) every folder of both sides holds, by name."""
     names = lambda d: {p.parent.name for p in d.glob("*/results.json")}  # noqa: E731
-    return sorted(names(old_dir) & names(new_dir))
+    sets = [names(d) for d in _dirs(old_dir) + _dirs(new_dir)]
+    return sorted(set.intersection(*sets))
 
 
-def compare(old_dir: Path, new_dir: Path, studies=None, own: bool = False) -> tuple[list[str], dict]:
+def pooled_summary(dirs: list[Path], study: str) -> dict | None:
+    """A study's summary, its runs pooled over the folders (one folder: its own summary)."""
+    paths = [d / study / "results.json" for d in dirs]
+    if not all(p.is_file() for p in paths):
+        return None
+    results = [json.loads(p.read_text()) for p in paths]
+    if len(results) == 1:
+        return results[0]["summary"]
+    from ddyn.errors import DdynError
+    from ddyn.studies.transfer import summarise
+
+    first = results[0]
+    for p, r in zip(paths[1:], results[1:]):
+        for key in POOLED_KEYS:
+            if r.get(key) != first.get(key):
+                raise DdynError(f"{p}: {key} is {r.get(key)!r}, not {first.get(key)!r} as in {paths[0]}: not one study")
+        for key in ("sets", "ranges", "fractions"):
+            if r["settings"].get(key) != first["settings"].get(key):
+                raise DdynError(f"{p}: settings.{key} differ from {paths[0]}'s: not one study")
+    runs = [run for r in results for run in r["runs"]]
+    seeds = [run["seed"] for run in runs]
+    if len(set(seeds)) != len(seeds):
+        raise DdynError(f"{study}: seed(s) repeat across {', '.join(map(str, dirs))}: {sorted(seeds)}")
+    return summarise(runs, first["settings"]["fractions"])
+
+
+def compare(old_dir, new_dir, studies=None, own: bool = False) -> tuple[list[str], dict]:
     lines, tally = [], {"better": 0, "within": 0, "worse": 0}
     for study in (studies if studies is not None else common_studies(old_dir, new_dir)):
-        po, pn = old_dir / study / "results.json", new_dir / study / "results.json"
-        if not (po.is_file() and pn.is_file()):
+        so, sn = pooled_summary(_dirs(old_dir), study), pooled_summary(_dirs(new_dir), study)
+        if so is None or sn is None:
             continue
-        so, sn = json.loads(po.read_text())["summary"], json.loads(pn.read_text())["summary"]
         items = ([("A own", so["own"], sn["own"])] if own else []) + [("A other", so["other"], sn["other"])]
         for fo, fn in zip(so["fractions"], sn["fractions"]):
             items += [(f"fthd {fo['fraction']:.0%}", fo["fthd"], fn["fthd"]),
@@ -58,13 +95,19 @@ def compare(old_dir: Path, new_dir: Path, studies=None, own: bool = False) -> tu
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m ddyn.studies.transfer_compare", description=__doc__.split("\n")[0])
-    ap.add_argument("old", type=Path)
-    ap.add_argument("new", type=Path)
+    ap.add_argument("old", help="folder of study runs (several joined by commas: their runs pooled)")
+    ap.add_argument("new", help="the same for the candidate")
     ap.add_argument("--own", action="store_true", help="count the own-track figures (A own) too")
     args = ap.parse_args(argv)
-    if not (args.old.is_dir() and args.new.is_dir()):
-        ap.error(f"{args.old if not args.old.is_dir() else args.new}: not a folder")
-    lines, tally = compare(args.old, args.new, own=args.own)
+    for d in _dirs(args.old) + _dirs(args.new):
+        if not d.is_dir():
+            ap.error(f"{d}: not a folder")
+    from ddyn.errors import DdynError
+
+    try:
+        lines, tally = compare(args.old, args.new, own=args.own)
+    except DdynError as e:
+        ap.error(str(e))
     if not lines:
         ap.error(f"{args.old} and {args.new} hold no study folder (NAME/results.json) of the same name")
     print("\n".join(lines))
