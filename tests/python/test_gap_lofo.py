@@ -162,6 +162,28 @@ def test_score_reads_the_issue_rules():
     assert s["delay_vs_lag"] == {"told": 2, "right": 1}
 
 
+def test_a_profile_effect_is_as_large_as_the_road_the_log_drove(monkeypatch):
+    """A bank or grade's size is the largest the car drove over in the log (the plant's true_bank / true_grade),
+    not the track's drawn peak: a log that never reached the steep part holds a smaller effect; other effects,
+    and a plant without the column, keep the drawn magnitude."""
+    monkeypatch.setattr(lofo, "_oval_bank_peak", lambda: 0.35)
+    bank = np.array([0.0, -0.01, 0.02, -0.015])
+    ds = SimpleNamespace(extras={"true_bank": bank, "true_grade": np.array([0.0, 0.04, -0.05])})
+    case = {"effect": "bank_angle", "magnitude": -0.12, "track": "putnam"}
+    assert lofo.log_truth(case, ds) == pytest.approx(-0.02)          # the drawn sign, the driven peak
+    assert lofo.log_truth(case | {"effect": "grade", "magnitude": 0.09}, ds) == pytest.approx(0.05)
+    assert lofo.log_truth(case | {"effect": "steer_delay", "magnitude": 0.05}, ds) == 0.05
+    assert lofo.log_truth(case | {"effect": "none", "magnitude": 0.0}, ds) == 0.0
+    assert lofo.log_truth({"effect": "bank_angle", "magnitude": 0.0, "track": "oval"}, ds) == pytest.approx(0.02)
+    bare = SimpleNamespace(extras={})
+    assert lofo.log_truth(case, bare) == -0.12
+    assert lofo.log_truth({"effect": "bank_angle", "magnitude": 0.0, "track": "oval"}, bare) == 0.35
+    # the rule below the size that matters: a 0.12 rad drawn bank driven at 0.02 is a below-size log
+    rec = _rec("x", "bank_angle", lofo.log_truth(case, ds), 0.0, 5.0, size=math.radians(3.0)) | {"claimed": []}
+    s = lofo.score([rec])
+    assert (s["scored"], s["below_size"]) == (0, 1)
+
+
 def test_the_misses_listed_are_the_logs_behind_the_rates():
     rows = [_rec("x", "steer_delay", 0.05, 0.05, -90, duration=300.0) | {"claimed": ["steer_delay"]},
             _rec("x", "steer_lag", 0.06, 0.06, -90, duration=300.0) | {"claimed": ["steer_delay"], "case": 7},
@@ -379,7 +401,8 @@ def _campaign(tmp_path, seed, rows, recorded="recorded.json"):
 def test_blind_campaigns_under_the_same_folds_are_scored_together(tmp_path, capsys):
     """`ddyn gap pool`: the union of the campaigns' pass-2 logs scored again per family (one campaign's one
     right of two and another's two wrong of two give one of four, not the mean of the rates); refused for a seed
-    twice, a campaign under another recorded study, and one that calibrated on its own logs."""
+    twice, a campaign under another recorded study, and one that calibrated on its own logs unless it is the study
+    the campaigns were scored under."""
     from ddyn.cli import main
 
     right = _rec("commonroad-st", "steer_delay", 0.05, 0.05, -90, duration=300.0) | {"claimed": ["steer_delay"]}
@@ -408,4 +431,21 @@ def test_blind_campaigns_under_the_same_folds_are_scored_together(tmp_path, caps
     del own["settings"]["folds_from"]
     (tmp_path / "own.json").write_text(json.dumps(own))
     assert main(["gap", "pool", str(tmp_path / "own.json"), str(b), "--out", str(tmp_path / "q")]) != 0
+    assert "cannot be pooled as blind" in capsys.readouterr().err
+    # the recorded study itself (seed 1, the folds the campaigns were scored under) joins: its pass 2 scored each
+    # family under the fold of the others; with other fold calibrations (or another seed) it is refused
+    study = json.loads(a.read_text())
+    del study["settings"]["folds_from"]
+    study["settings"]["seed"] = 1
+    study["pass1"] = [right]
+    (tmp_path / "study.json").write_text(json.dumps(study))
+    assert main(["gap", "pool", str(tmp_path / "study.json"), str(b), "--out", str(tmp_path / "r")]) == 0
+    res = json.loads((tmp_path / "r" / "results.json").read_text())
+    s = res["folds"]["commonroad-st"]["score"]
+    assert (s["scored"], s["first_right"]) == (4, 1) and res["settings"]["seed"] == [1, 3]
+    assert res["settings"]["folds_from"]["seed"] == 1
+    assert "that study's own logs are pooled too" in (tmp_path / "r" / "results.md").read_text()
+    study["folds"]["commonroad-st"]["calibration"] = {**study["folds"]["commonroad-st"]["calibration"], "logs": 9}
+    (tmp_path / "study.json").write_text(json.dumps(study))
+    assert main(["gap", "pool", str(tmp_path / "study.json"), str(b), "--out", str(tmp_path / "q")]) != 0
     assert "cannot be pooled as blind" in capsys.readouterr().err

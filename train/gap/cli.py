@@ -361,9 +361,12 @@ def _run_pool(args) -> int:
 def _add_pool(sub) -> None:
     p = sub.add_parser("pool", help="score several `ddyn gap lofo --folds-from` campaigns together",
                        description="Joins campaigns that were each scored blind with `ddyn gap lofo --folds-from` "
-                                   "under the same recorded study (other seeds) and scores every family again on "
-                                   "the union of their logs: nothing is run or calibrated (docs/gap.md).")
-    p.add_argument("results", nargs="+", metavar="RESULTS", help="the campaigns' results.json (two or more)")
+                                   "under the same recorded study (other seeds), and that study itself if given "
+                                   "(each of its families was scored under the fold of the others), and scores "
+                                   "every family again on the union of their logs: nothing is run or calibrated "
+                                   "(docs/gap.md).")
+    p.add_argument("results", nargs="+", metavar="RESULTS",
+                   help="the campaigns' results.json (two or more; the recorded study's may be one of them)")
     p.add_argument("--out", required=True, help="the pooled study's folder (results.json, results.md)")
     p.set_defaults(func=_run_pool)
 

@@ -206,6 +206,25 @@ def _oval_bank_peak() -> float:
     return float(np.max(np.abs(oval_track().bank)))
 
 
+# the plants' ground truth of a road profile, per row of the log
+TRUE_PROFILE = {"bank_angle": "true_bank", "grade": "true_grade"}
+
+
+def log_truth(case: dict, ds) -> float:
+    """The size of the effect the log holds. A bank or a grade is a profile along the road (banked into the turns,
+    a grade in waves) and its drawn magnitude is the profile's peak over the whole track: a log that drives part of a
+    lap may never reach it (seed 8606's 60-120 s Putnam logs drove banks of 1.1-2.2 degrees of peaks of 3.7-8.3), so
+    a profile's size is the largest the car drove over (the plant's true_bank or true_grade), with the drawn sign;
+    on the banked oval, its own banking. Without that column (a plant that does not record it), the drawn peak."""
+    oval = case["track"] == "oval"
+    drawn = _oval_bank_peak() if oval else case["magnitude"]
+    col = TRUE_PROFILE.get("bank_angle" if oval else case["effect"])
+    if col is None or col not in ds.extras:
+        return drawn
+    peak = float(np.max(np.abs(np.asarray(ds.extras[col], float))))
+    return math.copysign(peak, drawn) if drawn else peak
+
+
 def run_case(case: dict) -> dict:
     """Make (or read the cached) log of a case and diagnose it under case["config"]; what a score needs."""
     from ddyn.gap.problem import nominal_from_vehicle
@@ -235,7 +254,7 @@ def run_case(case: dict) -> dict:
             fams[fam] = {"candidate": c["effect"], "delta_bic": c["delta_bic"], "at_bound": c["at_bound"],
                          "size": float(c.get("magnitude", next(iter(c["params"].values()))))}
     top = d["candidates"][0]
-    truth = case["magnitude"] if case["track"] != "oval" else _oval_bank_peak()
+    truth = log_truth(case, ds)
     return {k: v for k, v in case.items() if k not in ("config", "cache")} | {
         "status": "ok", "true_magnitude": truth,
         "driver_grip": float(ds.metadata.get("driver_grip", "nan")),
@@ -441,13 +460,21 @@ def _rate(a, b):
     return f"{a}/{b}" + (f" ({100 * a / b:.0f} %)" if b else "")
 
 
+def _seeds(doc: dict) -> list:
+    seed = doc["settings"]["seed"]
+    return seed if isinstance(seed, list) else [seed]
+
+
 def markdown(doc: dict) -> str:
     seed = doc["settings"]["seed"]
     seed = f"seeds {', '.join(map(str, seed))}, pooled" if isinstance(seed, list) else f"seed {seed}"
     lines = [f"# Leave one plant family out ({doc['settings']['logs_per_family']} logs per family, {seed})", "",
              "Each family scored blind under the calibration of the others (ddyn.gap.benchmark.lofo)."
              + (" The calibrations are those of the study in {results} (seed {seed}, {logs_per_family} logs per "
-                "family): no log of this campaign chose anything.".format(**doc["settings"]["folds_from"])
+                "family): ".format(**doc["settings"]["folds_from"])
+                + ("that study's own logs are pooled too, each family's scored under the fold made from the other "
+                   "families' logs." if doc["settings"]["folds_from"]["seed"] in _seeds(doc)
+                   else "no log of this campaign chose anything.")
                 if doc["settings"].get("folds_from") else ""), "",
              "| left out | simulated | largest family margin/row | claimable | first effect right | effect-free claimed "
              "| below size claimed | delay vs lag | median param error | found above stated limit | limit <= size |",
@@ -540,29 +567,44 @@ def recorded_folds(doc: dict, path: Path, families: list[str], seed: int) -> dic
     return folds
 
 
+def _fold_calibrations(doc: dict) -> dict:
+    return {fam: f.get("calibration") for fam, f in doc.get("folds", {}).items()}
+
+
 def pooled(docs: list[tuple[dict, Path]]) -> dict:
     """One document of several campaigns each scored blind under the SAME recorded study's folds (`--folds-from`
-    runs with different seeds): their pass-2 records joined and every family scored again on the union. Why: a
-    campaign of 30 logs per family scores 11-16 of them, so one log moves a family's rate by 6-9 points; more
-    blind campaigns under the same calibration narrow that without choosing anything. Refused (one DdynError line
-    naming the file): fewer than two, a document that is not a --folds-from campaign, another recorded study or
-    other diagnosis settings than the first, a seed twice, or a family missing from one of them."""
+    runs with different seeds), and optionally that recorded study itself: their pass-2 records joined and every
+    family scored again on the union. Why: a campaign of 30 logs per family scores 11-16 of them, so one log moves a
+    family's rate by 6-9 points; more blind campaigns under the same calibration narrow that without choosing
+    anything. The recorded study's own pass 2 may join: each family's logs in it were scored under the fold made
+    from the OTHER families' logs, the very calibrations the campaigns were scored under, so per family they are as
+    blind as a campaign's. Refused (one DdynError line naming the file): no --folds-from campaign, a document that
+    is neither such a campaign nor the study they were scored under (same seed, same fold calibrations), another
+    recorded study or other diagnosis settings than the first, a seed twice, or a family missing from one of them."""
     if len(docs) < 2:
-        raise DdynError("ddyn gap pool: give two or more campaigns' results.json (each a --folds-from run)")
-    first, first_path = docs[0]
+        raise DdynError("ddyn gap pool: give two or more campaigns' results.json (each a --folds-from run, or the "
+                        "study they were scored under)")
     seeds, rows = [], []
     for doc, path in docs:
         try:
-            st, ff = doc["settings"], doc["settings"].get("folds_from")
-            doc["pass2"], doc["folds"]
-        except (KeyError, TypeError, AttributeError) as e:
+            doc["settings"]["seed"], doc["settings"]["base_config"], doc["pass2"], doc["folds"]
+        except (KeyError, TypeError) as e:
             raise DdynError(f"{path}: not a leave-one-family-out study's results.json (no {e})") from None
-        if not ff:
-            raise DdynError(f"{path}: not scored under a recorded study's folds (a --folds-from run); its own "
-                            "calibration chose on its logs, so it cannot be pooled as blind")
-        if ff != first["settings"]["folds_from"]:
-            raise DdynError(f"{path}: scored under {ff['results']} (seed {ff['seed']}), the first under "
-                            f"{first['settings']['folds_from']['results']} (seed {first['settings']['folds_from']['seed']})")
+    campaigns = [(doc, path) for doc, path in docs if doc["settings"].get("folds_from")]
+    if not campaigns:
+        raise DdynError(f"{docs[0][1]}: not scored under a recorded study's folds (a --folds-from run); give at least "
+                        "one --folds-from campaign, its own calibration chose on its logs")
+    ref, ref_path = campaigns[0][0]["settings"]["folds_from"], campaigns[0][1]
+    first, first_path = docs[0]
+    for doc, path in docs:
+        st, ff = doc["settings"], doc["settings"].get("folds_from")
+        if not ff and (st["seed"] != ref["seed"] or _fold_calibrations(doc) != _fold_calibrations(campaigns[0][0])):
+            raise DdynError(f"{path}: not scored under a recorded study's folds (a --folds-from run) nor the study "
+                            f"{ref_path} was scored under (seed {ref['seed']}); its own calibration chose on its "
+                            "logs, so it cannot be pooled as blind")
+        if ff and ff != ref:
+            raise DdynError(f"{path}: scored under {ff['results']} (seed {ff['seed']}), {ref_path} under "
+                            f"{ref['results']} (seed {ref['seed']})")
         if st["base_config"] != first["settings"]["base_config"]:
             raise DdynError(f"{path}: its diagnosis settings (base_config) differ from {first_path}'s")
         if st["seed"] in seeds:
@@ -573,7 +615,7 @@ def pooled(docs: list[tuple[dict, Path]]) -> dict:
         rows += doc["pass2"]
     folds = {fam: {"calibration": f["calibration"], "score": score([r for r in rows if r["family"] == fam])}
              for fam, f in first["folds"].items()}
-    settings = {**first["settings"], "seed": seeds,
+    settings = {**first["settings"], "seed": seeds, "folds_from": ref,
                 "logs_per_family": sum(d["settings"]["logs_per_family"] for d, _ in docs),
                 # the campaigns' track sets, all of them: a pool of Putnam and road campaigns is not either alone
                 "tracks": "+".join(sorted({d["settings"].get("tracks", "putnam") for d, _ in docs})),
