@@ -184,6 +184,20 @@ def test_a_profile_effect_is_as_large_as_the_road_the_log_drove(monkeypatch):
     assert (s["scored"], s["below_size"]) == (0, 1)
 
 
+def test_the_headline_is_the_worst_family_and_says_how_few_logs_a_family_scored():
+    from ddyn.gap.benchmark import lofo_summary
+
+    cal = {"decision_levels": {e: 1.0 for e in lofo.EFFECTS}, "family_margins_per_row": {e: 0.0 for e in lofo.EFFECTS}}
+    right = _rec("x", "steer_delay", 0.05, 0.05, -90, duration=300.0) | {"claimed": ["steer_delay"]}
+    wrong = _rec("x", "steer_lag", 0.06, 0.06, -90, duration=300.0) | {"claimed": ["steer_delay"]}
+    doc = {"folds": {"a": {"calibration": cal, "score": lofo.score([right, right, right])},
+                     "b": {"calibration": cal, "score": lofo.score([right, wrong])}}}
+    sm = lofo_summary.summary(doc)
+    assert sm["worst"]["first_right"] == {"value": 0.5, "family": "b", "target": 0.95, "met": False}
+    assert (sm["scored_logs"], sm["scored_min"], sm["min_scored"]) == (5, 2, lofo_summary.MIN_SCORED)
+    assert "Fewest scored logs of a family: 2 (at least 60 asked)." in lofo_summary.markdown(sm)
+
+
 def test_the_misses_listed_are_the_logs_behind_the_rates():
     rows = [_rec("x", "steer_delay", 0.05, 0.05, -90, duration=300.0) | {"claimed": ["steer_delay"]},
             _rec("x", "steer_lag", 0.06, 0.06, -90, duration=300.0) | {"claimed": ["steer_delay"], "case": 7},
